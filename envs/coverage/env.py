@@ -1,0 +1,369 @@
+"""The coverage environment: a PettingZoo ``ParallelEnv`` (see ``envs/coverage_v0.py`` for the
+documentation page)."""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+from gymnasium import spaces
+from gymnasium.utils import seeding
+from pettingzoo import ParallelEnv
+
+from envs.coverage import maps, render
+from envs.coverage.observations import OBSERVATIONS, ObservationBuilder
+from envs.coverage.step import credit_new_cells, resolve_moves, thesis_reward
+from envs.coverage.types import CELL_UNVISITED, CELL_VISITED, CELL_WALL, GridState
+
+DEFAULT_REWARDS: dict[str, float] = {"new_cell": 2.0, "wall_hit": -10.0, "step": -1.0}
+#: Attempts at drawing a random map with at least ``n_agents`` free cells before giving up.
+_MAX_MAP_DRAWS = 100
+
+
+class CoverageEnv(ParallelEnv):
+    """N agents cover an unknown grid map together. See the module ``envs.coverage_v0``."""
+
+    metadata: dict[str, Any] = {  # noqa: RUF012 (PettingZoo convention: a class attribute)
+        "name": "coverage_v0",
+        "render_modes": ["rgb_array", "ansi"],
+        "is_parallelizable": True,
+        "render_fps": 10,
+    }
+
+    def __init__(
+        self,
+        map: str | Path = "random",
+        height: int = 50,
+        width: int = 50,
+        wall_fraction: Sequence[float] = (0.15, 0.20),
+        n_agents: int = 4,
+        max_steps: int = 1000,
+        observation: str = "thesis",
+        coords: str = "normalized",
+        rewards: Mapping[str, float] | None = None,
+        starts: Sequence[Sequence[int]] | None = None,
+        render_mode: str | None = None,
+    ) -> None:
+        _check_int("n_agents", n_agents, 1)
+        _check_int("max_steps", max_steps, 1)
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(
+                f"render_mode must be one of {self.metadata['render_modes']} or None, "
+                f"got {render_mode!r}"
+            )
+        if observation not in OBSERVATIONS:
+            raise ValueError(
+                f"observation must be one of {sorted(OBSERVATIONS)}, got {observation!r}"
+            )
+        self.rewards = _check_rewards(rewards)
+
+        self._map_spec: maps.MapSpec | None = None
+        if str(map) == "random":
+            _check_int("height", height, 1)
+            _check_int("width", width, 1)
+            self.wall_fraction = _check_wall_fraction(wall_fraction)
+            if height * width < n_agents:
+                raise ValueError(f"a {height}x{width} map has fewer cells than n_agents={n_agents}")
+        else:
+            self._map_spec = maps.load_map(map)
+            height, width = self._map_spec.grid.shape
+            self.wall_fraction = (0.0, 0.0)
+            n_free = int((~self._map_spec.grid).sum())
+            if n_free < n_agents:
+                raise ValueError(
+                    f"{self._map_spec.source} has {n_free} free cell(s), fewer than "
+                    f"n_agents={n_agents}"
+                )
+        self.map_name = str(map)
+        self.height, self.width = int(height), int(width)
+        self.n_agents, self.max_steps = int(n_agents), int(max_steps)
+        self.render_mode = render_mode
+
+        # Fixed start cells: the constructor's, else the map file's S marks, else random each reset.
+        if starts is not None:
+            self._starts: np.ndarray | None = _as_starts(starts)
+        elif self._map_spec is not None and self._map_spec.starts is not None:
+            self._starts = _as_starts(self._map_spec.starts)
+        else:
+            self._starts = None
+        if self._starts is not None:
+            grid = self._map_spec.grid if self._map_spec is not None else None
+            _check_starts(self._starts, self.n_agents, self.height, self.width, grid)
+
+        self._observer: ObservationBuilder = OBSERVATIONS[observation](
+            self.height, self.width, coords
+        )
+        self.observation_kind, self.coords = observation, coords
+        self.possible_agents = [f"agent_{i}" for i in range(self.n_agents)]
+        self.agents: list[str] = []
+        self._obs_space = self._observer.space()
+        self._act_space = spaces.Discrete(5)
+        self._np_random: np.random.Generator | None = None
+        self._state: GridState | None = None
+        self._walls = np.zeros((self.height, self.width), dtype=bool)
+        self._n_free = 0
+        self._n_visited = 0
+        self._new_cells = np.zeros(self.n_agents, dtype=np.int64)
+        self._wall_hits = np.zeros(self.n_agents, dtype=np.int64)
+
+    # ------------------------------------------------------------------ spaces
+    @functools.cache  # noqa: B019 (PettingZoo wants the same object per agent)
+    def observation_space(self, agent: str) -> spaces.Box:
+        return self._obs_space
+
+    @functools.cache  # noqa: B019
+    def action_space(self, agent: str) -> spaces.Discrete:
+        return self._act_space
+
+    # ------------------------------------------------------------------ read-only state
+    @property
+    def walls(self) -> np.ndarray:
+        """``bool (H, W)``, True = wall (read-only view)."""
+        view = self._walls.view()
+        view.flags.writeable = False
+        return view
+
+    @property
+    def visited(self) -> np.ndarray:
+        """``bool (H, W)``: cells the team has visited (a fresh array)."""
+        return self._require_state().interior == CELL_VISITED
+
+    @property
+    def positions(self) -> np.ndarray:
+        """``int (n_agents, 2)``: each agent's (row, col) (a copy)."""
+        return self._require_state().positions.copy()
+
+    @property
+    def credited_by(self) -> np.ndarray:
+        """``int16 (H, W)``: the agent credited with each visited cell, -1 elsewhere (a copy)."""
+        return self._require_state().credited_by.copy()
+
+    @property
+    def free_cells(self) -> int:
+        """Number of free cells of the current map."""
+        return self._n_free
+
+    @property
+    def coverage(self) -> float:
+        """The team's coverage: visited free cells / free cells."""
+        return self._n_visited / self._n_free if self._n_free else 0.0
+
+    @property
+    def steps(self) -> int:
+        """Steps taken in the current episode."""
+        return self._require_state().steps
+
+    # ------------------------------------------------------------------ API
+    def reset(
+        self, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[str, np.ndarray], dict[str, dict[str, Any]]]:
+        """Start an episode.
+
+        Args:
+            seed: Seeds the env's generator (maps and start cells); later resets without a seed
+                continue that generator, so a seeded env gives a repeatable sequence of episodes.
+            options: ``"grid"`` (2D bool array, True = wall, same shape as the env) and/or
+                ``"starts"`` (``[(row, col), ...]``) fix this episode's map and start cells.
+                Other keys are ignored.
+
+        Returns:
+            Observations and infos. The infos are empty dicts: SuperSuit merges reset infos over
+            the last step's infos at an automatic reset, so metrics in them would hide the
+            episode's final coverage.
+        """
+        if seed is not None or self._np_random is None:
+            self._np_random, _ = seeding.np_random(seed)
+        options = options or {}
+        walls = self._episode_grid(options.get("grid"))
+        starts = self._episode_starts(walls, options.get("starts"))
+
+        pad = self._observer.padding
+        cells = np.full((self.height + 2 * pad, self.width + 2 * pad), CELL_WALL, dtype=np.float32)
+        cells[pad:-pad, pad:-pad] = np.where(walls, CELL_WALL, CELL_UNVISITED)
+        credited_by = np.full((self.height, self.width), -1, dtype=np.int16)
+        self._state = GridState(
+            cells=cells, pad=pad, positions=starts.copy(), credited_by=credited_by
+        )
+        self._walls = walls
+        self._n_free = int((~walls).sum())
+        # Start cells are visited at reset (not credited as new ground); the lowest index owns a
+        # shared start cell, as it would when entering it.
+        credit_new_cells(cells, pad, starts, credited_by)
+        self._n_visited = int((cells == CELL_VISITED).sum())
+        self._new_cells[:] = 0
+        self._wall_hits[:] = 0
+        self.agents = self.possible_agents[:]
+        obs = self._observer.build(self._state)
+        return dict(zip(self.agents, obs)), {a: {} for a in self.agents}
+
+    def step(
+        self, actions: Mapping[str, int]
+    ) -> tuple[
+        dict[str, np.ndarray],
+        dict[str, float],
+        dict[str, bool],
+        dict[str, bool],
+        dict[str, dict[str, Any]],
+    ]:
+        """Move every agent at once (SPEC §2.3) and return PettingZoo's five dicts."""
+        state = self._require_state()
+        if not self.agents:
+            raise RuntimeError("step() called on a finished episode; call reset() first")
+        try:
+            acts = np.fromiter(
+                (actions[a] for a in self.agents), dtype=np.int64, count=self.n_agents
+            )
+        except KeyError as exc:
+            raise ValueError(f"no action given for {exc.args[0]}") from exc
+        if acts.min() < 0 or acts.max() > 4:
+            raise ValueError(f"actions must be in 0..4, got {acts.tolist()}")
+
+        state.positions, hit = resolve_moves(state.cells, state.pad, state.positions, acts)
+        credited = credit_new_cells(state.cells, state.pad, state.positions, state.credited_by)
+        state.steps += 1
+        self._n_visited += int(credited.sum())
+        self._new_cells += credited
+        self._wall_hits += hit
+        reward = thesis_reward(credited, hit, **self.rewards)
+
+        agents = self.agents
+        done = state.steps >= self.max_steps
+        coverage = self._n_visited / self._n_free
+        new_cells, wall_hits = self._new_cells.tolist(), self._wall_hits.tolist()
+        infos: dict[str, dict[str, Any]] = {}
+        for i, a in enumerate(agents):
+            info = {
+                "coverage": coverage,
+                "new_cells": new_cells[i],
+                "wall_hits": wall_hits[i],
+                "steps": state.steps,
+            }
+            if done:
+                # SuperSuit turns truncation into a plain `done`; this key makes SB3 store the
+                # transition as a time-out (bootstrapped), not as a terminal state.
+                info["TimeLimit.truncated"] = True
+            infos[a] = info
+        obs = self._observer.build(state)
+        observations = dict(zip(agents, obs))
+        rewards = dict(zip(agents, reward.tolist()))
+        terminations = dict.fromkeys(agents, False)
+        truncations = dict.fromkeys(agents, done)
+        if done:
+            self.agents = []
+        return observations, rewards, terminations, truncations, infos
+
+    def render(self) -> np.ndarray | str | None:
+        """``rgb_array``: an ``(H*k, W*k, 3)`` uint8 image; ``ansi``: a text picture."""
+        if self.render_mode is None:
+            return None
+        state = self._require_state()
+        if self.render_mode == "ansi":
+            return render.ansi(self._walls, state.interior == CELL_VISITED, state.positions)
+        return render.rgb_array(self._walls, state.credited_by, state.positions)
+
+    def close(self) -> None:
+        pass
+
+    # ------------------------------------------------------------------ helpers
+    def _require_state(self) -> GridState:
+        if self._state is None:
+            raise RuntimeError("call reset() before using the environment")
+        return self._state
+
+    def _episode_grid(self, grid: Any) -> np.ndarray:
+        if grid is not None:
+            walls = np.asarray(grid)
+            if walls.ndim != 2:
+                raise ValueError(f"options['grid'] must be a 2D array, got shape {walls.shape}")
+            if walls.shape != (self.height, self.width):
+                raise ValueError(
+                    f"options['grid'] has shape {walls.shape} but the env was made for "
+                    f"{(self.height, self.width)}; pass height= and width= to match"
+                )
+            walls = walls.astype(bool)
+            n_free = int((~walls).sum())
+            if n_free == 0:
+                raise ValueError("options['grid'] has no free cell")
+            if n_free < self.n_agents:
+                raise ValueError(
+                    f"options['grid'] has {n_free} free cell(s), fewer than "
+                    f"n_agents={self.n_agents}"
+                )
+            maps.warn_if_unreachable(walls, "options['grid']")
+            return walls.copy()
+        if self._map_spec is not None:
+            return self._map_spec.grid.copy()
+        assert self._np_random is not None
+        for _ in range(_MAX_MAP_DRAWS):
+            walls = maps.random_grid(self.height, self.width, self.wall_fraction, self._np_random)
+            if int((~walls).sum()) >= self.n_agents:
+                return walls
+        raise ValueError(
+            f"could not draw a {self.height}x{self.width} map with wall_fraction="
+            f"{self.wall_fraction} that has at least n_agents={self.n_agents} free cells"
+        )
+
+    def _episode_starts(self, walls: np.ndarray, starts: Any) -> np.ndarray:
+        if starts is not None:
+            chosen = _as_starts(starts, "options['starts']")
+        elif self._starts is not None:
+            chosen = self._starts
+        else:
+            assert self._np_random is not None
+            free = np.flatnonzero(~walls)
+            picked = self._np_random.choice(free, size=self.n_agents, replace=False)
+            return np.stack(np.divmod(picked, self.width), axis=1).astype(np.int64)
+        _check_starts(chosen, self.n_agents, self.height, self.width, walls)
+        return chosen
+
+
+# ---------------------------------------------------------------------- validation
+def _check_int(name: str, value: Any, minimum: int) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+
+
+def _check_wall_fraction(value: Any) -> tuple[float, float]:
+    try:
+        lo, hi = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"wall_fraction must be a pair (low, high), got {value!r}") from None
+    if not (0.0 <= lo <= hi < 1.0):
+        raise ValueError(f"wall_fraction must satisfy 0 <= low <= high < 1, got {value!r}")
+    return lo, hi
+
+
+def _check_rewards(rewards: Mapping[str, float] | None) -> dict[str, float]:
+    merged = dict(DEFAULT_REWARDS)
+    if rewards is not None:
+        unknown = set(rewards) - set(DEFAULT_REWARDS)
+        if unknown:
+            raise ValueError(
+                f"unknown reward key(s) {sorted(unknown)}; known: {sorted(DEFAULT_REWARDS)}"
+            )
+        merged.update({k: float(v) for k, v in rewards.items()})
+    return merged
+
+
+def _as_starts(starts: Any, name: str = "starts") -> np.ndarray:
+    arr = np.asarray(starts)
+    if arr.ndim != 2 or arr.shape[1] != 2 or not np.issubdtype(arr.dtype, np.integer):
+        raise ValueError(f"{name} must be a list of integer (row, col) pairs, got {starts!r}")
+    return arr.astype(np.int64)
+
+
+def _check_starts(
+    starts: np.ndarray, n_agents: int, height: int, width: int, walls: np.ndarray | None
+) -> None:
+    if len(starts) != n_agents:
+        raise ValueError(f"{len(starts)} start cell(s) given for n_agents={n_agents}")
+    for r, c in starts.tolist():
+        if not (0 <= r < height and 0 <= c < width):
+            raise ValueError(f"start cell {(r, c)} is off the {height}x{width} map")
+        if walls is not None and walls[r, c]:
+            raise ValueError(f"start cell {(r, c)} is on a wall")
+    if len({tuple(s) for s in starts.tolist()}) != len(starts):
+        raise ValueError(f"start cells must be distinct, got {starts.tolist()}")

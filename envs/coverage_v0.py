@@ -1,0 +1,85 @@
+"""Coverage: a team of agents explores and covers an unknown 2D grid map.
+
+This is the environment of "Multi Agent Exploration with Reinforcement Learning" (2021), as a
+PettingZoo ``ParallelEnv``.
+
+.. code-block:: python
+
+    from envs import coverage_v0
+
+    env = coverage_v0.parallel_env(n_agents=4, max_steps=1000, render_mode="rgb_array")
+    observations, infos = env.reset(seed=42)
+    while env.agents:
+        actions = {agent: env.action_space(agent).sample() for agent in env.agents}
+        observations, rewards, terminations, truncations, infos = env.step(actions)
+    print(infos["agent_0"]["coverage"])
+
+========================  ==========================================================
+Import                    ``from envs import coverage_v0``
+Actions                   Discrete(5): 0 up, 1 down, 2 left, 3 right, 4 stay
+Parallel API              yes (``parallel_env``); AEC through ``env()``
+Agents                    ``agent_0 ... agent_{n-1}``
+Observation shape         (13,) float32 (``observation="thesis"``)
+Observation values        window -1/0/1; coordinates [0, 1] or raw (row, col)
+========================  ==========================================================
+
+**Map.** A grid of free cells and walls; outside the grid counts as wall. ``map="random"`` draws a
+new map each reset: a wall share ``w ~ U(wall_fraction)``, ``round(w*H*W)`` walls on random cells,
+then every free cell outside the largest 4-connected free area is filled, so all free ground is
+reachable. ``map="cave_100x50"`` (or any shipped name, see :func:`envs.coverage.maps.shipped_maps`)
+or a path to a text map (``#`` wall, ``.`` free, ``S`` start) fixes the map.
+
+**Dynamics.** All agents act at once; moves are resolved in index order. A move into a wall or off
+the grid leaves the agent in place and counts as a wall hit; ``stay`` never does. Agents may share
+a cell. The team shares one visited map; start cells are visited at reset. An agent entering an
+unvisited free cell is credited with it (the lower index wins a tie). There is no terminal state:
+all agents are truncated after ``max_steps`` steps, and that step's infos hold
+``"TimeLimit.truncated": True`` so Stable-Baselines3 treats it as a time-out.
+
+**Observation** ``"thesis"``: the 3x3 window around the agent (row-major; -1 unvisited free,
+0 visited free, 1 wall/outside), its own (row, col) and the (row, col) of its nearest teammate
+(Euclidean, ties to the lower index; a lone agent sees itself). ``coords="normalized"`` divides by
+(H-1, W-1); ``"raw"`` gives cell indices. New kinds plug in through
+:data:`envs.coverage.observations.OBSERVATIONS`.
+
+**Reward** (eq. 3.1): ``new_cell * n_new + wall_hit * hit + step``, by default
+``2*new - 10*hit - 1``, per agent.
+
+**Infos** (every step, per agent): ``coverage`` (team: visited / free cells), ``new_cells`` (cells
+credited to this agent so far), ``wall_hits`` (this agent's count so far), ``steps``.
+
+**Arguments** (all keywords): ``map="random"``, ``height=50``, ``width=50``,
+``wall_fraction=(0.15, 0.20)``, ``n_agents=4``, ``max_steps=1000``, ``observation="thesis"``,
+``coords="normalized"``, ``rewards={"new_cell": 2.0, "wall_hit": -10.0, "step": -1.0}``,
+``starts=None`` (fixed start cells, else distinct random free cells each reset),
+``render_mode=None | "rgb_array" | "ansi"``.
+
+``reset(seed=None, options=None)``: ``options={"grid": bool_array, "starts": [(r, c), ...]}`` fixes
+that episode's map and/or start cells. Bad input raises ``ValueError`` naming the problem.
+
+**State for baselines, rendering and tests** (read-only): ``env.walls``, ``env.visited``,
+``env.positions``, ``env.credited_by``, ``env.free_cells``, ``env.coverage``, ``env.steps``.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from pettingzoo.utils import parallel_to_aec
+
+from envs.coverage.env import CoverageEnv
+
+__all__ = ["CoverageEnv", "env", "parallel_env", "raw_env"]
+
+
+def parallel_env(**kwargs: Any) -> CoverageEnv:
+    """Make the parallel environment (the form the harness trains on)."""
+    return CoverageEnv(**kwargs)
+
+
+def raw_env(**kwargs: Any):
+    """Make the AEC form of the environment (agents act in turn)."""
+    return parallel_to_aec(CoverageEnv(**kwargs))
+
+
+env = raw_env

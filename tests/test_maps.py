@@ -1,0 +1,151 @@
+"""Maps (SPEC §2.2): random maps, the text format and its errors, shipped maps, the cave."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy import ndimage
+
+from envs import coverage_v0
+from envs.coverage import maps
+from envs.coverage.cave import generate_cave
+
+
+def n_components(grid: np.ndarray) -> int:
+    return maps.label_free_components(grid)[1]
+
+
+@pytest.mark.parametrize("seed", range(10))
+def test_random_maps_are_connected(seed):
+    grid = maps.random_grid(30, 40, (0.15, 0.35), np.random.default_rng(seed))
+    assert grid.shape == (30, 40)
+    assert n_components(grid) == 1
+
+
+def test_random_maps_are_seeded():
+    a = maps.random_grid(25, 25, (0.15, 0.2), np.random.default_rng(3))
+    b = maps.random_grid(25, 25, (0.15, 0.2), np.random.default_rng(3))
+    c = maps.random_grid(25, 25, (0.15, 0.2), np.random.default_rng(4))
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, c)
+
+
+def test_random_wall_share_is_drawn_from_the_range():
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        grid = maps.random_grid(50, 50, (0.15, 0.20), rng)
+        # Walls placed = round(w * 2500) with w in [0.15, 0.20]; filling pockets only adds walls.
+        assert grid.sum() >= round(0.15 * 2500)
+    shares = [maps.random_grid(50, 50, (0.15, 0.20), rng).mean() for _ in range(50)]
+    assert 0.15 <= np.median(shares) <= 0.24
+    assert np.std(shares) > 0.005  # the share varies from map to map
+
+
+def test_fixed_wall_fraction_places_exactly_that_many_walls_before_filling():
+    grid = maps.random_grid(10, 10, (0.0, 0.0), np.random.default_rng(0))
+    assert not grid.any()
+
+
+def test_fill_unreachable_keeps_the_largest_component():
+    grid = maps.parse_map("..#.\n###.\n.#..\n").grid
+    filled = maps.fill_unreachable(grid)
+    assert maps.count_unreachable(grid) == 3  # (0,0), (0,1), (2,0)
+    assert filled.tolist() == maps.parse_map("###.\n###.\n##..\n").grid.tolist()
+
+
+def test_parse_map_with_starts_and_tolerated_endings():
+    spec = maps.parse_map("#S.#\r\n#..S\r\n\n\n", "m.txt")
+    assert spec.grid.tolist() == [[True, False, False, True], [True, False, False, False]]
+    assert spec.starts == ((0, 1), (1, 3))
+    assert maps.parse_map("..\n..").starts is None
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("..\n.x\n", "m.txt: line 2, column 2: unexpected character 'x'"),
+        ("...\n..\n", "m.txt: line 2: row has 2 columns, expected 3"),
+        ("..\n\n..\n", "m.txt: line 2: row has 0 columns"),
+        ("", "m.txt: map file is empty"),
+        ("##\n##\n", "m.txt: map has no free cell"),
+        ("..\t\n", "line 1, column 3"),
+    ],
+)
+def test_parse_map_errors_name_file_line_and_column(text, message):
+    with pytest.raises(ValueError, match=message.replace("(", r"\(")):
+        maps.parse_map(text, "m.txt")
+
+
+def test_format_map_round_trips():
+    spec = maps.parse_map("#S..\n.#.S\n")
+    text = maps.format_map(spec.grid, list(spec.starts))
+    assert text == "#S..\n.#.S\n"
+
+
+def test_map_file_by_path_and_its_starts(tmp_path):
+    path = tmp_path / "room.txt"
+    path.write_text("#####\n#S.S#\n#...#\n#####\n")
+    env = coverage_v0.parallel_env(map=str(path), n_agents=2)
+    env.reset(seed=0)
+    assert env.positions.tolist() == [[1, 1], [1, 3]]
+    assert env.free_cells == 6
+
+
+def test_map_file_start_count_must_match_n_agents(tmp_path):
+    path = tmp_path / "room.txt"
+    path.write_text("#S.S#\n")
+    with pytest.raises(ValueError, match="2 start cell"):
+        coverage_v0.parallel_env(map=str(path), n_agents=3)
+
+
+def test_malformed_map_file_error_names_the_path(tmp_path):
+    path = tmp_path / "bad.txt"
+    path.write_text("..\n.?\n")
+    with pytest.raises(ValueError, match=r"bad.txt: line 2, column 2"):
+        coverage_v0.parallel_env(map=str(path), n_agents=1)
+
+
+def test_unreachable_cells_in_a_given_map_warn_and_still_count(tmp_path):
+    path = tmp_path / "split.txt"
+    path.write_text("..#..\n")
+    with pytest.warns(UserWarning, match="2 free cell"):
+        env = coverage_v0.parallel_env(map=str(path), n_agents=1)
+    env.reset(seed=0)
+    assert env.free_cells == 4
+
+
+def test_unreachable_cells_in_grid_option_warn():
+    env = coverage_v0.parallel_env(height=1, width=5, n_agents=1)
+    with pytest.warns(UserWarning, match="options"):
+        env.reset(options={"grid": np.array([[False, True, False, False, False]])})
+
+
+def test_cave_is_shipped_and_found_by_name():
+    assert "cave_100x50" in maps.shipped_maps()
+    spec = maps.load_map("cave_100x50")
+    assert spec.grid.shape == (50, 100)
+    env = coverage_v0.parallel_env(map="cave_100x50", n_agents=4)
+    env.reset(seed=0)
+    assert env.walls.shape == (50, 100)
+
+
+def test_cave_is_connected_winding_and_has_dead_ends_and_chambers():
+    grid = maps.load_map("cave_100x50").grid
+    free = ~grid
+    assert n_components(grid) == 1
+    assert 0.3 < free.mean() < 0.6
+    padded = np.pad(free, 1)
+    neighbours = (
+        padded[:-2, 1:-1].astype(int) + padded[2:, 1:-1] + padded[1:-1, :-2] + padded[1:-1, 2:]
+    )
+    dead_ends = free & (neighbours == 1)
+    assert dead_ends.sum() >= 30  # many dead ends
+    # Narrow passages: most free cells have at most two free neighbours.
+    assert (neighbours[free] <= 2).mean() > 0.6
+    # Chambers: some 3x3 blocks are entirely free.
+    open_blocks = ndimage.minimum_filter(free.astype(int), size=3, mode="constant")
+    assert open_blocks.sum() >= 5
+
+
+def test_cave_file_is_what_the_generator_makes():
+    assert np.array_equal(generate_cave(), maps.load_map("cave_100x50").grid)

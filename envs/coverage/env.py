@@ -298,12 +298,22 @@ class CoverageEnv(ParallelEnv):
             return self._map_spec.grid.copy()
         assert self._np_random is not None
         for _ in range(_MAX_MAP_DRAWS):
-            walls = maps.random_grid(self.height, self.width, self.wall_fraction, self._np_random)
-            if int((~walls).sum()) >= self.n_agents:
+            walls = maps.random_grid(
+                self.height, self.width, self.wall_fraction, self._np_random, keep_free=self._starts
+            )
+            if self._starts is not None:
+                if not walls[self._starts[:, 0], self._starts[:, 1]].any():
+                    return walls  # fixed start cells all in the reachable area
+            elif int((~walls).sum()) >= self.n_agents:
                 return walls
+        need = (
+            "keeps the fixed start cells connected"
+            if self._starts is not None
+            else (f"has at least n_agents={self.n_agents} free cells")
+        )
         raise ValueError(
             f"could not draw a {self.height}x{self.width} map with wall_fraction="
-            f"{self.wall_fraction} that has at least n_agents={self.n_agents} free cells"
+            f"{self.wall_fraction} that {need} ({_MAX_MAP_DRAWS} tries)"
         )
 
     def _episode_starts(self, walls: np.ndarray, starts: Any) -> np.ndarray:

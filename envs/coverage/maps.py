@@ -82,19 +82,27 @@ def random_grid(
     width: int,
     wall_fraction: tuple[float, float],
     rng: np.random.Generator,
+    keep_free: np.ndarray | None = None,
 ) -> np.ndarray:
     """Draw a random map as in the thesis (§4), with unreachable pockets filled in.
 
     The wall share ``w`` is drawn uniformly from ``wall_fraction``; ``round(w * height * width)``
     distinct cells become walls; then every free cell outside the largest 4-connected free component
     becomes wall too, so every free cell is reachable from every other.
+
+    Args:
+        keep_free: Optional ``(k, 2)`` cells (fixed start cells) that are never picked as walls.
+            They can still be filled in if walls cut them off; the caller checks.
     """
     lo, hi = wall_fraction
     share = rng.uniform(lo, hi) if hi > lo else lo
     n_cells = height * width
-    n_walls = min(round(share * n_cells), n_cells)
+    candidates = np.arange(n_cells)
+    if keep_free is not None and len(keep_free):
+        candidates = np.setdiff1d(candidates, keep_free[:, 0] * width + keep_free[:, 1])
+    n_walls = min(round(share * n_cells), len(candidates))
     grid = np.zeros(n_cells, dtype=bool)
-    grid[rng.choice(n_cells, size=n_walls, replace=False)] = True
+    grid[rng.choice(candidates, size=n_walls, replace=False)] = True
     return fill_unreachable(grid.reshape(height, width))
 
 

@@ -1,0 +1,379 @@
+"""Proportional prioritized experience replay (Schaul et al., 2015) for Stable-Baselines3.
+
+SB3 ships no prioritized buffer (DLR-RM/stable-baselines3#1242 is still open) and no maintained
+one handles several envs: the open SB3 pull request #1622 leaves multi-env support as a TODO.
+This one is written against SB3's ``ReplayBuffer`` storage layout and handles any ``n_envs``.
+"""
+
+from __future__ import annotations
+
+from typing import Any, NamedTuple
+
+import numpy as np
+import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.type_aliases import ReplayBufferSamples
+from stable_baselines3.common.vec_env import VecNormalize
+
+__all__ = ["PrioritizedReplayBuffer", "PrioritizedReplayBufferSamples", "SumTree"]
+
+
+class SumTree:
+    """Binary sum tree over ``capacity`` non-negative leaves, in float64.
+
+    Node ``1`` is the root, node ``i`` has children ``2i`` and ``2i + 1`` and the leaves live at
+    ``[size, 2 * size)`` where ``size`` is the smallest power of two ``>= capacity``; padding
+    leaves stay zero. Every operation works on whole index/query arrays and loops only over
+    the ``log2(size)`` tree levels, never over items.
+
+    Args:
+        capacity: Number of leaves.
+    """
+
+    def __init__(self, capacity: int) -> None:
+        if capacity < 1:
+            raise ValueError(f"SumTree capacity must be >= 1, got {capacity}")
+        self.capacity = int(capacity)
+        self.size = 1 << (self.capacity - 1).bit_length()
+        # Number of levels below the root; a query descends exactly this many times.
+        self.depth = self.size.bit_length() - 1
+        self.nodes = np.zeros(2 * self.size, dtype=np.float64)
+
+    @property
+    def total(self) -> float:
+        """Sum of all leaves."""
+        return float(self.nodes[1])
+
+    @property
+    def leaves(self) -> np.ndarray:
+        """View of the ``capacity`` leaf values."""
+        return self.nodes[self.size : self.size + self.capacity]
+
+    def get(self, indices: np.ndarray) -> np.ndarray:
+        """Leaf values at ``indices``."""
+        return self.nodes[self.size + np.asarray(indices, dtype=np.int64)]
+
+    def _check_indices(self, indices: np.ndarray) -> None:
+        if indices.size and (indices.min() < 0 or indices.max() >= self.capacity):
+            raise IndexError(f"SumTree indices must lie in [0, {self.capacity})")
+
+    @staticmethod
+    def _check_values(values: np.ndarray) -> None:
+        if values.size and (not np.all(np.isfinite(values)) or values.min() < 0):
+            raise ValueError("SumTree values must be finite and non-negative")
+
+    def update(self, indices: np.ndarray, values: np.ndarray | float) -> None:
+        """Set leaves ``indices`` to ``values`` and refresh their ancestors.
+
+        Duplicate indices are allowed: the last occurrence wins. Parents are recomputed as
+        ``left + right`` rather than shifted by a delta, so no rounding error accumulates.
+
+        Args:
+            indices: Leaf indices, any integer array.
+            values: One value per index, or a scalar for all of them.
+        """
+        indices = np.asarray(indices, dtype=np.int64).ravel()
+        values = np.broadcast_to(np.asarray(values, dtype=np.float64), indices.shape).ravel()
+        self._check_indices(indices)
+        self._check_values(values)
+        # np.unique keeps the first occurrence, so run it on the reversed arrays for last-wins.
+        unique, first_in_reversed = np.unique(indices[::-1], return_index=True)
+        nodes = unique + self.size
+        self.nodes[nodes] = values[::-1][first_in_reversed]
+        for _ in range(self.depth):
+            nodes = np.unique(nodes // 2)
+            self.nodes[nodes] = self.nodes[2 * nodes] + self.nodes[2 * nodes + 1]
+
+    def rebuild(self, values: np.ndarray) -> None:
+        """Replace all ``capacity`` leaves and recompute every internal node, level by level.
+
+        Args:
+            values: The new leaf values, shape ``(capacity,)``.
+        """
+        values = np.asarray(values, dtype=np.float64)
+        if values.shape != (self.capacity,):
+            raise ValueError(f"expected {self.capacity} values, got shape {values.shape}")
+        self._check_values(values)
+        self.nodes[:] = 0.0
+        self.nodes[self.size : self.size + self.capacity] = values
+        for level in reversed(range(self.depth)):
+            start, end = 1 << level, 2 << level
+            self.nodes[start:end] = (
+                self.nodes[2 * start : 2 * end : 2] + self.nodes[2 * start + 1 : 2 * end : 2]
+            )
+
+    def find_prefixsum(self, values: np.ndarray) -> np.ndarray:
+        """For each query ``v``, the leaf ``i`` with ``sum(leaves[:i]) <= v < sum(leaves[:i + 1])``.
+
+        All queries descend together, one tree level per iteration. Queries are clipped to
+        ``>= 0``; a query ``>= total`` (e.g. rounding at the upper edge) returns the last
+        non-zero leaf. A zero leaf is never returned, because the descent only goes right into
+        a subtree with a positive sum.
+
+        Args:
+            values: Prefix-sum queries, any float array.
+
+        Returns:
+            Leaf indices (int64), same shape as ``values``.
+        """
+        if self.total <= 0.0:
+            raise ValueError("cannot search an empty SumTree (total is 0)")
+        queries = np.maximum(np.asarray(values, dtype=np.float64), 0.0)
+        shape = queries.shape
+        queries = queries.ravel().copy()
+        idx = np.ones(queries.shape, dtype=np.int64)
+        for _ in range(self.depth):
+            left = 2 * idx
+            left_sum = self.nodes[left]
+            go_right = (queries >= left_sum) & (self.nodes[left + 1] > 0.0)
+            queries = np.where(go_right, queries - left_sum, queries)
+            idx = left + go_right
+        return (idx - self.size).reshape(shape)
+
+
+class PrioritizedReplayBufferSamples(NamedTuple):
+    """``ReplayBufferSamples`` (same fields, same order) plus the PER fields.
+
+    ``weights`` are the normalised importance-sampling weights, float32 ``(batch, 1)`` like
+    ``rewards`` so they multiply a per-sample loss directly. ``indices`` are the flat buffer
+    indices ``pos * n_envs + env`` to pass back to ``update_priorities``.
+    """
+
+    observations: th.Tensor
+    actions: th.Tensor
+    next_observations: th.Tensor
+    dones: th.Tensor
+    rewards: th.Tensor
+    discounts: th.Tensor | None
+    weights: th.Tensor
+    indices: np.ndarray
+
+
+class PrioritizedReplayBuffer(ReplayBuffer):
+    """Proportional prioritized replay buffer (Schaul et al., 2015, https://arxiv.org/abs/1511.05952).
+
+    A transition with TD error ``delta`` gets the raw priority ``|delta| + eps`` and the
+    sampling priority ``p = (|delta| + eps) ** alpha``; it is drawn with probability
+    ``P(i) = p_i / sum_j p_j`` and carries the importance-sampling weight
+    ``w_i = (N * P(i)) ** -beta / max_j w_j`` where ``N`` is the number of stored transitions
+    and, as in most implementations (OpenAI baselines, Dopamine), the max is taken over the
+    sampled batch, not over the whole buffer. New transitions get the largest raw priority seen
+    so far (a running max that never decreases, initially 1.0), so each is replayed at least
+    about once before its TD error is known.
+
+    Storage is SB3's ``[buffer_size // n_envs, n_envs]`` layout; a transition is addressed by
+    the flat index ``pos * n_envs + env``. Sampling is stratified: ``[0, total)`` is split
+    into ``batch_size`` equal segments with one uniform draw each (using ``np.random``, which
+    SB3 seeds). Raw priorities are kept, so ``alpha`` can be changed at any time and the sum
+    tree is rebuilt from them.
+
+    ``optimize_memory_usage=True`` is not supported (it would make the transition at ``pos``
+    invalid, and that slot would need a zero priority tracked across wrap-arounds): a
+    ``ValueError`` is raised. Dict observation spaces are not supported either.
+
+    Args:
+        buffer_size: Max number of transitions, over all envs (as in SB3).
+        observation_space: Observation space.
+        action_space: Action space.
+        device: PyTorch device for the sampled tensors.
+        n_envs: Number of parallel environments.
+        optimize_memory_usage: Must be ``False``.
+        handle_timeout_termination: As in SB3: a timeout is not a terminal state.
+        alpha: Priority exponent; 0 is uniform sampling, 1 fully proportional.
+        beta: Importance-sampling exponent; 1 fully corrects the sampling bias.
+        eps: Added to ``|delta|`` so that no transition gets a zero probability.
+    """
+
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        device: th.device | str = "auto",
+        n_envs: int = 1,
+        optimize_memory_usage: bool = False,
+        handle_timeout_termination: bool = True,
+        alpha: float = 0.6,
+        beta: float = 0.4,
+        eps: float = 1e-6,
+    ) -> None:
+        if optimize_memory_usage:
+            raise ValueError("PrioritizedReplayBuffer does not support optimize_memory_usage=True")
+        if isinstance(observation_space, spaces.Dict):
+            raise ValueError("PrioritizedReplayBuffer does not support Dict observation spaces")
+        if eps <= 0:
+            raise ValueError(f"eps must be > 0, got {eps}")
+        super().__init__(
+            buffer_size,
+            observation_space,
+            action_space,
+            device=device,
+            n_envs=n_envs,
+            optimize_memory_usage=optimize_memory_usage,
+            handle_timeout_termination=handle_timeout_termination,
+        )
+        self.eps = float(eps)
+        self._alpha = self._check_exponent("alpha", alpha)
+        self.beta = beta
+        # ReplayBuffer has already divided buffer_size by n_envs: one leaf per (pos, env) slot.
+        capacity = self.buffer_size * self.n_envs
+        self._tree = SumTree(capacity)
+        # Raw priorities |delta| + eps (0 = empty slot), kept so that alpha can change later.
+        self._raw_priorities = np.zeros(capacity, dtype=np.float64)
+        self.max_priority = 1.0
+
+    @staticmethod
+    def _check_exponent(name: str, value: float) -> float:
+        value = float(value)
+        if not np.isfinite(value) or value < 0:
+            raise ValueError(f"{name} must be a finite number >= 0, got {value}")
+        return value
+
+    @property
+    def alpha(self) -> float:
+        """Priority exponent; setting it rebuilds the sum tree from the raw priorities."""
+        return self._alpha
+
+    @alpha.setter
+    def alpha(self, value: float) -> None:
+        self._alpha = self._check_exponent("alpha", value)
+        stored = self._raw_priorities > 0.0
+        # Mask empty slots explicitly: 0 ** 0 == 1 would make them sampleable when alpha == 0.
+        leaves = np.zeros_like(self._raw_priorities)
+        leaves[stored] = self._raw_priorities[stored] ** self._alpha
+        self._tree.rebuild(leaves)
+
+    @property
+    def beta(self) -> float:
+        """Importance-sampling exponent, read at every ``sample()``."""
+        return self._beta
+
+    @beta.setter
+    def beta(self, value: float) -> None:
+        self._beta = self._check_exponent("beta", value)
+
+    @property
+    def n_transitions(self) -> int:
+        """Number of stored transitions over all envs (``N`` in the IS weights)."""
+        return self.size() * self.n_envs
+
+    @property
+    def priorities(self) -> np.ndarray:
+        """Copy of the sampling priorities ``p = (|delta| + eps) ** alpha`` by flat index."""
+        return self._tree.leaves.copy()
+
+    @property
+    def raw_priorities(self) -> np.ndarray:
+        """Copy of the raw priorities ``|delta| + eps`` by flat index (0 for empty slots)."""
+        return self._raw_priorities.copy()
+
+    def _set_raw_priorities(self, flat_indices: np.ndarray, raw: np.ndarray) -> None:
+        """Write unique ``flat_indices`` with raw priorities ``raw`` to the array and the tree."""
+        self._raw_priorities[flat_indices] = raw
+        self._tree.update(flat_indices, raw**self._alpha)
+
+    def add(
+        self,
+        obs: np.ndarray,
+        next_obs: np.ndarray,
+        action: np.ndarray,
+        reward: np.ndarray,
+        done: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        """Store one step of all ``n_envs`` envs (as SB3) and give them the max priority."""
+        row = self.pos  # super().add() advances (and wraps) pos
+        super().add(obs, next_obs, action, reward, done, infos)
+        flat = row * self.n_envs + np.arange(self.n_envs, dtype=np.int64)
+        # On wrap-around this overwrites the priorities of the replaced transitions too.
+        self._set_raw_priorities(flat, np.full(self.n_envs, self.max_priority))
+
+    def update_priorities(self, indices: np.ndarray, td_errors: np.ndarray | th.Tensor) -> None:
+        """Set the priorities of the transitions at flat ``indices`` from their TD errors.
+
+        Args:
+            indices: Flat indices, as returned in ``PrioritizedReplayBufferSamples.indices``.
+                Duplicates are allowed; the last occurrence wins.
+            td_errors: TD errors (sign ignored), one per index, numpy or torch.
+        """
+        if isinstance(td_errors, th.Tensor):
+            td_errors = td_errors.detach().cpu().numpy()
+        indices = np.asarray(indices, dtype=np.int64).ravel()
+        errors = np.abs(np.asarray(td_errors, dtype=np.float64)).ravel()
+        if errors.shape != indices.shape:
+            raise ValueError(f"got {indices.size} indices but {errors.size} TD errors")
+        if not np.all(np.isfinite(errors)):
+            raise ValueError("TD errors must be finite")
+        if indices.size == 0:
+            return
+        if indices.min() < 0 or indices.max() >= self._raw_priorities.size:
+            raise IndexError(f"flat indices must lie in [0, {self._raw_priorities.size})")
+        # Dedupe here (last wins) so that the raw array and the tree agree.
+        unique, first_in_reversed = np.unique(indices[::-1], return_index=True)
+        raw = errors[::-1][first_in_reversed] + self.eps
+        self._set_raw_priorities(unique, raw)
+        self.max_priority = max(self.max_priority, float(raw.max()))
+
+    def sample(  # type: ignore[override]
+        self, batch_size: int, env: VecNormalize | None = None
+    ) -> PrioritizedReplayBufferSamples:
+        """Draw a stratified prioritized batch.
+
+        Args:
+            batch_size: Number of transitions.
+            env: Associated ``VecNormalize`` to normalise observations and rewards, as in SB3.
+
+        Returns:
+            The batch, with IS ``weights`` and flat ``indices``.
+        """
+        n_stored = self.n_transitions
+        if n_stored == 0:
+            raise ValueError("cannot sample from an empty PrioritizedReplayBuffer")
+        total = self._tree.total
+        segment = total / batch_size
+        # Global np.random, as SB3's own buffers: seeded by set_random_seed.
+        offsets = np.random.random_sample(batch_size)  # noqa: NPY002
+        queries = (np.arange(batch_size) + offsets) * segment
+        # Only stored slots have non-zero leaves, and find_prefixsum never returns a zero leaf.
+        flat = self._tree.find_prefixsum(queries)
+        probabilities = self._tree.get(flat) / total
+        weights = (n_stored * probabilities) ** (-self._beta)
+        weights /= weights.max()
+        batch_inds, env_inds = np.divmod(flat, self.n_envs)
+        samples = self._get_samples_at(batch_inds, env_inds, env=env)
+        return PrioritizedReplayBufferSamples(
+            *samples,
+            weights=self.to_torch(weights.astype(np.float32).reshape(-1, 1)),
+            indices=flat,
+        )
+
+    def _get_samples_at(
+        self,
+        batch_inds: np.ndarray,
+        env_indices: np.ndarray,
+        env: VecNormalize | None = None,
+    ) -> ReplayBufferSamples:
+        """SB3's ``ReplayBuffer._get_samples`` with the env column given instead of drawn.
+
+        SB3 2.9's ``_get_samples(batch_inds, env)`` draws ``env_indices`` uniformly inside,
+        which would break the mapping flat index -> transition, hence this small twin.
+        """
+        next_obs = self.next_observations[batch_inds, env_indices, :]
+        # As SB3: only dones that are not timeouts are terminal.
+        dones = self.dones[batch_inds, env_indices] * (1 - self.timeouts[batch_inds, env_indices])
+        data = (
+            self._normalize_obs(self.observations[batch_inds, env_indices, :], env),
+            self.actions[batch_inds, env_indices, :],
+            self._normalize_obs(next_obs, env),
+            dones.reshape(-1, 1),
+            self._normalize_reward(self.rewards[batch_inds, env_indices].reshape(-1, 1), env),
+        )
+        return ReplayBufferSamples(*tuple(map(self.to_torch, data)))  # type: ignore[arg-type]
+
+    def reset(self) -> None:
+        """Empty the buffer, its priorities and the max-priority tracker."""
+        super().reset()
+        self._raw_priorities[:] = 0.0
+        self._tree.rebuild(self._raw_priorities)
+        self.max_priority = 1.0

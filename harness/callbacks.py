@@ -1,0 +1,187 @@
+"""SB3 callbacks of a training phase (SPEC §4): schedules, epochs by coverage, episode metrics,
+periodic evaluation and checkpoints. Each is small and does one thing."""
+
+from __future__ import annotations
+
+import csv
+import math
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any, TextIO
+
+import numpy as np
+from stable_baselines3.common.callbacks import BaseCallback
+
+from harness.schedules import PhaseLinearSchedule, epochs_for
+
+
+class LinearScheduleCallback(BaseCallback):
+    """Drive a model schedule linearly over a phase (eq. 4.1).
+
+    SB3 recomputes ``exploration_rate`` from ``model.exploration_schedule`` at every step (and
+    ``DoubleDQN`` does the same for the buffer's β from ``model.beta_schedule``), so assigning the
+    value would be overwritten: this callback installs the schedule itself when the phase starts.
+
+    Args:
+        attribute: ``"exploration_schedule"`` (ε) or ``"beta_schedule"`` (PER β).
+        start: Value at the phase's first step.
+        end: Value after ``steps`` transitions, kept to the end of the phase.
+        steps: Transitions over which the value moves.
+        phase_timesteps: Transitions in the phase (its ``learn()`` call).
+    """
+
+    def __init__(
+        self, attribute: str, start: float, end: float, steps: int, phase_timesteps: int
+    ) -> None:
+        super().__init__()
+        self.attribute = attribute
+        self.schedule = PhaseLinearSchedule(start, end, steps, phase_timesteps)
+
+    def _on_training_start(self) -> None:
+        if self.attribute == "beta_schedule" and not getattr(self.model, "prioritized", False):
+            return  # uniform replay has no β
+        setattr(self.model, self.attribute, self.schedule)
+
+    def _on_step(self) -> bool:
+        return True
+
+
+def recent_coverages(ep_info_buffer: Any, episodes: int, n_agents: int) -> list[float]:
+    """Team coverage of the last ``episodes`` finished episodes from SB3's ``ep_info_buffer``.
+
+    VecMonitor adds one entry per slot, and all agents of a copy finish together with the same
+    team coverage, so ``n_agents`` consecutive entries are one episode.
+    """
+    entries = list(ep_info_buffer)[-episodes * n_agents :]
+    return [float(e["coverage"]) for e in entries[::n_agents] if "coverage" in e]
+
+
+class EpochsByCoverageCallback(BaseCallback):
+    """Set the gradient steps per training call ("epochs", Table 4.1) from recent coverage.
+
+    Before each training call, the median team coverage of the last ``window`` finished episodes
+    picks a row of ``table``; the model's ``gradient_steps`` is set to that row's epochs.
+    """
+
+    def __init__(self, table: list[tuple[float, int]], window: int, n_agents: int) -> None:
+        super().__init__()
+        self.table = [(float(t), int(e)) for t, e in table]
+        self.window = window
+        self.n_agents = n_agents
+
+    def _update(self) -> None:
+        cov = recent_coverages(self.model.ep_info_buffer, self.window, self.n_agents)
+        median = float(np.median(cov)) if cov else None
+        self.model.gradient_steps = epochs_for(median, self.table)
+        self.logger.record("train/epochs", self.model.gradient_steps)
+        if median is not None:
+            self.logger.record("rollout/coverage_median", median)
+
+    def _on_training_start(self) -> None:
+        self._update()
+
+    def _on_rollout_end(self) -> None:
+        self._update()
+
+    def _on_step(self) -> bool:
+        return True
+
+
+EPISODE_COLUMNS = [
+    "episode",
+    "phase",
+    "timesteps",
+    "copy",
+    "coverage",
+    "reward_mean",
+    "wall_hits",
+    "new_cells",
+    "length",
+]
+
+
+class EpisodeLogCallback(BaseCallback):
+    """Write one ``episodes.csv`` row per finished episode and log rollout metrics.
+
+    An episode is one env copy's run of ``max_steps``; its row holds the team's coverage, the mean
+    of the agents' returns, the team's wall hits and the new cells of each agent (``a;b;c``).
+
+    Args:
+        csv_path: The run's ``episodes.csv`` (appended to; the header is written when new).
+        n_agents: Agents per copy.
+        phase: Phase name written in each row.
+        first_episode: Number of the next episode (continues across phases and resumes).
+    """
+
+    def __init__(self, csv_path: Path, n_agents: int, phase: str, first_episode: int = 0) -> None:
+        super().__init__()
+        self.csv_path = Path(csv_path)
+        self.n_agents = n_agents
+        self.phase = phase
+        self.next_episode = first_episode
+        self._file: TextIO | None = None
+        self._writer: Any = None
+
+    def _on_training_start(self) -> None:
+        new = not self.csv_path.exists() or self.csv_path.stat().st_size == 0
+        self._file = self.csv_path.open("a", newline="", encoding="utf-8")
+        self._writer = csv.writer(self._file)
+        if new:
+            self._writer.writerow(EPISODE_COLUMNS)
+
+    def _on_step(self) -> bool:
+        dones = self.locals["dones"]
+        if not dones.any():
+            return True
+        infos = self.locals["infos"]
+        n = self.n_agents
+        for copy in range(len(dones) // n):
+            slots = range(copy * n, copy * n + n)
+            if not all(dones[k] and "episode" in infos[k] for k in slots):
+                continue
+            eps = [infos[k]["episode"] for k in slots]
+            row = {
+                "episode": self.next_episode,
+                "phase": self.phase,
+                "timesteps": self.num_timesteps,
+                "copy": copy,
+                "coverage": float(eps[0]["coverage"]),
+                "reward_mean": float(np.mean([e["r"] for e in eps])),
+                "wall_hits": int(sum(e["wall_hits"] for e in eps)),
+                "new_cells": ";".join(str(int(e["new_cells"])) for e in eps),
+                "length": int(eps[0]["l"]),
+            }
+            self._writer.writerow([row[c] for c in EPISODE_COLUMNS])
+            self.next_episode += 1
+            self.logger.record_mean("rollout/coverage", row["coverage"])
+            self.logger.record_mean("rollout/wall_hits", row["wall_hits"])
+            self.logger.record_mean("rollout/team_reward_mean", row["reward_mean"])
+        assert self._file is not None
+        self._file.flush()
+        return True
+
+    def _on_training_end(self) -> None:
+        if self._file is not None:
+            self._file.close()
+            self._file = None
+
+
+class PeriodicCallback(BaseCallback):
+    """Call ``fn(model)`` every ``every`` transitions (0: never). Transitions arrive in blocks of
+    ``n_envs``, so it fires on the first step at or past each multiple."""
+
+    def __init__(self, every: int, fn: Callable[[Any], None]) -> None:
+        super().__init__()
+        self.every = every
+        self.fn = fn
+        self._next: float = math.inf
+
+    def _on_training_start(self) -> None:
+        if self.every > 0:
+            self._next = (self.num_timesteps // self.every + 1) * self.every
+
+    def _on_step(self) -> bool:
+        if self.num_timesteps >= self._next:
+            self._next = (self.num_timesteps // self.every + 1) * self.every
+            self.fn(self.model)
+        return True

@@ -1,0 +1,93 @@
+"""The ``harness`` command: ``harness run CONFIG.yaml`` and friends (SPEC §5).
+
+Every user error (a bad config, map, path or argument) ends with one line on stderr and exit
+code 2, never a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import warnings
+from collections.abc import Sequence
+from pathlib import Path
+
+from harness.config import ConfigError, ExperimentConfig, load_config
+from harness.rundir import RunDir, RunDirError
+
+EXIT_USAGE = 2
+
+
+class HarnessError(Exception):
+    """A user-facing error: printed as one line, exit code 2."""
+
+
+def _add_overrides(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--set",
+        dest="overrides",
+        action="append",
+        default=[],
+        metavar="KEY.PATH=VALUE",
+        help="override a config key, e.g. --set env.max_steps=500 (repeatable)",
+    )
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="harness",
+        description="Train, evaluate and compare multi-agent coverage policies.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    run = sub.add_parser("run", help="train an experiment from a YAML config")
+    run.add_argument("config", type=Path, help="experiment YAML file (see configs/)")
+    _add_overrides(run)
+    run.add_argument("--seed", type=int, help="override the config's seed")
+    run.add_argument("--name", help="override the config's name (the run folder's prefix)")
+    run.add_argument("--runs-dir", type=Path, default=Path("runs"), help="where runs are written")
+    run.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    return parser
+
+
+def resolve_run_config(args: argparse.Namespace) -> ExperimentConfig:
+    """The config of ``harness run``: the file, then ``--set``, ``--seed`` and ``--name``."""
+    overrides = list(args.overrides)
+    if args.seed is not None:
+        overrides.append(f"seed={args.seed}")
+    if args.name is not None:
+        overrides.append(f"name={json.dumps(args.name)}")
+    return load_config(args.config, overrides)
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    config = resolve_run_config(args)
+    run = RunDir.create(args.runs_dir, config.name)
+    run.write_command()
+    print(f"run folder: {run.path}", file=sys.stderr)
+    from harness.train import train  # heavy imports (torch, SB3) only when training
+
+    train(config, run, progress_bar=not args.no_progress)
+    print(f"done: {run.model}", file=sys.stderr)
+    return 0
+
+
+COMMANDS = {"run": cmd_run}
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``harness`` console script."""
+    args = build_parser().parse_args(argv)
+    try:
+        with warnings.catch_warnings():
+            # Map warnings are worth one line each, not a stack location.
+            warnings.simplefilter("default")
+            return COMMANDS[args.command](args)
+    except (ConfigError, RunDirError, HarnessError) as exc:
+        print(f"harness: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,398 @@
+"""Experiment configuration: typed schema, YAML loading and ``--set`` overrides.
+
+This is the one place that turns a YAML file into objects. Every section is a pydantic model that
+rejects unknown keys, and every default is the thesis's (Table 4.1, SPEC §4). A config looks like::
+
+    name: ddqn_4agents
+    seed: 0
+    env: {n_agents: 4, max_steps: 1000}        # SPEC §2.1 arguments of coverage_v0
+    vec: {copies: 4}                            # env copies; VecEnv slots = copies * n_agents
+    algo: {policy: MlpPolicy, net_arch: [512, 512, 512]}
+    phases:                                     # run in order on one model and one buffer
+      - {name: initial, timesteps: 2000000, ...}
+      - {name: optimizing, timesteps: 1000000, ...}
+    eval: {every: 100000, episodes: 20}
+    checkpoint: {every: 100000}
+
+Step counts (``timesteps``, schedule ``steps``, ``eval.every``, ``checkpoint.every``,
+``target_update_interval``, ``learning_starts``) count transitions, i.e. agent-steps, as SB3's
+``num_timesteps`` does for a VecEnv; ``train_freq`` counts env steps (one step of every slot).
+"""
+
+from __future__ import annotations
+
+import re
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import torch
+import yaml
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    NonNegativeInt,
+    PositiveFloat,
+    PositiveInt,
+    ValidationError,
+    field_validator,
+    model_validator,
+)
+
+from envs import coverage_v0
+from envs.coverage.maps import shipped_maps
+
+
+class ConfigError(ValueError):
+    """A config problem, with a one-line message naming the file and key."""
+
+
+class _Section(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+Fraction = Annotated[float, Field(ge=0.0, le=1.0)]
+
+
+class RewardsConfig(_Section):
+    """Reward weights of eq. 3.1 (SPEC §2.5)."""
+
+    new_cell: float = 2.0
+    wall_hit: float = -10.0
+    step: float = -1.0
+
+
+class EnvConfig(_Section):
+    """Arguments of ``coverage_v0.parallel_env`` (SPEC §2.1)."""
+
+    map: str = "random"
+    height: PositiveInt = 50
+    width: PositiveInt = 50
+    wall_fraction: tuple[float, float] = (0.15, 0.20)
+    n_agents: PositiveInt = 4
+    max_steps: PositiveInt = 1000
+    observation: Literal["thesis"] = "thesis"
+    coords: Literal["normalized", "raw"] = "normalized"
+    rewards: RewardsConfig = RewardsConfig()
+    starts: list[tuple[int, int]] | None = None
+
+    @field_validator("wall_fraction")
+    @classmethod
+    def _fraction_range(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if not 0.0 <= v[0] <= v[1] < 1.0:
+            raise ValueError("must be [low, high] with 0 <= low <= high < 1")
+        return v
+
+    @field_validator("map")
+    @classmethod
+    def _map_exists(cls, v: str) -> str:
+        if v != "random" and v not in shipped_maps() and not Path(v).is_file():
+            raise ValueError(
+                f"{v!r} is not 'random', a shipped map ({', '.join(shipped_maps())}) "
+                "or an existing map file"
+            )
+        return v
+
+    @model_validator(mode="after")
+    def _enough_cells(self) -> EnvConfig:
+        if self.map == "random" and self.n_agents > self.height * self.width:
+            raise ValueError(
+                f"n_agents={self.n_agents} is more than the {self.height}x{self.width} map's cells"
+            )
+        if self.starts is not None and len(self.starts) != self.n_agents:
+            raise ValueError(f"starts has {len(self.starts)} cells for n_agents={self.n_agents}")
+        # The env checks the rest (map file contents, start cells on walls, ...): build one.
+        coverage_v0.parallel_env(**self.kwargs())
+        return self
+
+    def kwargs(self) -> dict[str, Any]:
+        """Keyword arguments for ``coverage_v0.parallel_env``."""
+        out = self.model_dump()
+        out["wall_fraction"] = tuple(out["wall_fraction"])
+        return out
+
+
+class VecConfig(_Section):
+    """How the env is vectorised (SuperSuit): copies of the env, and processes that run them."""
+
+    copies: PositiveInt = 4
+    num_cpus: NonNegativeInt = 0
+    """Processes that step the copies; 0 steps them in the training process."""
+
+
+class AlgoConfig(_Section):
+    """The learner: ``DoubleDQN`` with its policy, buffer and optimizer (SPEC §3)."""
+
+    policy: Literal["MlpPolicy", "DuelingMlpPolicy"] = "MlpPolicy"
+    net_arch: list[PositiveInt] = [512, 512, 512]
+    """Hidden layers; for the dueling policy, each of the value and advantage streams."""
+    dueling_aggregator: Literal["mean", "max"] = "mean"
+    double_q: bool = True
+    gamma: Annotated[float, Field(gt=0.0, le=1.0)] = 0.99
+    buffer_size: PositiveInt = 100_000
+    learning_starts: NonNegativeInt = 1_000
+    target_update_interval: PositiveInt = 10_000
+    optimizer: str = "RMSprop"
+    optimizer_kwargs: dict[str, float | int | bool] = {}
+    max_grad_norm: PositiveFloat = 10.0
+    prioritized: bool = True
+    per_eps: PositiveFloat = 1e-6
+    device: str = "auto"
+    threads: PositiveInt | None = 1
+    """torch CPU threads (``torch.set_num_threads``); ``null`` keeps torch's default."""
+
+    @field_validator("optimizer")
+    @classmethod
+    def _known_optimizer(cls, v: str) -> str:
+        cls_ = getattr(torch.optim, v, None)
+        if not (isinstance(cls_, type) and issubclass(cls_, torch.optim.Optimizer)):
+            raise ValueError(f"unknown torch optimizer {v!r} (e.g. RMSprop, Adam, SGD)")
+        return v
+
+    @field_validator("device")
+    @classmethod
+    def _known_device(cls, v: str) -> str:
+        if v != "auto":
+            try:
+                torch.device(v)
+            except RuntimeError as exc:
+                raise ValueError(f"unknown device {v!r}") from exc
+        return v
+
+
+class LinearScheduleConfig(_Section):
+    """A linear schedule (eq. 4.1): ``start`` → ``end`` over ``steps`` transitions, then ``end``."""
+
+    start: Fraction
+    end: Fraction
+    steps: NonNegativeInt = 0
+
+
+class PhaseConfig(_Section):
+    """One training phase (SPEC §4): its length and every setting that changes between phases."""
+
+    name: str
+    timesteps: PositiveInt
+    learning_rate: PositiveFloat | tuple[PositiveFloat, PositiveFloat] = 5e-5
+    """A constant, or ``[start, end]`` going linearly over the phase."""
+    batch_size: PositiveInt = 32
+    train_freq: PositiveInt = 2
+    alpha: Fraction = 0.55
+    exploration: LinearScheduleConfig = LinearScheduleConfig(start=1.0, end=0.05, steps=0)
+    beta: LinearScheduleConfig = LinearScheduleConfig(start=0.4, end=1.0, steps=0)
+    epochs: list[tuple[Fraction, PositiveInt]] = [(0.0, 1), (0.40, 5), (0.60, 7)]
+    """``(coverage threshold, epochs)`` rows; epochs = gradient steps per training call."""
+    epochs_window: PositiveInt = 20
+    """K: the epochs table follows the median coverage of the last K finished episodes."""
+
+    @field_validator("epochs")
+    @classmethod
+    def _sorted_table(cls, v: list[tuple[float, int]]) -> list[tuple[float, int]]:
+        if not v:
+            raise ValueError("needs at least one (threshold, epochs) row")
+        thresholds = [t for t, _ in v]
+        if thresholds != sorted(thresholds) or len(set(thresholds)) != len(thresholds):
+            raise ValueError("thresholds must be strictly increasing")
+        return v
+
+
+def thesis_phases(
+    initial_steps: int = 1_000_000, optimizing_steps: int = 500_000
+) -> list[PhaseConfig]:
+    """The thesis's two phases (Table 4.1) with the given lengths."""
+    return [
+        PhaseConfig(
+            name="initial",
+            timesteps=initial_steps,
+            exploration=LinearScheduleConfig(start=1.0, end=0.05, steps=initial_steps // 2),
+            beta=LinearScheduleConfig(start=0.4, end=1.0, steps=initial_steps),
+        ),
+        PhaseConfig(
+            name="optimizing",
+            timesteps=optimizing_steps,
+            learning_rate=(5e-6, 1e-6),
+            batch_size=64,
+            train_freq=4,
+            alpha=0.75,
+            exploration=LinearScheduleConfig(start=0.0, end=0.0),
+            beta=LinearScheduleConfig(start=1.0, end=1.0),
+            epochs=[(0.0, 1), (0.40, 3), (0.60, 5)],
+        ),
+    ]
+
+
+class EvalConfig(_Section):
+    """Periodic greedy evaluation during training, and the defaults of ``harness eval``."""
+
+    every: NonNegativeInt = 100_000
+    """Transitions between evaluations; 0 turns periodic evaluation off."""
+    episodes: PositiveInt = 10
+    seed: int = 1_000_003
+    """Seed of the evaluation episodes (different from training seeds: unseen maps)."""
+
+
+class CheckpointConfig(_Section):
+    """Checkpoints (model, replay buffer and training state), written atomically."""
+
+    every: NonNegativeInt = 100_000
+    """Transitions between checkpoints; 0 writes one only at the end of each phase."""
+
+
+_NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.-]{0,63}$")
+
+
+class ExperimentConfig(_Section):
+    """A whole experiment: everything ``harness run`` needs."""
+
+    name: str = "experiment"
+    seed: int = 0
+    env: EnvConfig = EnvConfig()
+    vec: VecConfig = VecConfig()
+    algo: AlgoConfig = AlgoConfig()
+    phases: list[PhaseConfig] = Field(default_factory=thesis_phases)
+    eval: EvalConfig = EvalConfig()
+    checkpoint: CheckpointConfig = CheckpointConfig()
+
+    @field_validator("name")
+    @classmethod
+    def _safe_name(cls, v: str) -> str:
+        # The name becomes a folder under runs/: no separators, no "..", no hidden names.
+        if not _NAME_RE.match(v):
+            raise ValueError(
+                "must be 1-64 characters of letters, digits, '_', '.', '-', starting with a "
+                "letter or digit"
+            )
+        return v
+
+    @field_validator("phases")
+    @classmethod
+    def _phases(cls, v: list[PhaseConfig]) -> list[PhaseConfig]:
+        if not v:
+            raise ValueError("needs at least one phase")
+        names = [p.name for p in v]
+        if len(set(names)) != len(names):
+            raise ValueError(f"phase names must be unique, got {names}")
+        return v
+
+    @property
+    def total_timesteps(self) -> int:
+        """Transitions over all phases."""
+        return sum(p.timesteps for p in self.phases)
+
+    @property
+    def n_slots(self) -> int:
+        """VecEnv slots: one per agent per env copy."""
+        return self.env.n_agents * self.vec.copies
+
+    def to_yaml(self) -> str:
+        """The fully resolved config as YAML (what a run directory keeps)."""
+        return yaml.safe_dump(self.model_dump(mode="json"), sort_keys=False)
+
+
+# ---------------------------------------------------------------------- loading
+def _format_error(source: str, err: ValidationError) -> str:
+    first = err.errors()[0]
+    loc = ".".join(str(p) for p in first["loc"]) or "(top level)"
+    msg = first["msg"].removeprefix("Value error, ")
+    more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
+    return f"{source}: {loc}: {msg}{more}"
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """Split ``a.b.c=value`` into a key path and a YAML-parsed value.
+
+    Raises:
+        ConfigError: when there is no ``=`` or no key.
+    """
+    key, sep, raw = text.partition("=")
+    if not sep or not key.strip():
+        raise ConfigError(f"--set {text!r}: expected key.path=value")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else None
+    except yaml.YAMLError:
+        value = raw  # not YAML: keep the text; the schema decides whether a string fits
+    return key.strip().split("."), value
+
+
+def apply_override(data: dict[str, Any], path: Sequence[str], value: Any, text: str) -> None:
+    """Set ``value`` at ``path`` in nested dicts/lists. List items are picked by index or, for
+    lists of named items such as ``phases``, by name (``phases.optimizing.timesteps=...``)."""
+    node: Any = data
+    for i, key in enumerate(path):
+        last = i == len(path) - 1
+        where = ".".join(path[: i + 1])
+        if isinstance(node, list):
+            idx = _list_index(node, key)
+            if idx is None:
+                raise ConfigError(f"--set {text}: no item {key!r} at {where}")
+            if last:
+                node[idx] = value
+            else:
+                node = node[idx]
+        elif isinstance(node, dict):
+            if last:
+                node[key] = value
+            else:
+                node = node.setdefault(key, {})
+        else:
+            raise ConfigError(f"--set {text}: {'.'.join(path[:i])} is not a section")
+
+
+def _list_index(items: list[Any], key: str) -> int | None:
+    if key.lstrip("-").isdigit():
+        idx = int(key)
+        return idx if -len(items) <= idx < len(items) else None
+    for idx, item in enumerate(items):
+        if isinstance(item, dict) and item.get("name") == key:
+            return idx
+    return None
+
+
+def load_config(path: str | Path, overrides: Sequence[str] = ()) -> ExperimentConfig:
+    """Read a YAML experiment file, apply ``--set`` overrides and validate.
+
+    Raises:
+        ConfigError: with one line naming the file (or the override) and the key.
+    """
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read config ({exc})") from None
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError(f"{path}: {where}invalid YAML ({problem})") from None
+    raw = {} if raw is None else raw
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: the top level must be a mapping of sections")
+    return config_from_dict(raw, str(path), overrides)
+
+
+def config_from_dict(
+    raw: dict[str, Any], source: str = "<config>", overrides: Sequence[str] = ()
+) -> ExperimentConfig:
+    """Validate a config mapping, then apply overrides (on the validated, defaults-filled form so
+    that ``--set phases.initial.timesteps=...`` works even when the file leaves phases out)."""
+    try:
+        config = ExperimentConfig.model_validate(raw)
+    except ValidationError as err:
+        raise ConfigError(_format_error(source, err)) from None
+    if not overrides:
+        return config
+    data = config.model_dump(mode="json")
+    for text in overrides:
+        keys, value = parse_override(text)
+        apply_override(data, keys, value, text)
+    try:
+        return ExperimentConfig.model_validate(data)
+    except ValidationError as err:
+        raise ConfigError(
+            _format_error(f"{source} with --set {' '.join(overrides)}", err)
+        ) from None

@@ -1,0 +1,295 @@
+"""Double DQN with prioritized replay and per-slot epsilon-greedy, on top of SB3's DQN."""
+
+from __future__ import annotations
+
+from typing import Any, ClassVar
+
+import numpy as np
+import torch as th
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.type_aliases import GymEnv, Schedule
+from stable_baselines3.common.utils import ConstantSchedule
+from stable_baselines3.dqn import DQN
+from stable_baselines3.dqn.policies import DQNPolicy
+from torch.nn import functional as F
+
+from harness.buffers import PrioritizedReplayBuffer
+from harness.policies import DuelingDQNPolicy
+from harness.targets import double_q_target, max_q_target
+
+__all__ = ["DoubleDQN", "resolve_optimizer_class"]
+
+
+def resolve_optimizer_class(optimizer: str | type[th.optim.Optimizer]) -> type[th.optim.Optimizer]:
+    """Turn the name of a ``torch.optim`` class (``"RMSprop"``, ``"Adam"``, ...) into the class.
+
+    Classes pass through unchanged, so config files can use names and code can use classes.
+
+    Args:
+        optimizer: A ``torch.optim.Optimizer`` subclass or its name in ``torch.optim``.
+
+    Returns:
+        The optimizer class.
+    """
+    if isinstance(optimizer, str):
+        candidate = getattr(th.optim, optimizer, None)
+        if not (isinstance(candidate, type) and issubclass(candidate, th.optim.Optimizer)):
+            raise ValueError(f"unknown torch optimizer {optimizer!r}: not a class in torch.optim")
+        return candidate
+    if isinstance(optimizer, type) and issubclass(optimizer, th.optim.Optimizer):
+        return optimizer
+    raise ValueError(f"optimizer_class must be a torch.optim.Optimizer subclass, got {optimizer!r}")
+
+
+class DoubleDQN(DQN):
+    """SB3 DQN with Double-Q targets, prioritized replay and per-slot epsilon-greedy.
+
+    Differences from ``stable_baselines3.DQN`` (everything else, including the arguments, is
+    SB3's):
+
+    * ``double_q=True`` (default) bootstraps with ``Q_target(s', argmax_a Q_online(s', a))``;
+      ``double_q=False`` gives SB3's ``max_a Q_target(s', a)``. Per-sample ``discounts`` from
+      SB3's n-step buffer are honoured.
+    * With ``replay_buffer_class=PrioritizedReplayBuffer`` the per-sample Huber loss is
+      weighted by the importance-sampling weights and the priorities are updated with
+      ``|TD error|`` after every gradient step. Any other ``ReplayBuffer`` trains as in SB3.
+    * The default optimizer is ``torch.optim.RMSprop`` (set in ``policy_kwargs`` when it has no
+      ``"optimizer_class"``). ``policy_kwargs["optimizer_class"]`` may also be the name of a
+      ``torch.optim`` class, e.g. ``"Adam"``.
+    * ``predict(deterministic=False)`` draws one exploration coin per observation (per VecEnv
+      slot / agent), instead of SB3's single coin for the whole batch.
+    * ``"DuelingMlpPolicy"`` selects :class:`harness.policies.DuelingDQNPolicy`.
+
+    Schedules. SB3 overwrites ``exploration_rate`` in ``_on_step`` from
+    ``exploration_schedule(progress_remaining)``, so assigning ``exploration_rate`` from a
+    callback has no lasting effect; replace the schedule instead. Likewise ``beta_schedule``
+    (``progress_remaining -> float``, default: constant at the buffer's initial ``beta``) is
+    written to ``replay_buffer.beta`` at every env step. Both are rebuilt by ``_setup_model``
+    (so also by ``load``) and are not saved: a callback replacing them should do it in
+    ``_on_training_start``. ``alpha`` is changed directly: ``model.replay_buffer.alpha = 0.5``.
+
+    Args:
+        policy: Policy class or alias (``"MlpPolicy"``, ``"DuelingMlpPolicy"``, ...).
+        env: Environment (a VecEnv with several slots is fine).
+        learning_rate: Learning rate, constant or schedule.
+        buffer_size: Replay buffer size, over all envs.
+        learning_starts: Env steps before learning starts.
+        batch_size: Minibatch size.
+        tau: Soft update coefficient (1 = hard target update).
+        gamma: Discount factor.
+        train_freq: Train every ``train_freq`` steps, or ``(n, "step" | "episode")``.
+        gradient_steps: Gradient steps per rollout; ``-1`` = as many as env steps collected.
+        replay_buffer_class: Replay buffer class, e.g. :class:`PrioritizedReplayBuffer`.
+        replay_buffer_kwargs: Its keyword arguments, e.g. ``dict(alpha=0.6, beta=0.4)``.
+        optimize_memory_usage: As SB3 (not supported by the prioritized buffer).
+        n_steps: n-step returns with SB3's buffer (only when ``replay_buffer_class`` is None).
+        target_update_interval: Env steps between target network updates.
+        exploration_fraction: Fraction of training over which epsilon decays.
+        exploration_initial_eps: Initial epsilon.
+        exploration_final_eps: Final epsilon.
+        max_grad_norm: Gradient clipping norm.
+        stats_window_size: Episodes averaged in the rollout logs.
+        tensorboard_log: Tensorboard log directory.
+        policy_kwargs: Policy keyword arguments (``net_arch``, ``aggregator``,
+            ``optimizer_class``, ``optimizer_kwargs``, ...).
+        verbose: Verbosity level.
+        seed: Random seed.
+        device: Torch device.
+        double_q: Use the Double-DQN target.
+        _init_setup_model: Build the networks now (``False`` is used by ``load``).
+    """
+
+    policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
+        **DQN.policy_aliases,
+        "DuelingMlpPolicy": DuelingDQNPolicy,
+    }
+    beta_schedule: Schedule
+
+    def __init__(
+        self,
+        policy: str | type[DQNPolicy],
+        env: GymEnv | str,
+        learning_rate: float | Schedule = 1e-4,
+        buffer_size: int = 1_000_000,
+        learning_starts: int = 100,
+        batch_size: int = 32,
+        tau: float = 1.0,
+        gamma: float = 0.99,
+        train_freq: int | tuple[int, str] = 4,
+        gradient_steps: int = 1,
+        replay_buffer_class: type[ReplayBuffer] | None = None,
+        replay_buffer_kwargs: dict[str, Any] | None = None,
+        optimize_memory_usage: bool = False,
+        n_steps: int = 1,
+        target_update_interval: int = 10000,
+        exploration_fraction: float = 0.1,
+        exploration_initial_eps: float = 1.0,
+        exploration_final_eps: float = 0.05,
+        max_grad_norm: float = 10,
+        stats_window_size: int = 100,
+        tensorboard_log: str | None = None,
+        policy_kwargs: dict[str, Any] | None = None,
+        verbose: int = 0,
+        seed: int | None = None,
+        device: th.device | str = "auto",
+        double_q: bool = True,
+        _init_setup_model: bool = True,
+    ) -> None:
+        # Copy: the caller's dict must not change, and the resolved class (not a string) is
+        # what gets saved with the model.
+        policy_kwargs = dict(policy_kwargs or {})
+        policy_kwargs["optimizer_class"] = resolve_optimizer_class(
+            policy_kwargs.get("optimizer_class", th.optim.RMSprop)
+        )
+        super().__init__(
+            policy,
+            env,
+            learning_rate=learning_rate,
+            buffer_size=buffer_size,
+            learning_starts=learning_starts,
+            batch_size=batch_size,
+            tau=tau,
+            gamma=gamma,
+            train_freq=train_freq,
+            gradient_steps=gradient_steps,
+            replay_buffer_class=replay_buffer_class,
+            replay_buffer_kwargs=replay_buffer_kwargs,
+            optimize_memory_usage=optimize_memory_usage,
+            n_steps=n_steps,
+            target_update_interval=target_update_interval,
+            exploration_fraction=exploration_fraction,
+            exploration_initial_eps=exploration_initial_eps,
+            exploration_final_eps=exploration_final_eps,
+            max_grad_norm=max_grad_norm,
+            stats_window_size=stats_window_size,
+            tensorboard_log=tensorboard_log,
+            policy_kwargs=policy_kwargs,
+            verbose=verbose,
+            seed=seed,
+            device=device,
+            _init_setup_model=False,
+        )
+        self.double_q = double_q
+        if _init_setup_model:
+            self._setup_model()
+
+    @property
+    def prioritized(self) -> bool:
+        """Whether the replay buffer is a :class:`PrioritizedReplayBuffer`."""
+        return isinstance(self.replay_buffer, PrioritizedReplayBuffer)
+
+    def _setup_model(self) -> None:
+        super()._setup_model()
+        initial_beta = self.replay_buffer.beta if self.prioritized else 0.0  # type: ignore[union-attr]
+        self.beta_schedule = ConstantSchedule(initial_beta)
+
+    def _on_step(self) -> None:
+        super()._on_step()
+        if self.prioritized:
+            self.replay_buffer.beta = self.beta_schedule(self._current_progress_remaining)  # type: ignore[union-attr]
+
+    def _excluded_save_params(self) -> list[str]:
+        # Both schedules are rebuilt by _setup_model on load; saving them would only pickle
+        # whatever closure a callback installed (possibly holding the callback or the model).
+        return [*super()._excluded_save_params(), "exploration_schedule", "beta_schedule"]
+
+    def train(self, gradient_steps: int, batch_size: int = 100) -> None:
+        """SB3's DQN update with Double-Q targets and prioritized replay when configured."""
+        self.policy.set_training_mode(True)
+        self._update_learning_rate(self.policy.optimizer)
+        buffer = self.replay_buffer
+        assert buffer is not None
+        prioritized = isinstance(buffer, PrioritizedReplayBuffer)
+
+        losses: list[float] = []
+        td_errors: list[float] = []
+        for _ in range(gradient_steps):
+            replay_data = buffer.sample(batch_size, env=self._vec_normalize_env)
+            # n-step samples carry gamma**k per sample; plain/prioritized samples do not.
+            discounts = getattr(replay_data, "discounts", None)
+            if discounts is None:
+                discounts = self.gamma
+
+            with th.no_grad():
+                next_q_target = self.q_net_target(replay_data.next_observations)
+                if self.double_q:
+                    next_q_online = self.q_net(replay_data.next_observations)
+                    target_q = double_q_target(
+                        replay_data.rewards,
+                        replay_data.dones,
+                        discounts,
+                        next_q_online,
+                        next_q_target,
+                    )
+                else:
+                    target_q = max_q_target(
+                        replay_data.rewards, replay_data.dones, discounts, next_q_target
+                    )
+
+            current_q = th.gather(
+                self.q_net(replay_data.observations), dim=1, index=replay_data.actions.long()
+            )
+            # Per-sample Huber loss so that the IS weights can scale each term.
+            per_sample_loss = F.smooth_l1_loss(current_q, target_q, reduction="none")
+            if prioritized:
+                loss = (replay_data.weights * per_sample_loss).mean()  # type: ignore[union-attr]
+            else:
+                loss = per_sample_loss.mean()
+            losses.append(loss.item())
+
+            self.policy.optimizer.zero_grad()
+            loss.backward()
+            th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
+            self.policy.optimizer.step()
+
+            abs_td = (current_q.detach() - target_q).abs().reshape(-1)
+            td_errors.append(abs_td.mean().item())
+            if prioritized:
+                # Errors from before this step's update, as in Schaul et al. (Algorithm 1).
+                buffer.update_priorities(replay_data.indices, abs_td.cpu().numpy())  # type: ignore[union-attr]
+
+        self._n_updates += gradient_steps
+        self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
+        self.logger.record("train/loss", np.mean(losses))
+        self.logger.record("train/mean_td_error", np.mean(td_errors))
+        if prioritized:
+            self.logger.record("train/beta", buffer.beta)  # type: ignore[union-attr]
+            self.logger.record("train/alpha", buffer.alpha)  # type: ignore[union-attr]
+
+    def predict(
+        self,
+        observation: np.ndarray | dict[str, np.ndarray],
+        state: tuple[np.ndarray, ...] | None = None,
+        episode_start: np.ndarray | None = None,
+        deterministic: bool = False,
+    ) -> tuple[np.ndarray, tuple[np.ndarray, ...] | None]:
+        """Epsilon-greedy with an independent coin per observation in the batch.
+
+        SB3's ``DQN.predict`` draws one coin for the whole batch, so all VecEnv slots (all
+        agents of a SuperSuit-vectorised PettingZoo env) explore or exploit together. Here
+        each slot explores with probability ``exploration_rate`` on its own, vectorised.
+
+        Args:
+            observation: One observation or a batch (one per VecEnv slot).
+            state: Unused (no recurrent policies), passed through.
+            episode_start: Unused, passed through.
+            deterministic: Greedy actions only.
+
+        Returns:
+            The actions (shape as SB3's: ``(n,)`` for a batch, ``()`` for one observation)
+            and the state.
+        """
+        action, state = self.policy.predict(observation, state, episode_start, deterministic)
+        if deterministic or self.exploration_rate <= 0.0:
+            return action, state
+        greedy = np.asarray(action)
+        flat = greedy.reshape(-1)
+        n_actions = int(self.action_space.n)  # type: ignore[attr-defined]
+        # The global np.random is what SB3 seeds in set_random_seed (and uses itself), so runs
+        # stay reproducible with `seed=`. Random actions are in [0, n) like the greedy argmax
+        # (SB3's Q-network ignores Discrete.start).
+        explore = np.random.random_sample(flat.shape[0]) < self.exploration_rate  # noqa: NPY002
+        random_actions = np.random.randint(n_actions, size=flat.shape[0])  # noqa: NPY002
+        mixed = np.where(explore, random_actions, flat).astype(flat.dtype, copy=False)
+        return mixed.reshape(greedy.shape), state

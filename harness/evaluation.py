@@ -1,0 +1,136 @@
+"""Greedy evaluation on fresh, seeded episodes (SPEC §2.6 metrics).
+
+Episode ``k`` of an evaluation with seed ``s`` is the env reset with seed ``s + k``, whatever the
+number of copies stepped side by side, so results are repeatable and comparable between policies
+(a trained model, the random or the frontier baseline all see the same maps and start cells).
+All agents of all copies go through the policy in one batched call per step.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from envs import coverage_v0
+from harness.config import EnvConfig
+
+#: A batched policy: observations ``(n, obs_dim)`` of every agent of every copy → actions ``(n,)``.
+BatchPolicy = Callable[[np.ndarray], np.ndarray]
+
+#: Fractions of the episode at which coverage is recorded (Table 4.2).
+CHECKPOINT_FRACTIONS = (0.33, 0.66, 1.0)
+
+
+@dataclass
+class EpisodeResult:
+    """Metrics of one finished episode."""
+
+    coverage: float
+    """Team coverage at the end (visited free cells / free cells)."""
+    coverage_at: list[float]
+    """Team coverage at 33 %, 66 % and 100 % of the episode."""
+    wall_hits: list[int]
+    """Per agent."""
+    new_cells: list[int]
+    """Per agent: cells credited to it."""
+    steps: int
+    free_cells: int
+    paths: list[np.ndarray] = field(default_factory=list)
+    """Per agent ``(steps + 1, 2)`` positions, when recorded."""
+
+
+def model_policy(model: Any) -> BatchPolicy:
+    """A greedy (ε = 0) batched policy from an SB3 model."""
+
+    def act(obs: np.ndarray) -> np.ndarray:
+        actions, _ = model.policy.predict(obs, deterministic=True)
+        return np.asarray(actions)
+
+    return act
+
+
+def run_episodes(
+    policy: BatchPolicy,
+    env: EnvConfig,
+    episodes: int,
+    seed: int,
+    copies: int = 8,
+    record_paths: bool = False,
+) -> list[EpisodeResult]:
+    """Run ``episodes`` seeded episodes with ``policy`` and return their metrics in order."""
+    kwargs = env.kwargs()
+    n_copies = max(1, min(copies, episodes))
+    envs = [coverage_v0.parallel_env(**kwargs) for _ in range(n_copies)]
+    n_agents, max_steps = env.n_agents, env.max_steps
+    marks = [max(1, round(f * max_steps)) for f in CHECKPOINT_FRACTIONS]
+    results: list[EpisodeResult] = []
+    for first in range(0, episodes, n_copies):
+        batch = envs[: min(n_copies, episodes - first)]
+        obs = [e.reset(seed=seed + first + i)[0] for i, e in enumerate(batch)]
+        paths = [[e.positions] for e in batch] if record_paths else None
+        at: list[list[float]] = [[] for _ in batch]
+        infos: list[dict[str, Any]] = []
+        for t in range(1, max_steps + 1):
+            stacked = np.concatenate([np.stack(list(o.values())) for o in obs])
+            actions = policy(stacked).reshape(len(batch), n_agents).tolist()
+            obs, infos = [], []
+            for i, e in enumerate(batch):
+                o, _, _, _, info = e.step(dict(zip(e.possible_agents, actions[i])))
+                obs.append(o)
+                infos.append(info)
+                if paths is not None:
+                    paths[i].append(e.positions)
+                if t in marks:  # a short episode can hit one step for two marks
+                    at[i].extend([e.coverage] * marks.count(t))
+        for i, e in enumerate(batch):
+            info = infos[i]
+            results.append(
+                EpisodeResult(
+                    coverage=e.coverage,
+                    coverage_at=at[i],
+                    wall_hits=[info[a]["wall_hits"] for a in e.possible_agents],
+                    new_cells=[info[a]["new_cells"] for a in e.possible_agents],
+                    steps=max_steps,
+                    free_cells=e.free_cells,
+                    paths=list(np.stack(paths[i], axis=1)) if paths is not None else [],
+                )
+            )
+    return results
+
+
+def summarize(results: list[EpisodeResult]) -> dict[str, Any]:
+    """The thesis's numbers over a list of episodes (all fractions in [0, 1])."""
+    cov = np.array([r.coverage for r in results])
+    q1, q3 = np.percentile(cov, [25, 75])
+    n_agents = len(results[0].new_cells)
+    per_agent = []
+    for k in range(n_agents):
+        credited = np.array([r.new_cells[k] for r in results], dtype=float)
+        per_agent.append(
+            {
+                "agent": f"agent_{k}",
+                "useful_coverage": float(np.mean(credited / [r.steps for r in results])),
+                "total_coverage": float(np.mean(credited / [r.free_cells for r in results])),
+            }
+        )
+    at = np.array([r.coverage_at for r in results])
+    return {
+        "episodes": len(results),
+        "coverage_median": float(np.median(cov)),
+        "coverage_mean": float(cov.mean()),
+        "coverage_iqr": float(q3 - q1),
+        "coverage_q1": float(q1),
+        "coverage_q3": float(q3),
+        "coverage_min": float(cov.min()),
+        "coverage_max": float(cov.max()),
+        "coverage_at_median": {
+            f"{round(f * 100)}%": float(v)
+            for f, v in zip(CHECKPOINT_FRACTIONS, np.median(at, axis=0))
+        },
+        "wall_hits_mean": float(np.mean([sum(r.wall_hits) for r in results])),
+        "wall_hits_episodes": int(sum(1 for r in results if sum(r.wall_hits) > 0)),
+        "per_agent": per_agent,
+    }

@@ -1,0 +1,128 @@
+"""The run directory: the one module that knows where a run's files live.
+
+``runs/<name>-<UTC timestamp>/`` holds::
+
+    config.yaml        the fully resolved config
+    command.txt        the command line that started (or resumed) the run
+    tb/                TensorBoard events
+    checkpoints/       latest checkpoint (model, replay buffer, training state)
+    episodes.csv       one row per finished training episode
+    model.zip          the final model
+    best_model.zip     the model with the best periodic evaluation so far
+    eval.json          written by ``harness eval``
+
+An existing run directory is never overwritten, and every file that matters is written
+atomically (a temporary file in the same folder, then a rename).
+"""
+
+from __future__ import annotations
+
+import os
+import shlex
+import sys
+import tempfile
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+
+
+class RunDirError(OSError):
+    """A run folder that cannot be created or read, with a one-line message."""
+
+
+@dataclass(frozen=True)
+class RunDir:
+    """Paths of one run."""
+
+    path: Path
+
+    @property
+    def config(self) -> Path:
+        return self.path / "config.yaml"
+
+    @property
+    def command(self) -> Path:
+        return self.path / "command.txt"
+
+    @property
+    def tb(self) -> Path:
+        return self.path / "tb"
+
+    @property
+    def checkpoints(self) -> Path:
+        return self.path / "checkpoints"
+
+    @property
+    def episodes_csv(self) -> Path:
+        return self.path / "episodes.csv"
+
+    @property
+    def model(self) -> Path:
+        return self.path / "model.zip"
+
+    @property
+    def best_model(self) -> Path:
+        return self.path / "best_model.zip"
+
+    @property
+    def eval_json(self) -> Path:
+        return self.path / "eval.json"
+
+    @classmethod
+    def create(cls, root: str | Path, name: str, now: datetime | None = None) -> RunDir:
+        """Make a new ``<root>/<name>-<UTC timestamp>`` folder; never reuse an existing one.
+
+        Raises:
+            RunDirError: when ``root`` cannot be created or written.
+        """
+        stamp = (now or datetime.now(timezone.utc)).strftime("%Y%m%dT%H%M%SZ")
+        root = Path(root)
+        try:
+            root.mkdir(parents=True, exist_ok=True)
+            for attempt in range(1000):
+                suffix = "" if attempt == 0 else f"-{attempt}"
+                path = root / f"{name}-{stamp}{suffix}"
+                try:
+                    path.mkdir()  # fails if it exists: two runs in one second get -1, -2, ...
+                except FileExistsError:
+                    continue
+                run = cls(path)
+                run.tb.mkdir()
+                run.checkpoints.mkdir()
+                return run
+        except OSError as exc:
+            raise RunDirError(
+                f"{root}: cannot create a run folder ({exc.strerror or exc})"
+            ) from None
+        raise RunDirError(f"{root}: too many runs named {name!r} in one second")
+
+    def write_command(self, argv: Sequence[str] | None = None) -> None:
+        """Append the command line (a resumed run gets a second line)."""
+        argv = list(sys.argv if argv is None else argv)
+        with self.command.open("a", encoding="utf-8") as f:
+            f.write(shlex.join(["harness", *argv[1:]]) + "\n")
+
+
+def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
+    """Write a file through ``write(tmp_path)`` then rename it into place.
+
+    A crash leaves either the old file or the new one, never a half-written file.
+    """
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    tmp_path = Path(tmp)
+    os.chmod(tmp_path, 0o644)  # mkstemp makes 0600; a run's files are ordinary readable files
+    try:
+        write(tmp_path)
+        with tmp_path.open("rb") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp_path, path)
+    finally:
+        tmp_path.unlink(missing_ok=True)
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Atomically write a text file."""
+    atomic_write(path, lambda p: p.write_text(text, encoding="utf-8"))

@@ -1,0 +1,101 @@
+"""TD targets for Q-learning, as small pure torch functions.
+
+Both functions follow SB3's conventions: ``rewards`` and ``dones`` are ``(batch, 1)`` float
+tensors (``(batch,)`` is accepted and reshaped), the next-state Q-values are
+``(batch, n_actions)`` and ``discounts`` is either a float ``gamma`` or a ``(batch, 1)`` tensor
+(SB3's ``NStepReplayBuffer`` returns per-sample ``gamma ** k``). The result is ``(batch, 1)``.
+
+They carry no autograd state of their own: call them under ``torch.no_grad()`` as the
+training loop does.
+"""
+
+from __future__ import annotations
+
+import torch as th
+
+__all__ = ["double_q_target", "max_q_target"]
+
+
+def _as_column(x: th.Tensor, name: str, batch_size: int) -> th.Tensor:
+    """Reshape ``x`` to ``(batch, 1)``.
+
+    A ``(batch,)`` tensor broadcast against a ``(batch, 1)`` one silently becomes
+    ``(batch, batch)``, so shapes are normalised and checked here rather than trusted.
+    """
+    if x.numel() != batch_size:
+        raise ValueError(f"{name} has {x.numel()} elements, expected {batch_size} (one per sample)")
+    return x.reshape(-1, 1)
+
+
+def _prepare(
+    rewards: th.Tensor,
+    dones: th.Tensor,
+    discounts: th.Tensor | float,
+    next_q: th.Tensor,
+) -> tuple[th.Tensor, th.Tensor, th.Tensor | float]:
+    if next_q.dim() != 2:
+        raise ValueError(
+            f"next-state Q-values must be (batch, n_actions), got {tuple(next_q.shape)}"
+        )
+    batch_size = next_q.shape[0]
+    rewards = _as_column(rewards, "rewards", batch_size)
+    dones = _as_column(dones, "dones", batch_size)
+    if isinstance(discounts, th.Tensor):
+        discounts = _as_column(discounts, "discounts", batch_size)
+    return rewards, dones, discounts
+
+
+def max_q_target(
+    rewards: th.Tensor,
+    dones: th.Tensor,
+    discounts: th.Tensor | float,
+    next_q_target: th.Tensor,
+) -> th.Tensor:
+    """Plain DQN target, as in SB3: ``r + discount * (1 - done) * max_a Q_target(s', a)``.
+
+    Args:
+        rewards: Rewards, ``(batch, 1)``.
+        dones: Termination flags (timeouts already removed), ``(batch, 1)``.
+        discounts: ``gamma`` or per-sample discounts ``(batch, 1)``.
+        next_q_target: Target-network Q-values of the next observations, ``(batch, n_actions)``.
+
+    Returns:
+        The TD target, ``(batch, 1)``.
+    """
+    rewards, dones, discounts = _prepare(rewards, dones, discounts, next_q_target)
+    next_q = next_q_target.max(dim=1, keepdim=True).values
+    return rewards + discounts * (1.0 - dones) * next_q
+
+
+def double_q_target(
+    rewards: th.Tensor,
+    dones: th.Tensor,
+    discounts: th.Tensor | float,
+    next_q_online: th.Tensor,
+    next_q_target: th.Tensor,
+) -> th.Tensor:
+    """Double-DQN target (van Hasselt et al., 2016).
+
+    ``r + discount * (1 - done) * Q_target(s', argmax_a Q_online(s', a))``: the online network
+    selects the action and the target network evaluates it, which removes the maximisation
+    bias of :func:`max_q_target`.
+
+    Args:
+        rewards: Rewards, ``(batch, 1)``.
+        dones: Termination flags (timeouts already removed), ``(batch, 1)``.
+        discounts: ``gamma`` or per-sample discounts ``(batch, 1)``.
+        next_q_online: Online-network Q-values of the next observations, ``(batch, n_actions)``.
+        next_q_target: Target-network Q-values of the next observations, ``(batch, n_actions)``.
+
+    Returns:
+        The TD target, ``(batch, 1)``.
+    """
+    if next_q_online.shape != next_q_target.shape:
+        raise ValueError(
+            "online and target Q-values must have the same shape, got "
+            f"{tuple(next_q_online.shape)} and {tuple(next_q_target.shape)}"
+        )
+    rewards, dones, discounts = _prepare(rewards, dones, discounts, next_q_target)
+    greedy_actions = next_q_online.argmax(dim=1, keepdim=True)
+    next_q = th.gather(next_q_target, dim=1, index=greedy_actions)
+    return rewards + discounts * (1.0 - dones) * next_q

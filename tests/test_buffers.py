@@ -1,0 +1,331 @@
+"""SumTree and PrioritizedReplayBuffer: invariants, sampling law, IS weights, multi-env layout."""
+
+from __future__ import annotations
+
+import pickle
+
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from stable_baselines3.common.type_aliases import ReplayBufferSamples
+from stable_baselines3.common.utils import set_random_seed
+
+from harness.buffers import PrioritizedReplayBuffer, PrioritizedReplayBufferSamples, SumTree
+
+OBS_SPACE = spaces.Box(-1e6, 1e6, shape=(2,), dtype=np.float32)
+ACTION_SPACE = spaces.Discrete(4)
+
+
+def make_buffer(buffer_size: int, n_envs: int = 1, **kwargs: float) -> PrioritizedReplayBuffer:
+    return PrioritizedReplayBuffer(
+        buffer_size, OBS_SPACE, ACTION_SPACE, device="cpu", n_envs=n_envs, **kwargs
+    )
+
+
+def add_step(
+    buffer: PrioritizedReplayBuffer,
+    step: int,
+    done: bool = False,
+    truncated: bool = False,
+) -> None:
+    """Add one step of all envs; the transition of (step, env) is recognisable by its values."""
+    n = buffer.n_envs
+    envs = np.arange(n)
+    obs = np.stack([10.0 * step + envs, -np.ones(n)], axis=1).astype(np.float32)
+    next_obs = obs + 0.5
+    buffer.add(
+        obs,
+        next_obs,
+        np.full(n, step % 4),
+        (100.0 * step + envs).astype(np.float32),
+        np.full(n, done),
+        [{"TimeLimit.truncated": truncated} for _ in range(n)],
+    )
+
+
+def check_tree(tree: SumTree) -> None:
+    """Every internal node is the sum of its children; the root is the sum of the leaves."""
+    internal = np.arange(1, tree.size)
+    np.testing.assert_array_equal(
+        tree.nodes[internal], tree.nodes[2 * internal] + tree.nodes[2 * internal + 1]
+    )
+    assert tree.total == tree.nodes[tree.size :].sum()
+
+
+# ---------------------------------------------------------------------------------- SumTree
+
+
+# Integer-valued priorities keep every sum exact in float64, so the checks can be exact.
+updates_strategy = st.lists(
+    st.tuples(st.integers(0, 1000), st.integers(0, 50)), min_size=1, max_size=60
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    capacity=st.integers(1, 37),
+    batches=st.lists(updates_strategy, min_size=1, max_size=4),
+    fractions=st.lists(st.floats(0.0, 1.0, exclude_max=True), min_size=1, max_size=30),
+)
+def test_sum_tree_invariants_under_random_updates(
+    capacity: int, batches: list[list[tuple[int, int]]], fractions: list[float]
+) -> None:
+    tree = SumTree(capacity)
+    reference = np.zeros(capacity)
+    for batch in batches:
+        indices = np.array([i % capacity for i, _ in batch])
+        values = np.array([float(v) for _, v in batch])
+        tree.update(indices, values)
+        for i, v in zip(indices, values, strict=True):  # sequential = last write wins
+            reference[i] = v
+        check_tree(tree)
+        np.testing.assert_array_equal(tree.leaves, reference)
+        assert tree.total == reference.sum()
+
+    if tree.total > 0:
+        queries = np.array(fractions) * tree.total
+        leaves = tree.find_prefixsum(queries)
+        cumulative = np.cumsum(reference)
+        # The leaf i with cumulative[i - 1] <= q < cumulative[i]
+        np.testing.assert_array_equal(leaves, np.searchsorted(cumulative, queries, side="right"))
+        assert np.all(reference[leaves] > 0)
+
+
+def test_sum_tree_duplicates_last_write_wins_and_rebuild() -> None:
+    tree = SumTree(5)
+    tree.update(np.array([1, 3, 1, 1]), np.array([7.0, 2.0, 9.0, 4.0]))
+    np.testing.assert_array_equal(tree.leaves, [0, 4, 0, 2, 0])
+    other = SumTree(5)
+    other.rebuild(np.array([0, 4, 0, 2, 0.0]))
+    np.testing.assert_array_equal(other.nodes, tree.nodes)
+    check_tree(other)
+
+
+def test_sum_tree_never_returns_zero_leaf_at_upper_edge() -> None:
+    tree = SumTree(6)  # padded to 8 leaves
+    tree.update(np.arange(3), np.array([0.1, 0.2, 0.3]))
+    # Queries at and beyond the total (rounding at the last stratum) land on the last positive leaf.
+    leaves = tree.find_prefixsum(np.array([-1.0, 0.0, tree.total, tree.total * 2]))
+    np.testing.assert_array_equal(leaves, [0, 0, 2, 2])
+
+
+def test_sum_tree_rejects_bad_input() -> None:
+    tree = SumTree(4)
+    with pytest.raises(IndexError):
+        tree.update(np.array([4]), np.array([1.0]))
+    with pytest.raises(ValueError):
+        tree.update(np.array([0]), np.array([-1.0]))
+    with pytest.raises(ValueError, match="empty"):
+        tree.find_prefixsum(np.array([0.0]))
+
+
+# ------------------------------------------------------------------- PrioritizedReplayBuffer
+
+
+def test_samples_extend_sb3_samples() -> None:
+    fields = ReplayBufferSamples._fields
+    assert PrioritizedReplayBufferSamples._fields[: len(fields)] == fields
+    buffer = make_buffer(8)
+    for step in range(3):
+        add_step(buffer, step)
+    batch = buffer.sample(5)
+    assert batch.weights.shape == (5, 1)
+    assert batch.weights.dtype == th.float32
+    assert batch.rewards.shape == batch.dones.shape == (5, 1)
+    assert batch.discounts is None
+    assert batch.indices.dtype == np.int64
+    assert batch.indices.shape == (5,)
+
+
+def test_new_transitions_get_max_priority() -> None:
+    buffer = make_buffer(8, eps=1e-6)
+    add_step(buffer, 0)
+    assert buffer.raw_priorities[0] == 1.0  # initial max priority
+    buffer.update_priorities(np.array([0]), np.array([5.0]))
+    add_step(buffer, 1)
+    assert buffer.raw_priorities[1] == pytest.approx(5.0 + 1e-6)
+    # The max is a running max: lowering the top priority does not lower it.
+    buffer.update_priorities(np.array([0, 1]), np.array([0.1, 0.1]))
+    add_step(buffer, 2)
+    assert buffer.raw_priorities[2] == pytest.approx(5.0 + 1e-6)
+
+
+def test_sampling_frequencies_follow_priorities() -> None:
+    alpha = 0.6
+    buffer = make_buffer(8, alpha=alpha, eps=1e-6)
+    for step in range(8):
+        add_step(buffer, step)
+    td = np.array([0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0])
+    buffer.update_priorities(np.arange(8), td)
+    expected = (td + 1e-6) ** alpha
+    expected /= expected.sum()
+
+    set_random_seed(0)
+    n_draws = 50_000
+    counts = np.zeros(8)
+    for _ in range(n_draws // 100):
+        np.add.at(counts, buffer.sample(100).indices, 1)
+    frequencies = counts / n_draws
+    # Tolerance: 5 binomial standard deviations per item (stratified sampling only lowers the
+    # variance), at most 0.0096 here; alpha=1 or alpha=0 would miss the last item by > 0.07.
+    tolerance = 5 * np.sqrt(expected * (1 - expected) / n_draws)
+    np.testing.assert_array_less(np.abs(frequencies - expected), tolerance)
+
+
+def test_importance_weights_hand_computed() -> None:
+    # eps=1 and alpha=1 make the priorities integers: raw = |td| + 1 = [1, 2, 4, 8], total 15.
+    buffer = make_buffer(4, alpha=1.0, beta=0.5, eps=1.0)
+    for step in range(4):
+        add_step(buffer, step)
+    buffer.update_priorities(np.arange(4), np.array([0.0, 1.0, 3.0, 7.0]))
+    # batch 15 -> 15 strata of width 1; stratum [0, 1) always hits transition 0, so the batch
+    # max weight is transition 0's: w_i = (4 * p_i / 15) ** -0.5 / (4 * 1 / 15) ** -0.5
+    # = sqrt(1 / p_i) -> [1, 1/sqrt(2), 1/2, 1/sqrt(8)]. Strata per item: 1, 2, 4, 8.
+    batch = buffer.sample(15)
+    np.testing.assert_array_equal(np.sort(batch.indices), np.repeat(np.arange(4), [1, 2, 4, 8]))
+    expected = {0: 1.0, 1: 2**-0.5, 2: 0.5, 3: 8**-0.5}
+    for index, weight in zip(batch.indices, batch.weights.numpy().ravel(), strict=True):
+        assert weight == pytest.approx(expected[int(index)], rel=1e-6)
+
+    # beta is settable and read at sampling time: beta=1 gives w_i = p_min / p_i.
+    buffer.beta = 1.0
+    batch = buffer.sample(15)
+    for index, weight in zip(batch.indices, batch.weights.numpy().ravel(), strict=True):
+        assert weight == pytest.approx(1.0 / 2 ** int(index), rel=1e-6)
+    with pytest.raises(ValueError):
+        buffer.beta = -0.1
+
+
+def test_single_sample_weight_is_one() -> None:
+    # The max is over the sampled batch, so a batch of one always has weight 1.
+    buffer = make_buffer(4, beta=1.0)
+    for step in range(4):
+        add_step(buffer, step)
+    buffer.update_priorities(np.arange(4), np.array([0.0, 1.0, 3.0, 7.0]))
+    assert buffer.sample(1).weights.item() == pytest.approx(1.0)
+
+
+def test_multi_env_flat_index_maps_to_the_right_transition() -> None:
+    n_envs = 3
+    buffer = make_buffer(12, n_envs=n_envs)  # 4 rows x 3 envs
+    # Partially filled: only the first 2 * 3 flat indices are valid.
+    add_step(buffer, 0)
+    add_step(buffer, 1)
+    set_random_seed(1)
+    seen = set()
+    for _ in range(50):
+        batch = buffer.sample(12)
+        seen.update(batch.indices.tolist())
+        pos, env = np.divmod(batch.indices, n_envs)
+        obs = batch.observations.numpy()
+        np.testing.assert_array_equal(obs[:, 0], 10 * pos + env)
+        np.testing.assert_array_equal(batch.next_observations.numpy()[:, 0], 10 * pos + env + 0.5)
+        np.testing.assert_array_equal(batch.rewards.numpy().ravel(), 100 * pos + env)
+        np.testing.assert_array_equal(batch.actions.numpy().ravel(), pos % 4)
+    assert seen == set(range(6))
+
+    add_step(buffer, 2)
+    add_step(buffer, 3)
+    seen = set()
+    for _ in range(50):
+        seen.update(buffer.sample(12).indices.tolist())
+    assert seen == set(range(12))
+
+
+def test_wrap_around_overwrites_priorities() -> None:
+    n_envs = 2
+    buffer = make_buffer(6, n_envs=n_envs, alpha=1.0, eps=1.0)  # 3 rows x 2 envs
+    for step in range(3):
+        add_step(buffer, step)
+    assert buffer.full
+    buffer.update_priorities(np.arange(6), np.array([0.0, 1.0, 2.0, 3.0, 4.0, 5.0]))
+    assert buffer.max_priority == 6.0
+    add_step(buffer, 3)  # overwrites row 0, i.e. flat indices 0 and 1
+    np.testing.assert_array_equal(buffer.raw_priorities, [6.0, 6.0, 3.0, 4.0, 5.0, 6.0])
+    np.testing.assert_array_equal(buffer.priorities, buffer.raw_priorities)  # alpha = 1
+    check_tree(buffer._tree)
+    assert buffer.n_transitions == 6
+    set_random_seed(2)
+    batch = buffer.sample(64)
+    pos, env = np.divmod(batch.indices, n_envs)
+    step = np.where(pos == 0, 3, pos)  # row 0 now holds step 3
+    np.testing.assert_array_equal(batch.observations.numpy()[:, 0], 10 * step + env)
+
+
+def test_alpha_change_rebuilds_tree() -> None:
+    buffer = make_buffer(8, alpha=1.0, eps=1.0)
+    for step in range(5):
+        add_step(buffer, step)
+    buffer.update_priorities(np.arange(5), np.array([0.0, 1.0, 3.0, 7.0, 15.0]))
+    raw = np.array([1.0, 2.0, 4.0, 8.0, 16.0, 0.0, 0.0, 0.0])
+    np.testing.assert_array_equal(buffer.raw_priorities, raw)
+
+    buffer.alpha = 0.5
+    np.testing.assert_allclose(buffer.priorities, np.sqrt(raw))
+    check_tree(buffer._tree)
+    # alpha = 0: uniform over stored transitions, empty slots stay unsampleable.
+    buffer.alpha = 0.0
+    np.testing.assert_array_equal(buffer.priorities, [1, 1, 1, 1, 1, 0, 0, 0])
+    assert set(buffer.sample(200).indices.tolist()) == set(range(5))
+    # New priorities use the current alpha.
+    buffer.alpha = 0.5
+    buffer.update_priorities(np.array([0]), np.array([8.0]))
+    assert buffer.priorities[0] == pytest.approx(3.0)
+    with pytest.raises(ValueError):
+        buffer.alpha = -1.0
+
+
+def test_update_priorities_duplicates_last_wins() -> None:
+    buffer = make_buffer(4, alpha=1.0, eps=1.0)
+    for step in range(4):
+        add_step(buffer, step)
+    buffer.update_priorities(np.array([2, 1, 2]), th.tensor([5.0, -3.0, 1.0]))
+    np.testing.assert_array_equal(buffer.raw_priorities, [1.0, 4.0, 2.0, 1.0])
+    check_tree(buffer._tree)
+    with pytest.raises(ValueError):
+        buffer.update_priorities(np.array([0, 1]), np.array([1.0]))
+    with pytest.raises(ValueError):
+        buffer.update_priorities(np.array([0]), np.array([np.nan]))
+
+
+def test_timeouts_are_not_terminal() -> None:
+    buffer = make_buffer(4)
+    add_step(buffer, 0, done=True, truncated=True)
+    add_step(buffer, 1, done=True, truncated=False)
+    batch = buffer.sample(64)
+    dones = batch.dones.numpy().ravel()
+    np.testing.assert_array_equal(dones, (batch.indices == 1).astype(np.float32))
+
+
+def test_unsupported_configurations_and_empty_buffer() -> None:
+    with pytest.raises(ValueError, match="optimize_memory_usage"):
+        PrioritizedReplayBuffer(
+            8, OBS_SPACE, ACTION_SPACE, optimize_memory_usage=True, handle_timeout_termination=False
+        )
+    with pytest.raises(ValueError, match="empty"):
+        make_buffer(8).sample(4)
+
+
+def test_reset_clears_priorities() -> None:
+    buffer = make_buffer(4)
+    add_step(buffer, 0)
+    buffer.update_priorities(np.array([0]), np.array([9.0]))
+    buffer.reset()
+    assert buffer.n_transitions == 0
+    assert buffer.max_priority == 1.0
+    assert buffer._tree.total == 0.0
+
+
+def test_pickle_round_trip_keeps_priorities() -> None:
+    # SB3's save_replay_buffer/load_replay_buffer pickle the whole buffer.
+    buffer = make_buffer(6, n_envs=2, alpha=0.5)
+    for step in range(2):
+        add_step(buffer, step)
+    buffer.update_priorities(np.arange(4), np.array([1.0, 2.0, 3.0, 4.0]))
+    restored = pickle.loads(pickle.dumps(buffer))
+    np.testing.assert_array_equal(restored.priorities, buffer.priorities)
+    np.testing.assert_array_equal(restored._tree.nodes, buffer._tree.nodes)
+    assert (restored.alpha, restored.beta, restored.max_priority) == (0.5, 0.4, buffer.max_priority)

@@ -1,0 +1,374 @@
+"""DoubleDQN: hand-computed updates, prioritized training, per-slot exploration, save/load."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch as th
+from gymnasium import spaces
+from stable_baselines3 import DQN
+from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.env_util import make_vec_env
+from stable_baselines3.common.logger import configure
+from stable_baselines3.common.utils import ConstantSchedule, LinearSchedule, set_random_seed
+from stable_baselines3.common.vec_env import DummyVecEnv
+
+import harness.dqn
+import harness.targets
+from harness import DoubleDQN, DuelingDQNPolicy, PrioritizedReplayBuffer
+
+S = np.array([[1.0, 0.0]], dtype=np.float32)  # state s
+S_NEXT = np.array([[0.0, 1.0]], dtype=np.float32)  # next state s'
+# Linear Q-networks Q(x) = W x (net_arch=[], zero bias); column 0 acts on s, column 1 on s'.
+# Online: Q(s) = [0, 0], Q(s') = [2, 1] -> argmax_a Q_online(s', a) = 0.
+# Target: Q(s') = [0, 3] -> Double-Q bootstraps with Q_target(s', 0) = 0, plain DQN with 3.
+W_ONLINE = [[0.0, 2.0], [0.0, 1.0]]
+W_TARGET = [[0.0, 0.0], [0.0, 3.0]]
+GAMMA = 0.5
+
+
+class TinyEnv(gym.Env):
+    """Random 2-d observations, ``n_actions`` actions, reward for action 0, 10-step episodes."""
+
+    def __init__(self, n_actions: int = 2) -> None:
+        self.observation_space = spaces.Box(-1.0, 1.0, shape=(2,), dtype=np.float32)
+        self.action_space = spaces.Discrete(n_actions)
+        self._t = 0
+
+    def _obs(self) -> np.ndarray:
+        return self.np_random.uniform(-1, 1, size=2).astype(np.float32)
+
+    def reset(
+        self, *, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[np.ndarray, dict[str, Any]]:
+        super().reset(seed=seed)
+        self._t = 0
+        return self._obs(), {}
+
+    def step(self, action: int) -> tuple[np.ndarray, float, bool, bool, dict[str, Any]]:
+        self._t += 1
+        return self._obs(), float(action == 0), False, self._t >= 10, {}
+
+
+def set_linear_weights(model: DQN, online: list[list[float]], target: list[list[float]]) -> None:
+    for net, weights in ((model.q_net, online), (model.q_net_target, target)):
+        layer = net.q_net[0]
+        assert isinstance(layer, th.nn.Linear)
+        with th.no_grad():
+            layer.weight.copy_(th.tensor(weights))
+            layer.bias.zero_()
+
+
+def make_linear_model(cls: type[DQN] = DoubleDQN, **kwargs: Any) -> DQN:
+    """A model whose Q-networks are single Linear layers and whose updates change nothing."""
+    kwargs = {
+        "policy_kwargs": dict(net_arch=[]),
+        "learning_rate": 0.0,  # the loss is computed but the weights stay as set
+        "gamma": GAMMA,
+        "buffer_size": 2,
+        "device": "cpu",
+        "seed": 0,
+        **kwargs,
+    }
+    model = cls("MlpPolicy", DummyVecEnv([TinyEnv]), **kwargs)
+    model.set_logger(configure(folder=None, format_strings=[]))
+    set_linear_weights(model, W_ONLINE, W_TARGET)
+    return model
+
+
+def add_transition(model: DQN, reward: float, action: int = 1) -> None:
+    assert model.replay_buffer is not None
+    model.replay_buffer.add(
+        S, S_NEXT, np.array([[action]]), np.array([reward]), np.array([False]), [{}]
+    )
+
+
+def logged(model: DQN, key: str) -> float:
+    return model.logger.name_to_value[key]
+
+
+# ------------------------------------------------------------------------- training targets
+
+
+def test_double_q_update_hand_computed() -> None:
+    model = make_linear_model(double_q=True)
+    add_transition(model, reward=1.0)
+    model.train(gradient_steps=1, batch_size=4)
+    # target = 1 + 0.5 * Q_target(s', argmax Q_online(s')) = 1 + 0.5 * 0 = 1; Q(s, 1) = 0
+    # Huber(0 - 1) = 0.5 * 1**2 = 0.5
+    assert logged(model, "train/loss") == pytest.approx(0.5)
+    assert logged(model, "train/mean_td_error") == pytest.approx(1.0)
+    assert logged(model, "train/n_updates") == 1
+
+
+def test_plain_target_reproduces_sb3() -> None:
+    ours = make_linear_model(double_q=False)
+    sb3 = make_linear_model(cls=DQN)
+    for model in (ours, sb3):
+        add_transition(model, reward=1.0)
+        model.train(gradient_steps=1, batch_size=4)
+    # target = 1 + 0.5 * max(0, 3) = 2.5; Huber(0 - 2.5) = 2.5 - 0.5 = 2.0
+    assert logged(ours, "train/loss") == pytest.approx(2.0)
+    assert logged(sb3, "train/loss") == pytest.approx(logged(ours, "train/loss"))
+
+
+def test_default_optimizer_is_rmsprop_and_sb3_training_otherwise() -> None:
+    model = make_linear_model(learning_rate=1e-3)
+    assert isinstance(model.policy.optimizer, th.optim.RMSprop)
+    assert type(model.replay_buffer) is ReplayBuffer
+    add_transition(model, reward=1.0)
+    before = model.q_net.q_net[0].weight.detach().clone()
+    model.train(gradient_steps=2, batch_size=4)
+    assert not th.equal(before, model.q_net.q_net[0].weight)
+    assert model._n_updates == 2
+
+
+def test_n_step_discounts_are_passed_through(monkeypatch: pytest.MonkeyPatch) -> None:
+    seen: list[Any] = []
+
+    def spy(*args: Any) -> th.Tensor:
+        seen.append(args[2])
+        return harness.targets.double_q_target(*args)
+
+    monkeypatch.setattr(harness.dqn, "double_q_target", spy)
+    model = make_linear_model(n_steps=2, buffer_size=8)
+    assert type(model.replay_buffer).__name__ == "NStepReplayBuffer"
+    for _ in range(3):
+        add_transition(model, reward=1.0)
+    model.train(gradient_steps=1, batch_size=16)
+    (discounts,) = seen
+    assert isinstance(discounts, th.Tensor)
+    # gamma ** k with k = 2 steps, or 1 for the newest transition (cut at the buffer end)
+    assert set(discounts.ravel().tolist()) <= {GAMMA, GAMMA**2}
+
+
+# --------------------------------------------------------------------- prioritized training
+
+
+def make_prioritized_model(**kwargs: Any) -> DQN:
+    model = make_linear_model(
+        replay_buffer_class=PrioritizedReplayBuffer,
+        replay_buffer_kwargs=dict(alpha=1.0, beta=1.0, eps=1.0),
+        **kwargs,
+    )
+    add_transition(model, reward=1.0)  # flat index 0, TD error -1 (target = r, Q(s, 1) = 0)
+    add_transition(model, reward=3.0)  # flat index 1, TD error -3
+    buffer = model.replay_buffer
+    assert isinstance(buffer, PrioritizedReplayBuffer)
+    buffer.update_priorities(np.array([0, 1]), np.array([0.0, 2.0]))  # raw priorities 1 and 3
+    return model
+
+
+def test_importance_weighted_loss_and_priority_update() -> None:
+    model = make_prioritized_model()
+    model.train(gradient_steps=1, batch_size=4)
+    # Strata of width 1 over total 4: indices [0, 1, 1, 1]. P = [1/4, 3/4], N = 2, beta = 1:
+    # w ∝ 1 / (N P) = [2, 2/3] -> normalised [1, 1/3]. Huber: 0.5 (TD 1) and 2.5 (TD 3).
+    # loss = (1 * 0.5 + 3 * (1/3) * 2.5) / 4 = 0.75 (unweighted it would be 2.0)
+    assert logged(model, "train/loss") == pytest.approx(0.75)
+    assert logged(model, "train/beta") == 1.0
+    # New raw priorities |TD| + eps
+    np.testing.assert_allclose(model.replay_buffer.raw_priorities, [2.0, 4.0])  # type: ignore[union-attr]
+
+
+def test_priorities_updated_after_every_gradient_step(monkeypatch: pytest.MonkeyPatch) -> None:
+    model = make_prioritized_model()
+    buffer = model.replay_buffer
+    calls: list[str] = []
+    sample, update = buffer.sample, buffer.update_priorities  # type: ignore[union-attr]
+
+    def spy_sample(*args: Any, **kwargs: Any) -> Any:
+        calls.append("sample")
+        return sample(*args, **kwargs)
+
+    def spy_update(indices: np.ndarray, td_errors: np.ndarray) -> None:
+        calls.append("update")
+        assert indices.shape == td_errors.shape == (4,)
+        update(indices, td_errors)
+
+    monkeypatch.setattr(buffer, "sample", spy_sample)
+    monkeypatch.setattr(buffer, "update_priorities", spy_update)
+    model.train(gradient_steps=3, batch_size=4)
+    assert calls == ["sample", "update"] * 3
+    assert model._n_updates == 3
+    assert logged(model, "train/n_updates") == 3
+
+
+# ----------------------------------------------------------------- per-slot epsilon-greedy
+
+
+@pytest.fixture(scope="module")
+def five_action_model() -> DoubleDQN:
+    return DoubleDQN("MlpPolicy", DummyVecEnv([lambda: TinyEnv(5)]), device="cpu", seed=0)
+
+
+def test_per_slot_exploration_fraction(five_action_model: DoubleDQN) -> None:
+    model = five_action_model
+    n_slots = 4000
+    obs = np.random.default_rng(0).uniform(-1, 1, size=(n_slots, 2)).astype(np.float32)
+    greedy, _ = model.predict(obs, deterministic=True)
+
+    model.exploration_rate = 0.5
+    set_random_seed(0)
+    actions, _ = model.predict(obs)
+    assert actions.shape == greedy.shape == (n_slots,)
+    assert np.all((actions >= 0) & (actions < 5))
+    deviating = np.mean(actions != greedy)
+    # Each slot explores with prob 0.5 and a random action differs from the greedy one with
+    # prob 4/5: expect 0.4. Std is sqrt(0.4 * 0.6 / 4000) ~ 0.0077, tolerance 5 std. SB3's
+    # DQN.predict would give 0 or ~0.8 (one coin for the whole batch).
+    assert deviating == pytest.approx(0.4, abs=0.04)
+
+    # Reproducible from np.random's seed, which SB3 sets in set_random_seed.
+    set_random_seed(0)
+    np.testing.assert_array_equal(model.predict(obs)[0], actions)
+
+
+def test_greedy_when_no_exploration(five_action_model: DoubleDQN) -> None:
+    model = five_action_model
+    obs = np.random.default_rng(1).uniform(-1, 1, size=(64, 2)).astype(np.float32)
+    greedy, _ = model.predict(obs, deterministic=True)
+    model.exploration_rate = 0.0
+    np.testing.assert_array_equal(model.predict(obs)[0], greedy)
+    model.exploration_rate = 1.0
+    np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], greedy)
+
+
+def test_single_observation_like_sb3(five_action_model: DoubleDQN) -> None:
+    model = five_action_model
+    single = np.zeros(2, dtype=np.float32)
+    model.exploration_rate = 0.0
+    action, _ = model.predict(single)
+    assert np.shape(action) == ()
+    model.exploration_rate = 1.0
+    set_random_seed(3)
+    actions = {int(model.predict(single)[0]) for _ in range(100)}
+    assert actions == set(range(5))
+
+
+# ------------------------------------------------------------------- schedules and options
+
+
+def test_schedules_replaced_by_callback() -> None:
+    class ReplaceSchedules(BaseCallback):
+        def _on_training_start(self) -> None:
+            self.model.exploration_schedule = ConstantSchedule(0.123)
+            self.model.beta_schedule = LinearSchedule(0.5, 1.0, 1.0)  # type: ignore[attr-defined]
+
+        def _on_step(self) -> bool:
+            return True
+
+    model = DoubleDQN(
+        "MlpPolicy",
+        make_vec_env(TinyEnv, n_envs=2, seed=0),
+        replay_buffer_class=PrioritizedReplayBuffer,
+        replay_buffer_kwargs=dict(alpha=0.6, beta=0.4),
+        learning_starts=16,
+        batch_size=8,
+        device="cpu",
+        seed=0,
+    )
+    assert model.beta_schedule(1.0) == 0.4  # default: constant initial beta
+    model.learn(64, callback=ReplaceSchedules())
+    assert model.exploration_rate == 0.123
+    progress_remaining = model._current_progress_remaining
+    assert model.replay_buffer.beta == pytest.approx(1.0 - 0.5 * progress_remaining)  # type: ignore[union-attr]
+    assert model.replay_buffer.beta > 0.9  # type: ignore[union-attr]
+
+
+def test_optimizer_resolution() -> None:
+    env = DummyVecEnv([TinyEnv])
+    kwargs = dict(optimizer_class="Adam", optimizer_kwargs=dict(eps=1e-5))
+    model = DoubleDQN("MlpPolicy", env, policy_kwargs=kwargs, device="cpu")
+    assert isinstance(model.policy.optimizer, th.optim.Adam)
+    assert model.policy.optimizer.defaults["eps"] == 1e-5
+    assert kwargs["optimizer_class"] == "Adam"  # the caller's dict is left alone
+
+    model = DoubleDQN("MlpPolicy", env, policy_kwargs=dict(optimizer_class=th.optim.SGD))
+    assert type(model.policy.optimizer) is th.optim.SGD
+    with pytest.raises(ValueError, match="Adamm"):
+        DoubleDQN("MlpPolicy", env, policy_kwargs=dict(optimizer_class="Adamm"))
+    with pytest.raises(ValueError, match="Optimizer"):
+        DoubleDQN("MlpPolicy", env, policy_kwargs=dict(optimizer_class=th.nn.Linear))
+
+
+def test_save_load_round_trip(tmp_path: Path) -> None:
+    env = DummyVecEnv([TinyEnv])
+    model = DoubleDQN(
+        "DuelingMlpPolicy",
+        env,
+        double_q=False,
+        replay_buffer_class=PrioritizedReplayBuffer,
+        replay_buffer_kwargs=dict(alpha=0.7, beta=0.3),
+        policy_kwargs=dict(
+            net_arch={"value": [8], "advantage": [16]},
+            aggregator="max",
+            optimizer_class="Adam",
+            optimizer_kwargs=dict(eps=1e-5),
+        ),
+        exploration_final_eps=0.02,
+        device="cpu",
+        seed=0,
+    )
+    # A closure installed by a callback must not break saving; it is not restored either.
+    model.exploration_schedule = lambda _progress: 0.5
+    model.save(tmp_path / "model")
+    loaded = DoubleDQN.load(tmp_path / "model.zip", env=env, device="cpu")
+
+    assert loaded.double_q is False
+    assert type(loaded.policy) is DuelingDQNPolicy
+    assert loaded.policy.aggregator == "max"
+    assert loaded.policy.net_arch == {"value": [8], "advantage": [16]}
+    assert type(loaded.policy.optimizer) is th.optim.Adam
+    assert loaded.policy.optimizer.defaults["eps"] == 1e-5
+    assert isinstance(loaded.replay_buffer, PrioritizedReplayBuffer)
+    assert (loaded.replay_buffer.alpha, loaded.replay_buffer.beta) == (0.7, 0.3)
+    assert loaded.beta_schedule(0.0) == 0.3
+    assert isinstance(loaded.exploration_schedule, LinearSchedule)
+    assert loaded.exploration_schedule(0.0) == 0.02
+    obs = np.random.default_rng(0).uniform(-1, 1, size=(32, 2)).astype(np.float32)
+    np.testing.assert_array_equal(
+        loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0]
+    )
+
+
+def test_two_slot_smoke_training(tmp_path: Path) -> None:
+    env = make_vec_env("CartPole-v1", n_envs=2, seed=0)
+    model = DoubleDQN(
+        "DuelingMlpPolicy",
+        env,
+        replay_buffer_class=PrioritizedReplayBuffer,
+        replay_buffer_kwargs=dict(alpha=0.6, beta=0.4),
+        policy_kwargs=dict(net_arch=[32, 32], aggregator="mean"),
+        learning_rate=1e-3,
+        buffer_size=1_000,
+        learning_starts=100,
+        batch_size=32,
+        train_freq=4,
+        gradient_steps=2,
+        target_update_interval=100,
+        device="cpu",
+        seed=0,
+    )
+    model.learn(400)
+    buffer = model.replay_buffer
+    assert isinstance(buffer, PrioritizedReplayBuffer)
+    assert buffer.n_transitions == 400
+    # (400 - 100) / (4 steps * 2 envs) rollouts with 2 gradient steps each
+    assert model._n_updates > 50
+    assert np.unique(buffer.raw_priorities[:400]).size > 10  # TD errors were written back
+
+    model.save(tmp_path / "smoke.zip")
+    loaded = DoubleDQN.load(tmp_path / "smoke.zip", device="cpu")
+    obs = env.reset()
+    np.testing.assert_array_equal(
+        loaded.predict(obs, deterministic=True)[0], model.predict(obs, deterministic=True)[0]
+    )
+    with th.no_grad():
+        observations = th.as_tensor(np.stack([env.observation_space.sample() for _ in range(8)]))
+        assert th.allclose(loaded.q_net(observations), model.q_net(observations))

@@ -1,0 +1,74 @@
+"""TD targets against hand-computed numbers."""
+
+from __future__ import annotations
+
+import pytest
+import torch as th
+
+from harness.targets import double_q_target, max_q_target
+
+# Two transitions; the second one is terminal.
+REWARDS = th.tensor([[1.0], [0.5]])
+DONES = th.tensor([[0.0], [1.0]])
+# Online net prefers action 0 in s'_0, target net prefers action 1 there: the two targets differ.
+NEXT_Q_ONLINE = th.tensor([[5.0, 0.0], [0.0, 1.0]])
+NEXT_Q_TARGET = th.tensor([[1.0, 3.0], [2.0, 5.0]])
+
+
+def test_max_q_target_hand_computed() -> None:
+    target = max_q_target(REWARDS, DONES, 0.9, NEXT_Q_TARGET)
+    # row 0: 1 + 0.9 * max(1, 3) = 3.7; row 1 is terminal: 0.5
+    assert target.shape == (2, 1)
+    assert th.allclose(target, th.tensor([[3.7], [0.5]]))
+
+
+def test_double_q_target_uses_online_argmax_and_target_value() -> None:
+    target = double_q_target(REWARDS, DONES, 0.9, NEXT_Q_ONLINE, NEXT_Q_TARGET)
+    # row 0: argmax online = action 0, evaluated by the target net: 1 + 0.9 * 1.0 = 1.9
+    # (the plain target would give 3.7); row 1 is terminal: 0.5
+    assert target.shape == (2, 1)
+    assert th.allclose(target, th.tensor([[1.9], [0.5]]))
+    assert not th.allclose(target, max_q_target(REWARDS, DONES, 0.9, NEXT_Q_TARGET))
+
+
+def test_double_q_equals_max_q_when_networks_agree() -> None:
+    target = double_q_target(REWARDS, DONES, 0.9, NEXT_Q_TARGET, NEXT_Q_TARGET)
+    assert th.allclose(target, max_q_target(REWARDS, DONES, 0.9, NEXT_Q_TARGET))
+
+
+def test_per_sample_discounts() -> None:
+    # n-step style discounts gamma**k, no terminal.
+    discounts = th.tensor([[0.9], [0.81]])
+    dones = th.zeros(2, 1)
+    target = double_q_target(REWARDS, dones, discounts, NEXT_Q_ONLINE, NEXT_Q_TARGET)
+    # row 0: 1 + 0.9 * 1 = 1.9; row 1: argmax online = 1 -> 0.5 + 0.81 * 5 = 4.55
+    assert th.allclose(target, th.tensor([[1.9], [4.55]]))
+    plain = max_q_target(REWARDS, dones, discounts, NEXT_Q_TARGET)
+    # row 0: 1 + 0.9 * 3 = 3.7; row 1: 0.5 + 0.81 * 5 = 4.55
+    assert th.allclose(plain, th.tensor([[3.7], [4.55]]))
+
+
+def test_max_q_target_matches_sb3_formula() -> None:
+    gen = th.Generator().manual_seed(0)
+    rewards = th.randn(16, 1, generator=gen)
+    dones = (th.rand(16, 1, generator=gen) < 0.3).float()
+    next_q = th.randn(16, 4, generator=gen)
+    # The expression in stable_baselines3/dqn/dqn.py (DQN.train)
+    expected = rewards + (1 - dones) * 0.99 * next_q.max(dim=1)[0].reshape(-1, 1)
+    assert th.allclose(max_q_target(rewards, dones, 0.99, next_q), expected)
+
+
+def test_flat_inputs_do_not_broadcast_to_a_matrix() -> None:
+    # (B,) + (B, 1) would silently broadcast to (B, B); the functions reshape to columns.
+    target = max_q_target(REWARDS.reshape(-1), DONES.reshape(-1), 0.9, NEXT_Q_TARGET)
+    assert target.shape == (2, 1)
+    assert th.allclose(target, th.tensor([[3.7], [0.5]]))
+
+
+def test_shape_errors() -> None:
+    with pytest.raises(ValueError, match="rewards"):
+        max_q_target(th.zeros(3, 1), DONES, 0.9, NEXT_Q_TARGET)
+    with pytest.raises(ValueError, match="n_actions"):
+        max_q_target(REWARDS, DONES, 0.9, th.zeros(2))
+    with pytest.raises(ValueError, match="same shape"):
+        double_q_target(REWARDS, DONES, 0.9, th.zeros(2, 3), NEXT_Q_TARGET)

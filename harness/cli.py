@@ -64,7 +64,7 @@ def resolve_run_config(args: argparse.Namespace) -> ExperimentConfig:
 def cmd_run(args: argparse.Namespace) -> int:
     config = resolve_run_config(args)
     run = RunDir.create(args.runs_dir, config.name)
-    run.write_command()
+    run.write_command(args.argv)
     print(f"run folder: {run.path}", file=sys.stderr)
     from harness.train import train  # heavy imports (torch, SB3) only when training
 
@@ -78,7 +78,9 @@ COMMANDS = {"run": cmd_run}
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``harness`` console script."""
+    argv = list(sys.argv[1:] if argv is None else argv)
     args = build_parser().parse_args(argv)
+    args.argv = argv
     try:
         with warnings.catch_warnings():
             # Map warnings are worth one line each, not a stack location.

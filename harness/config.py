@@ -21,6 +21,7 @@ Step counts (``timesteps``, schedule ``steps``, ``eval.every``, ``checkpoint.eve
 
 from __future__ import annotations
 
+import contextlib
 import re
 from collections.abc import Sequence
 from pathlib import Path
@@ -312,6 +313,10 @@ def parse_override(text: str) -> tuple[list[str], Any]:
         value = yaml.safe_load(raw) if raw.strip() else None
     except yaml.YAMLError:
         value = raw  # not YAML: keep the text; the schema decides whether a string fits
+    if isinstance(value, str):
+        # YAML 1.1 reads "1e-4" (no dot) as text; on the command line it means a number.
+        with contextlib.suppress(ValueError):
+            value = float(value)
     return key.strip().split("."), value
 
 

@@ -8,17 +8,21 @@ All agents of all copies go through the policy in one batched call per step.
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
 from envs import coverage_v0
+from envs.coverage import CoverageEnv
 from harness.config import EnvConfig
 
-#: A batched policy: observations ``(n, obs_dim)`` of every agent of every copy → actions ``(n,)``.
-BatchPolicy = Callable[[np.ndarray], np.ndarray]
+#: A batched policy: ``policy(obs, envs)`` maps the observations ``(len(envs) * n_agents, obs_dim)``
+#: of every agent of every env copy in play (copy-major: copy 0's agents first) to actions of the
+#: same length. ``envs`` are the live ``CoverageEnv`` copies, for baselines that read the map;
+#: a learned policy ignores them.
+BatchPolicy = Callable[[np.ndarray, Sequence[CoverageEnv]], np.ndarray]
 
 #: Fractions of the episode at which coverage is recorded (Table 4.2).
 CHECKPOINT_FRACTIONS = (0.33, 0.66, 1.0)
@@ -45,7 +49,7 @@ class EpisodeResult:
 def model_policy(model: Any) -> BatchPolicy:
     """A greedy (ε = 0) batched policy from an SB3 model."""
 
-    def act(obs: np.ndarray) -> np.ndarray:
+    def act(obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
         actions, _ = model.policy.predict(obs, deterministic=True)
         return np.asarray(actions)
 
@@ -75,7 +79,7 @@ def run_episodes(
         infos: list[dict[str, Any]] = []
         for t in range(1, max_steps + 1):
             stacked = np.concatenate([np.stack(list(o.values())) for o in obs])
-            actions = policy(stacked).reshape(len(batch), n_agents).tolist()
+            actions = np.asarray(policy(stacked, batch)).reshape(len(batch), n_agents).tolist()
             obs, infos = [], []
             for i, e in enumerate(batch):
                 o, _, _, _, info = e.step(dict(zip(e.possible_agents, actions[i])))

@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import os
 import shlex
-import sys
 import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
@@ -97,11 +96,11 @@ class RunDir:
             ) from None
         raise RunDirError(f"{root}: too many runs named {name!r} in one second")
 
-    def write_command(self, argv: Sequence[str] | None = None) -> None:
-        """Append the command line (a resumed run gets a second line)."""
-        argv = list(sys.argv if argv is None else argv)
+    def write_command(self, args: Sequence[str]) -> None:
+        """Append the ``harness`` command line with its arguments ``args`` (a resumed run gets a
+        second line)."""
         with self.command.open("a", encoding="utf-8") as f:
-            f.write(shlex.join(["harness", *argv[1:]]) + "\n")
+            f.write(shlex.join(["harness", *args]) + "\n")
 
 
 def atomic_write(path: Path, write: Callable[[Path], None]) -> None:

@@ -1,0 +1,91 @@
+"""The SuperSuit adapter: slots, seeding, truncation as a time-out, episode info."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from harness.adapters import make_vec_env
+from harness.config import EnvConfig
+
+SMALL = EnvConfig(height=8, width=9, n_agents=2, max_steps=6, coords="raw")
+
+
+def run_until_done(venv, rng):
+    venv.reset()
+    for _ in range(SMALL.max_steps):
+        obs, rewards, dones, infos = venv.step(rng.integers(0, 5, venv.num_envs))
+    return obs, rewards, dones, infos
+
+
+@pytest.mark.parametrize(("copies", "n_agents"), [(1, 1), (3, 2), (2, 4)])
+def test_one_slot_per_agent_per_copy(copies, n_agents):
+    venv = make_vec_env(SMALL.model_copy(update={"n_agents": n_agents}), copies=copies, seed=0)
+    assert venv.num_envs == n_agents * copies
+    assert venv.reset().shape == (n_agents * copies, 13)
+    venv.close()
+
+
+def test_slots_are_agent_major_within_copies():
+    venv = make_vec_env(SMALL, copies=2, seed=3)
+    obs = venv.reset()
+    # Slot 2k+1's teammate is slot 2k (two agents per copy): positions cross-reference.
+    for copy in range(2):
+        a, b = obs[2 * copy], obs[2 * copy + 1]
+        np.testing.assert_array_equal(a[11:13], b[9:11])
+        np.testing.assert_array_equal(b[11:13], a[9:11])
+    venv.close()
+
+
+def test_seeded_copies_differ_from_each_other_and_repeat():
+    first = make_vec_env(SMALL, copies=3, seed=11).reset()
+    second = make_vec_env(SMALL, copies=3, seed=11).reset()
+    np.testing.assert_array_equal(first, second)
+    assert not np.array_equal(first[0:2], first[2:4])  # copies get different episodes
+    other = make_vec_env(SMALL, copies=3, seed=12).reset()
+    assert not np.array_equal(first, other)
+
+
+def test_seeding_does_not_depend_on_process_count():
+    in_process = make_vec_env(SMALL, copies=3, seed=5, num_cpus=0)
+    two_procs = make_vec_env(SMALL, copies=3, seed=5, num_cpus=2)
+    try:
+        np.testing.assert_array_equal(in_process.reset(), two_procs.reset())
+        actions = np.arange(6) % 5
+        for _ in range(SMALL.max_steps + 2):  # across an automatic reset too
+            a = in_process.step(actions)
+            b = two_procs.step(actions)
+            np.testing.assert_array_equal(a[0], b[0])
+            np.testing.assert_array_equal(a[1], b[1])
+    finally:
+        in_process.close()
+        two_procs.close()
+
+
+def test_truncation_reaches_sb3_as_a_timeout_with_episode_metrics():
+    venv = make_vec_env(SMALL, copies=2, seed=0)
+    _, _, dones, infos = run_until_done(venv, np.random.default_rng(0))
+    assert dones.all()
+    for info in infos:
+        assert info["TimeLimit.truncated"] is True
+        assert info["terminal_observation"].shape == (13,)
+        episode = info["episode"]
+        assert episode["l"] == SMALL.max_steps
+        assert 0.0 < episode["coverage"] <= 1.0
+        assert {"new_cells", "wall_hits"} <= set(episode)
+    venv.close()
+
+
+def test_final_coverage_is_not_hidden_by_the_automatic_reset():
+    # SuperSuit merges reset infos over the last step's infos; the env's reset infos are empty
+    # so the episode's final coverage survives.
+    venv = make_vec_env(SMALL, copies=1, seed=0)
+    rng = np.random.default_rng(1)
+    venv.reset()
+    coverages = []
+    for _ in range(SMALL.max_steps):
+        _, _, dones, infos = venv.step(rng.integers(0, 5, venv.num_envs))
+        coverages.append(infos[0]["coverage"])
+    assert dones.all()
+    assert infos[0]["episode"]["coverage"] == coverages[-1] == max(coverages)
+    venv.close()

@@ -1,0 +1,139 @@
+"""``harness run`` end to end on the smoke config, and its errors."""
+
+from __future__ import annotations
+
+import csv
+import subprocess
+import sys
+from datetime import datetime, timezone
+from pathlib import Path
+
+import pytest
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+from harness import DoubleDQN, DuelingDQNPolicy
+from harness.cli import main
+from harness.config import load_config
+from harness.rundir import RunDir
+
+ROOT = Path(__file__).resolve().parents[1]
+SMOKE = ROOT / "configs" / "smoke.yaml"
+
+TB_TAGS = {
+    "rollout/coverage",
+    "rollout/wall_hits",
+    "rollout/ep_rew_mean",
+    "rollout/exploration_rate",
+    "train/loss",
+    "train/beta",
+    "train/epochs",
+    "train/learning_rate",
+    "eval/coverage_median",
+    "time/fps",
+}
+
+
+@pytest.fixture(scope="module")
+def smoke_run(tmp_path_factory):
+    runs = tmp_path_factory.mktemp("runs")
+    rc = main(["run", str(SMOKE), "--runs-dir", str(runs), "--no-progress", "--set", "seed=3"])
+    assert rc == 0
+    (path,) = runs.iterdir()
+    return RunDir(path)
+
+
+def test_run_directory_layout(smoke_run):
+    assert smoke_run.path.name.startswith("smoke-")
+    for f in ("config.yaml", "command.txt", "model.zip", "episodes.csv", "best_model.zip"):
+        assert (smoke_run.path / f).is_file(), f
+    for f in ("model.zip", "replay_buffer.pkl", "state.json"):
+        assert (smoke_run.checkpoints / f).is_file(), f
+    assert "harness run" in smoke_run.command.read_text()
+    resolved = load_config(smoke_run.config)
+    assert resolved == load_config(SMOKE, ["seed=3"])
+
+
+def test_episodes_csv_numbers_every_episode_across_phases(smoke_run):
+    cfg = load_config(smoke_run.config)
+    with smoke_run.episodes_csv.open() as f:
+        rows = list(csv.DictReader(f))
+    steps_per_round = cfg.n_slots * cfg.env.max_steps
+    rounds = cfg.total_timesteps // steps_per_round
+    assert len(rows) >= rounds * cfg.vec.copies
+    assert [int(r["episode"]) for r in rows] == list(range(len(rows)))
+    assert {r["phase"] for r in rows} == {"initial", "optimizing"}
+    assert all(0.0 < float(r["coverage"]) <= 1.0 for r in rows)
+    assert all(len(r["new_cells"].split(";")) == cfg.env.n_agents for r in rows)
+
+
+def test_tensorboard_has_the_documented_tags(smoke_run):
+    events = EventAccumulator(str(smoke_run.tb))
+    events.Reload()
+    assert set(events.Tags()["scalars"]) >= TB_TAGS
+
+
+def test_model_loads_and_acts(smoke_run):
+    model = DoubleDQN.load(smoke_run.model)
+    assert model.double_q is True
+    assert model.num_timesteps >= load_config(smoke_run.config).total_timesteps
+    assert model.policy.q_net.q_net is not None
+
+
+def test_dueling_policy_trains_through_the_harness(tmp_path):
+    rc = main(
+        [
+            "run", str(SMOKE), "--runs-dir", str(tmp_path), "--no-progress", "--name", "duel",
+            "--set", "algo.policy=DuelingMlpPolicy", "--set", "algo.dueling_aggregator=max",
+            "--set", "phases.initial.timesteps=600", "--set", "phases.optimizing.timesteps=200",
+            "--set", "eval.every=0", "--set", "checkpoint.every=0",
+        ]
+    )  # fmt: skip
+    assert rc == 0
+    (path,) = tmp_path.iterdir()
+    model = DoubleDQN.load(path / "model.zip")
+    assert isinstance(model.policy, DuelingDQNPolicy)
+    assert path.name.startswith("duel-")
+
+
+def test_run_folders_are_never_reused():
+    now = datetime(2026, 1, 2, 3, 4, 5, tzinfo=timezone.utc)
+    root = Path(__import__("tempfile").mkdtemp())
+    a = RunDir.create(root, "x", now)
+    b = RunDir.create(root, "x", now)
+    assert a.path != b.path
+    assert a.path.name == "x-20260102T030405Z" and b.path.name == "x-20260102T030405Z-1"
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["run", "missing.yaml"], "missing.yaml: config file not found"),
+        (["run", str(SMOKE), "--set", "env.n_agents=0"], "env.n_agents: Input should be greater"),
+        (["run", str(SMOKE), "--name", "../../etc"], "name: must be 1-64 characters"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_code_2(args, message, capsys, tmp_path):
+    assert main([*args, "--runs-dir", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("harness: error:") and message in err
+    assert "\n" not in err
+    assert list(tmp_path.iterdir()) == []  # nothing created
+
+
+def test_unwritable_runs_folder(tmp_path, capsys):
+    blocker = tmp_path / "file"
+    blocker.write_text("")
+    assert main(["run", str(SMOKE), "--runs-dir", str(blocker / "runs")]) == 2
+    assert "cannot create a run folder" in capsys.readouterr().err
+
+
+def test_console_script_reports_errors_without_traceback(tmp_path):
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("env: {n_agents: 2\n")
+    proc = subprocess.run(
+        [sys.executable, "-m", "harness.cli", "run", str(bad)], capture_output=True, text=True
+    )
+    assert proc.returncode == 2
+    assert "Traceback" not in proc.stderr
+    assert proc.stderr.strip().startswith("harness: error:")
+    assert "invalid YAML" in proc.stderr

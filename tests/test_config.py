@@ -1,0 +1,123 @@
+"""Config loading: defaults, YAML errors, unknown keys, overrides, the shipped configs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+import yaml
+
+from harness.config import ConfigError, ExperimentConfig, load_config, parse_override
+
+CONFIGS = sorted(Path(__file__).resolve().parents[1].joinpath("configs").glob("*.yaml"))
+
+
+def write(tmp_path: Path, text: str) -> Path:
+    path = tmp_path / "exp.yaml"
+    path.write_text(text)
+    return path
+
+
+def test_empty_file_gives_thesis_defaults(tmp_path):
+    cfg = load_config(write(tmp_path, ""))
+    assert cfg.env.n_agents == 4 and cfg.env.max_steps == 1000
+    assert cfg.algo.optimizer == "RMSprop" and cfg.algo.buffer_size == 100_000
+    assert cfg.algo.target_update_interval == 10_000
+    initial, optimizing = cfg.phases
+    assert (initial.learning_rate, initial.batch_size, initial.train_freq) == (5e-5, 32, 2)
+    assert initial.alpha == 0.55 and initial.epochs == [(0.0, 1), (0.4, 5), (0.6, 7)]
+    assert optimizing.learning_rate == (5e-6, 1e-6)
+    assert (optimizing.batch_size, optimizing.train_freq) == (64, 4)
+    assert optimizing.exploration.end == 0.0 and optimizing.beta.start == 1.0
+    assert optimizing.epochs == [(0.0, 1), (0.4, 3), (0.6, 5)]
+
+
+@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.name)
+def test_shipped_configs_load(path):
+    cfg = load_config(path)
+    assert cfg.name == path.stem or path.stem == "smoke"
+    assert cfg.total_timesteps > 0
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("env: {n_agentz: 2}", r"exp.yaml: env.n_agentz: Extra inputs are not permitted"),
+        ("env: {max_steps: -1}", r"env.max_steps: Input should be greater than 0"),
+        ("env: {wall_fraction: [0.2, 1.0]}", r"env.wall_fraction: must be \[low, high\]"),
+        ("env: {n_agents: many}", r"env.n_agents: Input should be a valid integer"),
+        ("env: {map: nowhere.txt}", r"env.map: 'nowhere.txt' is not 'random'"),
+        ("env: {height: 2, width: 2, n_agents: 5}", r"env: n_agents=5 is more than the 2x2 map"),
+        ("algo: {optimizer: Adamm}", r"algo.optimizer: unknown torch optimizer 'Adamm'"),
+        ("algo: {policy: CnnPolicy}", r"algo.policy: Input should be 'MlpPolicy'"),
+        ("phases: []", r"phases: needs at least one phase"),
+        ("phases: [{name: a}]", r"phases.0.timesteps: Field required"),
+        ("phases: [{name: a, timesteps: 5, epochs: [[0.5, 1], [0.1, 2]]}]", r"increasing"),
+        ("name: ../escape", r"name: must be 1-64 characters"),
+        ("- a\n- b\n", r"exp.yaml: the top level must be a mapping"),
+        ("env: {n_agents: 2\n", r"exp.yaml: line \d+, column \d+: invalid YAML"),
+    ],
+)
+def test_config_errors_are_one_line_and_name_file_and_key(tmp_path, text, message):
+    with pytest.raises(ConfigError, match=message) as info:
+        load_config(write(tmp_path, text))
+    assert "\n" not in str(info.value)
+
+
+def test_missing_file(tmp_path):
+    with pytest.raises(ConfigError, match="config file not found"):
+        load_config(tmp_path / "nope.yaml")
+
+
+def test_env_problems_found_by_the_env_are_config_errors(tmp_path):
+    bad_map = tmp_path / "m.txt"
+    bad_map.write_text("..\n.x\n")
+    with pytest.raises(ConfigError, match=r"env: .*m.txt: line 2, column 2"):
+        load_config(write(tmp_path, f"env: {{map: {bad_map}, n_agents: 1}}"))
+
+
+def test_overrides_are_typed_and_reach_nested_keys(tmp_path):
+    cfg = load_config(
+        write(tmp_path, "env: {n_agents: 2}"),
+        [
+            "env.max_steps=500",
+            "env.wall_fraction=[0.1, 0.2]",
+            "phases.optimizing.timesteps=123",
+            "phases.0.alpha=0.6",
+            "algo.net_arch=[32, 32]",
+            "name=renamed",
+        ],
+    )
+    assert cfg.env.max_steps == 500 and cfg.env.n_agents == 2
+    assert cfg.env.wall_fraction == (0.1, 0.2)
+    assert cfg.phases[1].timesteps == 123 and cfg.phases[0].alpha == 0.6
+    assert cfg.algo.net_arch == [32, 32] and cfg.name == "renamed"
+
+
+@pytest.mark.parametrize(
+    ("override", "message"),
+    [
+        ("env.max_steps=abc", r"--set env.max_steps=abc: env.max_steps: Input should be"),
+        ("env.nope=1", r"env.nope: Extra inputs are not permitted"),
+        ("phases.nophase.timesteps=3", r"no item 'nophase' at phases.nophase"),
+        ("env.max_steps.x=3", r"env.max_steps is not a section"),
+        ("novalue", r"expected key.path=value"),
+    ],
+)
+def test_bad_overrides(tmp_path, override, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(write(tmp_path, ""), [override])
+
+
+def test_parse_override_uses_yaml_types():
+    assert parse_override("a.b=3") == (["a", "b"], 3)
+    assert parse_override("a=1e-4") == (["a"], 1e-4)
+    assert parse_override("a=true") == (["a"], True)
+    assert parse_override("a=[1, 2]") == (["a"], [1, 2])
+    assert parse_override("a=text") == (["a"], "text")
+
+
+def test_resolved_yaml_round_trips():
+    cfg = ExperimentConfig()
+    again = ExperimentConfig.model_validate(yaml.safe_load(cfg.to_yaml()))
+    assert again == cfg

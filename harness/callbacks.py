@@ -7,7 +7,7 @@ import csv
 import math
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any, TextIO
+from typing import Any
 
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
@@ -27,15 +27,22 @@ class LinearScheduleCallback(BaseCallback):
         start: Value at the phase's first step.
         end: Value after ``steps`` transitions, kept to the end of the phase.
         steps: Transitions over which the value moves.
-        phase_timesteps: Transitions in the phase (its ``learn()`` call).
+        phase_timesteps: Transitions in the phase.
+        done_before: Transitions of the phase done before this ``learn()`` call (resume).
     """
 
     def __init__(
-        self, attribute: str, start: float, end: float, steps: int, phase_timesteps: int
+        self,
+        attribute: str,
+        start: float,
+        end: float,
+        steps: int,
+        phase_timesteps: int,
+        done_before: int = 0,
     ) -> None:
         super().__init__()
         self.attribute = attribute
-        self.schedule = PhaseLinearSchedule(start, end, steps, phase_timesteps)
+        self.schedule = PhaseLinearSchedule(start, end, steps, phase_timesteps, done_before)
 
     def _on_training_start(self) -> None:
         if self.attribute == "beta_schedule" and not getattr(self.model, "prioritized", False):
@@ -119,15 +126,16 @@ class EpisodeLogCallback(BaseCallback):
         self.n_agents = n_agents
         self.phase = phase
         self.next_episode = first_episode
-        self._file: TextIO | None = None
-        self._writer: Any = None
 
     def _on_training_start(self) -> None:
-        new = not self.csv_path.exists() or self.csv_path.stat().st_size == 0
-        self._file = self.csv_path.open("a", newline="", encoding="utf-8")
-        self._writer = csv.writer(self._file)
-        if new:
-            self._writer.writerow(EPISODE_COLUMNS)
+        if not self.csv_path.exists() or self.csv_path.stat().st_size == 0:
+            self._append([EPISODE_COLUMNS])
+
+    def _append(self, rows: list[list[Any]]) -> None:
+        # Open per batch of rows (once per round of episodes): nothing stays open if training
+        # dies, and every finished episode is on disk.
+        with self.csv_path.open("a", newline="", encoding="utf-8") as f:
+            csv.writer(f).writerows(rows)
 
     def _on_step(self) -> bool:
         dones = self.locals["dones"]
@@ -135,6 +143,7 @@ class EpisodeLogCallback(BaseCallback):
             return True
         infos = self.locals["infos"]
         n = self.n_agents
+        rows = []
         for copy in range(len(dones) // n):
             slots = range(copy * n, copy * n + n)
             if not all(dones[k] and "episode" in infos[k] for k in slots):
@@ -151,19 +160,14 @@ class EpisodeLogCallback(BaseCallback):
                 "new_cells": ";".join(str(int(e["new_cells"])) for e in eps),
                 "length": int(eps[0]["l"]),
             }
-            self._writer.writerow([row[c] for c in EPISODE_COLUMNS])
+            rows.append([row[c] for c in EPISODE_COLUMNS])
             self.next_episode += 1
             self.logger.record_mean("rollout/coverage", row["coverage"])
             self.logger.record_mean("rollout/wall_hits", row["wall_hits"])
             self.logger.record_mean("rollout/team_reward_mean", row["reward_mean"])
-        assert self._file is not None
-        self._file.flush()
+        if rows:
+            self._append(rows)
         return True
-
-    def _on_training_end(self) -> None:
-        if self._file is not None:
-            self._file.close()
-            self._file = None
 
 
 class PeriodicCallback(BaseCallback):

@@ -13,6 +13,7 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
+from harness.checkpoints import CheckpointError
 from harness.config import ConfigError, ExperimentConfig, load_config
 from harness.rundir import RunDir, RunDirError
 
@@ -42,7 +43,13 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     run = sub.add_parser("run", help="train an experiment from a YAML config")
-    run.add_argument("config", type=Path, help="experiment YAML file (see configs/)")
+    run.add_argument("config", type=Path, nargs="?", help="experiment YAML file (see configs/)")
+    run.add_argument(
+        "--resume",
+        type=Path,
+        metavar="RUN_DIR",
+        help="continue an interrupted run from its latest checkpoint (uses its config.yaml)",
+    )
     _add_overrides(run)
     run.add_argument("--seed", type=int, help="override the config's seed")
     run.add_argument("--name", help="override the config's name (the run folder's prefix)")
@@ -62,13 +69,54 @@ def resolve_run_config(args: argparse.Namespace) -> ExperimentConfig:
 
 
 def cmd_run(args: argparse.Namespace) -> int:
+    if args.resume is not None:
+        return _resume(args)
+    if args.config is None:
+        raise HarnessError("run needs a CONFIG.yaml (or --resume RUN_DIR)")
     config = resolve_run_config(args)
     run = RunDir.create(args.runs_dir, config.name)
     run.write_command(args.argv)
     print(f"run folder: {run.path}", file=sys.stderr)
-    from harness.train import train  # heavy imports (torch, SB3) only when training
+    return _train(config, run, args, resume=False)
 
-    train(config, run, progress_bar=not args.no_progress)
+
+def _resume(args: argparse.Namespace) -> int:
+    if args.config is not None or args.overrides or args.seed is not None or args.name:
+        raise HarnessError(
+            "--resume continues a run with its own config.yaml; drop the other options"
+        )
+    run = RunDir(args.resume)
+    if not run.config.is_file():
+        raise HarnessError(f"{run.path}: not a run folder (no config.yaml)")
+    config = load_config(run.config)
+    from harness.checkpoints import latest_checkpoint, read_state
+
+    state = read_state(latest_checkpoint(run.checkpoints))
+    if state.finished:
+        print(
+            f"{run.path}: this run already finished ({state.num_timesteps} steps)", file=sys.stderr
+        )
+        return 0
+    run.write_command(args.argv)
+    print(f"resuming {run.path} at step {state.num_timesteps}", file=sys.stderr)
+    return _train(config, run, args, resume=True)
+
+
+def _train(config: ExperimentConfig, run: RunDir, args: argparse.Namespace, resume: bool) -> int:
+    from harness.train import TrainingFailed, TrainingInterrupted, train  # torch, SB3: only here
+
+    try:
+        train(config, run, progress_bar=not args.no_progress, resume=resume)
+    except TrainingInterrupted as exc:
+        print(
+            f"harness: stopped by {exc} after writing {exc.checkpoint}; "
+            f"resume with: harness run --resume {run.path}",
+            file=sys.stderr,
+        )
+        return 128 + exc.signum
+    except TrainingFailed as exc:
+        print(f"harness: error: {exc}", file=sys.stderr)
+        return 1
     print(f"done: {run.model}", file=sys.stderr)
     return 0
 
@@ -86,7 +134,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             # Map warnings are worth one line each, not a stack location.
             warnings.simplefilter("default")
             return COMMANDS[args.command](args)
-    except (ConfigError, RunDirError, HarnessError) as exc:
+    except (ConfigError, RunDirError, HarnessError, CheckpointError) as exc:
         print(f"harness: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
 

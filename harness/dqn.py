@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any, ClassVar
 
 import numpy as np
@@ -40,6 +41,10 @@ def resolve_optimizer_class(optimizer: str | type[th.optim.Optimizer]) -> type[t
     if isinstance(optimizer, type) and issubclass(optimizer, th.optim.Optimizer):
         return optimizer
     raise ValueError(f"optimizer_class must be a torch.optim.Optimizer subclass, got {optimizer!r}")
+
+
+class NonFiniteLossError(FloatingPointError):
+    """The training loss became NaN or infinite; the weights are no longer trustworthy."""
 
 
 class DoubleDQN(DQN):
@@ -236,7 +241,13 @@ class DoubleDQN(DQN):
                 loss = (replay_data.weights * per_sample_loss).mean()  # type: ignore[union-attr]
             else:
                 loss = per_sample_loss.mean()
-            losses.append(loss.item())
+            loss_value = loss.item()
+            if not math.isfinite(loss_value):
+                raise NonFiniteLossError(
+                    f"the loss became {loss_value} at step {self.num_timesteps} "
+                    f"(update {self._n_updates + len(losses)})"
+                )
+            losses.append(loss_value)
 
             self.policy.optimizer.zero_grad()
             loss.backward()

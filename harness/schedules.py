@@ -25,20 +25,22 @@ class PhaseLinearSchedule:
     """An SB3 ``Schedule`` (a callable of ``progress_remaining``) that follows :func:`linear` over
     the steps of one training phase.
 
-    SB3 hands schedules the remaining progress of the current ``learn()`` call (1 → 0); one phase
-    is one ``learn()`` call of ``phase_timesteps`` steps, so the step within the phase is
-    ``(1 - progress_remaining) * phase_timesteps``.
+    SB3 hands schedules the remaining progress of the current ``learn()`` call (1 → 0). A phase is
+    one ``learn()`` call over its last ``phase_timesteps - done_before`` steps (``done_before > 0``
+    when a run resumes mid-phase), so the step within the phase is
+    ``done_before + (1 - progress_remaining) * (phase_timesteps - done_before)``.
     """
 
     start: float
     end: float
     steps: int
     phase_timesteps: int
+    done_before: int = 0
 
     def __call__(self, progress_remaining: float) -> float:
-        return linear(
-            self.start, self.end, self.steps, (1.0 - progress_remaining) * self.phase_timesteps
-        )
+        span = self.phase_timesteps - self.done_before
+        t = self.done_before + (1.0 - progress_remaining) * span
+        return linear(self.start, self.end, self.steps, t)
 
 
 def epochs_for(coverage: float | None, table: Sequence[tuple[float, int]]) -> int:

@@ -12,8 +12,9 @@
 
 from __future__ import annotations
 
-import json
-import logging
+import contextlib
+import signal
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -33,13 +34,21 @@ from harness.callbacks import (
     LinearScheduleCallback,
     PeriodicCallback,
 )
+from harness.checkpoints import (
+    CheckpointError,
+    TrainingState,
+    complete_checkpoints,
+    latest_checkpoint,
+    read_rng,
+    read_state,
+    save_checkpoint,
+    set_rng_states,
+)
 from harness.config import ExperimentConfig, PhaseConfig
-from harness.dqn import DoubleDQN
+from harness.dqn import DoubleDQN, NonFiniteLossError
 from harness.evaluation import model_policy, run_episodes, summarize
 from harness.rundir import RunDir, atomic_write, atomic_write_text
 from harness.schedules import PhaseLinearSchedule
-
-log = logging.getLogger(__name__)
 
 
 def configure_torch(threads: int | None) -> None:
@@ -94,14 +103,19 @@ def _lr_start(phase: PhaseConfig) -> float:
     return lr[0] if isinstance(lr, tuple) else lr
 
 
-def apply_phase(model: DoubleDQN, phase: PhaseConfig) -> None:
-    """Set what changes between phases on the live model (SPEC §4)."""
+def apply_phase(model: DoubleDQN, phase: PhaseConfig, done_before: int = 0) -> None:
+    """Set what changes between phases on the live model (SPEC §4).
+
+    ``done_before``: transitions of this phase already done (a run resumed mid-phase).
+    """
     lr = phase.learning_rate
     start, end = lr if isinstance(lr, tuple) else (lr, lr)
     # SB3 reads lr_schedule(progress_remaining) at each training call; progress runs 1 → 0
     # over each learn() call, i.e. over the phase.
     model.learning_rate = start
-    model.lr_schedule = PhaseLinearSchedule(start, end, phase.timesteps, phase.timesteps)
+    model.lr_schedule = PhaseLinearSchedule(
+        start, end, phase.timesteps, phase.timesteps, done_before
+    )
     model.batch_size = phase.batch_size
     model.train_freq = TrainFreq(phase.train_freq, TrainFrequencyUnit.STEP)
     if isinstance(model.replay_buffer, PrioritizedReplayBuffer):
@@ -114,6 +128,7 @@ def phase_callbacks(
     run: RunDir,
     evaluator: Evaluator,
     first_episode: int,
+    done_before: int = 0,
 ) -> tuple[list[BaseCallback], EpisodeLogCallback]:
     """The callbacks of one phase, in the order they run."""
     n_agents = config.env.n_agents
@@ -125,14 +140,19 @@ def phase_callbacks(
             phase.exploration.end,
             phase.exploration.steps,
             phase.timesteps,
+            done_before,
         ),
         LinearScheduleCallback(
-            "beta_schedule", phase.beta.start, phase.beta.end, phase.beta.steps, phase.timesteps
+            "beta_schedule",
+            phase.beta.start,
+            phase.beta.end,
+            phase.beta.steps,
+            phase.timesteps,
+            done_before,
         ),
         EpochsByCoverageCallback(phase.epochs, phase.epochs_window, n_agents),
         episode_log,
         PeriodicCallback(config.eval.every, evaluator),
-        PeriodicCallback(config.checkpoint.every, lambda m: save_checkpoint(m, run)),
     ]
     return callbacks, episode_log
 
@@ -144,15 +164,14 @@ class Evaluator:
     training. "Best" is the highest median coverage, wall hits breaking ties.
     """
 
-    def __init__(self, config: ExperimentConfig, run: RunDir) -> None:
+    def __init__(self, config: ExperimentConfig, run: RunDir, best: float = -np.inf) -> None:
         self.config, self.run = config, run
-        self.best = -np.inf
+        self.best = best
 
     def __call__(self, model: DoubleDQN) -> None:
         cfg = self.config.eval
-        summary = summarize(
-            run_episodes(model_policy(model), self.config.env, cfg.episodes, cfg.seed)
-        )
+        results = run_episodes(model_policy(model), self.config.env, cfg.episodes, cfg.seed)
+        summary = summarize(results)
         model.logger.record("eval/coverage_median", summary["coverage_median"])
         model.logger.record("eval/coverage_mean", summary["coverage_mean"])
         model.logger.record("eval/wall_hits_mean", summary["wall_hits_mean"])
@@ -173,51 +192,175 @@ def save_model(model: DoubleDQN, path: Path) -> None:
     atomic_write(path, write)
 
 
-def save_checkpoint(model: DoubleDQN, run: RunDir, state: dict[str, Any] | None = None) -> None:
-    """Atomically write the latest checkpoint: model, replay buffer and training state.
+class Checkpointer:
+    """Writes checkpoints with the live training state (episode counter, best evaluation)."""
 
-    Each file is replaced only once its new version is complete, so the last good checkpoint
-    survives a crash at any point.
-    """
-    save_model(model, run.checkpoints / "model.zip")
+    def __init__(self, run: RunDir, state: TrainingState, evaluator: Evaluator) -> None:
+        self.run, self.state, self.evaluator = run, state, evaluator
+        self.episode_log: EpisodeLogCallback | None = None
 
-    def write_buffer(tmp: Path) -> None:
-        with tmp.open("wb") as f:
-            model.save_replay_buffer(f)
-
-    atomic_write(run.checkpoints / "replay_buffer.pkl", write_buffer)
-    info = {"num_timesteps": int(model.num_timesteps), **(state or {})}
-    atomic_write_text(run.checkpoints / "state.json", json.dumps(info, indent=2))
+    def __call__(self, model: DoubleDQN) -> Path:
+        if self.episode_log is not None:
+            self.state.next_episode = self.episode_log.next_episode
+        self.state.best_eval = self.evaluator.best
+        return save_checkpoint(model, self.run.checkpoints, self.state)
 
 
-def train(config: ExperimentConfig, run: RunDir, progress_bar: bool = True) -> DoubleDQN:
-    """Train ``config`` into ``run`` (a freshly created run directory)."""
-    configure_torch(config.algo.threads)
-    set_random_seed(config.seed)
-    atomic_write_text(run.config, config.to_yaml())
+class StopOnSignal(BaseCallback):
+    """Ends ``learn()`` at the next step once SIGINT or SIGTERM arrived (see :func:`train`)."""
 
-    venv = make_vec_env(config.env, config.vec.copies, config.vec.num_cpus, seed=config.seed)
+    def __init__(self) -> None:
+        super().__init__()
+        self.signum: int | None = None
+
+    def _on_step(self) -> bool:
+        return self.signum is None
+
+
+class TrainingInterrupted(Exception):
+    """Training stopped on a signal after writing a checkpoint."""
+
+    def __init__(self, signum: int, checkpoint: Path) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum, self.checkpoint = signum, checkpoint
+
+
+class TrainingFailed(Exception):
+    """Training cannot go on (e.g. a non-finite loss); the last good checkpoint is kept."""
+
+
+@contextlib.contextmanager
+def stop_on_signals(stopper: StopOnSignal) -> Iterator[None]:
+    """Turn the first SIGINT/SIGTERM into a clean stop; a second SIGINT interrupts at once."""
+
+    def handler(signum: int, frame: Any) -> None:
+        if stopper.signum is not None and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        stopper.signum = signum
+
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
     try:
-        model = build_model(config, venv)
-        model.action_space.seed(config.seed)
-        model.set_logger(configure(str(run.tb), ["tensorboard", "csv"]))
-        evaluator = Evaluator(config, run)
-        next_episode = 0
-        for index, phase in enumerate(config.phases):
-            apply_phase(model, phase)
-            callbacks, episode_log = phase_callbacks(config, phase, run, evaluator, next_episode)
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
+def truncate_episodes_csv(path: Path, next_episode: int) -> None:
+    """Drop rows logged after the checkpoint a run resumes from, so no episode appears twice."""
+    if not path.exists():
+        return
+    lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
+    kept = lines[:1] + [ln for ln in lines[1:] if int(ln.split(",", 1)[0]) < next_episode]
+    atomic_write_text(path, "".join(kept))
+
+
+def _env_seed(config: ExperimentConfig, state: TrainingState) -> int:
+    # A resumed run continues on new episodes rather than replaying the first maps again.
+    return config.seed + 100_000 * state.resumes
+
+
+def train(
+    config: ExperimentConfig, run: RunDir, progress_bar: bool = True, resume: bool = False
+) -> DoubleDQN:
+    """Train ``config`` into ``run``; with ``resume``, continue from its latest checkpoint.
+
+    Raises:
+        TrainingInterrupted: on SIGINT/SIGTERM, after writing a checkpoint.
+        TrainingFailed: on a non-finite loss (the last good checkpoint stays).
+        CheckpointError: when resuming without a usable checkpoint.
+    """
+    configure_torch(config.algo.threads)
+    if resume:
+        checkpoint = latest_checkpoint(run.checkpoints)
+        state = read_state(checkpoint)
+        state.resumes += 1
+    else:
+        set_random_seed(config.seed)
+        atomic_write_text(run.config, config.to_yaml())
+        state = TrainingState()
+
+    venv = make_vec_env(
+        config.env, config.vec.copies, config.vec.num_cpus, seed=_env_seed(config, state)
+    )
+    logger = configure(str(run.tb), ["tensorboard", "csv"])
+    try:
+        if resume:
+            model = load_checkpoint_model(checkpoint, venv, config)
+            set_rng_states(read_rng(checkpoint))
+            truncate_episodes_csv(run.episodes_csv, state.next_episode)
+        else:
+            model = build_model(config, venv)
+            model.action_space.seed(config.seed)
+        model.set_logger(logger)
+        evaluator = Evaluator(config, run, state.best_eval)
+        checkpointer = Checkpointer(run, state, evaluator)
+        stopper = StopOnSignal()
+        with stop_on_signals(stopper):
+            for index in range(state.phase, len(config.phases)):
+                _run_phase(
+                    model, config, run, index, state, evaluator, checkpointer, stopper, progress_bar
+                )
+        save_model(model, run.model)
+        state.finished = True
+        checkpointer(model)
+        return model
+    finally:
+        logger.close()
+        venv.close()
+
+
+def _run_phase(
+    model: DoubleDQN,
+    config: ExperimentConfig,
+    run: RunDir,
+    index: int,
+    state: TrainingState,
+    evaluator: Evaluator,
+    checkpointer: Checkpointer,
+    stopper: StopOnSignal,
+    progress_bar: bool,
+) -> None:
+    """Run (the rest of) phase ``index``, then checkpoint at its end."""
+    phase = config.phases[index]
+    if index != state.phase:  # a new phase starts here
+        state.phase, state.phase_start = index, int(model.num_timesteps)
+    done = int(model.num_timesteps) - state.phase_start
+    if done < phase.timesteps:
+        apply_phase(model, phase, done)
+        callbacks, episode_log = phase_callbacks(
+            config, phase, run, evaluator, state.next_episode, done
+        )
+        checkpointer.episode_log = episode_log
+        callbacks += [PeriodicCallback(config.checkpoint.every, checkpointer), stopper]
+        try:
             model.learn(
-                total_timesteps=phase.timesteps,
+                total_timesteps=phase.timesteps - done,
                 callback=CallbackList(callbacks),
                 log_interval=config.n_slots,  # dump logs once per round of finished episodes
                 reset_num_timesteps=False,
                 progress_bar=progress_bar,
             )
-            next_episode = episode_log.next_episode
-            save_checkpoint(
-                model, run, {"phase": index, "phase_done": True, "next_episode": next_episode}
-            )
-        save_model(model, run.model)
-        return model
-    finally:
-        venv.close()
+        except NonFiniteLossError as exc:
+            found = complete_checkpoints(run.checkpoints)
+            kept = f"the last good checkpoint is {found[-1]}" if found else "no checkpoint yet"
+            raise TrainingFailed(
+                f"{exc}; training stopped, {kept} (try a lower learning rate or max_grad_norm)"
+            ) from None
+        state.next_episode = episode_log.next_episode
+        if stopper.signum is not None:
+            raise TrainingInterrupted(stopper.signum, checkpointer(model))
+    state.phase, state.phase_start = index + 1, int(model.num_timesteps)
+    checkpointer(model)
+
+
+def load_checkpoint_model(checkpoint: Path, venv: VecEnv, config: ExperimentConfig) -> DoubleDQN:
+    """Load a checkpoint's model and replay buffer onto a fresh VecEnv."""
+    try:
+        model = DoubleDQN.load(checkpoint / "model.zip", env=venv, device=config.algo.device)
+        model.load_replay_buffer(checkpoint / "replay_buffer.pkl")
+    except Exception as exc:  # SB3 raises many kinds on a damaged zip or pickle
+        raise CheckpointError(f"{checkpoint}: cannot load checkpoint ({exc})") from None
+    # The saved env state is gone with the old process: start fresh episodes.
+    model._last_obs = None
+    return model

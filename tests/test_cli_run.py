@@ -12,6 +12,7 @@ import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from harness import DoubleDQN, DuelingDQNPolicy
+from harness.checkpoints import complete_checkpoints, latest_checkpoint
 from harness.cli import main
 from harness.config import load_config
 from harness.rundir import RunDir
@@ -46,8 +47,10 @@ def test_run_directory_layout(smoke_run):
     assert smoke_run.path.name.startswith("smoke-")
     for f in ("config.yaml", "command.txt", "model.zip", "episodes.csv", "best_model.zip"):
         assert (smoke_run.path / f).is_file(), f
-    for f in ("model.zip", "replay_buffer.pkl", "state.json"):
-        assert (smoke_run.checkpoints / f).is_file(), f
+    latest = latest_checkpoint(smoke_run.checkpoints)
+    for f in ("model.zip", "replay_buffer.pkl", "rng.pkl", "state.json"):
+        assert (latest / f).is_file(), f
+    assert len(complete_checkpoints(smoke_run.checkpoints)) == 2  # older ones are pruned
     assert "harness run" in smoke_run.command.read_text()
     resolved = load_config(smoke_run.config)
     assert resolved == load_config(SMOKE, ["seed=3"])

@@ -1,0 +1,146 @@
+"""Checkpoints: everything needed to continue a run exactly where it stopped.
+
+A checkpoint is a folder ``checkpoints/step-<num_timesteps>/`` holding:
+
+* ``model.zip``: the SB3 model (weights, optimizer state, step counters, ``ep_info_buffer``);
+* ``replay_buffer.pkl``: the replay buffer with its priorities;
+* ``rng.pkl``: the numpy, Python and torch random states;
+* ``state.json``: the harness's own position (:class:`TrainingState`).
+
+It is written into a hidden temporary folder and renamed into place only when complete, and older
+checkpoints are deleted only after that, so the last good checkpoint survives a crash or a
+``kill -9`` at any moment. The newest complete folder is the one a resume loads.
+"""
+
+from __future__ import annotations
+
+import json
+import pickle
+import random
+import shutil
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+STEP_PREFIX = "step-"
+KEEP = 2  # checkpoints kept: the newest and the one before it
+
+
+class CheckpointError(RuntimeError):
+    """A missing or unreadable checkpoint, with a one-line message."""
+
+
+@dataclass
+class TrainingState:
+    """Where a run stands, beyond what the SB3 model knows."""
+
+    phase: int = 0
+    """Index of the phase in progress (``len(phases)`` when all are done)."""
+    phase_start: int = 0
+    """``num_timesteps`` when that phase started."""
+    next_episode: int = 0
+    """Number of the next row of ``episodes.csv``."""
+    best_eval: float = float("-inf")
+    """Best evaluation score so far (for ``best_model.zip``)."""
+    finished: bool = False
+    """True once ``model.zip`` of the whole run is written."""
+    resumes: int = 0
+    """How often the run was resumed (new env seeds each time)."""
+    num_timesteps: int = 0
+    """The model's step counter when the checkpoint was written (for reading only)."""
+
+    def to_json(self) -> str:
+        data = asdict(self)
+        data["best_eval"] = None if not np.isfinite(self.best_eval) else self.best_eval
+        return json.dumps(data, indent=2)
+
+    @classmethod
+    def from_json(cls, text: str) -> TrainingState:
+        data = json.loads(text)
+        if data.get("best_eval") is None:
+            data["best_eval"] = float("-inf")
+        return cls(**data)
+
+
+def rng_states() -> dict[str, Any]:
+    """The global random states SB3 training draws from."""
+    return {
+        "numpy": np.random.get_state(),  # noqa: NPY002 (SB3 seeds and uses the global state)
+        "python": random.getstate(),
+        "torch": torch.get_rng_state(),
+    }
+
+
+def set_rng_states(states: dict[str, Any]) -> None:
+    """Restore what :func:`rng_states` returned."""
+    np.random.set_state(states["numpy"])  # noqa: NPY002
+    random.setstate(states["python"])
+    torch.set_rng_state(states["torch"])
+
+
+def save_checkpoint(model: Any, folder: Path, state: TrainingState) -> Path:
+    """Write a complete checkpoint of ``model`` and ``state`` under ``folder`` (``checkpoints/``).
+
+    Returns:
+        The new checkpoint's folder.
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    state.num_timesteps = int(model.num_timesteps)
+    name = f"{STEP_PREFIX}{state.num_timesteps:012d}"
+    final = folder / name
+    tmp = folder / f".{name}.tmp"
+    shutil.rmtree(tmp, ignore_errors=True)
+    tmp.mkdir()
+    with (tmp / "model.zip").open("wb") as f:
+        model.save(f)
+    with (tmp / "replay_buffer.pkl").open("wb") as f:
+        model.save_replay_buffer(f)
+    with (tmp / "rng.pkl").open("wb") as f:
+        pickle.dump(rng_states(), f)
+    (tmp / "state.json").write_text(state.to_json(), encoding="utf-8")
+    if final.exists():  # same step written twice (e.g. a periodic and a phase-end checkpoint)
+        shutil.rmtree(final)
+    tmp.rename(final)
+    for old in complete_checkpoints(folder)[:-KEEP]:
+        shutil.rmtree(old, ignore_errors=True)
+    return final
+
+
+def complete_checkpoints(folder: Path) -> list[Path]:
+    """Complete checkpoint folders, oldest first (temporary folders are hidden, never listed)."""
+    if not folder.is_dir():
+        return []
+    found = [p for p in folder.iterdir() if p.name.startswith(STEP_PREFIX) and p.is_dir()]
+    return sorted(p for p in found if (p / "state.json").is_file())
+
+
+def latest_checkpoint(folder: Path) -> Path:
+    """The newest complete checkpoint.
+
+    Raises:
+        CheckpointError: when there is none.
+    """
+    found = complete_checkpoints(folder)
+    if not found:
+        raise CheckpointError(f"{folder}: no complete checkpoint to resume from")
+    return found[-1]
+
+
+def read_state(checkpoint: Path) -> TrainingState:
+    """The training state of a checkpoint folder."""
+    try:
+        return TrainingState.from_json((checkpoint / "state.json").read_text(encoding="utf-8"))
+    except (OSError, ValueError, TypeError) as exc:
+        raise CheckpointError(f"{checkpoint / 'state.json'}: unreadable ({exc})") from None
+
+
+def read_rng(checkpoint: Path) -> dict[str, Any]:
+    """The random states of a checkpoint folder."""
+    try:
+        with (checkpoint / "rng.pkl").open("rb") as f:
+            return pickle.load(f)
+    except (OSError, pickle.UnpicklingError, EOFError) as exc:
+        raise CheckpointError(f"{checkpoint / 'rng.pkl'}: unreadable ({exc})") from None

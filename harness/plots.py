@@ -1,0 +1,629 @@
+"""Figures of the harness: paths (thesis Figs. 4.2–4.15), test episodes (Fig. 4.11), learning
+curves (``harness compare``) and animated GIFs of an episode (``harness render --gif``).
+
+Everything draws on :class:`matplotlib.figure.Figure` objects, never through ``pyplot``, so no
+window opens, no global figure state is kept, and the Agg renderer writes the PNGs whatever
+backend the user's matplotlib is set to. Agent colours are the env's Okabe-Ito palette
+(:data:`envs.coverage.render.AGENT_COLOURS`), which readers with colour-vision deficiencies can
+tell apart; map colours are the env's own, so figures and ``rgb_array`` frames match.
+"""
+
+from __future__ import annotations
+
+import csv
+import warnings
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+from matplotlib.colors import to_hex
+from matplotlib.figure import Figure
+from matplotlib.lines import Line2D
+from matplotlib.ticker import MaxNLocator, PercentFormatter
+
+from envs import coverage_v0
+from envs.coverage import render
+
+if TYPE_CHECKING:  # only for annotations: keeps this module importable without a cycle
+    from harness.config import EnvConfig
+    from harness.evaluation import BatchPolicy, EpisodeResult
+
+#: Fractions of the episode shown by the coverage snapshots (Table 4.2's 33/66/100 %).
+SNAPSHOT_FRACTIONS = (0.33, 0.66, 1.0)
+#: Columns of ``episodes.csv`` (written by the training callbacks).
+EPISODES_CSV_COLUMNS = (
+    "episode",
+    "phase",
+    "timesteps",
+    "copy",
+    "coverage",
+    "reward_mean",
+    "wall_hits",
+    "new_cells",
+    "length",
+)
+DPI = 150
+#: Okabe-Ito colours as matplotlib hex strings, agent 0 first.
+AGENT_HEX = tuple(to_hex(c / 255) for c in render.AGENT_COLOURS)
+_WALL = render.WALL_COLOUR / 255
+_FREE = np.array([1.0, 1.0, 1.0])
+_SEEN = np.array([0.84, 0.84, 0.84])  # visited cells in the team panel (neutral under the paths)
+_LINE_COLOUR = "#0072B2"  # Okabe-Ito blue
+_HITS_COLOUR = "#D55E00"  # Okabe-Ito vermillion
+_MEDIAN_COLOUR = "#000000"
+
+
+# ---------------------------------------------------------------------- paths (Figs. 4.2-4.15)
+def plot_paths(
+    walls: np.ndarray,
+    paths: Sequence[np.ndarray],
+    out: str | Path,
+    title: str = "",
+    snapshots: bool = True,
+) -> Path:
+    """Draw the team's paths over the map, one panel per agent, and coverage snapshots.
+
+    Top row: the map with every agent's path (start ``o``, end ``□``), then one panel per agent
+    with only its own path and the cells credited to it. Bottom row (``snapshots``): the cells
+    the team had covered at 33, 66 and 100 % of the episode, tinted by the agent credited with
+    them, with the agents' positions at that step.
+
+    Args:
+        walls: ``bool (H, W)``, True = wall.
+        paths: Per agent, ``(T + 1, 2)`` int ``(row, col)`` positions from step 0 to T, as
+            ``run_episodes(..., record_paths=True)`` records them.
+        out: PNG file to write (folders are created).
+        title: Figure title.
+        snapshots: Add the row of coverage snapshots.
+
+    Returns:
+        The path of the PNG.
+    """
+    walls = np.asarray(walls, dtype=bool)
+    paths = [np.asarray(p, dtype=np.int64).reshape(-1, 2) for p in paths]
+    if not paths:
+        raise ValueError("plot_paths needs at least one agent's path")
+    steps = len(paths[0]) - 1
+    if any(len(p) != steps + 1 for p in paths):
+        raise ValueError("all agents' paths must have the same length")
+    height, width = walls.shape
+    n_agents = len(paths)
+    first_step, credited = first_visits(walls.shape, paths)
+    n_free = int((~walls).sum())
+    coverage = (first_step >= 0).sum() / n_free if n_free else 0.0
+    colours = [AGENT_HEX[i % len(AGENT_HEX)] for i in range(n_agents)]
+
+    # Layout in inches, so every panel has the same size whatever the number of agents, and
+    # each row is centred: [title] [team + agents] [legend] [snapshot header] [snapshots].
+    top_n = n_agents + 1
+    bottom_n = len(SNAPSHOT_FRACTIONS) if snapshots else 0
+    panel_w = 2.8 if top_n <= 5 else 2.3
+    panel_h = panel_w * height / width
+    gap, side = 0.55, 0.35
+    fig_w = side * 2 + max(top_n, bottom_n) * (panel_w + gap)
+    title_h = 0.45 if title else 0.1
+    row_top = 0.55  # two-line panel titles
+    row_bottom = 0.5  # tick labels and x label
+    legend_h = 0.4
+    snap_head = 0.55 if snapshots else 0.0
+    snap_h = (row_top + panel_h + row_bottom) if snapshots else 0.0
+    fig_h = title_h + row_top + panel_h + row_bottom + legend_h + snap_head + snap_h
+    fig = Figure(figsize=(fig_w, fig_h), dpi=DPI)
+
+    def row(n: int, top: float) -> list[Any]:
+        """``n`` centred panels whose upper edge is ``top`` inches below the figure's top."""
+        width_in = n * panel_w + (n - 1) * gap
+        left = (fig_w - width_in) / 2
+        bottom = fig_h - top - panel_h
+        return [
+            fig.add_axes(
+                (
+                    (left + k * (panel_w + gap)) / fig_w,
+                    bottom / fig_h,
+                    panel_w / fig_w,
+                    panel_h / fig_h,
+                )
+            )
+            for k in range(n)
+        ]
+
+    lw = float(np.clip(90 / max(height, width), 0.6, 2.2))
+    marker = float(np.clip(220 / max(height, width), 3.5, 9.0))
+    y = title_h + row_top
+    axes = row(top_n, y)
+    team_bg = _map_image(walls)
+    team_bg[first_step >= 0] = _SEEN
+    _show_map(axes[0], team_bg)
+    # Small per-agent offsets keep overlapping stretches of path distinguishable.
+    spread = 0.12 if n_agents > 1 else 0.0
+    for i, path in enumerate(paths):
+        offset = (i - (n_agents - 1) / 2) * spread
+        _draw_path(axes[0], path, colours[i], 0.8 * lw, marker, offset)
+    axes[0].set_title(f"Team\n{100 * coverage:.1f} % covered", fontsize="medium")
+    for i, path in enumerate(paths):
+        ax = axes[i + 1]
+        bg = _map_image(walls)
+        mine = credited == i
+        bg[mine] = 1 - render.TINT * (1 - render.agent_colour(i) / 255)
+        _show_map(ax, bg, ylabel=False)
+        _draw_path(ax, path, colours[i], lw, marker, 0.0)
+        share = mine.sum() / n_free if n_free else 0.0
+        useful = mine.sum() / steps if steps else 0.0
+        ax.set_title(
+            f"agent_{i}: {100 * share:.1f} % of map\n{100 * useful:.1f} % useful moves",
+            fontsize="medium",
+        )
+    handles = [Line2D([], [], color=c, lw=2, label=f"agent_{i}") for i, c in enumerate(colours)]
+    handles += [
+        Line2D([], [], ls="", marker="o", mfc="white", mec="black", label="start"),
+        Line2D([], [], ls="", marker="s", mfc="white", mec="black", label="end"),
+    ]
+    y += panel_h + row_bottom
+    fig.legend(
+        handles=handles,
+        loc="center",
+        bbox_to_anchor=(0.5, 1 - (y + legend_h / 2) / fig_h),
+        ncol=min(len(handles), 10),
+        frameon=False,
+    )
+    y += legend_h
+
+    if snapshots:
+        fig.text(
+            0.5,
+            1 - (y + snap_head / 2) / fig_h,
+            "Team coverage during the episode (cells tinted by the agent credited with them)",
+            ha="center",
+            va="center",
+            fontsize="medium",
+            fontweight="bold",
+        )
+        y += snap_head + row_top
+        tints = 1 - render.TINT * (1 - render.AGENT_COLOURS / 255)
+        for k, (ax, frac) in enumerate(zip(row(bottom_n, y), SNAPSHOT_FRACTIONS)):
+            step = round(frac * steps)
+            covered = (first_step >= 0) & (first_step <= step)
+            img = _map_image(walls)
+            img[covered] = tints[credited[covered] % len(tints)]
+            _show_map(ax, img, ylabel=k == 0)
+            for i, path in enumerate(paths):
+                r, c = path[step]
+                ax.plot(c, r, "o", ms=marker, mfc=colours[i], mec="black", mew=0.8)
+            share = covered.sum() / n_free if n_free else 0.0
+            ax.set_title(
+                f"step {step} ({100 * frac:.0f} % of episode)\n{100 * share:.1f} % covered",
+                fontsize="medium",
+            )
+    if title:
+        fig.text(
+            0.5,
+            1 - title_h / 2 / fig_h,
+            title,
+            ha="center",
+            va="center",
+            fontsize="large",
+            fontweight="bold",
+        )
+    return _save(fig, out)
+
+
+def first_visits(
+    shape: tuple[int, int], paths: Sequence[np.ndarray]
+) -> tuple[np.ndarray, np.ndarray]:
+    """When and by whom each cell was first visited, from the agents' paths.
+
+    Follows the env's crediting rule: cells are taken in step order, and within one step the
+    lower agent index wins.
+
+    Args:
+        shape: ``(H, W)`` of the map.
+        paths: Per agent ``(T + 1, 2)`` ``(row, col)`` positions.
+
+    Returns:
+        ``first_step`` and ``credited``, both int ``(H, W)``: the step a cell was first visited
+        and the agent credited with it, -1 where nobody went.
+    """
+    height, width = shape
+    stacked = np.stack([np.asarray(p).reshape(-1, 2) for p in paths], axis=1)  # (T+1, N, 2)
+    n_agents = stacked.shape[1]
+    flat = (stacked[..., 0] * width + stacked[..., 1]).ravel()  # step-major, then agent index
+    cells, first = np.unique(flat, return_index=True)
+    first_step = np.full(height * width, -1, dtype=np.int64)
+    credited = np.full(height * width, -1, dtype=np.int64)
+    first_step[cells] = first // n_agents
+    credited[cells] = first % n_agents
+    return first_step.reshape(shape), credited.reshape(shape)
+
+
+def _map_image(walls: np.ndarray) -> np.ndarray:
+    img = np.empty((*walls.shape, 3))
+    img[:] = _FREE
+    img[walls] = _WALL
+    return img
+
+
+def _show_map(ax: Any, img: np.ndarray, ylabel: bool = True) -> None:
+    height, width = img.shape[:2]
+    ax.imshow(img, interpolation="nearest", origin="upper")
+    ax.set_aspect("equal")
+    ax.set_xlim(-0.5, width - 0.5)
+    ax.set_ylim(height - 0.5, -0.5)
+    ax.xaxis.set_major_locator(MaxNLocator(5, integer=True))
+    ax.yaxis.set_major_locator(MaxNLocator(5, integer=True))
+    ax.tick_params(labelsize="small", length=2)
+    ax.set_xlabel("column")
+    if ylabel:
+        ax.set_ylabel("row")
+
+
+def _draw_path(
+    ax: Any, path: np.ndarray, colour: str, lw: float, marker: float, offset: float
+) -> None:
+    rows, cols = path[:, 0] + offset, path[:, 1] + offset
+    ax.plot(cols, rows, "-", color=colour, lw=lw, alpha=0.9, solid_capstyle="round")
+    ax.plot(cols[0], rows[0], "o", ms=marker, mfc=colour, mec="black", mew=0.8)
+    ax.plot(cols[-1], rows[-1], "s", ms=marker, mfc=colour, mec="black", mew=0.8)
+
+
+# ---------------------------------------------------------------------- test episodes (Fig. 4.11)
+def plot_eval_episodes(
+    results_or_coverages: Sequence[EpisodeResult] | Sequence[float] | np.ndarray,
+    wall_hits: Sequence[int] | np.ndarray | None,
+    out: str | Path,
+    title: str = "",
+) -> Path:
+    """Coverage of each test episode with its median, and wall hits on a second axis.
+
+    Args:
+        results_or_coverages: ``EpisodeResult`` objects from ``run_episodes``, or the team
+            coverage of each episode as fractions in [0, 1].
+        wall_hits: Team wall hits per episode; ``None`` takes them from the results (or draws
+            none when only coverages are given).
+        out: PNG file to write.
+        title: Axes title.
+
+    Returns:
+        The path of the PNG.
+    """
+    items = list(results_or_coverages)
+    if not items:
+        raise ValueError("plot_eval_episodes needs at least one episode")
+    if hasattr(items[0], "coverage"):
+        coverage = np.array([r.coverage for r in items], dtype=float)
+        if wall_hits is None:
+            wall_hits = [sum(r.wall_hits) for r in items]
+    else:
+        coverage = np.asarray(items, dtype=float)
+    hits = None if wall_hits is None else np.asarray(wall_hits, dtype=float)
+    if hits is not None and len(hits) != len(coverage):
+        raise ValueError(f"{len(hits)} wall-hit counts for {len(coverage)} episodes")
+    episodes = np.arange(1, len(coverage) + 1)
+    median = float(np.median(coverage))
+
+    fig = Figure(figsize=(7.0, 3.8), dpi=DPI)
+    ax = fig.add_subplot()
+    handles = []
+    if hits is not None:
+        # Wall hits behind the coverage line, on their own axis at the right.
+        ax_hits = ax.twinx()
+        total = int(hits.sum())
+        bars = ax_hits.bar(
+            episodes,
+            hits,
+            width=0.8,
+            color=_HITS_COLOUR,
+            alpha=0.35,
+            label=f"wall hits ({total} in {len(hits)} episodes)",
+        )
+        ax_hits.set_ylabel("wall hits per episode", color=_HITS_COLOUR)
+        ax_hits.tick_params(axis="y", colors=_HITS_COLOUR)
+        ax_hits.set_ylim(0, max(1.0, float(hits.max())) * 1.15)
+        ax_hits.yaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.set_zorder(ax_hits.get_zorder() + 1)  # coverage drawn over the bars
+        ax.patch.set_visible(False)
+        handles.append(bars)
+    (line,) = ax.plot(
+        episodes,
+        100 * coverage,
+        "-o",
+        color=_LINE_COLOUR,
+        ms=3.5,
+        lw=1.0,
+        label="coverage",
+    )
+    med = ax.axhline(
+        100 * median, color=_MEDIAN_COLOUR, ls="--", lw=1.2, label=f"median {100 * median:.1f} %"
+    )
+    handles = [line, med, *handles]
+    ax.set_xlabel("test episode")
+    ax.set_ylabel("team coverage")
+    ax.set_ylim(0, 105)
+    ax.set_xlim(0.3, len(coverage) + 0.7)
+    ax.yaxis.set_major_formatter(PercentFormatter(100, decimals=0))
+    ax.xaxis.set_major_locator(MaxNLocator(10, integer=True))
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(
+        handles=handles,
+        loc="upper center",
+        bbox_to_anchor=(0.5, -0.16),
+        ncol=len(handles),
+        frameon=False,
+    )
+    ax.set_title(title or f"Coverage of {len(coverage)} test episodes")
+    fig.tight_layout()
+    return _save(fig, out)
+
+
+# ---------------------------------------------------------------------- learning curves
+def read_episodes_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a run's ``episodes.csv``.
+
+    Args:
+        path: The file (columns ``episode, phase, timesteps, copy, coverage, reward_mean,
+            wall_hits, new_cells, length``; only ``timesteps`` and ``coverage`` are used).
+
+    Returns:
+        ``(timesteps, coverage)``: int64 and float64 arrays, one entry per finished episode,
+        in order of timesteps.
+
+    Raises:
+        ValueError: When a column is missing or a value is not a number (naming file and line).
+    """
+    path = Path(path)
+    timesteps: list[int] = []
+    coverage: list[float] = []
+    with path.open(newline="", encoding="utf-8") as fh:
+        reader = csv.DictReader(fh)
+        missing = {"timesteps", "coverage"} - set(reader.fieldnames or ())
+        if missing:
+            raise ValueError(f"{path}: missing column(s) {', '.join(sorted(missing))}")
+        for row in reader:
+            try:
+                timesteps.append(int(float(row["timesteps"])))
+                coverage.append(float(row["coverage"]))
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"{path}, line {reader.line_num}: timesteps/coverage not a number"
+                ) from None
+    ts = np.asarray(timesteps, dtype=np.int64)
+    cov = np.asarray(coverage, dtype=np.float64)
+    order = np.argsort(ts, kind="stable")  # copies finish out of order only within a step
+    return ts[order], cov[order]
+
+
+def smooth(values: Sequence[float] | np.ndarray, window: int) -> np.ndarray:
+    """Trailing rolling median: entry ``i`` is the median of the last ``window`` values up to
+    ``i`` (fewer at the start). A median, not a mean, because episode coverage is skewed and
+    the thesis reports medians.
+
+    Args:
+        values: A 1D series.
+        window: Number of values per median (1 returns a copy).
+
+    Returns:
+        float64 array of the same length.
+    """
+    x = np.asarray(values, dtype=np.float64).ravel()
+    if window < 1:
+        raise ValueError(f"window must be >= 1, got {window}")
+    window = min(window, len(x))
+    if window <= 1:
+        return x.copy()
+    out = np.empty_like(x)
+    full = np.lib.stride_tricks.sliding_window_view(x, window)
+    out[window - 1 :] = np.median(full, axis=1)
+    for i in range(window - 1):
+        out[i] = np.median(x[: i + 1])
+    return out
+
+
+def plot_learning_curves(
+    curves: Mapping[str, Sequence[tuple[np.ndarray, np.ndarray]]],
+    out: str | Path,
+    title: str = "",
+    window: int = 20,
+    band: str = "minmax",
+    references: Mapping[str, float] | None = None,
+) -> Path:
+    """Learning curves of several experiments, each over one or more runs (seeds).
+
+    Each run's coverage is smoothed (:func:`smooth`), put on a common grid of timesteps, and
+    per label the median across runs is drawn, with a shaded band across runs when a label has
+    several. Where runs have different lengths, the band covers the steps that at least two runs
+    reached.
+
+    Args:
+        curves: ``label -> [(timesteps, coverage), ...]``, one pair per run, e.g. from
+            :func:`read_episodes_csv`. Coverage as fractions.
+        out: PNG file to write.
+        title: Axes title.
+        window: Episodes per rolling median.
+        band: ``"minmax"`` (range across runs) or ``"iqr"`` (25-75 %).
+        references: Optional ``label -> coverage`` horizontal lines (a baseline's or the
+            thesis's median coverage).
+
+    Returns:
+        The path of the PNG.
+    """
+    if band not in ("minmax", "iqr"):
+        raise ValueError(f"band must be 'minmax' or 'iqr', got {band!r}")
+    fig = Figure(figsize=(7.0, 4.2), dpi=DPI)
+    ax = fig.add_subplot()
+    colours = [*AGENT_HEX[4:6], *AGENT_HEX[:4]]  # blue, vermillion first: the most distinct
+    drawn = 0
+    for k, (label, runs) in enumerate(curves.items()):
+        runs = [(np.asarray(t, dtype=float), np.asarray(c, dtype=float)) for t, c in runs]
+        runs = [(t, c) for t, c in runs if len(t)]
+        if not runs:
+            continue
+        colour = colours[k % len(colours)]
+        grid, stacked = _common_grid(runs, window)
+        reached = np.sum(~np.isnan(stacked), axis=0)
+        with _quiet_nan_warnings():
+            middle = np.nanmedian(stacked, axis=0)
+        n = len(runs)
+        name = f"{label} ({n} runs)" if n > 1 else label
+        ax.plot(grid, 100 * middle, color=colour, lw=1.6, label=name)
+        if n > 1:
+            ok = reached >= 2
+            with _quiet_nan_warnings():
+                if band == "iqr":
+                    lo, hi = np.nanpercentile(stacked[:, ok], [25, 75], axis=0)
+                else:
+                    lo, hi = np.nanmin(stacked[:, ok], axis=0), np.nanmax(stacked[:, ok], axis=0)
+            ax.fill_between(grid[ok], 100 * lo, 100 * hi, color=colour, alpha=0.2, lw=0)
+        drawn += 1
+    for j, (label, value) in enumerate((references or {}).items()):
+        ax.axhline(
+            100 * value,
+            color="0.25",
+            ls=(0, (1, 2)) if j % 2 == 0 else (0, (4, 2)),
+            lw=1.1,
+            label=f"{label} ({100 * value:.1f} %)",
+        )
+    if drawn == 0:
+        raise ValueError("plot_learning_curves: no run has any episode")
+    ax.set_xlabel("timesteps (agent transitions)")
+    ax.set_ylabel(f"team coverage (rolling median of {window} episodes)")
+    ax.set_ylim(0, 102)
+    ax.yaxis.set_major_formatter(PercentFormatter(100, decimals=0))
+    ax.ticklabel_format(axis="x", style="sci", scilimits=(-3, 4), useMathText=True)
+    ax.grid(alpha=0.3)
+    band_note = "" if band == "minmax" else " (band: IQR across runs)"
+    ax.set_title((title or "Learning curves") + band_note)
+    ax.legend(loc="lower right", framealpha=0.9, fontsize="small")
+    fig.tight_layout()
+    return _save(fig, out)
+
+
+def _common_grid(
+    runs: Sequence[tuple[np.ndarray, np.ndarray]], window: int, points: int = 300
+) -> tuple[np.ndarray, np.ndarray]:
+    """Smoothed runs interpolated onto one grid of timesteps (NaN outside each run's range)."""
+    start = min(float(t[0]) for t, _ in runs)
+    stop = max(float(t[-1]) for t, _ in runs)
+    grid = np.linspace(start, stop, points) if stop > start else np.array([start])
+    stacked = np.full((len(runs), len(grid)), np.nan)
+    for i, (t, c) in enumerate(runs):
+        inside = (grid >= t[0]) & (grid <= t[-1])
+        stacked[i, inside] = np.interp(grid[inside], t, smooth(c, window))
+    return grid, stacked
+
+
+@contextmanager
+def _quiet_nan_warnings() -> Iterator[None]:
+    """Silence numpy's "All-NaN slice" warnings (grid points no run reached are expected)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
+        yield
+
+
+# ---------------------------------------------------------------------- episodes as GIF
+@dataclass
+class EpisodeRecording:
+    """One played episode: its map, the agents' paths and (optionally) rendered frames."""
+
+    walls: np.ndarray
+    """``bool (H, W)``, True = wall."""
+    paths: list[np.ndarray]
+    """Per agent ``(T + 1, 2)`` ``(row, col)``, as :func:`plot_paths` takes them."""
+    coverage: float
+    wall_hits: list[int]
+    frames: list[np.ndarray] = field(default_factory=list)
+    """``rgb_array`` frames (``uint8 (H*k, W*k, 3)``) at step 0, every ``every`` steps and the
+    last step."""
+
+
+def play_episode(
+    env_cfg: EnvConfig, policy: BatchPolicy, seed: int, every: int = 1, frames: bool = True
+) -> EpisodeRecording:
+    """Play one episode with a batched policy, recording paths and ``rgb_array`` frames.
+
+    The env is reset with ``seed``, so this is episode 0 of ``run_episodes(..., seed=seed)``:
+    the same map and start cells (and, for a deterministic policy, the same episode).
+
+    Args:
+        env_cfg: The env to build.
+        policy: ``policy(obs, envs) -> actions`` (``harness.evaluation.BatchPolicy``).
+        seed: Reset seed.
+        every: Keep a frame every ``every`` steps (plus the first and the last).
+        frames: Render frames at all (``False`` records only the paths).
+
+    Returns:
+        The recording.
+    """
+    if every < 1:
+        raise ValueError(f"every must be >= 1, got {every}")
+    env = coverage_v0.parallel_env(**env_cfg.kwargs(), render_mode="rgb_array" if frames else None)
+    obs, _ = env.reset(seed=seed)
+    agents = env.possible_agents
+    path = [env.positions]
+    images = [env.render()] if frames else []
+    infos: dict[str, dict[str, Any]] = {}
+    while env.agents:
+        stacked = np.stack([obs[a] for a in agents])
+        actions = np.asarray(policy(stacked, [env])).reshape(-1).tolist()
+        obs, _, _, _, infos = env.step(dict(zip(agents, actions)))
+        path.append(env.positions)
+        if frames and (env.steps % every == 0 or not env.agents):
+            images.append(env.render())
+    positions = np.stack(path, axis=1)  # (n_agents, T + 1, 2)
+    return EpisodeRecording(
+        walls=np.array(env.walls),
+        paths=list(positions),
+        coverage=env.coverage,
+        wall_hits=[infos[a]["wall_hits"] for a in agents],
+        frames=images,
+    )
+
+
+def episode_frames(
+    env_cfg: EnvConfig, policy: BatchPolicy, seed: int, every: int = 1
+) -> list[np.ndarray]:
+    """``rgb_array`` frames of one episode (see :func:`play_episode`), for :func:`write_gif`."""
+    return play_episode(env_cfg, policy, seed, every=every).frames
+
+
+def write_gif(frames: Sequence[np.ndarray], out: str | Path, fps: int = 10) -> Path:
+    """Write ``uint8 (H, W, 3)`` frames as an animated GIF that loops forever.
+
+    Pillow merges identical consecutive frames into one longer frame, so the file can hold
+    fewer frames than given (e.g. when every agent stays put at the end of an episode).
+
+    Args:
+        frames: RGB images, all the same size.
+        out: GIF file to write (folders are created).
+        fps: Frames per second.
+
+    Returns:
+        The path of the GIF.
+    """
+    from PIL import Image
+
+    if not frames:
+        raise ValueError("write_gif needs at least one frame")
+    if fps < 1:
+        raise ValueError(f"fps must be >= 1, got {fps}")
+    images = [Image.fromarray(np.asarray(f, dtype=np.uint8)) for f in frames]
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    images[0].save(
+        out,
+        format="GIF",
+        save_all=True,
+        append_images=images[1:],
+        duration=max(20, round(1000 / fps)),  # browsers treat < 20 ms as 100 ms
+        loop=0,
+    )
+    return out
+
+
+# ---------------------------------------------------------------------- helpers
+def _save(fig: Figure, out: str | Path) -> Path:
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, format="png", dpi=DPI, facecolor="white")
+    return out

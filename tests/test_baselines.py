@@ -1,0 +1,185 @@
+"""The non-learned baselines: repeatable random actions and the frontier explorer.
+
+Speed of the frontier policy (50x50 random maps, 4 agents, 1000 steps, 100 episodes)::
+
+    python -c "import time; from harness.config import EnvConfig; \
+from harness.evaluation import run_episodes; from harness.baselines import make_baseline; \
+t = time.perf_counter(); run_episodes(make_baseline('frontier', 0), EnvConfig(), 100, 0); \
+print(100 / (time.perf_counter() - t), 'episodes/s')"
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+import pytest
+
+from envs import coverage_v0
+from harness import baselines
+from harness.baselines import BASELINES, make_baseline
+from harness.config import EnvConfig
+from harness.evaluation import run_episodes
+
+
+def small_maps(n_agents: int, max_steps: int, size: int = 8) -> EnvConfig:
+    return EnvConfig(height=size, width=size, n_agents=n_agents, max_steps=max_steps)
+
+
+# ---------------------------------------------------------------------- factory
+def test_names_and_unknown_name() -> None:
+    assert BASELINES == ("random", "frontier")
+    for name in BASELINES:
+        assert callable(make_baseline(name, 0))
+    with pytest.raises(ValueError, match="greedy"):
+        make_baseline("greedy", 0)
+
+
+# ---------------------------------------------------------------------- random
+def test_random_is_repeatable_and_uses_every_action() -> None:
+    obs = np.zeros((32, 13), dtype=np.float32)
+    a, b, c = (make_baseline("random", s) for s in (7, 7, 8))
+    first = np.concatenate([a(obs, []) for _ in range(10)])
+    again = np.concatenate([b(obs, []) for _ in range(10)])
+    other = np.concatenate([c(obs, []) for _ in range(10)])
+    assert first.shape == (320,)
+    np.testing.assert_array_equal(first, again)
+    assert not np.array_equal(first, other)
+    assert set(first.tolist()) == {0, 1, 2, 3, 4}
+    # Roughly uniform: each action near 1/5 of 320.
+    assert np.bincount(first, minlength=5).min() > 40
+
+
+def test_random_runs_in_evaluation() -> None:
+    env = small_maps(n_agents=2, max_steps=30)
+    first = run_episodes(make_baseline("random", 3), env, episodes=3, seed=0)
+    again = run_episodes(make_baseline("random", 3), env, episodes=3, seed=0)
+    assert [r.coverage for r in first] == [r.coverage for r in again]
+
+
+# ---------------------------------------------------------------------- frontier
+@pytest.mark.parametrize("copies", [1, 3])
+def test_frontier_covers_small_maps_without_wall_hits(copies: int) -> None:
+    env = small_maps(n_agents=2, max_steps=200)
+    results = run_episodes(make_baseline("frontier", 0), env, episodes=6, seed=11, copies=copies)
+    for r in results:
+        # The bound min(1, N (T+1) / F) is 1 here: 402 agent-cells for at most 64 free cells.
+        assert min(1.0, 2 * 201 / r.free_cells) == 1.0
+        assert r.coverage == 1.0
+        assert sum(r.wall_hits) == 0
+
+
+def test_frontier_single_agent_and_cave_never_hit_walls() -> None:
+    for env in (
+        small_maps(n_agents=1, max_steps=150, size=12),
+        EnvConfig(map="cave_100x50", n_agents=3, max_steps=150),
+    ):
+        results = run_episodes(make_baseline("frontier", 0), env, episodes=2, seed=5)
+        for r in results:
+            assert sum(r.wall_hits) == 0
+            # Every step of a lone agent early on finds new ground (frontier is always adjacent
+            # or close), so it beats the random walk by far.
+            assert r.coverage > 0.5 * min(1.0, env.n_agents * 151 / r.free_cells)
+
+
+def test_frontier_claims_keep_teammates_off_the_same_target(make_env) -> None:
+    # A dead end on the left: the only target at reset is (0, 3). Agent 0 claims it; agent 1,
+    # behind it, has nothing unclaimed left and waits instead of following.
+    env, obs = make_env("#.......", starts=[(0, 2), (0, 1)])
+    policy = make_baseline("frontier", 0)
+    actions = policy(np.stack(list(obs.values())), [env])
+    assert actions.tolist() == [3, 4]
+
+
+def test_frontier_agents_split_up_in_a_corridor(make_env) -> None:
+    # Both agents start at the left end of a corridor that branches up and down at column 3:
+    # 11 free cells. One agent needs more than 12 steps to walk all three branches; two that
+    # split up (claims) finish in time, each covering ground of its own.
+    text = """
+        ###.###
+        ###.###
+        .......
+        ###.###
+        ###.###
+    """
+    policy = make_baseline("frontier", 0)
+    coverage = {}
+    for starts in ([(2, 0)], [(2, 0), (2, 1)]):
+        env, obs = make_env(text, starts=starts, max_steps=12)
+        while env.agents:
+            actions = policy(np.stack(list(obs.values())), [env]).tolist()
+            obs, *_ = env.step(dict(zip(env.possible_agents, actions)))
+        coverage[len(starts)] = env.coverage
+        assert env.coverage > 0.5
+    assert coverage[1] < 1.0
+    assert coverage[2] == 1.0
+    assert min(np.bincount(env.credited_by[env.credited_by >= 0])) >= 4
+
+
+def test_frontier_team_beats_lone_agent() -> None:
+    # Step budget too small for either to finish, so a team that spreads out covers more.
+    one = run_episodes(make_baseline("frontier", 0), small_maps(1, 40, size=14), 4, seed=2)
+    two = run_episodes(make_baseline("frontier", 0), small_maps(2, 40, size=14), 4, seed=2)
+    for a, b in zip(one, two):
+        assert b.coverage > 1.5 * a.coverage
+    # They do not walk in each other's footsteps: each agent is credited with real ground.
+    assert all(min(r.new_cells) > 10 for r in two)
+
+
+# ---------------------------------------------------------------------- exactness
+def reference_actions(env) -> list[int]:
+    """The frontier rule computed from scratch (no caches), one plain BFS per agent."""
+    walls, visited = env.walls, env.visited
+    h, w = walls.shape
+    seen = np.zeros_like(visited)
+    for r, c in zip(*np.nonzero(visited)):
+        seen[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2] = True
+    passable = seen & ~walls
+    target = passable & ~visited
+    claimed: set[tuple[int, int]] = set()
+    actions = []
+    # Same neighbour order as the policy (up, left, right, down) so ties break alike.
+    order = [(-1, 0, 0), (0, -1, 2), (0, 1, 3), (1, 0, 1)]
+    for start in map(tuple, env.positions.tolist()):
+        first = {start: None}
+        queue = deque([start])
+        action = 4
+        while queue and action == 4:
+            cell = queue.popleft()
+            for dr, dc, a in order:
+                n = (cell[0] + dr, cell[1] + dc)
+                if 0 <= n[0] < h and 0 <= n[1] < w and passable[n] and n not in first:
+                    first[n] = a if cell == start else first[cell]
+                    if target[n] and n not in claimed:
+                        claimed.add(n)
+                        action = first[n]
+                        break
+                    queue.append(n)
+        actions.append(action)
+    return actions
+
+
+@pytest.mark.parametrize("budget", [baselines._PY_SEARCH_BUDGET, 3])
+def test_frontier_matches_reference_rule(monkeypatch, budget: int) -> None:
+    # A tiny budget sends nearly every search to the compiled (SciPy) path.
+    monkeypatch.setattr(baselines, "_PY_SEARCH_BUDGET", budget)
+    env = coverage_v0.parallel_env(height=16, width=20, n_agents=4, max_steps=250)
+    for seed in (0, 1):
+        obs, _ = env.reset(seed=seed)
+        policy = make_baseline("frontier", 0)
+        while env.agents:
+            if env.steps == 120:
+                policy = make_baseline("frontier", 0)  # a fresh policy mid-episode rebuilds
+            actions = policy(np.stack(list(obs.values())), [env]).tolist()
+            assert actions == reference_actions(env), f"seed {seed}, step {env.steps}"
+            obs, *_ = env.step(dict(zip(env.possible_agents, actions)))
+        assert env.coverage == 1.0
+
+
+def test_frontier_copies_are_independent(make_env) -> None:
+    # Two different envs in one batch: actions come out copy-major, each from its own map.
+    a, obs_a = make_env("#.......", starts=[(0, 2), (0, 1)])
+    b, obs_b = make_env(".......#", starts=[(0, 5), (0, 6)])
+    obs = np.concatenate([np.stack(list(o.values())) for o in (obs_a, obs_b)])
+    actions = make_baseline("frontier", 0)(obs, [a, b])
+    assert actions.tolist() == [3, 4, 2, 4]

@@ -1,0 +1,165 @@
+"""Reliability of training runs: checkpoints, resume after SIGKILL/SIGTERM, numerical faults."""
+
+from __future__ import annotations
+
+import csv
+import json
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+from harness import DoubleDQN
+from harness.checkpoints import (
+    CheckpointError,
+    TrainingState,
+    complete_checkpoints,
+    latest_checkpoint,
+)
+from harness.cli import main
+from harness.config import load_config
+
+ROOT = Path(__file__).resolve().parents[1]
+SMOKE = ROOT / "configs" / "smoke.yaml"
+# A smoke run long enough to be killed mid-way, checkpointing often.
+LONGER = [
+    "--set", "phases.initial.timesteps=6000",
+    "--set", "checkpoint.every=1000",
+    "--set", "eval.every=0",
+]  # fmt: skip
+
+
+def start_run(runs: Path) -> subprocess.Popen:
+    cmd = [sys.executable, "-m", "harness.cli", "run", str(SMOKE), "--runs-dir", str(runs)]
+    return subprocess.Popen(
+        [*cmd, "--no-progress", *LONGER], stderr=subprocess.PIPE, text=True, cwd=ROOT
+    )
+
+
+def wait_for_checkpoint(runs: Path, proc: subprocess.Popen, min_steps: int) -> Path:
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline:
+        assert proc.poll() is None, "the run ended before it could be stopped"
+        for run in runs.glob("smoke-*"):
+            found = complete_checkpoints(run / "checkpoints")
+            if found and int(found[-1].name.split("-")[1]) >= min_steps:
+                return run
+        time.sleep(0.2)
+    raise AssertionError("no checkpoint appeared")
+
+
+def episode_numbers(run: Path) -> list[int]:
+    with (run / "episodes.csv").open() as f:
+        return [int(row["episode"]) for row in csv.DictReader(f)]
+
+
+@pytest.mark.slow
+def test_sigkill_then_resume_reaches_the_total_without_gaps_or_duplicates(tmp_path, capsys):
+    proc = start_run(tmp_path)
+    run = wait_for_checkpoint(tmp_path, proc, 2000)
+    proc.kill()  # SIGKILL: no chance to clean up
+    proc.wait()
+    assert not (run / "model.zip").exists()
+
+    assert main(["run", "--resume", str(run), "--no-progress"]) == 0
+    total = load_config(run / "config.yaml").total_timesteps
+    model = DoubleDQN.load(run / "model.zip")
+    # SB3 collects train_freq env steps (x 4 slots) at a time: each phase may overshoot a little.
+    assert total <= model.num_timesteps < total + (2 + 4) * 4
+    episodes = episode_numbers(run)
+    assert episodes == list(range(len(episodes)))
+    state = json.loads((latest_checkpoint(run / "checkpoints") / "state.json").read_text())
+    assert state["finished"] is True and state["resumes"] == 1
+    assert "resume" in (run / "command.txt").read_text().splitlines()[-1]
+
+    # Resuming a finished run says so and changes nothing.
+    capsys.readouterr()
+    assert main(["run", "--resume", str(run)]) == 0
+    assert "already finished" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_sigterm_writes_a_checkpoint_and_says_how_to_resume(tmp_path):
+    proc = start_run(tmp_path)
+    run = wait_for_checkpoint(tmp_path, proc, 1000)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 128 + signal.SIGTERM
+    assert f"resume with: harness run --resume {run}" in err
+    assert "Traceback" not in err
+    state = TrainingState.from_json(
+        (latest_checkpoint(run / "checkpoints") / "state.json").read_text()
+    )
+    assert not state.finished and state.num_timesteps > 1000
+
+
+def test_half_written_checkpoints_are_ignored(tmp_path):
+    folder = tmp_path / "checkpoints"
+    (folder / ".step-000000000300.tmp").mkdir(parents=True)  # crash while writing
+    (folder / "step-000000000200").mkdir()
+    (folder / "step-000000000200" / "state.json").write_text(TrainingState().to_json())
+    (folder / "step-000000000400").mkdir()  # no state.json: incomplete
+    assert latest_checkpoint(folder).name == "step-000000000200"
+    with pytest.raises(CheckpointError, match="no complete checkpoint"):
+        latest_checkpoint(tmp_path / "nothing")
+
+
+def test_training_state_json_round_trip():
+    state = TrainingState(phase=1, phase_start=40, next_episode=7, best_eval=0.5, resumes=2)
+    assert TrainingState.from_json(state.to_json()) == state
+    fresh = TrainingState()
+    assert TrainingState.from_json(fresh.to_json()).best_eval == float("-inf")
+
+
+def test_resume_errors_are_one_line(tmp_path, capsys):
+    assert main(["run", "--resume", str(tmp_path)]) == 2
+    assert "not a run folder" in capsys.readouterr().err
+    (tmp_path / "config.yaml").write_text(SMOKE.read_text())
+    assert main(["run", "--resume", str(tmp_path)]) == 2
+    assert "no complete checkpoint" in capsys.readouterr().err
+    assert main(["run", "--resume", str(tmp_path), str(SMOKE)]) == 2
+    assert "drop the other options" in capsys.readouterr().err
+
+
+def test_corrupt_checkpoint_is_a_clear_error(tmp_path, capsys):
+    runs = tmp_path / "runs"
+    args = ["run", str(SMOKE), "--runs-dir", str(runs), "--no-progress", *LONGER]
+    args += ["--set", "phases.initial.timesteps=1000", "--set", "phases.optimizing.timesteps=200"]
+    assert main(args) == 0
+    (run,) = runs.iterdir()
+    latest = latest_checkpoint(run / "checkpoints")
+    state = TrainingState.from_json((latest / "state.json").read_text())
+    state.finished = False
+    (latest / "state.json").write_text(state.to_json())
+    (latest / "model.zip").write_bytes(b"not a zip")
+    capsys.readouterr()
+    assert main(["run", "--resume", str(run), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("harness: error:") and "cannot load checkpoint" in err
+
+
+def test_non_finite_loss_stops_the_run_with_a_clear_message(tmp_path, capsys):
+    args = [
+        "run", str(SMOKE), "--runs-dir", str(tmp_path), "--no-progress",
+        "--set", "algo.optimizer=SGD", "--set", "phases.initial.learning_rate=1e30",
+        "--set", "eval.every=0",
+    ]  # fmt: skip
+    assert main(args) == 1
+    err = capsys.readouterr().err
+    assert "the loss became nan" in err or "the loss became inf" in err
+    assert "Traceback" not in err
+
+
+def test_same_config_and_seed_give_the_same_episodes(tmp_path):
+    short = ["--set", "phases.initial.timesteps=1200", "--set", "phases.optimizing.timesteps=400"]
+    for name in ("a", "b"):
+        args = ["run", str(SMOKE), "--runs-dir", str(tmp_path / name), "--no-progress", *short]
+        assert main([*args, "--set", "eval.every=0"]) == 0
+    (a,) = (tmp_path / "a").iterdir()
+    (b,) = (tmp_path / "b").iterdir()
+    rows = (a / "episodes.csv").read_text()
+    assert rows.count("\n") > 10
+    assert rows == (b / "episodes.csv").read_text()

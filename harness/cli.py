@@ -14,8 +14,18 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from harness.checkpoints import CheckpointError
+from harness.commands import (
+    Target,
+    TargetError,
+    check_run_folder,
+    eval_filename,
+    format_summary,
+    read_eval_json,
+    resolve_target,
+    run_label,
+)
 from harness.config import ConfigError, ExperimentConfig, load_config
-from harness.rundir import RunDir, RunDirError
+from harness.rundir import RunDir, RunDirError, atomic_write_text
 
 EXIT_USAGE = 2
 
@@ -55,7 +65,34 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--name", help="override the config's name (the run folder's prefix)")
     run.add_argument("--runs-dir", type=Path, default=Path("runs"), help="where runs are written")
     run.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+
+    ev = sub.add_parser("eval", help="evaluate a trained model or a baseline on fresh episodes")
+    _add_target(ev)
+    ev.add_argument("--episodes", type=int, default=100, help="test episodes (default 100)")
+    ev.add_argument("--json", action="store_true", help="print one JSON object")
+    ev.add_argument("--plot", type=Path, help="coverage/wall hits per episode PNG (Fig. 4.11)")
+
+    cmp_ = sub.add_parser("compare", help="learning curves and eval tables of several runs")
+    cmp_.add_argument("runs", type=Path, nargs="+", metavar="RUN_DIR")
+    cmp_.add_argument("--out", type=Path, default=Path("compare.png"), help="PNG to write")
+    cmp_.add_argument("--window", type=int, default=20, help="episodes per rolling median")
+
+    ren = sub.add_parser("render", help="path pictures (and a GIF) of one episode")
+    _add_target(ren)
+    ren.add_argument("--out", type=Path, help="paths PNG (default: RUN_DIR/paths.png or paths.png)")
+    ren.add_argument("--gif", type=Path, help="also write an animated GIF of the episode")
+    ren.add_argument("--every", type=int, default=2, help="GIF: one frame every N steps")
     return parser
+
+
+def _add_target(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "target", type=Path, nargs="?", metavar="RUN_DIR_OR_MODEL", help="run folder or model zip"
+    )
+    parser.add_argument("--policy", help="a baseline instead of a model: random or frontier")
+    parser.add_argument("--config", type=Path, help="the experiment config of a --policy")
+    parser.add_argument("--seed", type=int, help="seed of the episodes (default: config eval.seed)")
+    _add_overrides(parser)
 
 
 def resolve_run_config(args: argparse.Namespace) -> ExperimentConfig:
@@ -121,7 +158,96 @@ def _train(config: ExperimentConfig, run: RunDir, args: argparse.Namespace, resu
     return 0
 
 
-COMMANDS = {"run": cmd_run}
+def _target(args: argparse.Namespace) -> Target:
+    seed = 0 if args.seed is None else args.seed
+    target = resolve_target(args.target, args.policy, args.config, args.overrides, seed)
+    if args.seed is None:  # the default seed is the config's, known only now
+        args.seed = target.config.eval.seed
+        if args.policy is not None:
+            target = resolve_target(None, args.policy, args.config, args.overrides, args.seed)
+    from harness.train import configure_torch
+
+    configure_torch(target.config.algo.threads)
+    return target
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    if args.episodes < 1:
+        raise HarnessError(f"--episodes must be >= 1, got {args.episodes}")
+    target = _target(args)
+    from harness.evaluation import run_episodes, summarize
+
+    results = run_episodes(target.policy, target.config.env, args.episodes, args.seed)
+    summary = {
+        "policy": target.label,
+        "seed": args.seed,
+        "overrides": list(args.overrides),
+        "env": target.config.env.model_dump(mode="json"),
+        **summarize(results),
+        "coverage": [r.coverage for r in results],
+        "wall_hits": [sum(r.wall_hits) for r in results],
+    }
+    if target.run_dir is not None:
+        out = target.run_dir / eval_filename(args.overrides)
+        atomic_write_text(out, json.dumps(summary, indent=2))
+        print(f"saved {out}", file=sys.stderr)
+    if args.plot is not None:
+        from harness.plots import plot_eval_episodes
+
+        plot_eval_episodes(results, None, args.plot, f"{target.label}: {len(results)} episodes")
+        print(f"saved {args.plot}", file=sys.stderr)
+    if args.json:
+        print(json.dumps({k: v for k, v in summary.items() if k not in ("coverage", "wall_hits")}))
+    else:
+        print(format_summary(summary))
+    return 0
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    from harness.plots import plot_learning_curves, read_episodes_csv
+
+    curves: dict[str, list] = {}
+    rows = []
+    for run in args.runs:
+        check_run_folder(run)
+        label = run_label(run)
+        curves.setdefault(label, []).append(read_episodes_csv(run / "episodes.csv"))
+        ev = read_eval_json(run)
+        rows.append((label, run.name, ev))
+    plot_learning_curves(curves, args.out, "team coverage during training", window=args.window)
+    print(f"{'experiment':<20}{'run':<40}{'median':>8}{'IQR':>8}{'wall hits':>11}")
+    for label, name, ev in rows:
+        if ev is None:
+            print(f"{label:<20}{name:<40}{'(no eval.json: run harness eval)':>27}")
+        else:
+            print(
+                f"{label:<20}{name:<40}{ev['coverage_median']:>8.1%}{ev['coverage_iqr']:>8.1%}"
+                f"{ev['wall_hits_mean']:>11.2f}"
+            )
+    print(f"saved {args.out}", file=sys.stderr)
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    if args.every < 1:
+        raise HarnessError(f"--every must be >= 1, got {args.every}")
+    target = _target(args)
+    from harness.plots import play_episode, plot_paths, write_gif
+
+    rec = play_episode(
+        target.config.env, target.policy, args.seed, args.every, args.gif is not None
+    )
+    out = args.out or (target.run_dir / "paths.png" if target.run_dir else Path("paths.png"))
+    title = f"{target.label}: coverage {rec.coverage:.1%}, seed {args.seed}"
+    plot_paths(rec.walls, rec.paths, out, title)
+    print(f"saved {out}", file=sys.stderr)
+    if args.gif is not None:
+        write_gif(rec.frames, args.gif)
+        print(f"saved {args.gif}", file=sys.stderr)
+    return 0
+
+
+COMMANDS = {"run": cmd_run, "eval": cmd_eval, "compare": cmd_compare, "render": cmd_render}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -134,7 +260,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             # Map warnings are worth one line each, not a stack location.
             warnings.simplefilter("default")
             return COMMANDS[args.command](args)
-    except (ConfigError, RunDirError, HarnessError, CheckpointError) as exc:
+    except (ConfigError, RunDirError, HarnessError, CheckpointError, TargetError) as exc:
         print(f"harness: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
 

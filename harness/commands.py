@@ -1,0 +1,162 @@
+"""What ``harness eval``, ``compare`` and ``render`` do, apart from parsing arguments.
+
+A *target* is what gets evaluated: a trained model (a run folder or a model zip, with the run's
+``config.yaml``) or a baseline (``--policy random|frontier`` with ``--config``). All three
+commands resolve it the same way, so a baseline and a model are measured on the same episodes.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import re
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from harness.baselines import BASELINES, make_baseline
+from harness.config import ConfigError, ExperimentConfig, load_config
+from harness.evaluation import BatchPolicy, model_policy
+
+
+class TargetError(ValueError):
+    """A model, run folder or baseline that cannot be used, with a one-line message."""
+
+
+@dataclass
+class Target:
+    """A policy with the config it is evaluated under."""
+
+    policy: BatchPolicy
+    config: ExperimentConfig
+    label: str
+    run_dir: Path | None
+    """The run folder of a trained model (where ``eval.json`` goes), else ``None``."""
+
+
+def find_run_config(model_path: Path) -> Path:
+    """``config.yaml`` of the run a model zip belongs to (beside it, or two folders up for a
+    checkpoint's ``checkpoints/step-N/model.zip``)."""
+    for folder in (model_path.parent, model_path.parent.parent.parent):
+        if (folder / "config.yaml").is_file():
+            return folder / "config.yaml"
+    raise TargetError(f"{model_path}: no config.yaml of its run beside it")
+
+
+def load_model_target(path: Path, overrides: Sequence[str]) -> Target:
+    """A trained model: ``path`` is a run folder (its ``model.zip``) or a model zip."""
+    if path.is_dir():
+        if not (path / "config.yaml").is_file():
+            raise TargetError(f"{path}: not a run folder (no config.yaml)")
+        model_path, config_path = path / "model.zip", path / "config.yaml"
+        if not model_path.is_file():
+            raise TargetError(
+                f"{path}: no model.zip yet (training unfinished? `harness run --resume {path}`)"
+            )
+    elif path.is_file():
+        model_path, config_path = path, find_run_config(path)
+    else:
+        raise TargetError(f"{path}: no such run folder or model file")
+    config = load_config(config_path, overrides)
+    from harness.dqn import DoubleDQN  # torch and SB3 only when a model is used
+
+    try:
+        # SB3 zips hold pickled objects: load only files you trust (see README).
+        model = DoubleDQN.load(model_path, device="cpu")
+    except Exception as exc:  # a damaged zip raises zipfile, pickle, torch or KeyError errors
+        raise TargetError(
+            f"{model_path}: cannot load model ({type(exc).__name__}: {exc})"
+        ) from None
+    run_dir = config_path.parent
+    return Target(model_policy(model), config, str(model_path), run_dir)
+
+
+def resolve_target(
+    target: Path | None,
+    policy: str | None,
+    config_path: Path | None,
+    overrides: Sequence[str],
+    seed: int,
+) -> Target:
+    """Resolve the command line's target (see the module docstring)."""
+    if policy is not None:
+        if target is not None:
+            raise TargetError("give either a run/model or --policy, not both")
+        if config_path is None:
+            raise TargetError(f"--policy {policy} needs --config CONFIG.yaml")
+        if policy not in BASELINES:
+            raise TargetError(f"unknown policy {policy!r}; known: {', '.join(BASELINES)}")
+        config = load_config(config_path, overrides)
+        return Target(make_baseline(policy, seed), config, policy, None)
+    if target is None:
+        raise TargetError(
+            "give a run folder or model zip, or --policy random|frontier --config FILE"
+        )
+    if config_path is not None:
+        raise TargetError("--config goes with --policy; a model uses its run's config.yaml")
+    return load_model_target(target, overrides)
+
+
+def eval_filename(overrides: Sequence[str]) -> str:
+    """``eval.json``, or ``eval-<overrides>.json`` when the episodes differ from the run's config
+    (e.g. ``--set env.max_steps=500`` → ``eval-env.max_steps-500.json``)."""
+    if not overrides:
+        return "eval.json"
+    slug = re.sub(r"[^A-Za-z0-9_.-]+", "-", "_".join(overrides)).strip("-")
+    return f"eval-{slug[:100]}.json"
+
+
+def format_summary(summary: dict[str, Any]) -> str:
+    """A readable table of :func:`harness.evaluation.summarize`'s numbers."""
+    pct = "{:6.1%}".format
+    env = summary["env"]
+    where = env["map"] if env["map"] != "random" else f"random {env['height']}x{env['width']}"
+    at = summary["coverage_at_median"]
+    lines = [
+        f"policy    {summary['policy']}",
+        f"episodes  {summary['episodes']} (seed {summary['seed']}), {where}, "
+        f"{env['n_agents']} agent(s), {env['max_steps']} steps",
+        f"coverage  median {pct(summary['coverage_median'])}   mean {pct(summary['coverage_mean'])}"
+        f"   IQR {pct(summary['coverage_iqr'])} ({pct(summary['coverage_q1'])} .."
+        f" {pct(summary['coverage_q3'])})",
+        "at 33 % / 66 % / 100 % of the episode (median): "
+        + " / ".join(pct(v).strip() for v in at.values()),
+        f"wall hits {summary['wall_hits_mean']:.2f} per episode; "
+        f"{summary['wall_hits_episodes']} episode(s) with any",
+        "",
+        f"{'agent':<10}{'useful coverage':>17}{'total coverage':>17}",
+    ]
+    for a in summary["per_agent"]:
+        lines.append(
+            f"{a['agent']:<10}{pct(a['useful_coverage']):>17}{pct(a['total_coverage']):>17}"
+        )
+    return "\n".join(lines)
+
+
+def read_eval_json(run: Path) -> dict[str, Any] | None:
+    """A run's ``eval.json``, or ``None`` if it was not evaluated."""
+    path = run / "eval.json"
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError):
+        return None
+
+
+def run_label(run: Path) -> str:
+    """The experiment name of a run folder (its config's ``name``)."""
+    try:
+        return load_config(run / "config.yaml").name
+    except ConfigError:
+        return run.name
+
+
+def check_run_folder(run: Path) -> None:
+    """Raise :class:`TargetError` unless ``run`` has an ``episodes.csv``."""
+    if not (run / "episodes.csv").is_file():
+        raise TargetError(f"{run}: not a run folder with episodes.csv")
+    with (run / "episodes.csv").open(newline="", encoding="utf-8") as f:
+        if next(csv.reader(f), None) is None:
+            raise TargetError(f"{run}/episodes.csv: empty")

@@ -1,0 +1,152 @@
+"""``harness eval``, ``compare`` and ``render`` end to end on a smoke run and on baselines."""
+
+from __future__ import annotations
+
+import json
+import zipfile
+from pathlib import Path
+
+import pytest
+from PIL import Image
+
+from harness.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+SMOKE = ROOT / "configs" / "smoke.yaml"
+CONFIGS = sorted((ROOT / "configs").glob("*.yaml"))
+PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.fixture(scope="module")
+def smoke_run(tmp_path_factory) -> Path:
+    runs = tmp_path_factory.mktemp("runs")
+    short = ["--set", "phases.initial.timesteps=1500", "--set", "phases.optimizing.timesteps=500"]
+    assert main(["run", str(SMOKE), "--runs-dir", str(runs), "--no-progress", *short]) == 0
+    (run,) = runs.iterdir()
+    return run
+
+
+def eval_json(capsys, *args: str) -> dict:
+    capsys.readouterr()
+    assert main(["eval", *args, "--json"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_eval_json_keys_ranges_and_saved_file(smoke_run, capsys):
+    out = eval_json(capsys, str(smoke_run), "--episodes", "6")
+    assert out["episodes"] == 6
+    for key in ("coverage_median", "coverage_mean", "coverage_iqr"):
+        assert 0.0 <= out[key] <= 1.0
+    assert out["wall_hits_mean"] >= 0.0
+    assert [a["agent"] for a in out["per_agent"]] == ["agent_0", "agent_1"]
+    for a in out["per_agent"]:
+        assert 0.0 <= a["useful_coverage"] <= 1.0 and 0.0 <= a["total_coverage"] <= 1.0
+    saved = json.loads((smoke_run / "eval.json").read_text())
+    assert saved["coverage_median"] == out["coverage_median"]
+    assert len(saved["coverage"]) == 6
+
+
+def test_eval_is_repeatable_with_a_seed(smoke_run, capsys):
+    a = eval_json(capsys, str(smoke_run), "--episodes", "4", "--seed", "5")
+    b = eval_json(capsys, str(smoke_run), "--episodes", "4", "--seed", "5")
+    c = eval_json(capsys, str(smoke_run), "--episodes", "4", "--seed", "6")
+    assert a == b
+    assert a["coverage_mean"] != c["coverage_mean"] or a["per_agent"] != c["per_agent"]
+
+
+def test_eval_of_a_model_zip_with_overrides_and_plot(smoke_run, capsys, tmp_path):
+    plot = tmp_path / "episodes.png"
+    out = eval_json(
+        capsys, str(smoke_run / "model.zip"), "--episodes", "3",
+        "--set", "env.max_steps=20", "--plot", str(plot),
+    )  # fmt: skip
+    assert out["env"]["max_steps"] == 20
+    assert (smoke_run / "eval-env.max_steps-20.json").is_file()
+    assert plot.read_bytes()[:8] == PNG_SIGNATURE
+
+
+def test_eval_table_is_readable(smoke_run, capsys):
+    capsys.readouterr()
+    assert main(["eval", str(smoke_run), "--episodes", "2"]) == 0
+    table = capsys.readouterr().out
+    assert "coverage  median" in table and "useful coverage" in table and "agent_1" in table
+
+
+@pytest.mark.parametrize("config", CONFIGS, ids=lambda p: p.stem)
+@pytest.mark.parametrize("policy", ["random", "frontier"])
+def test_baselines_work_on_every_shipped_config(config, policy, capsys):
+    out = eval_json(
+        capsys, "--policy", policy, "--config", str(config), "--episodes", "1",
+        "--set", "env.max_steps=30",
+    )  # fmt: skip
+    assert out["policy"] == policy and 0.0 < out["coverage_median"] <= 1.0
+    if policy == "frontier":
+        assert out["wall_hits_mean"] == 0.0
+
+
+def test_frontier_beats_random_on_the_same_episodes(capsys):
+    args = ["--config", str(SMOKE), "--episodes", "5"]
+    frontier = eval_json(capsys, "--policy", "frontier", *args)
+    random = eval_json(capsys, "--policy", "random", *args)
+    assert frontier["coverage_median"] > random["coverage_median"]
+
+
+def test_render_writes_png_and_gif(smoke_run, tmp_path, capsys):
+    png, gif = tmp_path / "paths.png", tmp_path / "episode.gif"
+    assert main(["render", str(smoke_run), "--out", str(png), "--gif", str(gif)]) == 0
+    with Image.open(png) as img:
+        assert img.format == "PNG" and img.size[0] > 400
+    with Image.open(gif) as img:
+        assert img.format == "GIF" and img.n_frames > 1
+    assert main(["render", str(smoke_run)]) == 0
+    assert (smoke_run / "paths.png").read_bytes()[:8] == PNG_SIGNATURE
+
+
+def test_render_a_baseline(tmp_path):
+    png = tmp_path / "frontier.png"
+    args = ["render", "--policy", "frontier", "--config", str(SMOKE), "--out", str(png)]
+    assert main(args) == 0
+    assert png.read_bytes()[:8] == PNG_SIGNATURE
+
+
+def test_compare_writes_a_plot_and_a_table(smoke_run, tmp_path, capsys):
+    assert main(["eval", str(smoke_run), "--episodes", "2"]) == 0
+    out = tmp_path / "cmp.png"
+    capsys.readouterr()
+    assert main(["compare", str(smoke_run), str(smoke_run), "--out", str(out)]) == 0
+    table = capsys.readouterr().out
+    assert "smoke" in table and "%" in table
+    assert out.read_bytes()[:8] == PNG_SIGNATURE
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["eval", "no/such/run"], "no such run folder or model file"),
+        (["eval", "--policy", "greedy", "--config", str(SMOKE)], "unknown policy 'greedy'"),
+        (["eval", "--policy", "random"], "needs --config"),
+        (["eval"], "give a run folder or model zip"),
+        (["eval", "--policy", "random", "--config", str(SMOKE), "--episodes", "0"], "--episodes"),
+        (["compare", "no/such/run"], "not a run folder with episodes.csv"),
+        (["render", "--policy", "random", "--config", "nope.yaml"], "config file not found"),
+    ],
+)
+def test_bad_input_is_one_line_and_exit_code_2(args, message, capsys):
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("harness: error:") and message in err and "\n" not in err
+
+
+def test_missing_and_corrupt_models(smoke_run, tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text((smoke_run / "config.yaml").read_text())
+    assert main(["eval", str(run)]) == 2
+    assert "no model.zip yet" in capsys.readouterr().err
+    (run / "model.zip").write_bytes(b"garbage")
+    assert main(["eval", str(run)]) == 2
+    assert "cannot load model" in capsys.readouterr().err
+    with zipfile.ZipFile(run / "model.zip", "w") as z:
+        z.writestr("data", "{}")
+    assert main(["eval", str(run)]) == 2
+    assert "cannot load model" in capsys.readouterr().err

@@ -106,8 +106,10 @@ class CoverageEnv(ParallelEnv):
         self._walls = np.zeros((self.height, self.width), dtype=bool)
         self._n_free = 0
         self._n_visited = 0
-        self._new_cells = np.zeros(self.n_agents, dtype=np.int64)
-        self._wall_hits = np.zeros(self.n_agents, dtype=np.int64)
+        # Per-agent counters and positions as Python lists: the step works agent by agent.
+        self._positions: list[tuple[int, int]] = []
+        self._new_cells: list[int] = [0] * self.n_agents
+        self._wall_hits: list[int] = [0] * self.n_agents
 
     # ------------------------------------------------------------------ spaces
     @functools.cache  # noqa: B019 (PettingZoo wants the same object per agent)
@@ -191,10 +193,11 @@ class CoverageEnv(ParallelEnv):
         self._n_free = int((~walls).sum())
         # Start cells are visited at reset (not credited as new ground); the lowest index owns a
         # shared start cell, as it would when entering it.
-        credit_new_cells(cells, pad, starts, credited_by)
+        self._positions = [tuple(p) for p in starts.tolist()]
+        credit_new_cells(cells, pad, self._positions, credited_by)
         self._n_visited = int((cells == CELL_VISITED).sum())
-        self._new_cells[:] = 0
-        self._wall_hits[:] = 0
+        self._new_cells = [0] * self.n_agents
+        self._wall_hits = [0] * self.n_agents
         self.agents = self.possible_agents[:]
         obs = self._observer.build(self._state)
         return dict(zip(self.agents, obs)), {a: {} for a in self.agents}
@@ -213,26 +216,25 @@ class CoverageEnv(ParallelEnv):
         if not self.agents:
             raise RuntimeError("step() called on a finished episode; call reset() first")
         try:
-            acts = np.fromiter(
-                (actions[a] for a in self.agents), dtype=np.int64, count=self.n_agents
-            )
+            acts = [actions[a] for a in self.agents]
         except KeyError as exc:
             raise ValueError(f"no action given for {exc.args[0]}") from exc
-        if acts.min() < 0 or acts.max() > 4:
-            raise ValueError(f"actions must be in 0..4, got {acts.tolist()}")
+        if not all(0 <= a <= 4 for a in acts):
+            raise ValueError(f"actions must be in 0..4, got {[int(a) for a in acts]}")
 
-        state.positions, hit = resolve_moves(state.cells, state.pad, state.positions, acts)
-        credited = credit_new_cells(state.cells, state.pad, state.positions, state.credited_by)
+        positions, hit = resolve_moves(state.cells, state.pad, self._positions, acts)
+        credited = credit_new_cells(state.cells, state.pad, positions, state.credited_by)
+        self._positions = positions
+        state.positions = np.array(positions, dtype=np.int64)
         state.steps += 1
-        self._n_visited += int(credited.sum())
-        self._new_cells += credited
-        self._wall_hits += hit
+        self._n_visited += sum(credited)
+        new_cells = self._new_cells = [a + b for a, b in zip(self._new_cells, credited)]
+        wall_hits = self._wall_hits = [a + b for a, b in zip(self._wall_hits, hit)]
         reward = thesis_reward(credited, hit, **self.rewards)
 
         agents = self.agents
         done = state.steps >= self.max_steps
         coverage = self._n_visited / self._n_free
-        new_cells, wall_hits = self._new_cells.tolist(), self._wall_hits.tolist()
         infos: dict[str, dict[str, Any]] = {}
         for i, a in enumerate(agents):
             info = {
@@ -248,7 +250,7 @@ class CoverageEnv(ParallelEnv):
             infos[a] = info
         obs = self._observer.build(state)
         observations = dict(zip(agents, obs))
-        rewards = dict(zip(agents, reward.tolist()))
+        rewards = dict(zip(agents, reward))
         terminations = dict.fromkeys(agents, False)
         truncations = dict.fromkeys(agents, done)
         if done:

@@ -82,7 +82,9 @@ class SumTree:
         nodes = unique + self.size
         self.nodes[nodes] = values[::-1][first_in_reversed]
         for _ in range(self.depth):
-            nodes = np.unique(nodes // 2)
+            # Siblings share a parent, so `nodes` may repeat here: every write of one parent
+            # stores the same sum of its (already final) children, so no np.unique is needed.
+            nodes = nodes >> 1
             self.nodes[nodes] = self.nodes[2 * nodes] + self.nodes[2 * nodes + 1]
 
     def rebuild(self, values: np.ndarray) -> None:

@@ -82,6 +82,12 @@ def build_parser() -> argparse.ArgumentParser:
     ren.add_argument("--out", type=Path, help="paths PNG (default: RUN_DIR/paths.png or paths.png)")
     ren.add_argument("--gif", type=Path, help="also write an animated GIF of the episode")
     ren.add_argument("--every", type=int, default=2, help="GIF: one frame every N steps")
+
+    bench = sub.add_parser("bench", help="throughput and memory figures (thesis settings)")
+    bench.add_argument(
+        "what", nargs="?", default="all", choices=["env", "train", "eval", "memory", "all"]
+    )
+    bench.add_argument("--json", action="store_true", help="print one JSON object")
     return parser
 
 
@@ -247,7 +253,21 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
-COMMANDS = {"run": cmd_run, "eval": cmd_eval, "compare": cmd_compare, "render": cmd_render}
+def cmd_bench(args: argparse.Namespace) -> int:
+    from harness.bench import format_bench, run_bench
+
+    result = run_bench(args.what)
+    print(json.dumps(result) if args.json else format_bench(result))
+    return 0
+
+
+COMMANDS = {
+    "run": cmd_run,
+    "eval": cmd_eval,
+    "compare": cmd_compare,
+    "render": cmd_render,
+    "bench": cmd_bench,
+}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -140,8 +140,9 @@ class AlgoConfig(_Section):
     prioritized: bool = True
     per_eps: PositiveFloat = 1e-6
     device: str = "auto"
-    threads: PositiveInt | None = 1
-    """torch CPU threads (``torch.set_num_threads``); ``null`` keeps torch's default."""
+    threads: PositiveInt | None = None
+    """torch CPU threads (``torch.set_num_threads``); ``null`` keeps torch's default (one per
+    core). On a 2-core machine 2 threads train the 3x512 net ~20 % faster than 1 (harness bench)."""
 
     @field_validator("optimizer")
     @classmethod

@@ -52,7 +52,7 @@ from harness.schedules import PhaseLinearSchedule
 
 
 def configure_torch(threads: int | None) -> None:
-    """Set torch's CPU thread count (on a 2-core machine 1 thread is usually fastest)."""
+    """Set torch's CPU thread count (``None`` keeps torch's default, one per core)."""
     if threads is not None:
         torch.set_num_threads(threads)
 
@@ -63,7 +63,9 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
     policy_kwargs: dict[str, Any] = {
         "net_arch": list(algo.net_arch),
         "optimizer_class": getattr(torch.optim, algo.optimizer),
-        "optimizer_kwargs": dict(algo.optimizer_kwargs),
+        # foreach: torch's multi-tensor optimizer step, ~20 % more gradient steps/s on CPU
+        # for the thesis's 3x512 net (harness bench); torch enables it by itself only on GPU.
+        "optimizer_kwargs": {"foreach": True, **algo.optimizer_kwargs},
     }
     if algo.policy == "DuelingMlpPolicy":
         policy_kwargs["aggregator"] = algo.dueling_aggregator

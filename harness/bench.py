@@ -1,0 +1,321 @@
+"""``harness bench``: throughput and memory figures for the thesis's settings.
+
+Benchmarks, not tests: they print figures and ratios measured in the same process, so a slow or
+busy machine shifts all of them together. Nothing here asserts a time.
+
+* ``env``: agent-steps per second of the bare ``parallel_env`` loop, of the SuperSuit VecEnv used in
+  training with 1, 4 and 16 copies, and of 8 copies stepped by 1 or 2 processes;
+* ``train``: gradient steps and transitions per second of ``DoubleDQN`` + PER against SB3's
+  ``DQN`` + ``ReplayBuffer`` (same network, batch and train_freq), run alternately;
+  gradient steps per second over batch sizes, network widths and torch thread counts;
+* ``eval``: episodes per second of ``harness eval`` for an MLP policy and for the frontier baseline;
+* ``memory``: peak resident memory of a training process with a full 100,000-transition buffer.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+import resource
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+from typing import Any
+
+import numpy as np
+
+from harness.config import EnvConfig
+
+#: The thesis's setting: 50x50 random maps, 4 agents, 1000 steps.
+THESIS_ENV = EnvConfig(n_agents=4, max_steps=1000)
+THESIS_NET = [512, 512, 512]
+
+
+def _rate(count: float, fn: Callable[[], Any]) -> float:
+    start = time.perf_counter()
+    fn()
+    return count / (time.perf_counter() - start)
+
+
+def machine_info() -> dict[str, Any]:
+    """The machine and versions the figures were measured with."""
+    import pettingzoo
+    import stable_baselines3
+    import supersuit
+    import torch
+
+    return {
+        "machine": f"{platform.system()} {platform.machine()}, {os.cpu_count()} CPUs",
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "stable_baselines3": stable_baselines3.__version__,
+        "supersuit": getattr(supersuit, "__version__", "?"),
+        "pettingzoo": pettingzoo.__version__,
+        "numpy": np.__version__,
+    }
+
+
+# ---------------------------------------------------------------------- env
+def bench_env(episodes: int = 3) -> dict[str, Any]:
+    """Agent-steps per second of the bare env and of the training VecEnv."""
+    from envs import coverage_v0
+    from harness.adapters import make_vec_env
+
+    env = coverage_v0.parallel_env(**THESIS_ENV.kwargs())
+    env.reset(seed=0)
+    n, steps = THESIS_ENV.n_agents, THESIS_ENV.max_steps
+    rng = np.random.default_rng(0)
+    actions = [dict(zip(env.possible_agents, a)) for a in rng.integers(0, 5, (steps, n)).tolist()]
+
+    def bare() -> None:
+        for _ in range(episodes):
+            env.reset()
+            for a in actions:
+                env.step(a)
+
+    out: dict[str, Any] = {"env_bare_agent_steps_per_s": _rate(episodes * steps * n, bare)}
+
+    def vec_rate(copies: int, num_cpus: int = 0) -> float:
+        venv = make_vec_env(THESIS_ENV, copies, num_cpus, seed=0)
+        try:
+            venv.reset()
+            n_steps = max(200, (episodes * steps * n) // venv.num_envs)
+            acts = rng.integers(0, 5, (n_steps, venv.num_envs))
+
+            def run() -> None:
+                for a in acts:
+                    venv.step(a)
+
+            return _rate(n_steps * venv.num_envs, run)
+        finally:
+            venv.close()
+
+    out["env_vec_by_copies"] = {c: vec_rate(c) for c in (1, 4, 16)}
+    out["env_vec_agent_steps_per_s"] = out["env_vec_by_copies"][4]
+    out["env_vec_over_bare"] = out["env_vec_agent_steps_per_s"] / out["env_bare_agent_steps_per_s"]
+    out["env_vec_8_copies_by_processes"] = {p: vec_rate(8, p) for p in (0, 2)}
+    return out
+
+
+# ---------------------------------------------------------------------- train
+def _models(net: list[int], batch: int, threads: int) -> tuple[Any, Any, Any]:
+    """DoubleDQN+PER and plain DQN on the same VecEnv, both with a filled buffer."""
+    import torch
+    from stable_baselines3 import DQN
+    from stable_baselines3.common.logger import configure
+
+    from harness import DoubleDQN, PrioritizedReplayBuffer
+    from harness.adapters import make_vec_env
+
+    torch.set_num_threads(threads)
+    venv = make_vec_env(THESIS_ENV, copies=4, seed=0)
+    common = {
+        "learning_rate": 5e-5,
+        "buffer_size": 100_000,
+        "batch_size": batch,
+        "train_freq": (2, "step"),
+        "gradient_steps": 1,
+        "policy_kwargs": {
+            "net_arch": net,
+            "optimizer_class": torch.optim.RMSprop,
+            "optimizer_kwargs": {"foreach": True},
+        },
+        "device": "cpu",
+    }
+    ours = DoubleDQN(
+        "MlpPolicy",
+        venv,
+        replay_buffer_class=PrioritizedReplayBuffer,
+        replay_buffer_kwargs={"alpha": 0.55, "beta": 0.4},
+        **common,
+    )
+    plain = DQN("MlpPolicy", venv, **common)
+    for model in (ours, plain):
+        model.set_logger(configure(None, []))
+    # Fill both buffers with the same random-policy transitions (no training: learning_starts).
+    for model in (ours, plain):
+        model.learning_starts = 10**9
+        model.learn(8_000)
+        model.learning_starts = 0
+    return ours, plain, venv
+
+
+def bench_train(rounds: int = 5, grad_steps: int = 100) -> dict[str, Any]:
+    """Gradient steps/s and transitions/s, DoubleDQN+PER vs plain DQN, measured alternately."""
+    ours, plain, venv = _models(THESIS_NET, 32, 1)
+    try:
+        g_ours, g_plain, t_ours, t_plain = [], [], [], []
+        for _ in range(rounds):
+            g_ours.append(_rate(grad_steps, lambda: ours.train(grad_steps, 32)))
+            g_plain.append(_rate(grad_steps, lambda: plain.train(grad_steps, 32)))
+            t_ours.append(_rate(2_000, lambda: ours.learn(2_000, reset_num_timesteps=False)))
+            t_plain.append(_rate(2_000, lambda: plain.learn(2_000, reset_num_timesteps=False)))
+    finally:
+        venv.close()
+    out = {
+        "train_grad_steps_per_s": float(np.median(g_ours)),
+        "train_grad_steps_per_s_plain_dqn": float(np.median(g_plain)),
+        "train_transitions_per_s": float(np.median(t_ours)),
+        "train_transitions_per_s_plain_dqn": float(np.median(t_plain)),
+    }
+    out["train_grad_steps_ratio"] = (
+        out["train_grad_steps_per_s"] / out["train_grad_steps_per_s_plain_dqn"]
+    )
+    out["train_transitions_ratio"] = (
+        out["train_transitions_per_s"] / out["train_transitions_per_s_plain_dqn"]
+    )
+    return out
+
+
+def bench_scaling(grad_steps: int = 60) -> dict[str, Any]:
+    """DoubleDQN+PER gradient steps/s by network, batch size and torch threads."""
+    nets = {"2x64": [64, 64], "2x256": [256, 256], "3x512": THESIS_NET}
+    out: dict[str, Any] = {}
+    for threads in (1, 2):
+        for name, net in nets.items():
+            for batch in (32, 64, 256):
+                ours, _, venv = _models(net, batch, threads)
+                venv.close()
+                ours.train(5, batch)  # warm-up
+                rate = _rate(grad_steps, lambda m=ours, b=batch: m.train(grad_steps, b))
+                out[f"{name}/batch{batch}/threads{threads}"] = rate
+    import torch
+
+    torch.set_num_threads(1)
+    return {"train_grad_steps_per_s_by_setting": out}
+
+
+# ---------------------------------------------------------------------- eval
+def bench_eval(episodes: int = 8) -> dict[str, Any]:
+    """Episodes per second of greedy evaluation (MLP 3x512) and of the frontier baseline."""
+    import torch
+
+    from harness import DoubleDQN
+    from harness.adapters import make_vec_env
+    from harness.baselines import make_baseline
+    from harness.evaluation import model_policy, run_episodes
+
+    torch.set_num_threads(1)
+    venv = make_vec_env(THESIS_ENV, copies=1, seed=0)
+    # An untrained network of the thesis's size: the weights do not change the speed.
+    model = DoubleDQN("MlpPolicy", venv, policy_kwargs={"net_arch": THESIS_NET}, device="cpu")
+    venv.close()
+    mlp = _rate(episodes, lambda: run_episodes(model_policy(model), THESIS_ENV, episodes, 0))
+    frontier = _rate(
+        episodes, lambda: run_episodes(make_baseline("frontier", 0), THESIS_ENV, episodes, 0)
+    )
+    return {
+        "eval_episodes_per_s": mlp,
+        "eval_100_episodes_s": 100 / mlp,
+        "eval_frontier_episodes_per_s": frontier,
+    }
+
+
+# ---------------------------------------------------------------------- memory
+_MEMORY_SCRIPT = """
+import resource, torch
+from harness import DoubleDQN, PrioritizedReplayBuffer
+from harness.adapters import make_vec_env
+from harness.bench import THESIS_ENV, THESIS_NET
+torch.set_num_threads(1)
+venv = make_vec_env(THESIS_ENV, copies=4, seed=0)
+model = DoubleDQN("MlpPolicy", venv, buffer_size=100_000, learning_starts=100_000,
+                  replay_buffer_class=PrioritizedReplayBuffer, batch_size=32,
+                  policy_kwargs={"net_arch": THESIS_NET}, device="cpu")
+model.learn(100_000 + 2_000)  # fill the buffer, then train a little
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
+"""
+
+
+def bench_memory() -> dict[str, Any]:
+    """Peak resident memory (MiB) of a training process with a full 100,000-transition buffer."""
+    proc = subprocess.run(
+        [sys.executable, "-c", _MEMORY_SCRIPT], capture_output=True, text=True, check=True
+    )
+    kib = int(proc.stdout.strip().splitlines()[-1])
+    # ru_maxrss is KiB on Linux, bytes on macOS.
+    mib = kib / 1024 / (1024 if sys.platform == "darwin" else 1)
+    return {"train_peak_memory_mib": mib, "bench_process_peak_memory_mib": _own_peak_mib()}
+
+
+def _own_peak_mib() -> float:
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return peak / 1024 / (1024 if sys.platform == "darwin" else 1)
+
+
+SECTIONS: dict[str, list[Callable[[], dict[str, Any]]]] = {
+    "env": [bench_env],
+    "train": [bench_train, bench_scaling],
+    "eval": [bench_eval],
+    "memory": [bench_memory],
+}
+
+
+def run_bench(what: str) -> dict[str, Any]:
+    """Run a section (or ``all``) and return every figure in one flat dict."""
+    sections = list(SECTIONS) if what == "all" else [what]
+    out: dict[str, Any] = dict(machine_info())
+    for name in sections:
+        for fn in SECTIONS[name]:
+            out.update(fn())
+    return out
+
+
+def format_bench(r: dict[str, Any]) -> str:
+    """A readable report with the targets of the performance issue beside each figure."""
+    n = "{:>12,.0f}".format
+    lines = [
+        f"machine: {r['machine']}; Python {r['python']}, torch {r['torch']}, "
+        f"SB3 {r['stable_baselines3']}, SuperSuit {r['supersuit']}, PettingZoo {r['pettingzoo']}",
+        "setting: 50x50 random maps, 4 agents, 1000 steps; MLP 3x512, batch 32, train_freq 2",
+    ]
+    if "env_bare_agent_steps_per_s" in r:
+        bare = r["env_bare_agent_steps_per_s"]
+        lines += [
+            "",
+            "env (agent-steps/s)",
+            f"  bare parallel_env loop     {n(bare)}   target >= 100,000",
+        ]
+        for c, v in r["env_vec_by_copies"].items():
+            lines.append(f"  VecEnv, {c:>2} copies           {n(v)}   {v / bare:5.2f} x bare")
+        lines.append(
+            f"  VecEnv / bare (4 copies)   {r['env_vec_over_bare']:>12.2f}   target >= 0.50"
+        )
+        for p, v in r["env_vec_8_copies_by_processes"].items():
+            lines.append(f"  VecEnv, 8 copies, num_cpus={p}  {n(v)}")
+    if "train_grad_steps_per_s" in r:
+        lines += [
+            "",
+            "train (DoubleDQN + PER vs SB3 DQN + uniform replay, alternately, 1 torch thread)",
+            f"  gradient steps/s           {n(r['train_grad_steps_per_s'])}   "
+            f"plain DQN {r['train_grad_steps_per_s_plain_dqn']:,.0f}",
+            f"  ratio                      {r['train_grad_steps_ratio']:>12.2f}   target >= 0.85",
+            f"  transitions/s (epochs 1)   {n(r['train_transitions_per_s'])}   "
+            f"plain DQN {r['train_transitions_per_s_plain_dqn']:,.0f} "
+            f"(ratio {r['train_transitions_ratio']:.2f})",
+        ]
+    if "train_grad_steps_per_s_by_setting" in r:
+        lines += ["", "gradient steps/s by network, batch and torch threads (DoubleDQN + PER)"]
+        lines.append(f"  {'network':<8}{'batch':>6}{'1 thread':>11}{'2 threads':>11}")
+        s = r["train_grad_steps_per_s_by_setting"]
+        for key in [k for k in s if k.endswith("threads1")]:
+            net, batch, _ = key.split("/")
+            two = s[f"{net}/{batch}/threads2"]
+            lines.append(f"  {net:<8}{batch[5:]:>6}{s[key]:>11,.0f}{two:>11,.0f}")
+    if "eval_episodes_per_s" in r:
+        lines += [
+            "",
+            "eval (50x50, 4 agents, 1000 steps)",
+            f"  MLP policy episodes/s      {r['eval_episodes_per_s']:>12.2f}   "
+            f"100 episodes in {r['eval_100_episodes_s']:.0f} s (target < 60 s)",
+            f"  frontier episodes/s        {r['eval_frontier_episodes_per_s']:>12.2f}",
+        ]
+    if "train_peak_memory_mib" in r:
+        lines += [
+            "",
+            f"memory: peak RSS of training with a full 100,000-transition buffer: "
+            f"{r['train_peak_memory_mib']:,.0f} MiB",
+        ]
+    return "\n".join(lines)

@@ -1,0 +1,53 @@
+"""``harness bench`` runs and reports its figures (no timing is asserted: they vary by machine)."""
+
+from __future__ import annotations
+
+import json
+
+from harness.bench import format_bench, machine_info
+from harness.cli import main
+
+
+def test_bench_env_json_has_the_documented_keys(capsys):
+    assert main(["bench", "env", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    for key in ("env_bare_agent_steps_per_s", "env_vec_agent_steps_per_s", "env_vec_over_bare"):
+        assert out[key] > 0
+    assert set(out["env_vec_by_copies"]) == {"1", "4", "16"}
+    assert out["torch_threads"] >= 1 and out["python"]
+
+
+def test_bench_report_shows_every_section_with_targets():
+    figures = {
+        **machine_info(),
+        "env_bare_agent_steps_per_s": 120_000.0,
+        "env_vec_by_copies": {1: 40_000.0, 4: 50_000.0, 16: 52_000.0},
+        "env_vec_agent_steps_per_s": 50_000.0,
+        "env_vec_over_bare": 50_000 / 120_000,
+        "env_vec_8_copies_by_processes": {0: 51_000.0, 2: 33_000.0},
+        "train_grad_steps_per_s": 200.0,
+        "train_grad_steps_per_s_plain_dqn": 240.0,
+        "train_grad_steps_ratio": 200 / 240,
+        "train_transitions_per_s": 4000.0,
+        "train_transitions_per_s_plain_dqn": 5000.0,
+        "train_transitions_ratio": 0.8,
+        "train_grad_steps_per_s_by_setting": {
+            "2x64/batch32/threads1": 500.0,
+            "2x64/batch32/threads2": 450.0,
+        },
+        "eval_episodes_per_s": 8.0,
+        "eval_100_episodes_s": 12.5,
+        "eval_frontier_episodes_per_s": 11.0,
+        "train_peak_memory_mib": 370.0,
+    }
+    text = format_bench(figures)
+    for expected in (
+        "120,000",
+        "0.42",
+        "target >= 0.85",
+        "0.83",
+        "100 episodes in 12 s",
+        "370 MiB",
+    ):
+        assert expected in text, expected
+    assert "2x64" in text and "450" in text

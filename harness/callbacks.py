@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
+from harness.rundir import EPISODE_COLUMNS
 from harness.schedules import PhaseLinearSchedule, epochs_for
 
 
@@ -92,19 +93,6 @@ class EpochsByCoverageCallback(BaseCallback):
 
     def _on_step(self) -> bool:
         return True
-
-
-EPISODE_COLUMNS = [
-    "episode",
-    "phase",
-    "timesteps",
-    "copy",
-    "coverage",
-    "reward_mean",
-    "wall_hits",
-    "new_cells",
-    "length",
-]
 
 
 class EpisodeLogCallback(BaseCallback):

@@ -26,25 +26,12 @@ from matplotlib.ticker import MaxNLocator, PercentFormatter
 
 from envs import coverage_v0
 from envs.coverage import render
+from harness.evaluation import CHECKPOINT_FRACTIONS
 
 if TYPE_CHECKING:  # only for annotations: keeps this module importable without a cycle
     from harness.config import EnvConfig
     from harness.evaluation import BatchPolicy, EpisodeResult
 
-#: Fractions of the episode shown by the coverage snapshots (Table 4.2's 33/66/100 %).
-SNAPSHOT_FRACTIONS = (0.33, 0.66, 1.0)
-#: Columns of ``episodes.csv`` (written by the training callbacks).
-EPISODES_CSV_COLUMNS = (
-    "episode",
-    "phase",
-    "timesteps",
-    "copy",
-    "coverage",
-    "reward_mean",
-    "wall_hits",
-    "new_cells",
-    "length",
-)
 DPI = 150
 #: Okabe-Ito colours as matplotlib hex strings, agent 0 first.
 AGENT_HEX = tuple(to_hex(c / 255) for c in render.AGENT_COLOURS)
@@ -99,7 +86,7 @@ def plot_paths(
     # Layout in inches, so every panel has the same size whatever the number of agents, and
     # each row is centred: [title] [team + agents] [legend] [snapshot header] [snapshots].
     top_n = n_agents + 1
-    bottom_n = len(SNAPSHOT_FRACTIONS) if snapshots else 0
+    bottom_n = len(CHECKPOINT_FRACTIONS) if snapshots else 0
     panel_w = 2.8 if top_n <= 5 else 2.3
     panel_h = panel_w * height / width
     gap, side = 0.55, 0.35
@@ -183,7 +170,7 @@ def plot_paths(
         )
         y += snap_head + row_top
         tints = 1 - render.TINT * (1 - render.AGENT_COLOURS / 255)
-        for k, (ax, frac) in enumerate(zip(row(bottom_n, y), SNAPSHOT_FRACTIONS)):
+        for k, (ax, frac) in enumerate(zip(row(bottom_n, y), CHECKPOINT_FRACTIONS)):
             step = round(frac * steps)
             covered = (first_step >= 0) & (first_step <= step)
             img = _map_image(walls)

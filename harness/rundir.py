@@ -25,6 +25,19 @@ from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 
+#: Columns of ``episodes.csv``, one row per finished training episode (see README).
+EPISODE_COLUMNS = (
+    "episode",
+    "phase",
+    "timesteps",
+    "copy",
+    "coverage",
+    "reward_mean",
+    "wall_hits",
+    "new_cells",
+    "length",
+)
+
 
 class RunDirError(OSError):
     """A run folder that cannot be created or read, with a one-line message."""

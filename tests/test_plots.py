@@ -14,6 +14,7 @@ from harness import plots
 from harness.baselines import make_baseline
 from harness.config import EnvConfig
 from harness.evaluation import run_episodes
+from harness.rundir import EPISODE_COLUMNS
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -107,7 +108,7 @@ def test_plot_eval_episodes_from_results_and_from_numbers(tmp_path: Path) -> Non
 def write_episodes_csv(path: Path, timesteps: np.ndarray, coverage: np.ndarray) -> None:
     with path.open("w", newline="", encoding="utf-8") as fh:
         writer = csv.writer(fh)
-        writer.writerow(plots.EPISODES_CSV_COLUMNS)
+        writer.writerow(EPISODE_COLUMNS)
         for k, (t, c) in enumerate(zip(timesteps, coverage)):
             writer.writerow([k, "initial", int(t), k % 4, f"{c:.6f}", -0.5, 0, 12, 150])
 

@@ -165,12 +165,7 @@ def _train(config: ExperimentConfig, run: RunDir, args: argparse.Namespace, resu
 
 
 def _target(args: argparse.Namespace) -> Target:
-    seed = 0 if args.seed is None else args.seed
-    target = resolve_target(args.target, args.policy, args.config, args.overrides, seed)
-    if args.seed is None:  # the default seed is the config's, known only now
-        args.seed = target.config.eval.seed
-        if args.policy is not None:
-            target = resolve_target(None, args.policy, args.config, args.overrides, args.seed)
+    target = resolve_target(args.target, args.policy, args.config, args.overrides, args.seed)
     from harness.train import configure_torch
 
     configure_torch(target.config.algo.threads)
@@ -183,10 +178,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     target = _target(args)
     from harness.evaluation import run_episodes, summarize
 
-    results = run_episodes(target.policy, target.config.env, args.episodes, args.seed)
+    results = run_episodes(target.policy, target.config.env, args.episodes, target.seed)
     summary = {
         "policy": target.label,
-        "seed": args.seed,
+        "seed": target.seed,
         "overrides": list(args.overrides),
         "env": target.config.env.model_dump(mode="json"),
         **summarize(results),
@@ -241,10 +236,10 @@ def cmd_render(args: argparse.Namespace) -> int:
     from harness.plots import play_episode, plot_paths, write_gif
 
     rec = play_episode(
-        target.config.env, target.policy, args.seed, args.every, args.gif is not None
+        target.config.env, target.policy, target.seed, args.every, args.gif is not None
     )
     out = args.out or (target.run_dir / "paths.png" if target.run_dir else Path("paths.png"))
-    title = f"{target.label}: coverage {rec.coverage:.1%}, seed {args.seed}"
+    title = f"{target.label}: coverage {rec.coverage:.1%}, seed {target.seed}"
     plot_paths(rec.walls, rec.paths, out, title)
     print(f"saved {out}", file=sys.stderr)
     if args.gif is not None:

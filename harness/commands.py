@@ -33,6 +33,8 @@ class Target:
     label: str
     run_dir: Path | None
     """The run folder of a trained model (where ``eval.json`` goes), else ``None``."""
+    seed: int
+    """Seed of the episodes: the one asked for, else the config's ``eval.seed``."""
 
 
 def find_run_config(model_path: Path) -> Path:
@@ -44,7 +46,7 @@ def find_run_config(model_path: Path) -> Path:
     raise TargetError(f"{model_path}: no config.yaml of its run beside it")
 
 
-def load_model_target(path: Path, overrides: Sequence[str]) -> Target:
+def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) -> Target:
     """A trained model: ``path`` is a run folder (its ``model.zip``) or a model zip."""
     if path.is_dir():
         if not (path / "config.yaml").is_file():
@@ -69,7 +71,8 @@ def load_model_target(path: Path, overrides: Sequence[str]) -> Target:
             f"{model_path}: cannot load model ({type(exc).__name__}: {exc})"
         ) from None
     run_dir = config_path.parent
-    return Target(model_policy(model), config, str(model_path), run_dir)
+    seed = config.eval.seed if seed is None else seed
+    return Target(model_policy(model), config, str(model_path), run_dir, seed)
 
 
 def resolve_target(
@@ -77,7 +80,7 @@ def resolve_target(
     policy: str | None,
     config_path: Path | None,
     overrides: Sequence[str],
-    seed: int,
+    seed: int | None,
 ) -> Target:
     """Resolve the command line's target (see the module docstring)."""
     if policy is not None:
@@ -88,14 +91,15 @@ def resolve_target(
         if policy not in BASELINES:
             raise TargetError(f"unknown policy {policy!r}; known: {', '.join(BASELINES)}")
         config = load_config(config_path, overrides)
-        return Target(make_baseline(policy, seed), config, policy, None)
+        seed = config.eval.seed if seed is None else seed
+        return Target(make_baseline(policy, seed), config, policy, None, seed)
     if target is None:
         raise TargetError(
             "give a run folder or model zip, or --policy random|frontier --config FILE"
         )
     if config_path is not None:
         raise TargetError("--config goes with --policy; a model uses its run's config.yaml")
-    return load_model_target(target, overrides)
+    return load_model_target(target, overrides, seed)
 
 
 def eval_filename(overrides: Sequence[str]) -> str:

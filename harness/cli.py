@@ -189,7 +189,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         "wall_hits": [sum(r.wall_hits) for r in results],
     }
     if target.run_dir is not None:
-        out = target.run_dir / eval_filename(args.overrides)
+        out = target.run_dir / eval_filename(args.overrides, target.model_name)
         atomic_write_text(out, json.dumps(summary, indent=2))
         print(f"saved {out}", file=sys.stderr)
     if args.plot is not None:

@@ -35,6 +35,8 @@ class Target:
     """The run folder of a trained model (where ``eval.json`` goes), else ``None``."""
     seed: int
     """Seed of the episodes: the one asked for, else the config's ``eval.seed``."""
+    model_name: str = "model"
+    """The model's path in its run folder without ``.zip`` (for the eval file's name)."""
 
 
 def find_run_config(model_path: Path) -> Path:
@@ -72,7 +74,8 @@ def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) ->
         ) from None
     run_dir = config_path.parent
     seed = config.eval.seed if seed is None else seed
-    return Target(model_policy(model), config, str(model_path), run_dir, seed)
+    name = model_path.resolve().relative_to(run_dir.resolve()).with_suffix("").as_posix()
+    return Target(model_policy(model), config, str(model_path), run_dir, seed, name)
 
 
 def resolve_target(
@@ -102,12 +105,22 @@ def resolve_target(
     return load_model_target(target, overrides, seed)
 
 
-def eval_filename(overrides: Sequence[str]) -> str:
-    """``eval.json``, or ``eval-<overrides>.json`` when the episodes differ from the run's config
-    (e.g. ``--set env.max_steps=500`` → ``eval-env.max_steps-500.json``)."""
-    if not overrides:
+def eval_filename(overrides: Sequence[str], model: str = "model") -> str:
+    """Where ``harness eval`` saves its numbers in the run folder.
+
+    ``eval.json`` for the run's ``model.zip`` on the run's own episodes; other models and other
+    episodes get their own file, e.g. ``eval-best_model.json`` or
+    ``eval-env.max_steps-500.json`` (``--set env.max_steps=500``), so no result replaces another.
+
+    Args:
+        overrides: The ``--set`` overrides of the evaluation.
+        model: The model's path inside the run folder without ``.zip`` (``"model"``,
+            ``"best_model"``, ``"checkpoints/step-000000001000/model"``).
+    """
+    parts = ([] if model == "model" else [model]) + list(overrides)
+    if not parts:
         return "eval.json"
-    slug = re.sub(r"[^A-Za-z0-9_.-]+", "-", "_".join(overrides)).strip("-")
+    slug = re.sub(r"[^A-Za-z0-9_.-]+", "-", "_".join(parts)).strip("-")
     return f"eval-{slug[:100]}.json"
 
 

@@ -65,6 +65,14 @@ def test_eval_of_a_model_zip_with_overrides_and_plot(smoke_run, capsys, tmp_path
     assert plot.read_bytes()[:8] == PNG_SIGNATURE
 
 
+def test_each_model_and_setting_gets_its_own_eval_file(smoke_run, capsys):
+    plain = eval_json(capsys, str(smoke_run), "--episodes", "2")
+    eval_json(capsys, str(smoke_run / "best_model.zip"), "--episodes", "3")
+    assert (smoke_run / "eval-best_model.json").is_file()
+    saved = json.loads((smoke_run / "eval.json").read_text())
+    assert saved["episodes"] == 2 and saved["coverage_median"] == plain["coverage_median"]
+
+
 def test_eval_table_is_readable(smoke_run, capsys):
     capsys.readouterr()
     assert main(["eval", str(smoke_run), "--episodes", "2"]) == 0

@@ -19,6 +19,7 @@ from harness.commands import (
     TargetError,
     check_run_folder,
     eval_filename,
+    export_reference,
     format_summary,
     read_eval_json,
     resolve_target,
@@ -82,6 +83,11 @@ def build_parser() -> argparse.ArgumentParser:
     ren.add_argument("--out", type=Path, help="paths PNG (default: RUN_DIR/paths.png or paths.png)")
     ren.add_argument("--gif", type=Path, help="also write an animated GIF of the episode")
     ren.add_argument("--every", type=int, default=2, help="GIF: one frame every N steps")
+
+    exp = sub.add_parser("export", help="copy a run's policy into a compact reference folder")
+    exp.add_argument("run", type=Path, metavar="RUN_DIR")
+    exp.add_argument("--out", type=Path, required=True, help="new folder, e.g. runs/reference/x")
+    exp.add_argument("--model", default="model", help="model.zip (default) or best_model")
 
     bench = sub.add_parser("bench", help="throughput and memory figures (thesis settings)")
     bench.add_argument(
@@ -248,6 +254,12 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_export(args: argparse.Namespace) -> int:
+    out = export_reference(args.run, args.out, args.model)
+    print(f"saved {out}", file=sys.stderr)
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from harness.bench import format_bench, run_bench
 
@@ -261,6 +273,7 @@ COMMANDS = {
     "eval": cmd_eval,
     "compare": cmd_compare,
     "render": cmd_render,
+    "export": cmd_export,
     "bench": cmd_bench,
 }
 

@@ -177,3 +177,40 @@ def check_run_folder(run: Path) -> None:
     with (run / "episodes.csv").open(newline="", encoding="utf-8") as f:
         if next(csv.reader(f), None) is None:
             raise TargetError(f"{run}/episodes.csv: empty")
+
+
+#: Files of a run folder that a reference copy keeps besides the model (all small).
+REFERENCE_FILES = ("config.yaml", "command.txt", "episodes.csv")
+
+
+def export_reference(run: Path, out: Path, model: str = "model") -> Path:
+    """Copy a run's policy into a compact, self-contained folder (``runs/reference/<name>``).
+
+    The folder holds ``config.yaml``, the run's command and ``episodes.csv`` (its learning
+    curve), and ``model.zip`` without the optimizer's state: RMSprop's running averages are a third
+    of a model zip and matter only to continue training. ``harness eval`` and ``harness render``
+    work on the folder as on the run.
+
+    Raises:
+        TargetError: when the run or model is missing, or ``out`` exists (never overwritten).
+    """
+    source = run / f"{model}.zip"
+    if not source.is_file():
+        raise TargetError(f"{source}: no such model")
+    if out.exists():
+        raise TargetError(f"{out}: already exists (a reference is never overwritten)")
+    from harness.dqn import DoubleDQN
+
+    try:
+        policy = DoubleDQN.load(source, device="cpu")
+    except Exception as exc:  # a damaged zip raises many kinds
+        raise TargetError(f"{source}: cannot load model ({type(exc).__name__}: {exc})") from None
+    old = policy.policy.optimizer
+    # SB3 (>= 2.4) optimises only the online network, not the target network.
+    policy.policy.optimizer = type(old)(policy.q_net.parameters(), **old.defaults)
+    out.mkdir(parents=True)
+    for name in REFERENCE_FILES:
+        if (run / name).is_file():
+            (out / name).write_bytes((run / name).read_bytes())
+    policy.save(out / "model.zip")
+    return out

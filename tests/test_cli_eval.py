@@ -158,3 +158,18 @@ def test_missing_and_corrupt_models(smoke_run, tmp_path, capsys):
         z.writestr("data", "{}")
     assert main(["eval", str(run)]) == 2
     assert "cannot load model" in capsys.readouterr().err
+
+
+def test_export_makes_a_compact_reference_that_evaluates_the_same(smoke_run, tmp_path, capsys):
+    ref = tmp_path / "reference" / "smoke"
+    assert main(["export", str(smoke_run), "--out", str(ref)]) == 0
+    assert (ref / "config.yaml").is_file() and (ref / "episodes.csv").is_file()
+    assert (ref / "model.zip").stat().st_size < 0.8 * (smoke_run / "model.zip").stat().st_size
+    original = eval_json(capsys, str(smoke_run), "--episodes", "3", "--seed", "9")
+    exported = eval_json(capsys, str(ref), "--episodes", "3", "--seed", "9")
+    assert {k: v for k, v in exported.items() if k != "policy"} == {
+        k: v for k, v in original.items() if k != "policy"
+    }
+    assert main(["render", str(ref), "--out", str(tmp_path / "p.png")]) == 0
+    assert main(["export", str(smoke_run), "--out", str(ref)]) == 2  # never overwritten
+    assert "already exists" in capsys.readouterr().err

@@ -15,6 +15,7 @@ from pathlib import Path
 
 from harness.checkpoints import CheckpointError
 from harness.commands import (
+    DEFAULT_EPISODES,
     Target,
     TargetError,
     check_run_folder,
@@ -69,7 +70,9 @@ def build_parser() -> argparse.ArgumentParser:
 
     ev = sub.add_parser("eval", help="evaluate a trained model or a baseline on fresh episodes")
     _add_target(ev)
-    ev.add_argument("--episodes", type=int, default=100, help="test episodes (default 100)")
+    ev.add_argument(
+        "--episodes", type=int, default=DEFAULT_EPISODES, help="test episodes (default 100)"
+    )
     ev.add_argument("--json", action="store_true", help="print one JSON object")
     ev.add_argument("--plot", type=Path, help="coverage/wall hits per episode PNG (Fig. 4.11)")
 
@@ -195,7 +198,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
         "wall_hits": [sum(r.wall_hits) for r in results],
     }
     if target.run_dir is not None:
-        out = target.run_dir / eval_filename(args.overrides, target.model_name)
+        seed_changed = None if target.seed == target.config.eval.seed else str(target.seed)
+        name = eval_filename(args.overrides, target.model_name, args.episodes, seed_changed)
+        out = target.run_dir / name
         atomic_write_text(out, json.dumps(summary, indent=2))
         print(f"saved {out}", file=sys.stderr)
     if args.plot is not None:

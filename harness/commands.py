@@ -19,6 +19,9 @@ from harness.baselines import BASELINES, make_baseline
 from harness.config import ConfigError, ExperimentConfig, load_config
 from harness.evaluation import BatchPolicy, model_policy
 
+#: Episodes of a standard evaluation (the thesis tested on 100).
+DEFAULT_EPISODES = 100
+
 
 class TargetError(ValueError):
     """A model, run folder or baseline that cannot be used, with a one-line message."""
@@ -105,19 +108,32 @@ def resolve_target(
     return load_model_target(target, overrides, seed)
 
 
-def eval_filename(overrides: Sequence[str], model: str = "model") -> str:
+def eval_filename(
+    overrides: Sequence[str],
+    model: str = "model",
+    episodes: int = DEFAULT_EPISODES,
+    seed_changed: str | None = None,
+) -> str:
     """Where ``harness eval`` saves its numbers in the run folder.
 
-    ``eval.json`` for the run's ``model.zip`` on the run's own episodes; other models and other
-    episodes get their own file, e.g. ``eval-best_model.json`` or
+    ``eval.json`` is the standard evaluation: the run's ``model.zip``, :data:`DEFAULT_EPISODES`
+    episodes with the config's ``eval.seed``. Anything else gets its own file, e.g.
+    ``eval-best_model.json``, ``eval-10ep.json``, ``eval-seed7.json`` or
     ``eval-env.max_steps-500.json`` (``--set env.max_steps=500``), so no result replaces another.
 
     Args:
         overrides: The ``--set`` overrides of the evaluation.
         model: The model's path inside the run folder without ``.zip`` (``"model"``,
             ``"best_model"``, ``"checkpoints/step-000000001000/model"``).
+        episodes: Number of episodes evaluated.
+        seed_changed: The seed, when it is not the config's ``eval.seed``.
     """
-    parts = ([] if model == "model" else [model]) + list(overrides)
+    parts = [] if model == "model" else [model]
+    if episodes != DEFAULT_EPISODES:
+        parts.append(f"{episodes}ep")
+    if seed_changed is not None:
+        parts.append(f"seed{seed_changed}")
+    parts += list(overrides)
     if not parts:
         return "eval.json"
     slug = re.sub(r"[^A-Za-z0-9_.-]+", "-", "_".join(parts)).strip("-")

@@ -41,7 +41,7 @@ def test_eval_json_keys_ranges_and_saved_file(smoke_run, capsys):
     assert [a["agent"] for a in out["per_agent"]] == ["agent_0", "agent_1"]
     for a in out["per_agent"]:
         assert 0.0 <= a["useful_coverage"] <= 1.0 and 0.0 <= a["total_coverage"] <= 1.0
-    saved = json.loads((smoke_run / "eval.json").read_text())
+    saved = json.loads((smoke_run / "eval-6ep.json").read_text())
     assert saved["coverage_median"] == out["coverage_median"]
     assert len(saved["coverage"]) == 6
 
@@ -61,16 +61,18 @@ def test_eval_of_a_model_zip_with_overrides_and_plot(smoke_run, capsys, tmp_path
         "--set", "env.max_steps=20", "--plot", str(plot),
     )  # fmt: skip
     assert out["env"]["max_steps"] == 20
-    assert (smoke_run / "eval-env.max_steps-20.json").is_file()
+    assert (smoke_run / "eval-3ep_env.max_steps-20.json").is_file()
     assert plot.read_bytes()[:8] == PNG_SIGNATURE
 
 
 def test_each_model_and_setting_gets_its_own_eval_file(smoke_run, capsys):
-    plain = eval_json(capsys, str(smoke_run), "--episodes", "2")
+    standard = eval_json(capsys, str(smoke_run))  # model.zip, 100 episodes, config eval.seed
     eval_json(capsys, str(smoke_run / "best_model.zip"), "--episodes", "3")
-    assert (smoke_run / "eval-best_model.json").is_file()
+    eval_json(capsys, str(smoke_run), "--episodes", "2", "--seed", "4")
+    assert (smoke_run / "eval-best_model_3ep.json").is_file()
+    assert (smoke_run / "eval-2ep_seed4.json").is_file()
     saved = json.loads((smoke_run / "eval.json").read_text())
-    assert saved["episodes"] == 2 and saved["coverage_median"] == plain["coverage_median"]
+    assert saved["episodes"] == 100 and saved["coverage_median"] == standard["coverage_median"]
 
 
 def test_eval_table_is_readable(smoke_run, capsys):
@@ -118,7 +120,7 @@ def test_render_a_baseline(tmp_path):
 
 
 def test_compare_writes_a_plot_and_a_table(smoke_run, tmp_path, capsys):
-    assert main(["eval", str(smoke_run), "--episodes", "2"]) == 0
+    assert main(["eval", str(smoke_run)]) == 0
     out = tmp_path / "cmp.png"
     capsys.readouterr()
     assert main(["compare", str(smoke_run), str(smoke_run), "--out", str(out)]) == 0
@@ -173,3 +175,17 @@ def test_export_makes_a_compact_reference_that_evaluates_the_same(smoke_run, tmp
     assert main(["render", str(ref), "--out", str(tmp_path / "p.png")]) == 0
     assert main(["export", str(smoke_run), "--out", str(ref)]) == 2  # never overwritten
     assert "already exists" in capsys.readouterr().err
+
+
+def test_reference_policy_repeats_its_committed_numbers(tmp_path, capsys):
+    ref = ROOT / "runs" / "reference" / "ddqn_15x15"
+    committed = json.loads((ref / "eval.json").read_text())
+    copy = tmp_path / "ddqn_15x15"  # evaluate a copy: the committed files stay as they are
+    copy.mkdir()
+    for f in ("config.yaml", "model.zip"):
+        (copy / f).write_bytes((ref / f).read_bytes())
+    out = eval_json(capsys, str(copy), "--episodes", "8")
+    saved = json.loads((copy / "eval-8ep.json").read_text())
+    # Episode k is seeded with seed + k whatever the count: the first 8 of the committed 100.
+    assert saved["coverage"] == committed["coverage"][:8]
+    assert out["wall_hits_mean"] == 0.0

@@ -8,8 +8,10 @@ commands resolve it the same way, so a baseline and a model are measured on the 
 from __future__ import annotations
 
 import csv
+import io
 import json
 import re
+import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -203,9 +205,9 @@ def export_reference(run: Path, out: Path, model: str = "model") -> Path:
     """Copy a run's policy into a compact, self-contained folder (``runs/reference/<name>``).
 
     The folder holds ``config.yaml``, the run's command and ``episodes.csv`` (its learning
-    curve), and ``model.zip`` without the optimizer's state: RMSprop's running averages are a third
-    of a model zip and matter only to continue training. ``harness eval`` and ``harness render``
-    work on the folder as on the run.
+    curve), and ``model.zip`` without the optimizer's state and the target network, which matter
+    only to continue training (together two thirds of a model zip). ``harness eval`` and
+    ``harness render`` work on the folder as on the run, with the same actions.
 
     Raises:
         TargetError: when the run or model is missing, or ``out`` exists (never overwritten).
@@ -228,5 +230,29 @@ def export_reference(run: Path, out: Path, model: str = "model") -> Path:
     for name in REFERENCE_FILES:
         if (run / name).is_file():
             (out / name).write_bytes((run / name).read_bytes())
-    policy.save(out / "model.zip")
+    buffer = io.BytesIO()
+    policy.save(buffer)
+    (out / "model.zip").write_bytes(_without_target_network(buffer.getvalue()))
     return out
+
+
+def _without_target_network(model_zip: bytes) -> bytes:
+    """An SB3 model zip whose ``policy.pth`` lacks the target network (``DoubleDQN.load`` fills
+    it from the online network), halving the size of the weights."""
+    import torch
+
+    out = io.BytesIO()
+    with (
+        zipfile.ZipFile(io.BytesIO(model_zip)) as zin,
+        zipfile.ZipFile(out, "w", zipfile.ZIP_DEFLATED) as zout,
+    ):
+        for item in zin.infolist():
+            data = zin.read(item.filename)
+            if item.filename == "policy.pth":
+                state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+                kept = {k: v for k, v in state.items() if not k.startswith("q_net_target.")}
+                packed = io.BytesIO()
+                torch.save(kept, packed)
+                data = packed.getvalue()
+            zout.writestr(item, data)
+    return out.getvalue()

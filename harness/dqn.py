@@ -194,6 +194,29 @@ class DoubleDQN(DQN):
         if self.prioritized:
             self.replay_buffer.beta = self.beta_schedule(self._current_progress_remaining)  # type: ignore[union-attr]
 
+    def set_parameters(
+        self,
+        load_path_or_dict: str | dict[str, Any],
+        exact_match: bool = True,
+        device: th.device | str = "auto",
+    ) -> None:
+        """SB3's ``set_parameters``, also accepting a policy saved without its target network.
+
+        Compact exports (``harness export``) leave out ``q_net_target``: it is only needed to keep
+        training, and a target network is a copy of the online network. When it is missing, it is
+        filled from the online network's weights.
+        """
+        if isinstance(load_path_or_dict, dict):
+            policy = load_path_or_dict.get("policy")
+            if isinstance(policy, dict) and not any(k.startswith("q_net_target.") for k in policy):
+                target = {
+                    "q_net_target." + k[len("q_net.") :]: v
+                    for k, v in policy.items()
+                    if k.startswith("q_net.")
+                }
+                load_path_or_dict = {**load_path_or_dict, "policy": {**policy, **target}}
+        super().set_parameters(load_path_or_dict, exact_match=exact_match, device=device)
+
     def _excluded_save_params(self) -> list[str]:
         # Both schedules are rebuilt by _setup_model on load; saving them would only pickle
         # whatever closure a callback installed (possibly holding the callback or the model).

@@ -13,7 +13,7 @@ import warnings
 from collections.abc import Sequence
 from pathlib import Path
 
-from harness.checkpoints import CheckpointError
+from harness.checkpoints import CheckpointError, latest_checkpoint, read_state
 from harness.commands import (
     DEFAULT_EPISODES,
     Target,
@@ -141,8 +141,6 @@ def _resume(args: argparse.Namespace) -> int:
     if not run.config.is_file():
         raise HarnessError(f"{run.path}: not a run folder (no config.yaml)")
     config = load_config(run.config)
-    from harness.checkpoints import latest_checkpoint, read_state
-
     state = read_state(latest_checkpoint(run.checkpoints))
     if state.finished:
         print(

@@ -14,8 +14,6 @@ CELL_WALL = 1.0
 
 #: Action index -> (d_row, d_col): 0 up, 1 down, 2 left, 3 right, 4 stay.
 MOVES = np.array([[-1, 0], [1, 0], [0, -1], [0, 1], [0, 0]], dtype=np.int64)
-ACTION_NAMES = ("up", "down", "left", "right", "stay")
-STAY = 4
 
 
 @dataclass

@@ -189,6 +189,8 @@ def cmd_eval(args: argparse.Namespace) -> int:
     summary = {
         "policy": target.label,
         "seed": target.seed,
+        # Only a learned policy has a test temperature (eval.temperature); baselines ignore it.
+        "temperature": target.config.eval.temperature if target.run_dir is not None else None,
         "overrides": list(args.overrides),
         "env": target.config.env.model_dump(mode="json"),
         **summarize(results),

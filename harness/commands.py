@@ -80,7 +80,8 @@ def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) ->
     run_dir = config_path.parent
     seed = config.eval.seed if seed is None else seed
     name = model_path.resolve().relative_to(run_dir.resolve()).with_suffix("").as_posix()
-    return Target(model_policy(model), config, str(model_path), run_dir, seed, name)
+    policy = model_policy(model, config.eval.temperature)
+    return Target(policy, config, str(model_path), run_dir, seed, name)
 
 
 def resolve_target(
@@ -148,8 +149,10 @@ def format_summary(summary: dict[str, Any]) -> str:
     env = summary["env"]
     where = env["map"] if env["map"] != "random" else f"random {env['height']}x{env['width']}"
     at = summary["coverage_at_median"]
+    temperature = summary.get("temperature")
+    how = f" (Boltzmann, temperature {temperature:g})" if temperature else ""
     lines = [
-        f"policy    {summary['policy']}",
+        f"policy    {summary['policy']}{how}",
         f"episodes  {summary['episodes']} (seed {summary['seed']}), {where}, "
         f"{env['n_agents']} agent(s), {env['max_steps']} steps",
         f"coverage  median {pct(summary['coverage_median'])}   mean {pct(summary['coverage_mean'])}"

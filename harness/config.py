@@ -33,6 +33,7 @@ from pydantic import (
     BaseModel,
     ConfigDict,
     Field,
+    NonNegativeFloat,
     NonNegativeInt,
     PositiveFloat,
     PositiveInt,
@@ -225,13 +226,16 @@ def thesis_phases(
 
 
 class EvalConfig(_Section):
-    """Periodic greedy evaluation during training, and the defaults of ``harness eval``."""
+    """Periodic evaluation during training, and the defaults of ``harness eval``."""
 
     every: NonNegativeInt = 100_000
     """Transitions between evaluations; 0 turns periodic evaluation off."""
     episodes: PositiveInt = 10
     seed: int = 1_000_003
     """Seed of the evaluation episodes (different from training seeds: unseen maps)."""
+    temperature: NonNegativeFloat = 0.0
+    """Test-time action choice: 0 is greedy (ε = 0, the thesis's test); above 0 each agent samples
+    from softmax(Q / temperature) (Boltzmann), which breaks the loops of a greedy policy."""
 
 
 class CheckpointConfig(_Section):

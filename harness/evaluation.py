@@ -1,4 +1,4 @@
-"""Greedy evaluation on fresh, seeded episodes (SPEC §2.6 metrics).
+"""Evaluation on fresh, seeded episodes (SPEC §2.6 metrics).
 
 Episode ``k`` of an evaluation with seed ``s`` is the env reset with seed ``s + k``, whatever the
 number of copies stepped side by side, so results are repeatable and comparable between policies
@@ -46,14 +46,48 @@ class EpisodeResult:
     """Per agent ``(steps + 1, 2)`` positions, when recorded."""
 
 
-def model_policy(model: Any) -> BatchPolicy:
-    """A greedy (ε = 0) batched policy from an SB3 model."""
+def model_policy(model: Any, temperature: float = 0.0) -> BatchPolicy:
+    """A batched policy from an SB3 model: greedy (ε = 0) when ``temperature`` is 0, else
+    Boltzmann, each agent sampling its action from ``softmax(Q / temperature)``.
 
-    def act(obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
+    A memoryless greedy policy on a partial observation repeats itself once its surroundings are
+    visited (a loop it cannot leave); sampling near-tied actions breaks such loops, while actions
+    far below the best (a wall: -10) keep a vanishing probability. The noise of each env copy is
+    drawn from that copy's ``np_random`` (seeded by its reset), so an episode's actions depend on
+    its seed alone, not on how many copies run side by side.
+    """
+    if temperature < 0:
+        raise ValueError(f"temperature must be >= 0, got {temperature}")
+
+    def greedy(obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
         actions, _ = model.policy.predict(obs, deterministic=True)
         return np.asarray(actions)
 
-    return act
+    def boltzmann(obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
+        import torch as th
+
+        with th.no_grad():
+            q = model.q_net(model.policy.obs_to_tensor(obs)[0]).cpu().numpy().astype(np.float64)
+        n_agents = len(obs) // len(envs)
+        noise = np.concatenate([e.np_random.random(n_agents) for e in envs])
+        return softmax_sample(q, temperature, noise)
+
+    return greedy if temperature == 0 else boltzmann
+
+
+def softmax_sample(q: np.ndarray, temperature: float, uniform: np.ndarray) -> np.ndarray:
+    """Sample one action per row of ``q`` from ``softmax(q / temperature)`` by inverse CDF.
+
+    Args:
+        q: ``(batch, n_actions)`` action values.
+        temperature: Softmax temperature, > 0.
+        uniform: ``(batch,)`` draws from U[0, 1), one per row.
+    """
+    z = (q - q.max(axis=1, keepdims=True)) / temperature  # shift: exp never overflows
+    p = np.exp(z)
+    cdf = np.cumsum(p / p.sum(axis=1, keepdims=True), axis=1)
+    # The first action whose cumulative probability passes the draw (clip guards rounding at 1).
+    return np.minimum((cdf <= uniform[:, None]).sum(axis=1), q.shape[1] - 1)
 
 
 def run_episodes(

@@ -160,7 +160,7 @@ def phase_callbacks(
 
 
 class Evaluator:
-    """Greedy evaluation on the eval seed's fresh maps during training; keeps the best model.
+    """Evaluation on the eval seed's fresh maps during training; keeps the best model.
 
     The same maps and start cells are used at every evaluation, so the curve is comparable over
     training. "Best" is the highest median coverage, wall hits breaking ties.
@@ -172,7 +172,8 @@ class Evaluator:
 
     def __call__(self, model: DoubleDQN) -> None:
         cfg = self.config.eval
-        results = run_episodes(model_policy(model), self.config.env, cfg.episodes, cfg.seed)
+        policy = model_policy(model, cfg.temperature)
+        results = run_episodes(policy, self.config.env, cfg.episodes, cfg.seed)
         summary = summarize(results)
         model.logger.record("eval/coverage_median", summary["coverage_median"])
         model.logger.record("eval/coverage_mean", summary["coverage_mean"])

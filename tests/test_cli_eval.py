@@ -189,3 +189,14 @@ def test_reference_policy_repeats_its_committed_numbers(tmp_path, capsys):
     # Episode k is seeded with seed + k whatever the count: the first 8 of the committed 100.
     assert saved["coverage"] == committed["coverage"][:8]
     assert out["wall_hits_mean"] == 0.0
+
+
+def test_eval_with_a_temperature_samples_and_names_its_file(smoke_run, capsys):
+    greedy = eval_json(capsys, str(smoke_run), "--episodes", "3")
+    soft = eval_json(capsys, str(smoke_run), "--episodes", "3", "--set", "eval.temperature=1.5")
+    again = eval_json(capsys, str(smoke_run), "--episodes", "3", "--set", "eval.temperature=1.5")
+    assert soft == again  # seeded: the same episodes draw the same actions
+    assert soft["temperature"] == 1.5 and greedy["temperature"] == 0.0
+    saved = json.loads((smoke_run / "eval-3ep_eval.temperature-1.5.json").read_text())
+    assert saved["coverage_median"] == soft["coverage_median"]
+    assert saved["coverage"] != json.loads((smoke_run / "eval-3ep.json").read_text())["coverage"]

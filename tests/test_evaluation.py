@@ -42,3 +42,76 @@ def test_summary_keys_and_ranges():
     assert len(r.paths) == 2 and r.paths[0].shape == (31, 2)
     # Team coverage = (start cells + credited cells) / free cells.
     assert r.coverage == pytest.approx((2 + sum(r.new_cells)) / r.free_cells)
+
+
+def test_softmax_sample_follows_the_hand_computed_cdf():
+    from harness.evaluation import softmax_sample
+
+    # softmax([0, ln 3]) = [0.25, 0.75]: draws below 0.25 pick action 0, the rest action 1.
+    q = np.array([[0.0, np.log(3.0)]] * 4)
+    picked = softmax_sample(q, 1.0, np.array([0.0, 0.24, 0.26, 0.999]))
+    assert picked.tolist() == [0, 0, 1, 1]
+    # Temperature 2 on [0, 2]: p0 = 1 / (1 + e) = 0.2689.
+    q = np.array([[0.0, 2.0]] * 2)
+    assert softmax_sample(q, 2.0, np.array([0.26, 0.28])).tolist() == [0, 1]
+    # A wall-like action 10 below the best is (almost) never drawn at temperature 1 ...
+    q = np.array([[0.0, -10.0, 0.0]])
+    assert softmax_sample(q, 1.0, np.array([0.4999])).tolist() == [0]
+    # ... and equal values are drawn uniformly.
+    q = np.zeros((4, 4))
+    assert softmax_sample(q, 0.5, np.array([0.1, 0.3, 0.6, 0.9])).tolist() == [0, 1, 2, 3]
+
+
+def test_softmax_sample_matches_the_distribution():
+    from harness.evaluation import softmax_sample
+
+    rng = np.random.default_rng(0)
+    q = np.tile([1.0, 0.0, -1.0, 0.5, -3.0], (200_000, 1))
+    picked = softmax_sample(q, 0.7, rng.random(len(q)))
+    expected = np.exp(q[0] / 0.7) / np.exp(q[0] / 0.7).sum()
+    freq = np.bincount(picked, minlength=5) / len(picked)
+    np.testing.assert_allclose(freq, expected, atol=4e-3)
+
+
+class _FixedQ:
+    """Stands in for an SB3 model: every observation gets the same Q-values."""
+
+    class policy:  # mirrors ``model.policy``
+        @staticmethod
+        def obs_to_tensor(obs):
+            import torch as th
+
+            return th.as_tensor(obs), True
+
+        @staticmethod
+        def predict(obs, deterministic=True):
+            return np.zeros(len(obs), dtype=int), None
+
+    @staticmethod
+    def q_net(obs):
+        import torch as th
+
+        return th.tensor([[0.0, 0.1, 0.0, 0.1, 0.05]]).repeat(len(obs), 1)
+
+
+def test_boltzmann_evaluation_depends_on_the_seed_not_the_batching():
+    from harness.evaluation import model_policy
+
+    policy = model_policy(_FixedQ(), temperature=1.0)
+    a = run_episodes(policy, ENV, episodes=5, seed=3, copies=2, record_paths=True)
+    b = run_episodes(policy, ENV, episodes=5, seed=3, copies=5, record_paths=True)
+    assert [r.coverage for r in a] == [r.coverage for r in b]
+    for ra, rb in zip(a, b):
+        assert all(np.array_equal(pa, pb) for pa, pb in zip(ra.paths, rb.paths))
+    c = run_episodes(policy, ENV, episodes=5, seed=4, copies=5)
+    assert [r.coverage for r in a] != [r.coverage for r in c]
+    # Greedy (this stand-in always answers action 0, up) stays in one column: less ground.
+    greedy = run_episodes(model_policy(_FixedQ()), ENV, episodes=5, seed=3)
+    assert np.mean([r.coverage for r in greedy]) < np.mean([r.coverage for r in a])
+
+
+def test_negative_temperature_is_rejected():
+    from harness.evaluation import model_policy
+
+    with pytest.raises(ValueError, match="temperature"):
+        model_policy(_FixedQ(), temperature=-1.0)

@@ -129,6 +129,17 @@ class CoverageEnv(ParallelEnv):
         return view
 
     @property
+    def np_random(self) -> np.random.Generator:
+        """The episode's random generator, seeded by ``reset(seed=...)`` (Gymnasium's name).
+
+        The env draws from it only at reset; a stochastic test policy may draw its action noise
+        from it, so an episode's actions depend on its seed alone.
+        """
+        if self._np_random is None:
+            self._np_random, _ = seeding.np_random(None)
+        return self._np_random
+
+    @property
     def visited(self) -> np.ndarray:
         """``bool (H, W)``: cells the team has visited (a fresh array)."""
         return self._require_state().interior == CELL_VISITED

@@ -251,6 +251,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     )
     out = args.out or (target.run_dir / "paths.png" if target.run_dir else Path("paths.png"))
     title = f"{target.label}: coverage {rec.coverage:.1%}, seed {target.seed}"
+    if target.run_dir is not None and target.config.eval.temperature > 0:
+        title += f", Boltzmann temperature {target.config.eval.temperature:g}"
     plot_paths(rec.walls, rec.paths, out, title)
     print(f"saved {out}", file=sys.stderr)
     if args.gif is not None:

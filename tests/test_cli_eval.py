@@ -177,18 +177,31 @@ def test_export_makes_a_compact_reference_that_evaluates_the_same(smoke_run, tmp
     assert "already exists" in capsys.readouterr().err
 
 
-def test_reference_policy_repeats_its_committed_numbers(tmp_path, capsys):
-    ref = ROOT / "runs" / "reference" / "ddqn_15x15"
-    committed = json.loads((ref / "eval.json").read_text())
-    copy = tmp_path / "ddqn_15x15"  # evaluate a copy: the committed files stay as they are
+@pytest.mark.parametrize(
+    ("name", "eval_file", "overrides", "episodes"),
+    [
+        ("ddqn_15x15", "eval.json", [], 8),
+        ("ddqn_15x15", "eval-eval.temperature-1.json", ["eval.temperature=1"], 8),
+        ("ddqn_4agents", "eval-eval.temperature-1.json", ["eval.temperature=1"], 3),
+    ],
+)
+def test_reference_policy_repeats_its_committed_numbers(
+    name, eval_file, overrides, episodes, tmp_path, capsys
+):
+    ref = ROOT / "runs" / "reference" / name
+    committed = json.loads((ref / eval_file).read_text())
+    copy = tmp_path / name  # evaluate a copy: the committed files stay as they are
     copy.mkdir()
     for f in ("config.yaml", "model.zip"):
         (copy / f).write_bytes((ref / f).read_bytes())
-    out = eval_json(capsys, str(copy), "--episodes", "8")
-    saved = json.loads((copy / "eval-8ep.json").read_text())
-    # Episode k is seeded with seed + k whatever the count: the first 8 of the committed 100.
-    assert saved["coverage"] == committed["coverage"][:8]
-    assert out["wall_hits_mean"] == 0.0
+    sets = [arg for o in overrides for arg in ("--set", o)]
+    eval_json(capsys, str(copy), "--episodes", str(episodes), *sets)
+    (saved_file,) = copy.glob("eval*.json")
+    saved = json.loads(saved_file.read_text())
+    # Episode k is seeded with seed + k whatever the count (its action noise too): the first
+    # episodes of the committed 100.
+    assert saved["coverage"] == committed["coverage"][:episodes]
+    assert saved["wall_hits"] == committed["wall_hits"][:episodes]
 
 
 def test_eval_with_a_temperature_samples_and_names_its_file(smoke_run, capsys):

@@ -25,6 +25,7 @@ from harness.commands import (
     read_eval_json,
     resolve_target,
     run_label,
+    sampling_note,
 )
 from harness.config import ConfigError, ExperimentConfig, load_config
 from harness.rundir import RunDir, RunDirError, atomic_write_text
@@ -252,7 +253,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     out = args.out or (target.run_dir / "paths.png" if target.run_dir else Path("paths.png"))
     title = f"{target.label}: coverage {rec.coverage:.1%}, seed {target.seed}"
     if target.run_dir is not None and target.config.eval.temperature > 0:
-        title += f", Boltzmann temperature {target.config.eval.temperature:g}"
+        title += f", {sampling_note(target.config.eval.temperature)}"
     plot_paths(rec.walls, rec.paths, out, title)
     print(f"saved {out}", file=sys.stderr)
     if args.gif is not None:

@@ -143,16 +143,20 @@ def eval_filename(
     return f"eval-{slug[:100]}.json"
 
 
+def sampling_note(temperature: float | None) -> str:
+    """How a test policy picks actions: ``"Boltzmann, temperature T"``, or ``""`` when greedy."""
+    return f"Boltzmann, temperature {temperature:g}" if temperature else ""
+
+
 def format_summary(summary: dict[str, Any]) -> str:
     """A readable table of :func:`harness.evaluation.summarize`'s numbers."""
     pct = "{:6.1%}".format
     env = summary["env"]
     where = env["map"] if env["map"] != "random" else f"random {env['height']}x{env['width']}"
     at = summary["coverage_at_median"]
-    temperature = summary.get("temperature")
-    how = f" (Boltzmann, temperature {temperature:g})" if temperature else ""
+    how = sampling_note(summary.get("temperature"))
     lines = [
-        f"policy    {summary['policy']}{how}",
+        f"policy    {summary['policy']}{f' ({how})' if how else ''}",
         f"episodes  {summary['episodes']} (seed {summary['seed']}), {where}, "
         f"{env['n_agents']} agent(s), {env['max_steps']} steps",
         f"coverage  median {pct(summary['coverage_median'])}   mean {pct(summary['coverage_mean'])}"

@@ -252,8 +252,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     )
     out = args.out or (target.run_dir / "paths.png" if target.run_dir else Path("paths.png"))
     title = f"{target.label}: coverage {rec.coverage:.1%}, seed {target.seed}"
-    if target.run_dir is not None and target.config.eval.temperature > 0:
-        title += f", {sampling_note(target.config.eval.temperature)}"
+    note = sampling_note(target.config.eval.temperature) if target.run_dir else ""
+    title += f", {note}" if note else ""
     plot_paths(rec.walls, rec.paths, out, title)
     print(f"saved {out}", file=sys.stderr)
     if args.gif is not None:

@@ -217,17 +217,26 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    from harness.plots import plot_learning_curves, read_episodes_csv
+    from harness.plots import plot_learning_curves, read_episodes_csv, read_evaluations_csv
 
     curves: dict[str, list] = {}
+    evaluations: dict[str, list] = {}
     rows = []
     for run in args.runs:
         check_run_folder(run)
         label = run_label(run)
         curves.setdefault(label, []).append(read_episodes_csv(run / "episodes.csv"))
+        if (run / "evaluations.csv").is_file():
+            evaluations.setdefault(label, []).append(read_evaluations_csv(run / "evaluations.csv"))
         ev = read_eval_json(run)
         rows.append((label, run.name, ev))
-    plot_learning_curves(curves, args.out, "team coverage during training", window=args.window)
+    plot_learning_curves(
+        curves,
+        args.out,
+        "team coverage of the training episodes",
+        window=args.window,
+        evaluations=evaluations,
+    )
     print(f"{'experiment':<20}{'run':<40}{'median':>8}{'IQR':>8}{'wall hits':>11}")
     for label, name, ev in rows:
         if ev is None:

@@ -205,16 +205,17 @@ def check_run_folder(run: Path) -> None:
 
 
 #: Files of a run folder that a reference copy keeps besides the model (all small).
-REFERENCE_FILES = ("config.yaml", "command.txt", "episodes.csv")
+REFERENCE_FILES = ("config.yaml", "command.txt", "episodes.csv", "evaluations.csv")
 
 
 def export_reference(run: Path, out: Path, model: str = "model") -> Path:
     """Copy a run's policy into a compact, self-contained folder (``runs/reference/<name>``).
 
-    The folder holds ``config.yaml``, the run's command and ``episodes.csv`` (its learning
-    curve), and ``model.zip`` without the optimizer's state and the target network, which matter
-    only to continue training (together two thirds of a model zip). ``harness eval`` and
-    ``harness render`` work on the folder as on the run, with the same actions.
+    The folder holds ``config.yaml``, the run's command, ``episodes.csv`` and
+    ``evaluations.csv`` (its learning curves: training episodes and test-policy evaluations),
+    and ``model.zip`` without the optimizer's state and the target network, which matter only
+    to continue training (together two thirds of a model zip). ``harness eval`` and ``harness
+    render`` work on the folder as on the run, with the same actions.
 
     Raises:
         TargetError: when the run or model is missing, or ``out`` exists (never overwritten).

@@ -381,6 +381,36 @@ def read_episodes_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     return ts[order], cov[order]
 
 
+def read_evaluations_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
+    """Read a run's ``evaluations.csv`` (the in-training evaluations of the test policy).
+
+    Returns:
+        ``(timesteps, coverage_median)`` arrays, one entry per evaluation, in order.
+
+    Raises:
+        ValueError: When a column is missing or a value is not a number (naming file and line).
+    """
+    path = Path(path)
+    timesteps: list[int] = []
+    median: list[float] = []
+    with path.open(newline="", encoding="utf-8") as fh:
+        reader = csv.DictReader(fh)
+        missing = {"timesteps", "coverage_median"} - set(reader.fieldnames or ())
+        if missing:
+            raise ValueError(f"{path}: missing column(s) {', '.join(sorted(missing))}")
+        for row in reader:
+            try:
+                timesteps.append(int(float(row["timesteps"])))
+                median.append(float(row["coverage_median"]))
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"{path}, line {reader.line_num}: timesteps/coverage_median not a number"
+                ) from None
+    ts = np.asarray(timesteps, dtype=np.int64)
+    order = np.argsort(ts, kind="stable")
+    return ts[order], np.asarray(median, dtype=np.float64)[order]
+
+
 def smooth(values: Sequence[float] | np.ndarray, window: int) -> np.ndarray:
     """Trailing rolling median: entry ``i`` is the median of the last ``window`` values up to
     ``i`` (fewer at the start). A median, not a mean, because episode coverage is skewed and
@@ -414,6 +444,7 @@ def plot_learning_curves(
     window: int = 20,
     band: str = "minmax",
     references: Mapping[str, float] | None = None,
+    evaluations: Mapping[str, Sequence[tuple[np.ndarray, np.ndarray]]] | None = None,
 ) -> Path:
     """Learning curves of several experiments, each over one or more runs (seeds).
 
@@ -431,15 +462,20 @@ def plot_learning_curves(
         band: ``"minmax"`` (range across runs) or ``"iqr"`` (25-75 %).
         references: Optional ``label -> coverage`` horizontal lines (a baseline's or the
             thesis's median coverage).
+        evaluations: Optional ``label -> [(timesteps, coverage_median), ...]`` from
+            :func:`read_evaluations_csv`: when any run has one, a second panel draws the test
+            policy's evaluations during training (median across a label's runs, unsmoothed).
 
     Returns:
         The path of the PNG.
     """
     if band not in ("minmax", "iqr"):
         raise ValueError(f"band must be 'minmax' or 'iqr', got {band!r}")
-    fig = Figure(figsize=(7.0, 4.2), dpi=DPI)
-    ax = fig.add_subplot()
+    evaluations = {k: [r for r in v if len(r[0])] for k, v in (evaluations or {}).items()}
+    evaluations = {k: v for k, v in evaluations.items() if v}
     colours = [*AGENT_HEX[4:6], *AGENT_HEX[:4]]  # blue, vermillion first: the most distinct
+    fig = Figure(figsize=(12.0, 4.2) if evaluations else (7.0, 4.2), dpi=DPI)
+    ax = fig.add_subplot(1, 2, 1) if evaluations else fig.add_subplot()
     drawn = 0
     for k, (label, runs) in enumerate(curves.items()):
         runs = [(np.asarray(t, dtype=float), np.asarray(c, dtype=float)) for t, c in runs]
@@ -482,8 +518,39 @@ def plot_learning_curves(
     band_note = "" if band == "minmax" else " (band: IQR across runs)"
     ax.set_title((title or "Learning curves") + band_note)
     ax.legend(loc="lower right", framealpha=0.9, fontsize="small")
+    if evaluations:
+        _plot_evaluations(fig.add_subplot(1, 2, 2), evaluations, list(curves), colours)
     fig.tight_layout()
     return _save(fig, out)
+
+
+def _plot_evaluations(
+    ax: Any,
+    evaluations: Mapping[str, Sequence[tuple[np.ndarray, np.ndarray]]],
+    labels: list[str],
+    colours: list[str],
+) -> None:
+    """The evaluations panel: each label in its learning-curve colour."""
+    for label, runs in evaluations.items():
+        k = labels.index(label) if label in labels else len(labels)
+        grid = np.unique(np.concatenate([np.asarray(t, dtype=float) for t, _ in runs]))
+        stacked = np.full((len(runs), len(grid)), np.nan)
+        for i, (t, c) in enumerate(runs):
+            # Runs evaluate at the same multiples of eval.every; others are left out (NaN).
+            stacked[i, np.searchsorted(grid, np.asarray(t, dtype=float))] = c
+        with _quiet_nan_warnings():
+            middle = np.nanmedian(stacked, axis=0)
+        ax.plot(
+            grid, 100 * middle, color=colours[k % len(colours)], lw=1.4, marker=".", label=label
+        )
+    ax.set_xlabel("timesteps (agent transitions)")
+    ax.set_ylabel("team coverage (median of the evaluation episodes)")
+    ax.set_ylim(0, 102)
+    ax.yaxis.set_major_formatter(PercentFormatter(100, decimals=0))
+    ax.ticklabel_format(axis="x", style="sci", scilimits=(-3, 4), useMathText=True)
+    ax.grid(alpha=0.3)
+    ax.set_title("test policy during training (evaluations.csv)")
+    ax.legend(loc="lower right", framealpha=0.9, fontsize="small")
 
 
 def _common_grid(

@@ -38,6 +38,18 @@ EPISODE_COLUMNS = (
     "length",
 )
 
+#: Columns of ``evaluations.csv``, one row per evaluation during training (``eval.every``).
+EVALUATION_COLUMNS = (
+    "timesteps",
+    "episodes",
+    "temperature",
+    "coverage_median",
+    "coverage_q1",
+    "coverage_q3",
+    "coverage_mean",
+    "wall_hits_mean",
+)
+
 
 class RunDirError(OSError):
     """A run folder that cannot be created or read, with a one-line message."""
@@ -68,6 +80,10 @@ class RunDir:
     @property
     def episodes_csv(self) -> Path:
         return self.path / "episodes.csv"
+
+    @property
+    def evaluations_csv(self) -> Path:
+        return self.path / "evaluations.csv"
 
     @property
     def model(self) -> Path:

@@ -13,6 +13,7 @@
 from __future__ import annotations
 
 import contextlib
+import csv
 import signal
 from collections.abc import Iterator
 from pathlib import Path
@@ -47,7 +48,7 @@ from harness.checkpoints import (
 from harness.config import ExperimentConfig, PhaseConfig
 from harness.dqn import DoubleDQN, NonFiniteLossError
 from harness.evaluation import model_policy, run_episodes, summarize
-from harness.rundir import RunDir, atomic_write, atomic_write_text
+from harness.rundir import EVALUATION_COLUMNS, RunDir, atomic_write, atomic_write_text
 from harness.schedules import PhaseLinearSchedule
 
 
@@ -179,10 +180,28 @@ class Evaluator:
         model.logger.record("eval/coverage_mean", summary["coverage_mean"])
         model.logger.record("eval/wall_hits_mean", summary["wall_hits_mean"])
         model.logger.dump(model.num_timesteps)
+        self._append_row(model.num_timesteps, summary)
         score = summary["coverage_median"] - 1e-3 * summary["wall_hits_mean"]
         if score > self.best:
             self.best = score
             save_model(model, self.run.best_model)
+
+    def _append_row(self, timesteps: int, summary: dict[str, Any]) -> None:
+        # The test policy's learning curve, next to episodes.csv (the training episodes'):
+        # a plain file that `harness export` keeps and `harness compare` draws.
+        row = {
+            **summary,
+            "timesteps": timesteps,
+            "episodes": self.config.eval.episodes,
+            "temperature": self.config.eval.temperature,
+        }
+        path = self.run.evaluations_csv
+        new = not path.exists() or path.stat().st_size == 0
+        with path.open("a", newline="", encoding="utf-8") as f:
+            writer = csv.writer(f)
+            if new:
+                writer.writerow(EVALUATION_COLUMNS)
+            writer.writerow([row[c] for c in EVALUATION_COLUMNS])
 
 
 def save_model(model: DoubleDQN, path: Path) -> None:
@@ -249,12 +268,16 @@ def stop_on_signals(stopper: StopOnSignal) -> Iterator[None]:
             signal.signal(sig, old)
 
 
-def truncate_episodes_csv(path: Path, next_episode: int) -> None:
-    """Drop rows logged after the checkpoint a run resumes from, so no episode appears twice."""
+def truncate_csv(path: Path, below: int) -> None:
+    """Keep the header and the rows whose first column is below ``below``.
+
+    A resumed run drops what it logged after its checkpoint (episodes from ``next_episode``
+    on, evaluations after the checkpoint's timesteps), so nothing appears twice.
+    """
     if not path.exists():
         return
     lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
-    kept = lines[:1] + [ln for ln in lines[1:] if int(ln.split(",", 1)[0]) < next_episode]
+    kept = lines[:1] + [ln for ln in lines[1:] if int(ln.split(",", 1)[0]) < below]
     atomic_write_text(path, "".join(kept))
 
 
@@ -291,7 +314,8 @@ def train(
         if resume:
             model = load_checkpoint_model(checkpoint, venv, config)
             set_rng_states(read_rng(checkpoint))
-            truncate_episodes_csv(run.episodes_csv, state.next_episode)
+            truncate_csv(run.episodes_csv, state.next_episode)
+            truncate_csv(run.evaluations_csv, model.num_timesteps + 1)
         else:
             model = build_model(config, venv)
             model.action_space.seed(config.seed)

@@ -165,7 +165,8 @@ def test_missing_and_corrupt_models(smoke_run, tmp_path, capsys):
 def test_export_makes_a_compact_reference_that_evaluates_the_same(smoke_run, tmp_path, capsys):
     ref = tmp_path / "reference" / "smoke"
     assert main(["export", str(smoke_run), "--out", str(ref)]) == 0
-    assert (ref / "config.yaml").is_file() and (ref / "episodes.csv").is_file()
+    for f in ("config.yaml", "command.txt", "episodes.csv", "evaluations.csv"):
+        assert (ref / f).read_bytes() == (smoke_run / f).read_bytes(), f
     assert (ref / "model.zip").stat().st_size < 0.5 * (smoke_run / "model.zip").stat().st_size
     original = eval_json(capsys, str(smoke_run), "--episodes", "3", "--seed", "9")
     exported = eval_json(capsys, str(ref), "--episodes", "3", "--seed", "9")

@@ -69,6 +69,22 @@ def test_episodes_csv_numbers_every_episode_across_phases(smoke_run):
     assert all(len(r["new_cells"].split(";")) == cfg.env.n_agents for r in rows)
 
 
+def test_evaluations_csv_holds_every_tensorboard_evaluation(smoke_run):
+    cfg = load_config(smoke_run.config)
+    with smoke_run.evaluations_csv.open() as f:
+        rows = list(csv.DictReader(f))
+    events = EventAccumulator(str(smoke_run.tb))
+    events.Reload()
+    logged = events.Scalars("eval/coverage_median")
+    assert [int(r["timesteps"]) for r in rows] == [e.step for e in logged]
+    assert [float(r["coverage_median"]) for r in rows] == pytest.approx([e.value for e in logged])
+    assert len(rows) >= cfg.total_timesteps // cfg.eval.every - 1
+    assert all(int(r["timesteps"]) % cfg.eval.every < cfg.n_slots for r in rows)
+    assert {int(r["episodes"]) for r in rows} == {cfg.eval.episodes}
+    for r in rows:
+        assert float(r["coverage_q1"]) <= float(r["coverage_median"]) <= float(r["coverage_q3"])
+
+
 def test_tensorboard_has_the_documented_tags(smoke_run):
     events = EventAccumulator(str(smoke_run.tb))
     events.Reload()

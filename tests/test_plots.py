@@ -179,6 +179,30 @@ def test_plot_learning_curves_from_csv_files(tmp_path: Path) -> None:
         plots.plot_learning_curves({"empty": [(np.array([]), np.array([]))]}, tmp_path / "e.png")
 
 
+def test_read_evaluations_csv_and_draw_the_evaluations_panel(tmp_path: Path) -> None:
+    path = tmp_path / "evaluations.csv"
+    path.write_text(
+        "timesteps,episodes,temperature,coverage_median,coverage_q1,coverage_q3,"
+        "coverage_mean,wall_hits_mean\n"
+        "2000,4,1.0,0.5,0.4,0.6,0.5,0.0\n1000,4,1.0,0.25,0.2,0.3,0.25,0.5\n",
+        encoding="utf-8",
+    )
+    ts, median = plots.read_evaluations_csv(path)
+    np.testing.assert_array_equal(ts, [1000, 2000])
+    np.testing.assert_array_equal(median, [0.25, 0.5])
+    rng = np.random.default_rng(2)
+    curves = {"a": [fake_run(rng, 50, 2000)], "b": [fake_run(rng, 50, 2000)]}
+    single = check_png(plots.plot_learning_curves(curves, tmp_path / "one.png", window=5))
+    evals = {"a": [(ts, median), (ts[:1], median[:1])]}
+    both = check_png(
+        plots.plot_learning_curves(curves, tmp_path / "two.png", window=5, evaluations=evals)
+    )
+    assert both[0] > 1.5 * single[0]  # a second panel beside the first
+    path.write_text("timesteps,coverage_median\n10,high\n", encoding="utf-8")
+    with pytest.raises(ValueError, match="line 2"):
+        plots.read_evaluations_csv(path)
+
+
 # ---------------------------------------------------------------------- episodes and GIFs
 def test_episode_frames_and_gif(tmp_path: Path) -> None:
     env = tiny_env(2, 10, size=6)

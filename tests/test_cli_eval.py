@@ -187,6 +187,7 @@ def test_export_makes_a_compact_reference_that_evaluates_the_same(smoke_run, tmp
         ("ddqn_2agents", "eval-eval.temperature-0.json", ["eval.temperature=0"], 3),
         ("ddqn_1agent", "eval-env.max_steps-500.json", ["env.max_steps=500"], 3),
         ("ddqn_3agents", "eval.json", [], 2),
+        ("cave_4agents", "eval-eval.temperature-0.json", ["eval.temperature=0"], 2),
     ],
 )
 def test_reference_policy_repeats_its_committed_numbers(

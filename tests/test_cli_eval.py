@@ -183,7 +183,7 @@ def test_export_makes_a_compact_reference_that_evaluates_the_same(smoke_run, tmp
     [
         ("ddqn_15x15", "eval.json", [], 8),
         ("ddqn_15x15", "eval-eval.temperature-1.json", ["eval.temperature=1"], 8),
-        ("ddqn_4agents", "eval-eval.temperature-1.json", ["eval.temperature=1"], 3),
+        ("ddqn_4agents", "eval.json", [], 3),
         ("ddqn_2agents", "eval-eval.temperature-0.json", ["eval.temperature=0"], 3),
         ("ddqn_1agent", "eval-env.max_steps-500.json", ["env.max_steps=500"], 3),
         ("ddqn_3agents", "eval.json", [], 2),

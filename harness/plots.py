@@ -359,26 +359,8 @@ def read_episodes_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     Raises:
         ValueError: When a column is missing or a value is not a number (naming file and line).
     """
-    path = Path(path)
-    timesteps: list[int] = []
-    coverage: list[float] = []
-    with path.open(newline="", encoding="utf-8") as fh:
-        reader = csv.DictReader(fh)
-        missing = {"timesteps", "coverage"} - set(reader.fieldnames or ())
-        if missing:
-            raise ValueError(f"{path}: missing column(s) {', '.join(sorted(missing))}")
-        for row in reader:
-            try:
-                timesteps.append(int(float(row["timesteps"])))
-                coverage.append(float(row["coverage"]))
-            except (TypeError, ValueError):
-                raise ValueError(
-                    f"{path}, line {reader.line_num}: timesteps/coverage not a number"
-                ) from None
-    ts = np.asarray(timesteps, dtype=np.int64)
-    cov = np.asarray(coverage, dtype=np.float64)
-    order = np.argsort(ts, kind="stable")  # copies finish out of order only within a step
-    return ts[order], cov[order]
+    # Copies finish out of order only within a step; the sort puts them back.
+    return _read_columns(path, "timesteps", "coverage")
 
 
 def read_evaluations_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
@@ -390,25 +372,28 @@ def read_evaluations_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
     Raises:
         ValueError: When a column is missing or a value is not a number (naming file and line).
     """
+    return _read_columns(path, "timesteps", "coverage_median")
+
+
+def _read_columns(path: str | Path, x: str, y: str) -> tuple[np.ndarray, np.ndarray]:
+    """Columns ``x`` (int64) and ``y`` (float64) of a CSV file, sorted stably by ``x``."""
     path = Path(path)
-    timesteps: list[int] = []
-    median: list[float] = []
+    xs: list[int] = []
+    ys: list[float] = []
     with path.open(newline="", encoding="utf-8") as fh:
         reader = csv.DictReader(fh)
-        missing = {"timesteps", "coverage_median"} - set(reader.fieldnames or ())
+        missing = {x, y} - set(reader.fieldnames or ())
         if missing:
             raise ValueError(f"{path}: missing column(s) {', '.join(sorted(missing))}")
         for row in reader:
             try:
-                timesteps.append(int(float(row["timesteps"])))
-                median.append(float(row["coverage_median"]))
+                xs.append(int(float(row[x])))
+                ys.append(float(row[y]))
             except (TypeError, ValueError):
-                raise ValueError(
-                    f"{path}, line {reader.line_num}: timesteps/coverage_median not a number"
-                ) from None
-    ts = np.asarray(timesteps, dtype=np.int64)
-    order = np.argsort(ts, kind="stable")
-    return ts[order], np.asarray(median, dtype=np.float64)[order]
+                raise ValueError(f"{path}, line {reader.line_num}: {x}/{y} not a number") from None
+    xa = np.asarray(xs, dtype=np.int64)
+    order = np.argsort(xa, kind="stable")
+    return xa[order], np.asarray(ys, dtype=np.float64)[order]
 
 
 def smooth(values: Sequence[float] | np.ndarray, window: int) -> np.ndarray:

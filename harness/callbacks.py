@@ -3,7 +3,6 @@ periodic evaluation and checkpoints. Each is small and does one thing."""
 
 from __future__ import annotations
 
-import csv
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -12,7 +11,7 @@ from typing import Any
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
-from harness.rundir import EPISODE_COLUMNS
+from harness.rundir import EPISODE_COLUMNS, append_csv_rows
 from harness.schedules import PhaseLinearSchedule, epochs_for
 
 
@@ -116,14 +115,7 @@ class EpisodeLogCallback(BaseCallback):
         self.next_episode = first_episode
 
     def _on_training_start(self) -> None:
-        if not self.csv_path.exists() or self.csv_path.stat().st_size == 0:
-            self._append([EPISODE_COLUMNS])
-
-    def _append(self, rows: list[list[Any]]) -> None:
-        # Open per batch of rows (once per round of episodes): nothing stays open if training
-        # dies, and every finished episode is on disk.
-        with self.csv_path.open("a", newline="", encoding="utf-8") as f:
-            csv.writer(f).writerows(rows)
+        append_csv_rows(self.csv_path, EPISODE_COLUMNS, [])  # the header, when the file is new
 
     def _on_step(self) -> bool:
         dones = self.locals["dones"]
@@ -154,7 +146,7 @@ class EpisodeLogCallback(BaseCallback):
             self.logger.record_mean("rollout/wall_hits", row["wall_hits"])
             self.logger.record_mean("rollout/team_reward_mean", row["reward_mean"])
         if rows:
-            self._append(rows)
+            append_csv_rows(self.csv_path, EPISODE_COLUMNS, rows)
         return True
 
 

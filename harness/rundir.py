@@ -17,6 +17,7 @@ atomically (a temporary file in the same folder, then a rename).
 
 from __future__ import annotations
 
+import csv
 import os
 import shlex
 import tempfile
@@ -149,6 +150,20 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
         os.replace(tmp_path, path)
     finally:
         tmp_path.unlink(missing_ok=True)
+
+
+def append_csv_rows(path: Path, columns: Sequence[str], rows: Sequence[Sequence[object]]) -> None:
+    """Append ``rows`` to a run's CSV log, writing the ``columns`` header first if it is new.
+
+    The file is opened per call (once per round of episodes or per evaluation): nothing stays
+    open if training dies, and every row written is on disk.
+    """
+    new = not path.exists() or path.stat().st_size == 0
+    with path.open("a", newline="", encoding="utf-8") as f:
+        writer = csv.writer(f)
+        if new:
+            writer.writerow(columns)
+        writer.writerows(rows)
 
 
 def atomic_write_text(path: Path, text: str) -> None:

@@ -13,7 +13,6 @@
 from __future__ import annotations
 
 import contextlib
-import csv
 import signal
 from collections.abc import Iterator
 from pathlib import Path
@@ -48,7 +47,13 @@ from harness.checkpoints import (
 from harness.config import ExperimentConfig, PhaseConfig
 from harness.dqn import DoubleDQN, NonFiniteLossError
 from harness.evaluation import model_policy, run_episodes, summarize
-from harness.rundir import EVALUATION_COLUMNS, RunDir, atomic_write, atomic_write_text
+from harness.rundir import (
+    EVALUATION_COLUMNS,
+    RunDir,
+    append_csv_rows,
+    atomic_write,
+    atomic_write_text,
+)
 from harness.schedules import PhaseLinearSchedule
 
 
@@ -195,13 +200,9 @@ class Evaluator:
             "episodes": self.config.eval.episodes,
             "temperature": self.config.eval.temperature,
         }
-        path = self.run.evaluations_csv
-        new = not path.exists() or path.stat().st_size == 0
-        with path.open("a", newline="", encoding="utf-8") as f:
-            writer = csv.writer(f)
-            if new:
-                writer.writerow(EVALUATION_COLUMNS)
-            writer.writerow([row[c] for c in EVALUATION_COLUMNS])
+        append_csv_rows(
+            self.run.evaluations_csv, EVALUATION_COLUMNS, [[row[c] for c in EVALUATION_COLUMNS]]
+        )
 
 
 def save_model(model: DoubleDQN, path: Path) -> None:

@@ -16,16 +16,21 @@ from pathlib import Path
 from harness.checkpoints import CheckpointError, latest_checkpoint, read_state
 from harness.commands import (
     DEFAULT_EPISODES,
+    DEFAULT_TEMPERATURES,
+    DEFAULT_TUNE_EPISODES,
     Target,
     TargetError,
     check_run_folder,
     eval_filename,
     export_reference,
     format_summary,
+    format_tune,
     read_eval_json,
     resolve_target,
     run_label,
     sampling_note,
+    tune_temperature,
+    write_temperature,
 )
 from harness.config import ConfigError, ExperimentConfig, load_config
 from harness.rundir import RunDir, RunDirError, atomic_write_text
@@ -76,6 +81,35 @@ def build_parser() -> argparse.ArgumentParser:
     )
     ev.add_argument("--json", action="store_true", help="print one JSON object")
     ev.add_argument("--plot", type=Path, help="coverage/wall hits per episode PNG (Fig. 4.11)")
+
+    tune = sub.add_parser(
+        "tune", help="choose the test temperature of a trained model on validation episodes"
+    )
+    tune.add_argument("target", type=Path, metavar="RUN_DIR_OR_MODEL", help="run folder or zip")
+    tune.add_argument(
+        "--temperatures",
+        type=float,
+        nargs="+",
+        default=list(DEFAULT_TEMPERATURES),
+        metavar="T",
+        help="temperatures to try (default: %(default)s)",
+    )
+    tune.add_argument(
+        "--episodes",
+        type=int,
+        default=DEFAULT_TUNE_EPISODES,
+        help="validation episodes per temperature (default %(default)s)",
+    )
+    tune.add_argument(
+        "--seed", type=int, help="seed of the episodes (default: config eval.validation_seed)"
+    )
+    _add_overrides(tune)
+    tune.add_argument(
+        "--write",
+        action="store_true",
+        help="store the chosen temperature as eval.temperature in the run's config.yaml",
+    )
+    tune.add_argument("--json", action="store_true", help="print one JSON object")
 
     cmp_ = sub.add_parser("compare", help="learning curves and eval tables of several runs")
     cmp_.add_argument("runs", type=Path, nargs="+", metavar="RUN_DIR")
@@ -216,6 +250,36 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_tune(args: argparse.Namespace) -> int:
+    if args.episodes < 1:
+        raise HarnessError(f"--episodes must be >= 1, got {args.episodes}")
+    if any(t <= 0 for t in args.temperatures):
+        raise HarnessError("--temperatures must be > 0 (0 is the greedy policy: harness eval)")
+    if args.write and args.overrides:
+        raise HarnessError("--write stores a choice for the run's own config; drop --set")
+    args.policy = args.config = None
+    target = _target(args)
+    if args.seed is None:
+        # Choices are made on validation episodes, never on the test episodes of harness eval.
+        target.seed = target.config.eval.validation_seed
+    result = tune_temperature(target, args.temperatures, args.episodes)
+    result["overrides"] = list(args.overrides)
+    assert target.run_dir is not None  # a trained model always has its run folder
+    if args.write:
+        result["previous_temperature"] = write_temperature(target.run_dir, result["chosen"])
+        print(
+            f"saved eval.temperature={result['chosen']:g} in {target.run_dir / 'config.yaml'} "
+            f"(was {result['previous_temperature']:g}); eval files made before keep theirs",
+            file=sys.stderr,
+        )
+    # tune.json, or tune-best_model.json, tune-env.max_steps-500.json, ... like harness eval's.
+    name = "tune" + eval_filename(args.overrides, target.model_name)[len("eval") :]
+    atomic_write_text(target.run_dir / name, json.dumps(result, indent=2))
+    print(f"saved {target.run_dir / name}", file=sys.stderr)
+    print(json.dumps(result) if args.json else format_tune(result))
+    return 0
+
+
 def cmd_compare(args: argparse.Namespace) -> int:
     from harness.plots import plot_learning_curves, read_episodes_csv, read_evaluations_csv
 
@@ -288,6 +352,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
 COMMANDS = {
     "run": cmd_run,
     "eval": cmd_eval,
+    "tune": cmd_tune,
     "compare": cmd_compare,
     "render": cmd_render,
     "export": cmd_export,

@@ -19,7 +19,8 @@ from typing import Any
 
 from harness.baselines import BASELINES, make_baseline
 from harness.config import ConfigError, ExperimentConfig, load_config
-from harness.evaluation import BatchPolicy, model_policy
+from harness.evaluation import BatchPolicy, model_policy, run_episodes, summarize
+from harness.rundir import atomic_write_text
 
 #: Episodes of a standard evaluation (the thesis tested on 100).
 DEFAULT_EPISODES = 100
@@ -42,6 +43,8 @@ class Target:
     """Seed of the episodes: the one asked for, else the config's ``eval.seed``."""
     model_name: str = "model"
     """The model's path in its run folder without ``.zip`` (for the eval file's name)."""
+    model: Any = None
+    """The loaded SB3 model of a trained target (``None`` for a baseline)."""
 
 
 def find_run_config(model_path: Path) -> Path:
@@ -81,7 +84,7 @@ def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) ->
     seed = config.eval.seed if seed is None else seed
     name = model_path.resolve().relative_to(run_dir.resolve()).with_suffix("").as_posix()
     policy = model_policy(model, config.eval.temperature)
-    return Target(policy, config, str(model_path), run_dir, seed, name)
+    return Target(policy, config, str(model_path), run_dir, seed, name, model)
 
 
 def resolve_target(
@@ -204,8 +207,90 @@ def check_run_folder(run: Path) -> None:
             raise TargetError(f"{run}/episodes.csv: empty")
 
 
+#: Temperatures ``harness tune`` tries unless told otherwise.
+DEFAULT_TEMPERATURES = (0.5, 0.75, 1.0, 1.25, 1.5)
+#: Validation episodes per temperature in ``harness tune``.
+DEFAULT_TUNE_EPISODES = 50
+#: Numbers of an evaluation that ``harness tune`` keeps per temperature.
+TUNE_KEYS = (
+    "coverage_median",
+    "coverage_q1",
+    "coverage_q3",
+    "coverage_mean",
+    "wall_hits_mean",
+    "wall_hits_episodes",
+)
+
+
+def choose_temperature(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """The row of a temperature sweep to test with.
+
+    The target is zero wall hits first and coverage second (SPEC §6), so: the fewest wall hits
+    per episode, then the highest median coverage, then the lower temperature (the one closer
+    to the greedy policy).
+    """
+    if not rows:
+        raise ValueError("no temperatures to choose from")
+    return min(rows, key=lambda r: (r["wall_hits_mean"], -r["coverage_median"], r["temperature"]))
+
+
+def tune_temperature(
+    target: Target, temperatures: Sequence[float], episodes: int
+) -> dict[str, Any]:
+    """Evaluate a trained target at each temperature on the same validation episodes.
+
+    Every temperature sees the same maps and start cells (episode ``k`` is seeded with
+    ``target.seed + k``), so the rows differ only by the test policy. Returns the rows and the
+    choice of :func:`choose_temperature`.
+    """
+    if target.model is None:
+        raise TargetError("harness tune needs a trained model, not a baseline")
+    rows = []
+    for temperature in temperatures:
+        policy = model_policy(target.model, temperature)
+        summary = summarize(run_episodes(policy, target.config.env, episodes, target.seed))
+        rows.append({"temperature": temperature, **{k: summary[k] for k in TUNE_KEYS}})
+    return {
+        "policy": target.label,
+        "seed": target.seed,
+        "episodes": episodes,
+        "rows": rows,
+        "chosen": choose_temperature(rows)["temperature"],
+    }
+
+
+def format_tune(result: dict[str, Any]) -> str:
+    """A readable table of :func:`tune_temperature`'s rows, the chosen one marked."""
+    pct = "{:>9.1%}".format
+    lines = [
+        f"policy    {result['policy']}",
+        f"episodes  {result['episodes']} per temperature (seed {result['seed']})",
+        "",
+        f"{'T':>6}{'median':>9}{'q1':>9}{'q3':>9}{'mean':>9}{'wall hits':>11}{'episodes':>10}",
+    ]
+    for r in result["rows"]:
+        mark = "  <- chosen" if r["temperature"] == result["chosen"] else ""
+        lines.append(
+            f"{r['temperature']:>6g}{pct(r['coverage_median'])}{pct(r['coverage_q1'])}"
+            f"{pct(r['coverage_q3'])}{pct(r['coverage_mean'])}{r['wall_hits_mean']:>11.2f}"
+            f"{r['wall_hits_episodes']:>10}{mark}"
+        )
+    return "\n".join(lines)
+
+
+def write_temperature(run_dir: Path, temperature: float) -> float:
+    """Store ``temperature`` as ``eval.temperature`` in a run folder's ``config.yaml``
+    (atomically) and return the one it replaces."""
+    path = run_dir / "config.yaml"
+    config = load_config(path)
+    previous = config.eval.temperature
+    config.eval.temperature = temperature
+    atomic_write_text(path, config.to_yaml())
+    return previous
+
+
 #: Files of a run folder that a reference copy keeps besides the model (all small).
-REFERENCE_FILES = ("config.yaml", "command.txt", "episodes.csv", "evaluations.csv")
+REFERENCE_FILES = ("config.yaml", "command.txt", "episodes.csv", "evaluations.csv", "tune.json")
 
 
 def export_reference(run: Path, out: Path, model: str = "model") -> Path:

@@ -225,6 +225,10 @@ def thesis_phases(
     ]
 
 
+#: Smallest distance between ``eval.seed`` and ``eval.validation_seed``.
+SEED_GAP = 100_000
+
+
 class EvalConfig(_Section):
     """Periodic evaluation during training, and the defaults of ``harness eval``."""
 
@@ -232,10 +236,25 @@ class EvalConfig(_Section):
     """Transitions between evaluations; 0 turns periodic evaluation off."""
     episodes: PositiveInt = 10
     seed: int = 1_000_003
-    """Seed of the evaluation episodes (different from training seeds: unseen maps)."""
+    """Seed of the test episodes of ``harness eval`` (different from training seeds: unseen
+    maps). Nothing is chosen on them: model and temperature choices use ``validation_seed``."""
+    validation_seed: int = 2_000_003
+    """Seed of the validation episodes: the in-training evaluations (``evaluations.csv``,
+    ``best_model.zip``) and ``harness tune``. Runs made before this key existed evaluated on the
+    first episodes of ``seed`` during training."""
     temperature: NonNegativeFloat = 0.0
     """Test-time action choice: 0 is greedy (ε = 0, the thesis's test); above 0 each agent samples
     from softmax(Q / temperature) (Boltzmann), which breaks the loops of a greedy policy."""
+
+    @model_validator(mode="after")
+    def _separate_seeds(self) -> EvalConfig:
+        # Episode k of an evaluation uses seed + k: keep the two ranges of maps apart.
+        if abs(self.validation_seed - self.seed) < SEED_GAP:
+            raise ValueError(
+                f"validation_seed must be at least {SEED_GAP} away from seed (test episodes "
+                "seed, seed+1, ... must not be validation episodes)"
+            )
+        return self
 
 
 class CheckpointConfig(_Section):

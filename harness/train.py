@@ -166,10 +166,12 @@ def phase_callbacks(
 
 
 class Evaluator:
-    """Evaluation on the eval seed's fresh maps during training; keeps the best model.
+    """Evaluation on validation episodes during training; keeps the best model.
 
-    The same maps and start cells are used at every evaluation, so the curve is comparable over
-    training. "Best" is the highest median coverage, wall hits breaking ties.
+    The episodes come from ``eval.validation_seed``, never the test seed of ``harness eval``, so
+    ``best_model.zip`` is chosen without seeing the test maps. The same maps and start cells are
+    used at every evaluation, so the curve is comparable over training. "Best" is the highest
+    median coverage, wall hits breaking ties.
     """
 
     def __init__(self, config: ExperimentConfig, run: RunDir, best: float = -np.inf) -> None:
@@ -179,7 +181,7 @@ class Evaluator:
     def __call__(self, model: DoubleDQN) -> None:
         cfg = self.config.eval
         policy = model_policy(model, cfg.temperature)
-        results = run_episodes(policy, self.config.env, cfg.episodes, cfg.seed)
+        results = run_episodes(policy, self.config.env, cfg.episodes, cfg.validation_seed)
         summary = summarize(results)
         model.logger.record("eval/coverage_median", summary["coverage_median"])
         model.logger.record("eval/coverage_mean", summary["coverage_mean"])

@@ -10,6 +10,8 @@ import pytest
 from PIL import Image
 
 from harness.cli import main
+from harness.commands import choose_temperature
+from harness.config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "smoke.yaml"
@@ -218,3 +220,77 @@ def test_eval_with_a_temperature_samples_and_names_its_file(smoke_run, capsys):
     saved = json.loads((smoke_run / "eval-3ep_eval.temperature-1.5.json").read_text())
     assert saved["coverage_median"] == soft["coverage_median"]
     assert saved["coverage"] != json.loads((smoke_run / "eval-3ep.json").read_text())["coverage"]
+
+
+def test_best_model_is_chosen_on_validation_episodes(smoke_run, capsys):
+    cfg = load_config(smoke_run / "config.yaml")
+    rows = (smoke_run / "evaluations.csv").read_text().splitlines()[1:]
+    header = (smoke_run / "evaluations.csv").read_text().splitlines()[0].split(",")
+    best = max(
+        (dict(zip(header, r.split(","), strict=True)) for r in rows),
+        key=lambda r: float(r["coverage_median"]) - 1e-3 * float(r["wall_hits_mean"]),
+    )
+    validation = eval_json(
+        capsys, str(smoke_run / "best_model.zip"), "--episodes", str(cfg.eval.episodes),
+        "--seed", str(cfg.eval.validation_seed),
+    )  # fmt: skip
+    assert validation["coverage_median"] == pytest.approx(float(best["coverage_median"]))
+    assert validation["wall_hits_mean"] == pytest.approx(float(best["wall_hits_mean"]))
+
+
+def _row(t: float, median: float, walls: float) -> dict:
+    return {"temperature": t, "coverage_median": median, "wall_hits_mean": walls}
+
+
+def test_choose_temperature_puts_zero_wall_hits_before_coverage():
+    rows = [_row(0.5, 0.60, 0.0), _row(1.0, 0.70, 0.02), _row(1.5, 0.75, 0.5)]
+    assert choose_temperature(rows)["temperature"] == 0.5
+    rows = [_row(0.5, 0.60, 0.0), _row(0.75, 0.66, 0.0), _row(1.0, 0.70, 0.02)]
+    assert choose_temperature(rows)["temperature"] == 0.75
+    rows = [_row(1.0, 0.66, 0.0), _row(0.75, 0.66, 0.0)]  # a tie goes to the lower temperature
+    assert choose_temperature(rows)["temperature"] == 0.75
+    rows = [_row(0.5, 0.50, 0.3), _row(1.0, 0.70, 0.1)]  # none without: the fewest wall hits
+    assert choose_temperature(rows)["temperature"] == 1.0
+
+
+def test_tune_sweeps_temperatures_on_validation_episodes(smoke_run, tmp_path, capsys):
+    run = tmp_path / "run"
+    run.mkdir()
+    for f in ("config.yaml", "model.zip"):
+        (run / f).write_bytes((smoke_run / f).read_bytes())
+    cfg = load_config(run / "config.yaml")
+    capsys.readouterr()
+    args = ["tune", str(run), "--temperatures", "0.5", "3", "--episodes", "3", "--json"]
+    assert main(args) == 0
+    result = json.loads(capsys.readouterr().out)
+    assert result["seed"] == cfg.eval.validation_seed != cfg.eval.seed
+    assert [r["temperature"] for r in result["rows"]] == [0.5, 3.0]
+    assert result["chosen"] == choose_temperature(result["rows"])["temperature"]
+    assert json.loads((run / "tune.json").read_text())["rows"] == result["rows"]
+    # Each row is harness eval at that temperature on the same validation episodes.
+    for row in result["rows"]:
+        ev = eval_json(
+            capsys, str(run), "--episodes", "3", "--seed", str(cfg.eval.validation_seed),
+            "--set", f"eval.temperature={row['temperature']}",
+        )  # fmt: skip
+        assert ev["coverage_median"] == row["coverage_median"]
+        assert ev["wall_hits_mean"] == row["wall_hits_mean"]
+    # --write stores the choice as the run's test temperature, which harness eval then uses.
+    assert main([*args, "--temperatures", "2.5", "--write"]) == 0
+    assert load_config(run / "config.yaml").eval.temperature == 2.5
+    assert json.loads((run / "tune.json").read_text())["previous_temperature"] == 0.0
+    assert eval_json(capsys, str(run), "--episodes", "2")["temperature"] == 2.5
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--temperatures", "0"], "--temperatures must be > 0"),
+        (["--episodes", "0"], "--episodes must be >= 1"),
+        (["--write", "--set", "env.max_steps=20"], "--write stores a choice"),
+    ],
+)
+def test_tune_bad_input_is_one_line_and_exit_code_2(smoke_run, extra, message, capsys):
+    assert main(["tune", str(smoke_run), *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("harness: error:") and message in err and "\n" not in err

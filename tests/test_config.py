@@ -54,6 +54,7 @@ def test_shipped_configs_load(path):
         ("phases: [{name: a}]", r"phases.0.timesteps: Field required"),
         ("phases: [{name: a, timesteps: 5, epochs: [[0.5, 1], [0.1, 2]]}]", r"increasing"),
         ("name: ../escape", r"name: must be 1-64 characters"),
+        ("eval: {seed: 5, validation_seed: 50}", r"eval: .*validation_seed must be at least"),
         ("- a\n- b\n", r"exp.yaml: the top level must be a mapping"),
         ("env: {n_agents: 2\n", r"exp.yaml: line \d+, column \d+: invalid YAML"),
     ],

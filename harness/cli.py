@@ -115,6 +115,12 @@ def build_parser() -> argparse.ArgumentParser:
     cmp_.add_argument("runs", type=Path, nargs="+", metavar="RUN_DIR")
     cmp_.add_argument("--out", type=Path, default=Path("compare.png"), help="PNG to write")
     cmp_.add_argument("--window", type=int, default=20, help="episodes per rolling median")
+    cmp_.add_argument(
+        "--labels",
+        nargs="+",
+        metavar="LABEL",
+        help="one legend label per run (default: each run's config name; equal labels group)",
+    )
 
     ren = sub.add_parser("render", help="path pictures (and a GIF) of one episode")
     _add_target(ren)
@@ -286,9 +292,12 @@ def cmd_compare(args: argparse.Namespace) -> int:
     curves: dict[str, list] = {}
     evaluations: dict[str, list] = {}
     rows = []
-    for run in args.runs:
+    if args.labels is not None and len(args.labels) != len(args.runs):
+        raise HarnessError(f"--labels needs one label per run ({len(args.runs)})")
+    labels = args.labels or [None] * len(args.runs)
+    for run, given in zip(args.runs, labels, strict=True):
         check_run_folder(run)
-        label = run_label(run)
+        label = given or run_label(run)
         curves.setdefault(label, []).append(read_episodes_csv(run / "episodes.csv"))
         if (run / "evaluations.csv").is_file():
             evaluations.setdefault(label, []).append(read_evaluations_csv(run / "evaluations.csv"))

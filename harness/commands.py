@@ -208,7 +208,7 @@ def check_run_folder(run: Path) -> None:
 
 
 #: Temperatures ``harness tune`` tries unless told otherwise.
-DEFAULT_TEMPERATURES = (0.5, 0.75, 1.0, 1.25, 1.5)
+DEFAULT_TEMPERATURES = (0.25, 0.5, 0.75, 1.0, 1.5)
 #: Validation episodes per temperature in ``harness tune``.
 DEFAULT_TUNE_EPISODES = 50
 #: Numbers of an evaluation that ``harness tune`` keeps per temperature.

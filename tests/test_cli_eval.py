@@ -129,6 +129,10 @@ def test_compare_writes_a_plot_and_a_table(smoke_run, tmp_path, capsys):
     table = capsys.readouterr().out
     assert "smoke" in table and "%" in table
     assert out.read_bytes()[:8] == PNG_SIGNATURE
+    labelled = ["compare", str(smoke_run), str(smoke_run), "--out", str(out), "--labels", "a", "b"]
+    assert main(labelled) == 0
+    table = capsys.readouterr().out.splitlines()
+    assert [line.split()[0] for line in table[1:]] == ["a", "b"]
 
 
 @pytest.mark.parametrize(
@@ -140,6 +144,7 @@ def test_compare_writes_a_plot_and_a_table(smoke_run, tmp_path, capsys):
         (["eval"], "give a run folder or model zip"),
         (["eval", "--policy", "random", "--config", str(SMOKE), "--episodes", "0"], "--episodes"),
         (["compare", "no/such/run"], "not a run folder with episodes.csv"),
+        (["compare", "a", "b", "--labels", "x"], "--labels needs one label per run (2)"),
         (["render", "--policy", "random", "--config", "nope.yaml"], "config file not found"),
     ],
 )
@@ -294,3 +299,18 @@ def test_tune_bad_input_is_one_line_and_exit_code_2(smoke_run, extra, message, c
     assert main(["tune", str(smoke_run), *extra]) == 2
     err = capsys.readouterr().err.strip()
     assert err.startswith("harness: error:") and message in err and "\n" not in err
+
+
+REFERENCES = sorted(p for p in (ROOT / "runs" / "reference").iterdir() if p.is_dir())
+
+
+@pytest.mark.parametrize("ref", REFERENCES, ids=lambda p: p.name)
+def test_reference_numbers_are_made_with_its_tuned_test_policy(ref: Path) -> None:
+    cfg = load_config(ref / "config.yaml")
+    tune = json.loads((ref / "tune.json").read_text())
+    assert tune["chosen"] == cfg.eval.temperature
+    assert tune["seed"] == cfg.eval.validation_seed != cfg.eval.seed  # chosen off the test maps
+    assert tune["chosen"] == choose_temperature(tune["rows"])["temperature"]
+    standard = json.loads((ref / "eval.json").read_text())
+    assert standard["temperature"] == cfg.eval.temperature
+    assert standard["seed"] == cfg.eval.seed and standard["episodes"] == 100

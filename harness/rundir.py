@@ -7,9 +7,11 @@
     tb/                TensorBoard events
     checkpoints/       latest checkpoint (model, replay buffer, training state)
     episodes.csv       one row per finished training episode
+    evaluations.csv    one row per evaluation during training (validation episodes)
     model.zip          the final model
     best_model.zip     the model with the best periodic evaluation so far
-    eval.json          written by ``harness eval``
+    eval.json          written by ``harness eval`` (eval-*.json: other settings)
+    tune.json          written by ``harness tune``
 
 An existing run directory is never overwritten, and every file that matters is written
 atomically (a temporary file in the same folder, then a rename).
@@ -169,3 +171,16 @@ def append_csv_rows(path: Path, columns: Sequence[str], rows: Sequence[Sequence[
 def atomic_write_text(path: Path, text: str) -> None:
     """Atomically write a text file."""
     atomic_write(path, lambda p: p.write_text(text, encoding="utf-8"))
+
+
+def truncate_csv(path: Path, below: int) -> None:
+    """Keep the header and the rows whose first column is below ``below``.
+
+    A resumed run drops what it logged after its checkpoint (episodes from ``next_episode``
+    on, evaluations after the checkpoint's timesteps), so nothing appears twice.
+    """
+    if not path.exists():
+        return
+    lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
+    kept = lines[:1] + [ln for ln in lines[1:] if int(ln.split(",", 1)[0]) < below]
+    atomic_write_text(path, "".join(kept))

@@ -53,6 +53,7 @@ from harness.rundir import (
     append_csv_rows,
     atomic_write,
     atomic_write_text,
+    truncate_csv,
 )
 from harness.schedules import PhaseLinearSchedule
 
@@ -269,19 +270,6 @@ def stop_on_signals(stopper: StopOnSignal) -> Iterator[None]:
     finally:
         for sig, old in previous.items():
             signal.signal(sig, old)
-
-
-def truncate_csv(path: Path, below: int) -> None:
-    """Keep the header and the rows whose first column is below ``below``.
-
-    A resumed run drops what it logged after its checkpoint (episodes from ``next_episode``
-    on, evaluations after the checkpoint's timesteps), so nothing appears twice.
-    """
-    if not path.exists():
-        return
-    lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
-    kept = lines[:1] + [ln for ln in lines[1:] if int(ln.split(",", 1)[0]) < below]
-    atomic_write_text(path, "".join(kept))
 
 
 def _env_seed(config: ExperimentConfig, state: TrainingState) -> int:

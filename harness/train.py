@@ -21,7 +21,12 @@ from typing import Any
 import numpy as np
 import torch
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
-from stable_baselines3.common.logger import configure
+from stable_baselines3.common.logger import (
+    CSVOutputFormat,
+    Logger,
+    TensorBoardOutputFormat,
+    configure,
+)
 from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 from stable_baselines3.common.utils import set_random_seed
 from stable_baselines3.common.vec_env import VecEnv
@@ -277,6 +282,33 @@ def _env_seed(config: ExperimentConfig, state: TrainingState) -> int:
     return config.seed + 100_000 * state.resumes
 
 
+class _ResumedTensorBoardFormat(TensorBoardOutputFormat):
+    """SB3's TensorBoard writer with ``purge_step``: TensorBoard then hides the events that an
+    earlier session logged from that step on, which the resumed run logs again."""
+
+    def __init__(self, folder: str, purge_step: int) -> None:
+        from torch.utils.tensorboard import SummaryWriter
+
+        self.writer = SummaryWriter(log_dir=folder, purge_step=purge_step)
+        self._is_closed = False
+
+
+def make_logger(folder: Path, state: TrainingState) -> Logger:
+    """SB3's logger for a run: TensorBoard events and ``progress.csv`` in ``folder``.
+
+    A resumed run (``state.resumes > 0``) neither repeats nor loses what was logged before its
+    checkpoint: its TensorBoard events purge the earlier session's steps after the checkpoint,
+    and its CSV goes to ``progress-resume<N>.csv`` (SB3's CSV writer empties the file it opens).
+    """
+    if state.resumes == 0:
+        return configure(str(folder), ["tensorboard", "csv"])
+    formats = [
+        _ResumedTensorBoardFormat(str(folder), purge_step=state.num_timesteps + 1),
+        CSVOutputFormat(str(folder / f"progress-resume{state.resumes}.csv")),
+    ]
+    return Logger(folder=str(folder), output_formats=formats)
+
+
 def train(
     config: ExperimentConfig, run: RunDir, progress_bar: bool = True, resume: bool = False
 ) -> DoubleDQN:
@@ -300,7 +332,7 @@ def train(
     venv = make_vec_env(
         config.env, config.vec.copies, config.vec.num_cpus, seed=_env_seed(config, state)
     )
-    logger = configure(str(run.tb), ["tensorboard", "csv"])
+    logger = make_logger(run.tb, state)
     try:
         if resume:
             model = load_checkpoint_model(checkpoint, venv, config)

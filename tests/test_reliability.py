@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
+from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from harness import DoubleDQN
 from harness.checkpoints import (
@@ -76,6 +77,14 @@ def test_sigkill_then_resume_reaches_the_total_without_gaps_or_duplicates(tmp_pa
     every = load_config(run / "config.yaml").eval.every
     assert evals == sorted(set(evals))  # none logged twice across the kill
     assert [t // every for t in evals] == list(range(1, len(evals) + 1))  # and none missing
+    # TensorBoard shows each evaluation once (the killed session's later events are purged) and
+    # the first session's progress.csv is kept beside the resumed one's.
+    events = EventAccumulator(str(run / "tb"))
+    events.Reload()
+    assert [e.step for e in events.Scalars("eval/coverage_median")] == evals
+    for name in ("progress.csv", "progress-resume1.csv"):
+        with (run / "tb" / name).open() as f:
+            assert len(list(csv.DictReader(f))) > 0, name
     state = json.loads((latest_checkpoint(run / "checkpoints") / "state.json").read_text())
     assert state["finished"] is True and state["resumes"] == 1
     assert "resume" in (run / "command.txt").read_text().splitlines()[-1]

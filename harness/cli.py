@@ -216,7 +216,10 @@ def _target(args: argparse.Namespace) -> Target:
     target = resolve_target(args.target, args.policy, args.config, args.overrides, args.seed)
     from harness.train import configure_torch
 
-    configure_torch(target.config.algo.threads)
+    # One torch thread, whatever algo.threads says (that is for training): the test policy runs
+    # the network on a few dozen observations per step, where a second thread only adds
+    # synchronisation, and it slowed `harness eval` 4x beside a training run on 2 cores.
+    configure_torch(1)
     return target
 
 

@@ -216,6 +216,18 @@ def test_reference_policy_repeats_its_committed_numbers(
     assert saved["wall_hits"] == committed["wall_hits"][:episodes]
 
 
+def test_evaluation_runs_torch_single_threaded_whatever_algo_threads(smoke_run, capsys):
+    import torch
+
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        eval_json(capsys, str(smoke_run), "--episodes", "1", "--set", "algo.threads=2")
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
+
+
 def test_eval_with_a_temperature_samples_and_names_its_file(smoke_run, capsys):
     greedy = eval_json(capsys, str(smoke_run), "--episodes", "3")
     soft = eval_json(capsys, str(smoke_run), "--episodes", "3", "--set", "eval.temperature=1.5")

@@ -243,9 +243,10 @@ def test_best_model_is_chosen_on_validation_episodes(smoke_run, capsys):
     cfg = load_config(smoke_run / "config.yaml")
     rows = (smoke_run / "evaluations.csv").read_text().splitlines()[1:]
     header = (smoke_run / "evaluations.csv").read_text().splitlines()[0].split(",")
-    best = max(
+    # Fewest wall hits first, then the highest median (first such row on ties).
+    best = min(
         (dict(zip(header, r.split(","), strict=True)) for r in rows),
-        key=lambda r: float(r["coverage_median"]) - 1e-3 * float(r["wall_hits_mean"]),
+        key=lambda r: (float(r["wall_hits_mean"]), -float(r["coverage_median"])),
     )
     validation = eval_json(
         capsys, str(smoke_run / "best_model.zip"), "--episodes", str(cfg.eval.episodes),
@@ -253,6 +254,18 @@ def test_best_model_is_chosen_on_validation_episodes(smoke_run, capsys):
     )  # fmt: skip
     assert validation["coverage_median"] == pytest.approx(float(best["coverage_median"]))
     assert validation["wall_hits_mean"] == pytest.approx(float(best["wall_hits_mean"]))
+
+
+def test_best_model_score_puts_zero_wall_hits_before_coverage():
+    from harness.train import best_model_score
+
+    clean = best_model_score({"coverage_median": 0.30, "wall_hits_mean": 0.0})
+    one_hit = best_model_score({"coverage_median": 0.95, "wall_hits_mean": 1 / 999})
+    wider = best_model_score({"coverage_median": 0.31, "wall_hits_mean": 0.0})
+    assert wider > clean > one_hit
+    assert best_model_score({"coverage_median": 0.9, "wall_hits_mean": 0.05}) > best_model_score(
+        {"coverage_median": 0.2, "wall_hits_mean": 0.10}
+    )
 
 
 def _row(t: float, median: float, walls: float) -> dict:

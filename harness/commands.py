@@ -298,8 +298,10 @@ def export_reference(run: Path, out: Path, model: str = "model") -> Path:
 
     The folder holds ``config.yaml``, the run's command, ``episodes.csv`` and
     ``evaluations.csv`` (its learning curves: training episodes and test-policy evaluations),
-    and ``model.zip`` without the optimizer's state and the target network, which matter only
-    to continue training (together two thirds of a model zip). ``harness eval`` and ``harness
+    the ``harness tune`` sweep of the exported model as ``tune.json``, and ``model.zip`` (or
+    ``best_model.zip`` with ``model="best_model"``, saved as ``model.zip``) without the
+    optimizer's state and the target network, which matter only to continue training (together
+    two thirds of a model zip). ``harness eval`` and ``harness
     render`` work on the folder as on the run, with the same actions.
 
     Raises:
@@ -321,8 +323,16 @@ def export_reference(run: Path, out: Path, model: str = "model") -> Path:
     policy.policy.optimizer = type(old)(policy.q_net.parameters(), **old.defaults)
     out.mkdir(parents=True)
     for name in REFERENCE_FILES:
-        if (run / name).is_file():
-            (out / name).write_bytes((run / name).read_bytes())
+        # harness tune writes tune.json for model.zip and tune-<model>.json for the others; the
+        # reference keeps the sweep of the model it holds, as its tune.json.
+        origin = name if name != "tune.json" or model == "model" else f"tune-{model}.json"
+        if (run / origin).is_file():
+            (out / name).write_bytes((run / origin).read_bytes())
+    if model != "model":
+        # The run's command made model.zip too; say which of its models this folder holds.
+        command = out / "command.txt"
+        before = command.read_text().rstrip("\n") + "\n" if command.is_file() else ""
+        command.write_text(f"{before}# exported: {model}.zip (harness export --model {model})\n")
     buffer = io.BytesIO()
     policy.save(buffer)
     (out / "model.zip").write_bytes(_without_target_network(buffer.getvalue()))

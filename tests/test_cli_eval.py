@@ -185,6 +185,24 @@ def test_export_makes_a_compact_reference_that_evaluates_the_same(smoke_run, tmp
     assert "already exists" in capsys.readouterr().err
 
 
+def test_export_of_best_model_keeps_its_own_tune_sweep(smoke_run, tmp_path, capsys):
+    (smoke_run / "tune.json").write_text('{"policy": "model.zip"}')
+    (smoke_run / "tune-best_model.json").write_text('{"policy": "best_model.zip"}')
+    ref = tmp_path / "best"
+    try:
+        assert main(["export", str(smoke_run), "--model", "best_model", "--out", str(ref)]) == 0
+    finally:
+        (smoke_run / "tune.json").unlink()
+        (smoke_run / "tune-best_model.json").unlink()
+    assert json.loads((ref / "tune.json").read_text()) == {"policy": "best_model.zip"}
+    lines = (ref / "command.txt").read_text().splitlines()
+    assert lines[:-1] == (smoke_run / "command.txt").read_text().splitlines()
+    assert lines[-1] == "# exported: best_model.zip (harness export --model best_model)"
+    best = eval_json(capsys, str(smoke_run / "best_model.zip"), "--episodes", "2", "--seed", "9")
+    exported = eval_json(capsys, str(ref), "--episodes", "2", "--seed", "9")
+    assert exported["coverage_median"] == best["coverage_median"]
+
+
 @pytest.mark.parametrize(
     ("name", "eval_file", "overrides", "episodes"),
     [

@@ -1,7 +1,17 @@
-"""Non-learned reference policies: ``random`` and the classical ``frontier`` explorer.
+"""Non-learned reference policies: ``random``, the memoryless ``local`` rule and the classical
+``frontier`` explorer.
 
 Both are :data:`harness.evaluation.BatchPolicy` callables, so ``run_episodes`` evaluates them on
 exactly the maps and start cells a trained model sees (``harness eval --policy frontier``).
+
+``local`` is a hand-written rule that sees exactly what a learned agent sees (its own 13-number
+observation, no memory): step into an unvisited neighbour if there is one; otherwise towards an
+unvisited diagonal cell of the 3x3 window (a free neighbour beside it); otherwise into any free
+neighbour; ties broken at random, ``stay`` only when boxed in. It never hits a wall. It answers
+"what does this observation allow without learning?", the fair bar for a learned policy, where
+the frontier explorer is the bar for any policy. Its random draws come from each env copy's
+``np_random`` (seeded by the episode's reset), like the Boltzmann test policy, so an episode
+repeats whatever the number of copies.
 
 ``frontier`` is the classical frontier-based explorer (Yamauchi 1997) on the team's shared map:
 every agent walks, by a shortest 4-connected path through free cells the team has *seen*, to the
@@ -36,12 +46,13 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import breadth_first_order
 
 from envs.coverage import CoverageEnv
+from envs.coverage.types import CELL_UNVISITED, CELL_WALL
 
 if TYPE_CHECKING:  # evaluation may import this module (harness eval --policy): no cycle at run time
     from harness.evaluation import BatchPolicy
 
 #: Names accepted by :func:`make_baseline`.
-BASELINES = ("random", "frontier")
+BASELINES = ("random", "local", "frontier")
 
 _STAY = 4
 #: Cells a Python search may reach before the compiled search takes over. Below it the Python
@@ -56,7 +67,8 @@ def make_baseline(name: str, seed: int) -> BatchPolicy:
 
     Args:
         name: One of :data:`BASELINES`.
-        seed: Seeds the random policy's generator (the frontier policy is deterministic).
+        seed: Seeds the random policy's generator (``local`` draws from each episode's own
+            generator, ``frontier`` is deterministic).
 
     Returns:
         A ``policy(obs, envs) -> actions`` callable (see ``harness.evaluation.BatchPolicy``).
@@ -66,6 +78,8 @@ def make_baseline(name: str, seed: int) -> BatchPolicy:
     """
     if name == "random":
         return RandomPolicy(seed)
+    if name == "local":
+        return LocalPolicy()
     if name == "frontier":
         return FrontierPolicy()
     raise ValueError(f"unknown baseline {name!r}; known: {', '.join(BASELINES)}")
@@ -80,6 +94,53 @@ class RandomPolicy:
     def __call__(self, obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
         """One uniform action per row of ``obs``."""
         return self.rng.integers(0, 5, size=len(obs))
+
+
+#: Window index (row-major 3x3, agent in the centre, 4) of the cell that each move
+#: (0 up, 1 down, 2 left, 3 right) enters, and of the two diagonal cells beside that cell.
+_MOVE_CELL = np.array([1, 7, 3, 5])
+_MOVE_DIAGONALS = np.array([[0, 2], [6, 8], [0, 6], [2, 8]])
+
+
+def local_actions(obs: np.ndarray, uniform: np.ndarray) -> np.ndarray:
+    """The ``local`` rule for a batch of thesis observations (see the module docstring).
+
+    Args:
+        obs: ``(batch, 13)`` thesis observations (window: -1 unvisited, 0 visited, 1 wall).
+        uniform: ``(batch,)`` draws from U[0, 1), one per row, that break ties.
+
+    Returns:
+        ``(batch,)`` actions: a move among the rule's best candidates, ``stay`` (4) when no
+        neighbour is free.
+    """
+    window = obs[:, :9]
+    entered = window[:, _MOVE_CELL]
+    free = entered != CELL_WALL
+    unvisited = entered == CELL_UNVISITED
+    toward = free & (window[:, _MOVE_DIAGONALS] == CELL_UNVISITED).any(axis=2)
+    # The first non-empty class of candidates, per row: unvisited, then towards, then free.
+    candidates = np.where(
+        unvisited.any(axis=1, keepdims=True),
+        unvisited,
+        np.where(toward.any(axis=1, keepdims=True), toward, free),
+    )
+    count = candidates.sum(axis=1)
+    pick = np.floor(uniform * count)  # the pick-th candidate (0-based), uniformly
+    actions = (np.cumsum(candidates, axis=1) <= pick[:, None]).sum(axis=1)
+    return np.where(count == 0, _STAY, actions)
+
+
+class LocalPolicy:
+    """The memoryless ``local`` rule on each agent's own observation (see the module docstring)."""
+
+    def __call__(self, obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
+        """Actions for every agent of every env copy, copy-major like ``obs``."""
+        kinds = {env.observation_kind for env in envs}
+        if kinds != {"thesis"}:
+            raise ValueError(f"the local policy reads the 'thesis' observation, not {kinds}")
+        n_agents = len(obs) // len(envs)
+        uniform = np.concatenate([env.np_random.random(n_agents) for env in envs])
+        return local_actions(np.asarray(obs), uniform)
 
 
 class FrontierPolicy:

@@ -1,7 +1,7 @@
 """What ``harness eval``, ``compare`` and ``render`` do, apart from parsing arguments.
 
 A *target* is what gets evaluated: a trained model (a run folder or a model zip, with the run's
-``config.yaml``) or a baseline (``--policy random|frontier`` with ``--config``). All three
+``config.yaml``) or a baseline (``--policy random|local|frontier`` with ``--config``). All three
 commands resolve it the same way, so a baseline and a model are measured on the same episodes.
 """
 
@@ -107,7 +107,7 @@ def resolve_target(
         return Target(make_baseline(policy, seed), config, policy, None, seed)
     if target is None:
         raise TargetError(
-            "give a run folder or model zip, or --policy random|frontier --config FILE"
+            "give a run folder or model zip, or --policy random|local|frontier --config FILE"
         )
     if config_path is not None:
         raise TargetError("--config goes with --policy; a model uses its run's config.yaml")

@@ -1,4 +1,5 @@
-"""The non-learned baselines: repeatable random actions and the frontier explorer.
+"""The non-learned baselines: repeatable random actions, the memoryless local rule and the
+frontier explorer.
 
 Speed of the frontier policy (50x50 random maps, 4 agents, 1000 steps, 100 episodes)::
 
@@ -28,7 +29,7 @@ def small_maps(n_agents: int, max_steps: int, size: int = 8) -> EnvConfig:
 
 # ---------------------------------------------------------------------- factory
 def test_names_and_unknown_name() -> None:
-    assert BASELINES == ("random", "frontier")
+    assert BASELINES == ("random", "local", "frontier")
     for name in BASELINES:
         assert callable(make_baseline(name, 0))
     with pytest.raises(ValueError, match="greedy"):
@@ -55,6 +56,63 @@ def test_random_runs_in_evaluation() -> None:
     first = run_episodes(make_baseline("random", 3), env, episodes=3, seed=0)
     again = run_episodes(make_baseline("random", 3), env, episodes=3, seed=0)
     assert [r.coverage for r in first] == [r.coverage for r in again]
+
+
+# ---------------------------------------------------------------------- local
+U, V, W = -1.0, 0.0, 1.0  # window cells: unvisited, visited, wall
+
+
+def local_obs(*windows: list[float]) -> np.ndarray:
+    """Thesis observations with the given 3x3 windows (row-major) and dummy positions."""
+    return np.array([[*w, 0.5, 0.5, 0.5, 0.5] for w in windows], dtype=np.float32)
+
+
+def test_local_steps_into_an_unvisited_neighbour_first() -> None:
+    # Unvisited: right (5) and down (7); the up-left diagonal is unvisited too, but a
+    # neighbour wins. The draw picks among the candidates in action order (1 down, 3 right).
+    obs = local_obs([U, V, V, V, V, U, V, U, V])
+    picks = [baselines.local_actions(obs, np.array([u]))[0] for u in (0.0, 0.49, 0.5, 0.99)]
+    assert picks == [1, 1, 3, 3]
+
+
+def test_local_heads_for_an_unvisited_diagonal_then_any_free_neighbour() -> None:
+    obs = local_obs(
+        [V, V, U, V, V, V, V, V, V],  # up-right diagonal: up (0) or right (3) lead beside it
+        [V, W, U, V, V, W, V, V, V],  # ... but up and right are walls: left or down, at random
+        [W, V, W, V, V, W, W, W, W],  # all visited: the free moves, up (0) and left (2)
+        [V, W, V, W, V, W, V, W, V],  # boxed in: stay
+    )
+    low, high = np.zeros(4), np.full(4, 0.99)
+    np.testing.assert_array_equal(baselines.local_actions(obs, low), [0, 1, 0, 4])
+    np.testing.assert_array_equal(baselines.local_actions(obs, high), [3, 2, 2, 4])
+
+
+def test_local_tie_breaks_uniformly() -> None:
+    obs = local_obs(*[[V, U, V, U, V, U, V, U, V]] * 4000)
+    actions = baselines.local_actions(obs, np.random.default_rng(0).random(4000))
+    counts = np.bincount(actions, minlength=5)
+    assert counts[4] == 0
+    assert np.all(np.abs(counts[:4] / 4000 - 0.25) < 0.03)
+
+
+@pytest.mark.parametrize("copies", [1, 4])
+def test_local_never_hits_walls_repeats_and_beats_random(copies: int) -> None:
+    env = small_maps(n_agents=2, max_steps=60, size=12)
+    local = run_episodes(make_baseline("local", 0), env, episodes=8, seed=21, copies=copies)
+    # The draws come from each episode's generator: the same episodes with any number of copies.
+    alone = run_episodes(make_baseline("local", 0), env, episodes=8, seed=21, copies=1)
+    rand = run_episodes(make_baseline("random", 0), env, episodes=8, seed=21)
+    assert [r.coverage for r in local] == [r.coverage for r in alone]
+    assert all(sum(r.wall_hits) == 0 for r in local)
+    assert np.median([r.coverage for r in local]) > np.median([r.coverage for r in rand]) + 0.2
+
+
+def test_local_rejects_other_observations() -> None:
+    env = coverage_v0.parallel_env(height=8, width=8)
+    obs, _ = env.reset(seed=0)
+    env.observation_kind = "wider"  # a future observation kind the rule cannot read
+    with pytest.raises(ValueError, match="thesis"):
+        make_baseline("local", 0)(np.stack(list(obs.values())), [env])
 
 
 # ---------------------------------------------------------------------- frontier

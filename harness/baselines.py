@@ -39,7 +39,6 @@ from __future__ import annotations
 import weakref
 from collections import deque
 from collections.abc import Sequence
-from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.sparse import csr_matrix
@@ -47,9 +46,7 @@ from scipy.sparse.csgraph import breadth_first_order
 
 from envs.coverage import CoverageEnv
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL
-
-if TYPE_CHECKING:  # evaluation may import this module (harness eval --policy): no cycle at run time
-    from harness.evaluation import BatchPolicy
+from harness.evaluation import BatchPolicy, episode_draws, sample_categorical
 
 #: Names accepted by :func:`make_baseline`.
 BASELINES = ("random", "local", "frontier")
@@ -124,10 +121,8 @@ def local_actions(obs: np.ndarray, uniform: np.ndarray) -> np.ndarray:
         unvisited,
         np.where(toward.any(axis=1, keepdims=True), toward, free),
     )
-    count = candidates.sum(axis=1)
-    pick = np.floor(uniform * count)  # the pick-th candidate (0-based), uniformly
-    actions = (np.cumsum(candidates, axis=1) <= pick[:, None]).sum(axis=1)
-    return np.where(count == 0, _STAY, actions)
+    boxed_in = ~candidates.any(axis=1, keepdims=True)  # then stay (action 4) is the candidate
+    return sample_categorical(np.concatenate([candidates, boxed_in], axis=1).astype(float), uniform)
 
 
 class LocalPolicy:
@@ -138,9 +133,7 @@ class LocalPolicy:
         kinds = {env.observation_kind for env in envs}
         if kinds != {"thesis"}:
             raise ValueError(f"the local policy reads the 'thesis' observation, not {kinds}")
-        n_agents = len(obs) // len(envs)
-        uniform = np.concatenate([env.np_random.random(n_agents) for env in envs])
-        return local_actions(np.asarray(obs), uniform)
+        return local_actions(np.asarray(obs), episode_draws(envs, len(obs) // len(envs)))
 
 
 class FrontierPolicy:

@@ -68,9 +68,7 @@ def model_policy(model: Any, temperature: float = 0.0) -> BatchPolicy:
 
         with th.no_grad():
             q = model.q_net(model.policy.obs_to_tensor(obs)[0]).cpu().numpy().astype(np.float64)
-        n_agents = len(obs) // len(envs)
-        noise = np.concatenate([e.np_random.random(n_agents) for e in envs])
-        return softmax_sample(q, temperature, noise)
+        return softmax_sample(q, temperature, episode_draws(envs, len(obs) // len(envs)))
 
     return greedy if temperature == 0 else boltzmann
 
@@ -84,10 +82,27 @@ def softmax_sample(q: np.ndarray, temperature: float, uniform: np.ndarray) -> np
         uniform: ``(batch,)`` draws from U[0, 1), one per row.
     """
     z = (q - q.max(axis=1, keepdims=True)) / temperature  # shift: exp never overflows
-    p = np.exp(z)
-    cdf = np.cumsum(p / p.sum(axis=1, keepdims=True), axis=1)
-    # The first action whose cumulative probability passes the draw (clip guards rounding at 1).
-    return np.minimum((cdf <= uniform[:, None]).sum(axis=1), q.shape[1] - 1)
+    return sample_categorical(np.exp(z), uniform)
+
+
+def sample_categorical(weights: np.ndarray, uniform: np.ndarray) -> np.ndarray:
+    """Sample one column index per row, with probability proportional to ``weights``, by inverse
+    CDF.
+
+    Args:
+        weights: ``(batch, n)`` non-negative weights, each row with a positive sum.
+        uniform: ``(batch,)`` draws from U[0, 1), one per row.
+    """
+    cdf = np.cumsum(weights / weights.sum(axis=1, keepdims=True), axis=1)
+    # The first index whose cumulative probability passes the draw (clip guards rounding at 1).
+    return np.minimum((cdf <= uniform[:, None]).sum(axis=1), weights.shape[1] - 1)
+
+
+def episode_draws(envs: Sequence[CoverageEnv], per_copy: int) -> np.ndarray:
+    """``per_copy`` draws from U[0, 1) from each env copy's ``np_random`` (seeded by its reset),
+    copy-major like a batch of observations: a stochastic test policy then repeats an episode
+    from its seed alone, whatever the number of copies side by side."""
+    return np.concatenate([env.np_random.random(per_copy) for env in envs])
 
 
 def run_episodes(

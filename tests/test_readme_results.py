@@ -56,3 +56,72 @@ def test_results_row_quotes_its_reference_evaluation(row: dict[str, str]) -> Non
     assert float(row["T"]) == tuned["temperature"]
     assert float(row["walls"]) == round(tuned["wall_hits_mean"], 2)
     assert row["greedy"] == cell(greedy) and greedy["temperature"] == 0.0
+
+
+# The baseline columns quote `harness eval --policy P --config configs/C.yaml [--set ...] --json`,
+# stored as docs/baselines/C[-KEY-VALUE]-P.json (see README "Evaluation, baselines, ...").
+BASELINES = ROOT / "docs" / "baselines"
+POLICIES = ("random", "local", "frontier")
+
+
+def baseline_file(config: str, policy: str, max_steps: str | None) -> dict:
+    """A stored baseline evaluation of ``configs/<config>.yaml`` (at ``max_steps`` if not None)."""
+    setting = f"-env.max_steps-{max_steps}" if max_steps else ""
+    return json.loads((BASELINES / f"{config}{setting}-{policy}.json").read_text())
+
+
+def row_max_steps(row: dict[str, str]) -> str | None:
+    """The ``--set env.max_steps`` a results row is evaluated at, ``None`` for its config's own."""
+    ref = ROOT / "runs" / "reference" / row["config"].strip("`")
+    steps = re.search(r"(\d+) steps", row["experiment"]).group(1)
+    config_steps = re.search(r"max_steps: (\d+)", (ref / "config.yaml").read_text()).group(1)
+    return None if steps == config_steps else steps
+
+
+def percent(x: float, sep: str = " ") -> str:
+    """One decimal, as the tables write it."""
+    return f"{x:.1%}".replace("%", f"{sep}%")
+
+
+@pytest.mark.parametrize("row", ROWS, ids=lambda r: r["experiment"])
+def test_results_row_quotes_the_stored_baselines(row: dict[str, str]) -> None:
+    config = row["config"].strip("`")
+    for policy in POLICIES:
+        stored = baseline_file(config, policy, row_max_steps(row))
+        assert stored["episodes"] == 100 and stored["policy"] == policy
+        # a median of exactly 1 is written "100 %"
+        quoted = row[policy].replace("100 %", "100.0 %")
+        assert quoted == percent(stored["coverage_median"]), (policy, quoted)
+
+
+def baseline_rows() -> list[dict[str, str]]:
+    """The rows of README's baseline table (median (IQR) per policy, and the command)."""
+    lines = (ROOT / "README.md").read_text().splitlines()
+    start = lines.index("| map | agents | random | local | frontier | command |")
+    header = [c.strip() for c in lines[start].strip("|").split("|")]
+    rows = []
+    for line in lines[start + 2 :]:
+        if not line.startswith("|"):
+            break
+        rows.append(dict(zip(header, (c.strip() for c in line.strip("|").split("|")))))
+    return rows
+
+
+@pytest.mark.parametrize("row", baseline_rows(), ids=lambda r: r["command"])
+def test_baseline_table_quotes_the_stored_baselines(row: dict[str, str]) -> None:
+    command = re.fullmatch(
+        r"`--config configs/(\w+)\.yaml(?: --set env\.max_steps=(\d+))?`", row["command"]
+    )
+    assert command, row["command"]
+    config, max_steps = command.groups()
+    for policy in POLICIES:
+        stored = baseline_file(config, policy, max_steps)
+        assert stored["env"]["n_agents"] == int(row["agents"])
+        if max_steps:
+            assert stored["overrides"] == [f"env.max_steps={max_steps}"]
+        expected = (
+            f"{percent(stored['coverage_median'], '')} ({percent(stored['coverage_iqr'], '')})"
+        )
+        assert row[policy] == expected, policy
+        if policy != "random":
+            assert stored["wall_hits_mean"] == 0  # "local and frontier never hit a wall"

@@ -12,10 +12,11 @@ ROOT = Path(__file__).resolve().parents[1]
 TABLE_HEADER = "| experiment | thesis | this project | T | walls | greedy |"
 
 
-def results_rows() -> list[dict[str, str]]:
-    """The rows of README's results table as ``{column: cell}``."""
+def table_rows(header_start: str) -> list[dict[str, str]]:
+    """The rows of the README table whose header line starts with ``header_start``, as
+    ``{column: cell}``."""
     lines = (ROOT / "README.md").read_text().splitlines()
-    start = next(i for i, line in enumerate(lines) if line.startswith(TABLE_HEADER))
+    start = next(i for i, line in enumerate(lines) if line.startswith(header_start))
     header = [c.strip() for c in lines[start].strip("|").split("|")]
     rows = []
     for line in lines[start + 2 :]:
@@ -25,12 +26,19 @@ def results_rows() -> list[dict[str, str]]:
     return rows
 
 
-def eval_files(row: dict[str, str]) -> tuple[dict, dict]:
-    """The tuned (``eval.json``) and greedy evaluations a row quotes."""
+def row_max_steps(row: dict[str, str]) -> str | None:
+    """The ``--set env.max_steps`` a results row is evaluated at, ``None`` for its config's own."""
     ref = ROOT / "runs" / "reference" / row["config"].strip("`")
     steps = re.search(r"(\d+) steps", row["experiment"]).group(1)
     config_steps = re.search(r"max_steps: (\d+)", (ref / "config.yaml").read_text()).group(1)
-    setting = "" if steps == config_steps else f"env.max_steps-{steps}"
+    return None if steps == config_steps else steps
+
+
+def eval_files(row: dict[str, str]) -> tuple[dict, dict]:
+    """The tuned (``eval.json``) and greedy evaluations a row quotes."""
+    ref = ROOT / "runs" / "reference" / row["config"].strip("`")
+    max_steps = row_max_steps(row)
+    setting = f"env.max_steps-{max_steps}" if max_steps else ""
     tuned = ref / (f"eval-{setting}.json" if setting else "eval.json")
     greedy = ref / f"eval-{setting + '_' if setting else ''}eval.temperature-0.json"
     return json.loads(tuned.read_text()), json.loads(greedy.read_text())
@@ -41,7 +49,7 @@ def cell(d: dict) -> str:
     return f"{d['coverage_median']:.1%} ({d['coverage_iqr']:.1%})".replace("%", " %")
 
 
-ROWS = results_rows()
+ROWS = table_rows(TABLE_HEADER)
 
 
 def test_results_table_has_every_row_of_the_thesis() -> None:
@@ -70,14 +78,6 @@ def baseline_file(config: str, policy: str, max_steps: str | None) -> dict:
     return json.loads((BASELINES / f"{config}{setting}-{policy}.json").read_text())
 
 
-def row_max_steps(row: dict[str, str]) -> str | None:
-    """The ``--set env.max_steps`` a results row is evaluated at, ``None`` for its config's own."""
-    ref = ROOT / "runs" / "reference" / row["config"].strip("`")
-    steps = re.search(r"(\d+) steps", row["experiment"]).group(1)
-    config_steps = re.search(r"max_steps: (\d+)", (ref / "config.yaml").read_text()).group(1)
-    return None if steps == config_steps else steps
-
-
 def percent(x: float, sep: str = " ") -> str:
     """One decimal, as the tables write it."""
     return f"{x:.1%}".replace("%", f"{sep}%")
@@ -94,20 +94,10 @@ def test_results_row_quotes_the_stored_baselines(row: dict[str, str]) -> None:
         assert quoted == percent(stored["coverage_median"]), (policy, quoted)
 
 
-def baseline_rows() -> list[dict[str, str]]:
-    """The rows of README's baseline table (median (IQR) per policy, and the command)."""
-    lines = (ROOT / "README.md").read_text().splitlines()
-    start = lines.index("| map | agents | random | local | frontier | command |")
-    header = [c.strip() for c in lines[start].strip("|").split("|")]
-    rows = []
-    for line in lines[start + 2 :]:
-        if not line.startswith("|"):
-            break
-        rows.append(dict(zip(header, (c.strip() for c in line.strip("|").split("|")))))
-    return rows
+BASELINE_ROWS = table_rows("| map | agents | random | local | frontier | command |")
 
 
-@pytest.mark.parametrize("row", baseline_rows(), ids=lambda r: r["command"])
+@pytest.mark.parametrize("row", BASELINE_ROWS, ids=lambda r: r["command"])
 def test_baseline_table_quotes_the_stored_baselines(row: dict[str, str]) -> None:
     command = re.fullmatch(
         r"`--config configs/(\w+)\.yaml(?: --set env\.max_steps=(\d+))?`", row["command"]

@@ -7,7 +7,7 @@ import pytest
 from scipy import ndimage
 
 from envs import coverage_v0
-from envs.coverage import maps
+from envs.coverage import cave, maps
 from envs.coverage.cave import generate_cave
 
 
@@ -149,3 +149,17 @@ def test_cave_is_connected_winding_and_has_dead_ends_and_chambers():
 
 def test_cave_file_is_what_the_generator_makes():
     assert np.array_equal(generate_cave(), maps.load_map("cave_100x50").grid)
+
+
+def test_cave_generator_command_writes_variants_and_rejects_bad_shares(tmp_path, capsys):
+    out = tmp_path / "open_cave.txt"
+    cave.main(["--node-share", "0.4", "--out", str(out)])
+    variant = maps.load_map(str(out)).grid
+    assert np.array_equal(variant, generate_cave(node_share=0.4))
+    # a smaller share of the lattice carved leaves fewer free cells than the shipped map
+    assert (~variant).sum() < (~maps.load_map("cave_100x50").grid).sum()
+    with pytest.raises(SystemExit) as exit_info:
+        cave.main(["--node-share", "1.5", "--out", str(tmp_path / "bad.txt")])
+    assert exit_info.value.code == 2
+    assert "--node-share" in capsys.readouterr().err
+    assert not (tmp_path / "bad.txt").exists()

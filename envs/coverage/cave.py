@@ -15,6 +15,10 @@ multiple small closed areas"; that map was not published, so this generator make
 The map is re-made, byte for byte, by::
 
     python -m envs.coverage.cave            # writes envs/maps/cave_100x50.txt
+
+and variants (another seed, a sparser or loopier cave) by, e.g.::
+
+    python -m envs.coverage.cave --node-share 0.6 --out /tmp/cave_open.txt
 """
 
 from __future__ import annotations
@@ -28,6 +32,8 @@ from envs.coverage.maps import fill_unreachable, format_map
 
 CAVE_SEED = 2021
 CAVE_SHAPE = (50, 100)
+NODE_SHARE = 0.85  # the shipped map's share of the passage lattice that is carved
+LOOP_PROB = 0.03  # the shipped map's chance per lattice edge of an extra opening
 _DIRECTIONS = np.array([[-1, 0], [1, 0], [0, -1], [0, 1]])
 
 
@@ -35,11 +41,11 @@ def generate_cave(
     seed: int = CAVE_SEED,
     height: int = CAVE_SHAPE[0],
     width: int = CAVE_SHAPE[1],
-    node_share: float = 0.85,
+    node_share: float = NODE_SHARE,
     newest_prob: float = 0.7,
     straight_prob: float = 0.5,
     n_chambers: int = 14,
-    loop_prob: float = 0.03,
+    loop_prob: float = LOOP_PROB,
 ) -> np.ndarray:
     """Carve a cave map; returns a bool ``(height, width)`` grid, True = wall.
 
@@ -122,14 +128,22 @@ def _remove_pillars(rock: np.ndarray) -> np.ndarray:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Write the shipped cave map (or a variant with another seed) as text."""
+    """Write the shipped cave map, or a variant (seed, node share, loop chance), as text."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seed", type=int, default=CAVE_SEED)
+    parser.add_argument(
+        "--node-share", type=float, default=NODE_SHARE, help="share of the lattice carved"
+    )
+    parser.add_argument(
+        "--loop-prob", type=float, default=LOOP_PROB, help="chance per edge of an extra opening"
+    )
     parser.add_argument(
         "--out", type=Path, default=Path(__file__).resolve().parents[1] / "maps" / "cave_100x50.txt"
     )
     args = parser.parse_args(argv)
-    grid = generate_cave(args.seed)
+    if not 0.0 < args.node_share <= 1.0 or not 0.0 <= args.loop_prob <= 1.0:
+        parser.error("--node-share must be in (0, 1] and --loop-prob in [0, 1]")
+    grid = generate_cave(args.seed, node_share=args.node_share, loop_prob=args.loop_prob)
     args.out.write_text(format_map(grid), encoding="utf-8")
     print(f"wrote {args.out}: {grid.shape[0]}x{grid.shape[1]}, {int((~grid).sum())} free cells")
 

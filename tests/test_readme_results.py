@@ -44,9 +44,14 @@ def eval_files(row: dict[str, str]) -> tuple[dict, dict]:
     return json.loads(tuned.read_text()), json.loads(greedy.read_text())
 
 
-def cell(d: dict) -> str:
-    """How the table writes an evaluation: median (IQR), one decimal."""
-    return f"{d['coverage_median']:.1%} ({d['coverage_iqr']:.1%})".replace("%", " %")
+def percent(x: float, sep: str = " ") -> str:
+    """One decimal, as the tables write it (``sep`` between number and ``%``)."""
+    return f"{x:.1%}".replace("%", f"{sep}%")
+
+
+def cell(d: dict, sep: str = " ") -> str:
+    """How the tables write an evaluation: median (IQR), one decimal."""
+    return f"{percent(d['coverage_median'], sep)} ({percent(d['coverage_iqr'], sep)})"
 
 
 ROWS = table_rows(TABLE_HEADER)
@@ -78,11 +83,6 @@ def baseline_file(config: str, policy: str, max_steps: str | None) -> dict:
     return json.loads((BASELINES / f"{config}{setting}-{policy}.json").read_text())
 
 
-def percent(x: float, sep: str = " ") -> str:
-    """One decimal, as the tables write it."""
-    return f"{x:.1%}".replace("%", f"{sep}%")
-
-
 @pytest.mark.parametrize("row", ROWS, ids=lambda r: r["experiment"])
 def test_results_row_quotes_the_stored_baselines(row: dict[str, str]) -> None:
     config = row["config"].strip("`")
@@ -109,9 +109,6 @@ def test_baseline_table_quotes_the_stored_baselines(row: dict[str, str]) -> None
         assert stored["env"]["n_agents"] == int(row["agents"])
         if max_steps:
             assert stored["overrides"] == [f"env.max_steps={max_steps}"]
-        expected = (
-            f"{percent(stored['coverage_median'], '')} ({percent(stored['coverage_iqr'], '')})"
-        )
-        assert row[policy] == expected, policy
+        assert row[policy] == cell(stored, sep=""), policy
         if policy != "random":
             assert stored["wall_hits_mean"] == 0  # "local and frontier never hit a wall"

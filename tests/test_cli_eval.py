@@ -212,7 +212,8 @@ def test_export_of_best_model_keeps_its_own_tune_sweep(smoke_run, tmp_path, caps
         ("ddqn_2agents", "eval-eval.temperature-0.json", ["eval.temperature=0"], 3),
         ("ddqn_1agent", "eval-env.max_steps-500.json", ["env.max_steps=500"], 3),
         ("ddqn_3agents", "eval.json", [], 2),
-        ("cave_4agents", "eval-eval.temperature-0.json", ["eval.temperature=0"], 2),
+        ("maze_4agents", "eval-eval.temperature-0.json", ["eval.temperature=0"], 2),
+        ("cave_4agents", "eval.json", [], 2),
     ],
 )
 def test_reference_policy_repeats_its_committed_numbers(

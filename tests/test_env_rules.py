@@ -176,7 +176,7 @@ def test_random_starts_are_distinct_free_cells():
 
 
 def test_fixed_starts_from_constructor_are_used_every_reset():
-    env = coverage_v0.parallel_env(map="cave_100x50", n_agents=2, starts=[(1, 3), (1, 4)])
+    env = coverage_v0.parallel_env(map="maze_100x50", n_agents=2, starts=[(1, 3), (1, 4)])
     for seed in (0, 1):
         env.reset(seed=seed)
         assert env.positions.tolist() == [[1, 3], [1, 4]]

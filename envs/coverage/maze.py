@@ -1,24 +1,26 @@
-"""The seeded generator of the shipped cave map ``cave_100x50``.
+"""The seeded generator of the shipped maze map ``maze_100x50``, the hardest shipped map.
 
-The thesis (§4.3) tested on a map "based on a real cave environment with a lot of dead ends and
-multiple small closed areas"; that map was not published, so this generator makes a stand-in:
+Until the cellular-automaton cave (:mod:`envs.coverage.cave`) replaced it, this map was the
+stand-in for the thesis's cave (§4.3); it stays shipped as a harder benchmark: a labyrinth of
+one-cell corridors on which even the frontier explorer covers only 58 % with 2 agents in 1000 steps.
 
-1. start from solid rock;
-2. "tunnellers" walk from the centre with a preference for going straight (turning now and then),
-   carving 1-cell passages and, rarely, 2-cell ones; they branch into new tunnellers, and each one
-   ends after a random length, which leaves dead ends;
-3. now and then a tunneller opens a small chamber (an ellipse a few cells across);
-4. single wall cells left standing inside open ground are removed (rock pillars one cell wide look
-   like noise), and everything not connected to the largest free area is filled (there is none
-   by construction, the step only guards the promise that all free cells are connected).
+1. start from solid rock and a lattice of passage nodes (every other cell);
+2. carve a growing-tree maze over part of the lattice (``node_share``), preferring to extend the
+   newest passage and to keep going straight, which makes long winding passages, and branching
+   from earlier ones, which leaves dead ends;
+3. open a few extra walls between carved nodes (``loop_prob``), so some passages form loops;
+4. open a few small elliptical chambers along the passages;
+5. remove single wall cells standing inside open ground and fill everything not connected to the
+   largest free area (there is none by construction; the step guards the promise that all free
+   cells are connected).
 
 The map is re-made, byte for byte, by::
 
-    python -m envs.coverage.cave            # writes envs/maps/cave_100x50.txt
+    python -m envs.coverage.maze            # writes envs/maps/maze_100x50.txt
 
-and variants (another seed, a sparser or loopier cave) by, e.g.::
+and variants (another seed, a sparser or loopier maze) by, e.g.::
 
-    python -m envs.coverage.cave --node-share 0.6 --out /tmp/cave_open.txt
+    python -m envs.coverage.maze --node-share 0.6 --out /tmp/maze_sparse.txt
 """
 
 from __future__ import annotations
@@ -30,24 +32,24 @@ import numpy as np
 
 from envs.coverage.maps import fill_unreachable, format_map
 
-CAVE_SEED = 2021
-CAVE_SHAPE = (50, 100)
-NODE_SHARE = 0.85  # the shipped map's share of the passage lattice that is carved
-LOOP_PROB = 0.03  # the shipped map's chance per lattice edge of an extra opening
+MAZE_SEED = 2021
+MAZE_SHAPE = (50, 100)
+NODE_SHARE = 0.85  # the shipped maze's share of the passage lattice that is carved
+LOOP_PROB = 0.03  # the shipped maze's chance per lattice edge of an extra opening
 _DIRECTIONS = np.array([[-1, 0], [1, 0], [0, -1], [0, 1]])
 
 
-def generate_cave(
-    seed: int = CAVE_SEED,
-    height: int = CAVE_SHAPE[0],
-    width: int = CAVE_SHAPE[1],
+def generate_maze(
+    seed: int = MAZE_SEED,
+    height: int = MAZE_SHAPE[0],
+    width: int = MAZE_SHAPE[1],
     node_share: float = NODE_SHARE,
     newest_prob: float = 0.7,
     straight_prob: float = 0.5,
     n_chambers: int = 14,
     loop_prob: float = LOOP_PROB,
 ) -> np.ndarray:
-    """Carve a cave map; returns a bool ``(height, width)`` grid, True = wall.
+    """Carve a maze map; returns a bool ``(height, width)`` grid, True = wall.
 
     Args:
         seed: Seed of the generator; the same seed gives the same map.
@@ -128,9 +130,9 @@ def _remove_pillars(rock: np.ndarray) -> np.ndarray:
 
 
 def main(argv: list[str] | None = None) -> None:
-    """Write the shipped cave map, or a variant (seed, node share, loop chance), as text."""
+    """Write the shipped maze map, or a variant (seed, node share, loop chance), as text."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--seed", type=int, default=CAVE_SEED)
+    parser.add_argument("--seed", type=int, default=MAZE_SEED)
     parser.add_argument(
         "--node-share", type=float, default=NODE_SHARE, help="share of the lattice carved"
     )
@@ -138,12 +140,12 @@ def main(argv: list[str] | None = None) -> None:
         "--loop-prob", type=float, default=LOOP_PROB, help="chance per edge of an extra opening"
     )
     parser.add_argument(
-        "--out", type=Path, default=Path(__file__).resolve().parents[1] / "maps" / "cave_100x50.txt"
+        "--out", type=Path, default=Path(__file__).resolve().parents[1] / "maps" / "maze_100x50.txt"
     )
     args = parser.parse_args(argv)
     if not 0.0 < args.node_share <= 1.0 or not 0.0 <= args.loop_prob <= 1.0:
         parser.error("--node-share must be in (0, 1] and --loop-prob in [0, 1]")
-    grid = generate_cave(args.seed, node_share=args.node_share, loop_prob=args.loop_prob)
+    grid = generate_maze(args.seed, node_share=args.node_share, loop_prob=args.loop_prob)
     args.out.write_text(format_map(grid), encoding="utf-8")
     print(f"wrote {args.out}: {grid.shape[0]}x{grid.shape[1]}, {int((~grid).sum())} free cells")
 

@@ -358,3 +358,13 @@ def test_reference_numbers_are_made_with_its_tuned_test_policy(ref: Path) -> Non
     standard = json.loads((ref / "eval.json").read_text())
     assert standard["temperature"] == cfg.eval.temperature
     assert standard["seed"] == cfg.eval.seed and standard["episodes"] == 100
+
+
+@pytest.mark.parametrize("ref", REFERENCES, ids=lambda p: p.name)
+def test_config_tests_with_its_references_tuned_temperature(ref: Path) -> None:
+    # `harness eval --config configs/<experiment>.yaml` and a fresh run's in-training evaluations
+    # use the config's temperature: it must be the one its reference was tuned to.
+    config = ROOT / "configs" / f"{ref.name}.yaml"
+    assert config.is_file(), f"no config for reference {ref.name}"
+    tuned = json.loads((ref / "tune.json").read_text())["chosen"]
+    assert load_config(config).eval.temperature == tuned

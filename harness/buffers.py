@@ -16,7 +16,12 @@ from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.common.vec_env import VecNormalize
 
-__all__ = ["PrioritizedReplayBuffer", "PrioritizedReplayBufferSamples", "SumTree"]
+__all__ = [
+    "PrioritizedReplayBuffer",
+    "PrioritizedReplayBufferSamples",
+    "SumTree",
+    "importance_weights",
+]
 
 
 class SumTree:
@@ -134,6 +139,27 @@ class SumTree:
         return (idx - self.size).reshape(shape)
 
 
+def importance_weights(
+    probabilities: np.ndarray, min_probability: float, beta: float
+) -> np.ndarray:
+    """Normalised importance-sampling weights ``(N * P(i)) ** -beta / max_j w_j``.
+
+    ``max_j w_j = (N * min_probability) ** -beta`` is the weight of the least likely stored
+    transition, so every weight lies in ``(0, 1]`` and depends only on its own probability.
+    ``N`` (the number of stored transitions) cancels: ``w_i = (min_probability / P(i)) ** beta``.
+
+    Args:
+        probabilities: ``P(i)`` of the sampled transitions.
+        min_probability: The smallest ``P(j)`` over the stored transitions.
+        beta: Importance-sampling exponent.
+
+    Returns:
+        float64 weights, same shape as ``probabilities``.
+    """
+    probabilities = np.asarray(probabilities, dtype=np.float64)
+    return (min_probability / probabilities) ** beta
+
+
 class PrioritizedReplayBufferSamples(NamedTuple):
     """``ReplayBufferSamples`` (same fields, same order) plus the PER fields.
 
@@ -159,8 +185,14 @@ class PrioritizedReplayBuffer(ReplayBuffer):
     sampling priority ``p = (|delta| + eps) ** alpha``; it is drawn with probability
     ``P(i) = p_i / sum_j p_j`` and carries the importance-sampling weight
     ``w_i = (N * P(i)) ** -beta / max_j w_j`` where ``N`` is the number of stored transitions
-    and, as in most implementations (OpenAI baselines, Dopamine), the max is taken over the
-    sampled batch, not over the whole buffer. New transitions get the largest raw priority seen
+    and the max runs over every stored transition ``j``, i.e. it is the weight of the
+    lowest-priority transition in the buffer: ``max_j w_j = (N * p_min / sum_k p_k) ** -beta``.
+    Why the buffer and not the batch: Schaul et al. (2015, §3.4) normalise "by 1/max_i w_i so that
+    they only scale the update downwards", and with the buffer-wide max a transition's weight is a
+    function of that transition alone, not of which other transitions happened to be drawn with it
+    (a batch-wide max would give the same transition different weights in different batches, and
+    weight 1 to every batch of one). OpenAI baselines does the same (a min segment tree);
+    Dopamine uses the batch max. New transitions get the largest raw priority seen
     so far (a running max that never decreases, initially 1.0), so each is replayed at least
     about once before its TD error is known.
 
@@ -270,6 +302,18 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         """Copy of the raw priorities ``|delta| + eps`` by flat index (0 for empty slots)."""
         return self._raw_priorities.copy()
 
+    @property
+    def min_probability(self) -> float:
+        """Sampling probability of the lowest-priority stored transition (for the IS weights).
+
+        One vectorised pass over the leaves per call; empty slots (zero leaves) are skipped.
+        """
+        leaves = self._tree.leaves
+        stored = leaves[leaves > 0.0]
+        if stored.size == 0:
+            raise ValueError("the buffer holds no transition")
+        return float(stored.min()) / self._tree.total
+
     def _set_raw_priorities(self, flat_indices: np.ndarray, raw: np.ndarray) -> None:
         """Write unique ``flat_indices`` with raw priorities ``raw`` to the array and the tree."""
         self._raw_priorities[flat_indices] = raw
@@ -340,8 +384,7 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         # Only stored slots have non-zero leaves, and find_prefixsum never returns a zero leaf.
         flat = self._tree.find_prefixsum(queries)
         probabilities = self._tree.get(flat) / total
-        weights = (n_stored * probabilities) ** (-self._beta)
-        weights /= weights.max()
+        weights = importance_weights(probabilities, self.min_probability, self._beta)
         batch_inds, env_inds = np.divmod(flat, self.n_envs)
         samples = self._get_samples_at(batch_inds, env_inds, env=env)
         return PrioritizedReplayBufferSamples(

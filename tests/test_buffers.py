@@ -13,7 +13,12 @@ from hypothesis import strategies as st
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.common.utils import set_random_seed
 
-from harness.buffers import PrioritizedReplayBuffer, PrioritizedReplayBufferSamples, SumTree
+from harness.buffers import (
+    PrioritizedReplayBuffer,
+    PrioritizedReplayBufferSamples,
+    SumTree,
+    importance_weights,
+)
 
 OBS_SPACE = spaces.Box(-1e6, 1e6, shape=(2,), dtype=np.float32)
 ACTION_SPACE = spaces.Discrete(4)
@@ -181,9 +186,9 @@ def test_importance_weights_hand_computed() -> None:
     for step in range(4):
         add_step(buffer, step)
     buffer.update_priorities(np.arange(4), np.array([0.0, 1.0, 3.0, 7.0]))
-    # batch 15 -> 15 strata of width 1; stratum [0, 1) always hits transition 0, so the batch
-    # max weight is transition 0's: w_i = (4 * p_i / 15) ** -0.5 / (4 * 1 / 15) ** -0.5
-    # = sqrt(1 / p_i) -> [1, 1/sqrt(2), 1/2, 1/sqrt(8)]. Strata per item: 1, 2, 4, 8.
+    # The max weight is the buffer's lowest-priority transition's (p=1):
+    # w_i = (4 * p_i / 15) ** -0.5 / (4 * 1 / 15) ** -0.5 = sqrt(1 / p_i)
+    # -> [1, 1/sqrt(2), 1/2, 1/sqrt(8)]. batch 15 -> 15 strata of width 1: 1, 2, 4, 8 per item.
     batch = buffer.sample(15)
     np.testing.assert_array_equal(np.sort(batch.indices), np.repeat(np.arange(4), [1, 2, 4, 8]))
     expected = {0: 1.0, 1: 2**-0.5, 2: 0.5, 3: 8**-0.5}
@@ -199,13 +204,44 @@ def test_importance_weights_hand_computed() -> None:
         buffer.beta = -0.1
 
 
-def test_single_sample_weight_is_one() -> None:
-    # The max is over the sampled batch, so a batch of one always has weight 1.
-    buffer = make_buffer(4, beta=1.0)
+def test_importance_weights_normalise_by_the_buffer_minimum_not_the_batch() -> None:
+    # Priorities [1, 2, 4, 8] (total 15), beta 0.5. A batch of 2 has strata [0, 7.5) and
+    # [7.5, 15): the first holds items 0, 1, 2 (cumulative 1, 3, 7) and item 3's range is [7, 15),
+    # so draws land in item 0 only for offsets in [0, 1/7.5). Whatever the batch, a weight is
+    # sqrt(p_min / p_i) with p_min = 1, the buffer's minimum: item 3 always weighs 1/sqrt(8),
+    # even in a batch that misses item 0 (a batch-wide max would give it 1 there).
+    buffer = make_buffer(4, alpha=1.0, beta=0.5, eps=1.0)
     for step in range(4):
         add_step(buffer, step)
     buffer.update_priorities(np.arange(4), np.array([0.0, 1.0, 3.0, 7.0]))
-    assert buffer.sample(1).weights.item() == pytest.approx(1.0)
+    set_random_seed(0)
+    missed_item_0 = 0
+    for _ in range(200):
+        batch = buffer.sample(2)
+        weights = batch.weights.numpy().ravel()
+        expected = np.sqrt(1.0 / np.array([1.0, 2.0, 4.0, 8.0]))[batch.indices]
+        np.testing.assert_allclose(weights, expected, rtol=1e-6)
+        missed_item_0 += int(0 not in batch.indices)
+    assert missed_item_0 > 100  # the case that matters was exercised
+    # A batch of one: item 3 alone weighs 1/sqrt(8), not 1.
+    set_random_seed(1)
+    for _ in range(20):
+        single = buffer.sample(1)
+        assert single.weights.item() == pytest.approx(
+            np.sqrt(1.0 / [1.0, 2.0, 4.0, 8.0][int(single.indices[0])]), rel=1e-6
+        )
+
+
+def test_importance_weights_function_hand_computed() -> None:
+    # N = 4, P = [0.1, 0.2, 0.3, 0.4], beta = 1: w = (N P)^-1 / (N P_min)^-1 = P_min / P.
+    probs = np.array([0.1, 0.2, 0.3, 0.4])
+    np.testing.assert_allclose(
+        importance_weights(probs, 0.1, 1.0), [1.0, 0.5, 1 / 3, 0.25], rtol=1e-12
+    )
+    # beta = 0 disables the correction.
+    np.testing.assert_array_equal(importance_weights(probs, 0.1, 0.0), np.ones(4))
+    # A lower minimum elsewhere in the buffer lowers every weight of the batch.
+    np.testing.assert_allclose(importance_weights(np.array([0.1]), 0.05, 0.5), [0.5**0.5])
 
 
 def test_multi_env_flat_index_maps_to_the_right_transition() -> None:

@@ -1,5 +1,6 @@
-"""SB3 callbacks of a training phase (SPEC §4): schedules, epochs by coverage, episode metrics,
-periodic evaluation and checkpoints. Each is small and does one thing."""
+"""SB3 callbacks of a training phase: epochs by coverage, episode metrics, periodic evaluation
+and checkpoints. Each is small and does one thing. (The ε, β and learning-rate schedules are not
+callbacks: ``harness.train.apply_phase`` installs them on the model.)"""
 
 from __future__ import annotations
 
@@ -12,45 +13,7 @@ import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
 from harness.rundir import EPISODE_COLUMNS, append_csv_rows
-from harness.schedules import PhaseLinearSchedule, epochs_for
-
-
-class LinearScheduleCallback(BaseCallback):
-    """Drive a model schedule linearly over a phase (eq. 4.1).
-
-    SB3 recomputes ``exploration_rate`` from ``model.exploration_schedule`` at every step (and
-    ``DoubleDQN`` does the same for the buffer's β from ``model.beta_schedule``), so assigning the
-    value would be overwritten: this callback installs the schedule itself when the phase starts.
-
-    Args:
-        attribute: ``"exploration_schedule"`` (ε) or ``"beta_schedule"`` (PER β).
-        start: Value at the phase's first step.
-        end: Value after ``steps`` transitions, kept to the end of the phase.
-        steps: Transitions over which the value moves.
-        phase_timesteps: Transitions in the phase.
-        done_before: Transitions of the phase done before this ``learn()`` call (resume).
-    """
-
-    def __init__(
-        self,
-        attribute: str,
-        start: float,
-        end: float,
-        steps: int,
-        phase_timesteps: int,
-        done_before: int = 0,
-    ) -> None:
-        super().__init__()
-        self.attribute = attribute
-        self.schedule = PhaseLinearSchedule(start, end, steps, phase_timesteps, done_before)
-
-    def _on_training_start(self) -> None:
-        if self.attribute == "beta_schedule" and not getattr(self.model, "prioritized", False):
-            return  # uniform replay has no β
-        setattr(self.model, self.attribute, self.schedule)
-
-    def _on_step(self) -> bool:
-        return True
+from harness.schedules import epochs_for
 
 
 def recent_coverages(ep_info_buffer: Any, episodes: int, n_agents: int) -> list[float]:
@@ -152,12 +115,19 @@ class EpisodeLogCallback(BaseCallback):
 
 class PeriodicCallback(BaseCallback):
     """Call ``fn(model)`` every ``every`` transitions (0: never). Transitions arrive in blocks of
-    ``n_envs``, so it fires on the first step at or past each multiple."""
+    ``n_envs``, so it fires on the first step at or past each multiple (and, with ``when``, on the
+    first such step where ``when(model)`` holds)."""
 
-    def __init__(self, every: int, fn: Callable[[Any], None]) -> None:
+    def __init__(
+        self,
+        every: int,
+        fn: Callable[[Any], None],
+        when: Callable[[Any], bool] | None = None,
+    ) -> None:
         super().__init__()
         self.every = every
         self.fn = fn
+        self.when = when
         self._next: float = math.inf
 
     def _on_training_start(self) -> None:
@@ -165,7 +135,7 @@ class PeriodicCallback(BaseCallback):
             self._next = (self.num_timesteps // self.every + 1) * self.every
 
     def _on_step(self) -> bool:
-        if self.num_timesteps >= self._next:
+        if self.num_timesteps >= self._next and (self.when is None or self.when(self.model)):
             self._next = (self.num_timesteps // self.every + 1) * self.every
             self.fn(self.model)
         return True

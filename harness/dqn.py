@@ -71,8 +71,16 @@ class DoubleDQN(DQN):
     callback has no lasting effect; replace the schedule instead. Likewise ``beta_schedule``
     (``progress_remaining -> float``, default: constant at the buffer's initial ``beta``) is
     written to ``replay_buffer.beta`` at every env step. Both are rebuilt by ``_setup_model``
-    (so also by ``load``) and are not saved: a callback replacing them should do it in
-    ``_on_training_start``. ``alpha`` is changed directly: ``model.replay_buffer.alpha = 0.5``.
+    (so also by ``load``) and are not saved. ``alpha`` is changed directly:
+    ``model.replay_buffer.alpha = 0.5``.
+
+    Phases. SB3's ``progress_remaining`` counts over the whole run once ``learn`` is called with
+    ``reset_num_timesteps=False`` (``1 - num_timesteps / (steps before + steps asked)``), so a
+    schedule meant for the second ``learn()`` call would start part-way. After
+    :meth:`start_phase`, ``progress_remaining`` is ``1 - (num_timesteps - phase_start) /
+    phase_timesteps`` instead: every schedule (learning rate, ε, β) then follows the transition
+    count within the phase, taken from the model's own counter, the same in a fresh run, in a later
+    phase and in a resumed run. Without :meth:`start_phase` the progress is SB3's.
 
     Args:
         policy: Policy class or alias (``"MlpPolicy"``, ``"DuelingMlpPolicy"``, ...).
@@ -110,6 +118,10 @@ class DoubleDQN(DQN):
         "DuelingMlpPolicy": DuelingDQNPolicy,
     }
     beta_schedule: Schedule
+    #: Transition count (``num_timesteps``) at which the current phase started.
+    phase_start: int = 0
+    #: Transitions in the current phase; ``None``: SB3's own progress (no phases).
+    phase_timesteps: int | None = None
 
     def __init__(
         self,
@@ -188,6 +200,39 @@ class DoubleDQN(DQN):
         super()._setup_model()
         initial_beta = self.replay_buffer.beta if self.prioritized else 0.0  # type: ignore[union-attr]
         self.beta_schedule = ConstantSchedule(initial_beta)
+
+    def start_phase(self, timesteps: int, start: int | None = None) -> None:
+        """Make ``progress_remaining`` run from 1 to 0 over a phase of ``timesteps`` transitions.
+
+        Args:
+            timesteps: Transitions in the phase (> 0).
+            start: The ``num_timesteps`` at which the phase started; default now. A resumed run
+                passes the phase's original start, so its schedules continue where they were.
+        """
+        if timesteps <= 0:
+            raise ValueError(f"a phase needs timesteps > 0, got {timesteps}")
+        self.phase_timesteps = int(timesteps)
+        self.phase_start = int(self.num_timesteps if start is None else start)
+        self._update_current_progress_remaining(self.num_timesteps, self._total_timesteps)
+
+    def at_round_boundary(self) -> bool:
+        """Whether the phase so far is a whole number of collection rounds of ``train_freq`` env
+        steps (each followed by a training call).
+
+        SB3 collects in rounds that start with each ``learn()`` call. A checkpoint written at a
+        round boundary is resumed on the same rounds as the uninterrupted run, so training calls
+        (and the schedule values they use) fall on the same transitions, and the phase ends on the
+        same transition.
+        """
+        steps = (self.num_timesteps - self.phase_start) // self.n_envs
+        return steps % self.train_freq.frequency == 0
+
+    def _update_current_progress_remaining(self, num_timesteps: int, total_timesteps: int) -> None:
+        if self.phase_timesteps is None:
+            super()._update_current_progress_remaining(num_timesteps, total_timesteps)
+            return
+        done = num_timesteps - self.phase_start
+        self._current_progress_remaining = 1.0 - done / self.phase_timesteps
 
     def _on_step(self) -> None:
         super()._on_step()

@@ -23,23 +23,21 @@ def linear(start: float, end: float, steps: int, t: float) -> float:
 @dataclass(frozen=True)
 class PhaseLinearSchedule:
     """An SB3 ``Schedule`` (a callable of ``progress_remaining``) that follows :func:`linear` over
-    the steps of one training phase.
+    the transitions of one training phase.
 
-    SB3 hands schedules the remaining progress of the current ``learn()`` call (1 → 0). A phase is
-    one ``learn()`` call over its last ``phase_timesteps - done_before`` steps (``done_before > 0``
-    when a run resumes mid-phase), so the step within the phase is
-    ``done_before + (1 - progress_remaining) * (phase_timesteps - done_before)``.
+    ``DoubleDQN.start_phase`` makes ``progress_remaining`` the share of the phase still to run,
+    ``1 - t / phase_timesteps`` with ``t`` the transitions done in the phase (from the model's own
+    counter), so ``t = (1 - progress_remaining) * phase_timesteps``. The value is a function of
+    ``t`` alone: the same in a fresh run, in a later phase and in a run resumed mid-phase.
     """
 
     start: float
     end: float
     steps: int
     phase_timesteps: int
-    done_before: int = 0
 
     def __call__(self, progress_remaining: float) -> float:
-        span = self.phase_timesteps - self.done_before
-        t = self.done_before + (1.0 - progress_remaining) * span
+        t = (1.0 - progress_remaining) * self.phase_timesteps
         return linear(self.start, self.end, self.steps, t)
 
 

@@ -36,7 +36,6 @@ from harness.buffers import PrioritizedReplayBuffer
 from harness.callbacks import (
     EpisodeLogCallback,
     EpochsByCoverageCallback,
-    LinearScheduleCallback,
     PeriodicCallback,
 )
 from harness.checkpoints import (
@@ -97,8 +96,7 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
         replay_buffer_class=PrioritizedReplayBuffer if algo.prioritized else None,
         replay_buffer_kwargs=buffer_kwargs,
         target_update_interval=algo.target_update_interval,
-        exploration_initial_eps=first.exploration.start,
-        exploration_final_eps=first.exploration.end,
+        # ε, β and the learning rate's schedules are installed by apply_phase, in one place.
         max_grad_norm=algo.max_grad_norm,
         double_q=algo.double_q,
         # Enough finished episodes for the epochs table's median (one entry per slot).
@@ -117,23 +115,34 @@ def _lr_start(phase: PhaseConfig) -> float:
     return lr[0] if isinstance(lr, tuple) else lr
 
 
-def apply_phase(model: DoubleDQN, phase: PhaseConfig, done_before: int = 0) -> None:
-    """Set what changes between phases on the live model (SPEC §4).
+def apply_phase(model: DoubleDQN, phase: PhaseConfig, phase_start: int) -> None:
+    """Set what changes between phases on the live model, schedules included (Table 4.1).
 
-    ``done_before``: transitions of this phase already done (a run resumed mid-phase).
+    This is the one place where the learning rate, ε and β schedules are installed. Each is a
+    :class:`PhaseLinearSchedule` of the transitions done in the phase, which
+    ``DoubleDQN.start_phase`` makes SB3's ``progress_remaining`` measure: a phase starts at its
+    start values whether it is the first phase, a later one, or resumed mid-way.
+
+    Args:
+        model: The model, built or loaded.
+        phase: The phase's settings.
+        phase_start: ``model.num_timesteps`` when the phase started (earlier than now when a
+            run resumes mid-phase).
     """
+    model.start_phase(phase.timesteps, phase_start)
     lr = phase.learning_rate
-    start, end = lr if isinstance(lr, tuple) else (lr, lr)
-    # SB3 reads lr_schedule(progress_remaining) at each training call; progress runs 1 → 0
-    # over each learn() call, i.e. over the phase.
-    model.learning_rate = start
-    model.lr_schedule = PhaseLinearSchedule(
-        start, end, phase.timesteps, phase.timesteps, done_before
-    )
+    lr_start, lr_end = lr if isinstance(lr, tuple) else (lr, lr)
+    # The learning rate moves over the whole phase; ε and β over their own `steps`.
+    model.learning_rate = lr_start
+    model.lr_schedule = PhaseLinearSchedule(lr_start, lr_end, phase.timesteps, phase.timesteps)
+    eps = phase.exploration
+    model.exploration_schedule = PhaseLinearSchedule(eps.start, eps.end, eps.steps, phase.timesteps)
+    if isinstance(model.replay_buffer, PrioritizedReplayBuffer):
+        beta = phase.beta
+        model.beta_schedule = PhaseLinearSchedule(beta.start, beta.end, beta.steps, phase.timesteps)
+        model.replay_buffer.alpha = phase.alpha
     model.batch_size = phase.batch_size
     model.train_freq = TrainFreq(phase.train_freq, TrainFrequencyUnit.STEP)
-    if isinstance(model.replay_buffer, PrioritizedReplayBuffer):
-        model.replay_buffer.alpha = phase.alpha
 
 
 def phase_callbacks(
@@ -142,28 +151,12 @@ def phase_callbacks(
     run: RunDir,
     evaluator: Evaluator,
     first_episode: int,
-    done_before: int = 0,
 ) -> tuple[list[BaseCallback], EpisodeLogCallback]:
-    """The callbacks of one phase, in the order they run."""
+    """The callbacks of one phase, in the order they run (the schedules are not callbacks:
+    :func:`apply_phase` installs them)."""
     n_agents = config.env.n_agents
     episode_log = EpisodeLogCallback(run.episodes_csv, n_agents, phase.name, first_episode)
     callbacks: list[BaseCallback] = [
-        LinearScheduleCallback(
-            "exploration_schedule",
-            phase.exploration.start,
-            phase.exploration.end,
-            phase.exploration.steps,
-            phase.timesteps,
-            done_before,
-        ),
-        LinearScheduleCallback(
-            "beta_schedule",
-            phase.beta.start,
-            phase.beta.end,
-            phase.beta.steps,
-            phase.timesteps,
-            done_before,
-        ),
         EpochsByCoverageCallback(phase.epochs, phase.epochs_window, n_agents),
         episode_log,
         PeriodicCallback(config.eval.every, evaluator),
@@ -249,14 +242,16 @@ class Checkpointer:
 
 
 class StopOnSignal(BaseCallback):
-    """Ends ``learn()`` at the next step once SIGINT or SIGTERM arrived (see :func:`train`)."""
+    """Ends ``learn()`` once SIGINT or SIGTERM arrived (see :func:`train`), at the end of the
+    current collection round (at most ``train_freq`` env steps later), so that the checkpoint
+    resumes on the uninterrupted run's rounds (``DoubleDQN.at_round_boundary``)."""
 
     def __init__(self) -> None:
         super().__init__()
         self.signum: int | None = None
 
     def _on_step(self) -> bool:
-        return self.signum is None
+        return self.signum is None or not self.model.at_round_boundary()
 
 
 class TrainingInterrupted(Exception):
@@ -388,12 +383,14 @@ def _run_phase(
         state.phase, state.phase_start = index, int(model.num_timesteps)
     done = int(model.num_timesteps) - state.phase_start
     if done < phase.timesteps:
-        apply_phase(model, phase, done)
-        callbacks, episode_log = phase_callbacks(
-            config, phase, run, evaluator, state.next_episode, done
-        )
+        apply_phase(model, phase, state.phase_start)
+        callbacks, episode_log = phase_callbacks(config, phase, run, evaluator, state.next_episode)
         checkpointer.episode_log = episode_log
-        callbacks += [PeriodicCallback(config.checkpoint.every, checkpointer), stopper]
+        # Checkpoints at round boundaries: a resumed run then trains on the same transitions.
+        checkpoints = PeriodicCallback(
+            config.checkpoint.every, checkpointer, when=DoubleDQN.at_round_boundary
+        )
+        callbacks += [checkpoints, stopper]
         try:
             model.learn(
                 total_timesteps=phase.timesteps - done,

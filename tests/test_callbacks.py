@@ -7,18 +7,17 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from stable_baselines3.common.callbacks import CallbackList
 from stable_baselines3.common.logger import Logger
 
 from harness import DoubleDQN, PrioritizedReplayBuffer
 from harness.adapters import make_vec_env
 from harness.callbacks import (
     EpochsByCoverageCallback,
-    LinearScheduleCallback,
     PeriodicCallback,
     recent_coverages,
 )
 from harness.config import EnvConfig
+from harness.schedules import PhaseLinearSchedule
 
 
 class StubModel(SimpleNamespace):
@@ -105,25 +104,19 @@ def tiny_model():
     venv.close()
 
 
-def test_schedule_callbacks_drive_epsilon_and_beta_over_the_phase(tiny_model):
+def test_phase_schedules_count_from_the_phase_start_not_the_run_start(tiny_model):
+    # An earlier phase: 200 transitions (SB3's own progress would then run 1 -> 0 over 600).
+    tiny_model.learn(200)
     seen = []
-
     probe = PeriodicCallback(
         1, lambda m: seen.append((m.num_timesteps, m.exploration_rate, m.replay_buffer.beta))
     )
     start = tiny_model.num_timesteps
     phase = 400
-    tiny_model.learn(
-        phase,
-        callback=CallbackList(
-            [
-                LinearScheduleCallback("exploration_schedule", 1.0, 0.0, 200, phase),
-                LinearScheduleCallback("beta_schedule", 0.4, 1.0, 400, phase),
-                probe,
-            ]
-        ),
-        reset_num_timesteps=False,
-    )
+    tiny_model.start_phase(phase)
+    tiny_model.exploration_schedule = PhaseLinearSchedule(1.0, 0.0, 200, phase)
+    tiny_model.beta_schedule = PhaseLinearSchedule(0.4, 1.0, 400, phase)
+    tiny_model.learn(phase, callback=probe, reset_num_timesteps=False)
     # The model applies a schedule after each env step (4 transitions each, 2 copies x 2 agents).
     # The probe runs before that update, so it sees the value set after the previous step.
     steps = np.array([t for t, _, _ in seen]) - start
@@ -133,5 +126,18 @@ def test_schedule_callbacks_drive_epsilon_and_beta_over_the_phase(tiny_model):
     expected_beta = np.clip(0.4 + 0.6 * (steps - 4) / 400, 0.4, 1.0)
     np.testing.assert_allclose(eps[1:], expected_eps[1:], atol=1e-9)
     np.testing.assert_allclose(beta[1:], expected_beta[1:], atol=1e-9)
+    assert eps[1] == pytest.approx(1.0 - 4 / 200)  # the phase's start, not 1/3 of the way
     assert tiny_model.exploration_rate == 0.0
     assert tiny_model.replay_buffer.beta == pytest.approx(1.0)
+
+
+def test_periodic_callback_waits_for_its_condition():
+    calls = []
+    model = StubModel(num_timesteps=0, ok=False)
+    cb = PeriodicCallback(10, lambda m: calls.append(m.num_timesteps), when=lambda m: m.ok)
+    cb.init_callback(model)
+    cb.on_training_start({}, {})
+    for t, ok in [(8, True), (12, False), (16, False), (20, True), (24, True), (32, True)]:
+        model.num_timesteps, model.ok = t, ok
+        cb.on_step()
+    assert calls == [20, 32]  # first step at/past 10 where ok; then at/past 30

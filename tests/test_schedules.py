@@ -28,14 +28,6 @@ def test_zero_steps_means_end_value():
     assert linear(1.0, 0.0, 0, 0) == 0.0
 
 
-def test_phase_schedule_resumed_mid_phase_continues_where_it_stopped():
-    whole = PhaseLinearSchedule(start=1.0, end=0.0, steps=500, phase_timesteps=1000)
-    resumed = PhaseLinearSchedule(1.0, 0.0, 500, 1000, done_before=200)
-    assert resumed(1.0) == pytest.approx(whole(0.8))  # step 200
-    assert resumed(0.75) == pytest.approx(whole(0.6))  # step 200 + 0.25 * 800 = 400
-    assert resumed(0.0) == whole(0.0)
-
-
 def test_phase_schedule_maps_progress_to_phase_steps():
     sched = PhaseLinearSchedule(start=1.0, end=0.0, steps=500, phase_timesteps=1000)
     assert sched(1.0) == 1.0  # first step of the phase

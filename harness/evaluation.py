@@ -44,6 +44,11 @@ class EpisodeResult:
     free_cells: int
     paths: list[np.ndarray] = field(default_factory=list)
     """Per agent ``(steps + 1, 2)`` positions, when recorded."""
+    walls: np.ndarray | None = None
+    """``bool (H, W)`` map of the episode (True = wall), when paths are recorded."""
+    frames: list[np.ndarray] = field(default_factory=list)
+    """``rgb_array`` frames (``uint8 (H*k, W*k, 3)``) at step 0, every ``frames_every`` steps
+    and the last step, when asked for."""
 
 
 def model_policy(model: Any, temperature: float = 0.0) -> BatchPolicy:
@@ -105,6 +110,16 @@ def episode_draws(envs: Sequence[CoverageEnv], per_copy: int) -> np.ndarray:
     return np.concatenate([env.np_random.random(per_copy) for env in envs])
 
 
+def stack_observations(per_copy: Sequence[dict[str, Any]]) -> np.ndarray | dict[str, np.ndarray]:
+    """One batch from the per-agent observation dicts of several env copies, copy-major (copy 0's
+    agents first), in each copy's agent order. Dict observations (e.g. ``"teammap"``) become a
+    dict of stacked arrays, as SB3's ``MultiInputPolicy`` takes them."""
+    rows = [o for obs in per_copy for o in obs.values()]
+    if isinstance(rows[0], dict):
+        return {key: np.stack([r[key] for r in rows]) for key in rows[0]}
+    return np.stack(rows)
+
+
 def run_episodes(
     policy: BatchPolicy,
     env: EnvConfig,
@@ -112,9 +127,28 @@ def run_episodes(
     seed: int,
     copies: int = 8,
     record_paths: bool = False,
+    frames_every: int = 0,
 ) -> list[EpisodeResult]:
-    """Run ``episodes`` seeded episodes with ``policy`` and return their metrics in order."""
+    """Run ``episodes`` seeded episodes with ``policy`` and return their metrics in order.
+
+    This is the project's one episode loop: evaluation, ``harness tune``, the in-training
+    evaluations, the baselines, path pictures and GIFs all play their episodes here.
+
+    Args:
+        policy: The batched policy.
+        env: The env of every episode.
+        episodes: Number of episodes; episode ``k`` is the env reset with ``seed + k``.
+        seed: Seed of episode 0.
+        copies: Env copies stepped side by side (results do not depend on it).
+        record_paths: Keep each agent's positions and the map (``paths``, ``walls``).
+        frames_every: Render ``rgb_array`` frames every this many steps, plus the first and last
+            (0: none).
+    """
+    if frames_every < 0:
+        raise ValueError(f"frames_every must be >= 0, got {frames_every}")
     kwargs = env.kwargs()
+    if frames_every:
+        kwargs["render_mode"] = "rgb_array"
     n_copies = max(1, min(copies, episodes))
     envs = [coverage_v0.parallel_env(**kwargs) for _ in range(n_copies)]
     n_agents, max_steps = env.n_agents, env.max_steps
@@ -124,11 +158,12 @@ def run_episodes(
         batch = envs[: min(n_copies, episodes - first)]
         obs = [e.reset(seed=seed + first + i)[0] for i, e in enumerate(batch)]
         paths = [[e.positions] for e in batch] if record_paths else None
+        frames: list[list[np.ndarray]] = [[e.render()] if frames_every else [] for e in batch]
         at: list[list[float]] = [[] for _ in batch]
         infos: list[dict[str, Any]] = []
         for t in range(1, max_steps + 1):
-            stacked = np.concatenate([np.stack(list(o.values())) for o in obs])
-            actions = np.asarray(policy(stacked, batch)).reshape(len(batch), n_agents).tolist()
+            actions = np.asarray(policy(stack_observations(obs), batch))
+            actions = actions.reshape(len(batch), n_agents).tolist()
             obs, infos = [], []
             for i, e in enumerate(batch):
                 o, _, _, _, info = e.step(dict(zip(e.possible_agents, actions[i])))
@@ -136,6 +171,8 @@ def run_episodes(
                 infos.append(info)
                 if paths is not None:
                     paths[i].append(e.positions)
+                if frames_every and (t % frames_every == 0 or t == max_steps):
+                    frames[i].append(e.render())
                 if t in marks:  # a short episode can hit one step for two marks
                     at[i].extend([e.coverage] * marks.count(t))
         for i, e in enumerate(batch):
@@ -149,6 +186,8 @@ def run_episodes(
                     steps=max_steps,
                     free_cells=e.free_cells,
                     paths=list(np.stack(paths[i], axis=1)) if paths is not None else [],
+                    walls=np.array(e.walls) if record_paths else None,
+                    frames=frames[i],
                 )
             )
     return results

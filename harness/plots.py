@@ -14,7 +14,6 @@ import csv
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -24,13 +23,12 @@ from matplotlib.figure import Figure
 from matplotlib.lines import Line2D
 from matplotlib.ticker import MaxNLocator, PercentFormatter
 
-from envs import coverage_v0
 from envs.coverage import render
-from harness.evaluation import CHECKPOINT_FRACTIONS
+from harness.evaluation import CHECKPOINT_FRACTIONS, EpisodeResult, run_episodes
 
 if TYPE_CHECKING:  # only for annotations: keeps this module importable without a cycle
     from harness.config import EnvConfig
-    from harness.evaluation import BatchPolicy, EpisodeResult
+    from harness.evaluation import BatchPolicy
 
 DPI = 150
 #: Okabe-Ito colours as matplotlib hex strings, agent 0 first.
@@ -561,28 +559,13 @@ def _quiet_nan_warnings() -> Iterator[None]:
 
 
 # ---------------------------------------------------------------------- episodes as GIF
-@dataclass
-class EpisodeRecording:
-    """One played episode: its map, the agents' paths and (optionally) rendered frames."""
-
-    walls: np.ndarray
-    """``bool (H, W)``, True = wall."""
-    paths: list[np.ndarray]
-    """Per agent ``(T + 1, 2)`` ``(row, col)``, as :func:`plot_paths` takes them."""
-    coverage: float
-    wall_hits: list[int]
-    frames: list[np.ndarray] = field(default_factory=list)
-    """``rgb_array`` frames (``uint8 (H*k, W*k, 3)``) at step 0, every ``every`` steps and the
-    last step."""
-
-
 def play_episode(
     env_cfg: EnvConfig, policy: BatchPolicy, seed: int, every: int = 1, frames: bool = True
-) -> EpisodeRecording:
-    """Play one episode with a batched policy, recording paths and ``rgb_array`` frames.
+) -> EpisodeResult:
+    """Play one episode with a batched policy, recording paths, the map and ``rgb_array`` frames.
 
-    The env is reset with ``seed``, so this is episode 0 of ``run_episodes(..., seed=seed)``:
-    the same map and start cells (and, for a deterministic policy, the same episode).
+    It is episode 0 of ``run_episodes(..., seed=seed)`` (the same loop): the same map and start
+    cells (and, for a deterministic policy, the same episode).
 
     Args:
         env_cfg: The env to build.
@@ -592,31 +575,14 @@ def play_episode(
         frames: Render frames at all (``False`` records only the paths).
 
     Returns:
-        The recording.
+        The episode, with ``paths``, ``walls`` and (with ``frames``) ``frames``.
     """
     if every < 1:
         raise ValueError(f"every must be >= 1, got {every}")
-    env = coverage_v0.parallel_env(**env_cfg.kwargs(), render_mode="rgb_array" if frames else None)
-    obs, _ = env.reset(seed=seed)
-    agents = env.possible_agents
-    path = [env.positions]
-    images = [env.render()] if frames else []
-    infos: dict[str, dict[str, Any]] = {}
-    while env.agents:
-        stacked = np.stack([obs[a] for a in agents])
-        actions = np.asarray(policy(stacked, [env])).reshape(-1).tolist()
-        obs, _, _, _, infos = env.step(dict(zip(agents, actions)))
-        path.append(env.positions)
-        if frames and (env.steps % every == 0 or not env.agents):
-            images.append(env.render())
-    positions = np.stack(path, axis=1)  # (n_agents, T + 1, 2)
-    return EpisodeRecording(
-        walls=np.array(env.walls),
-        paths=list(positions),
-        coverage=env.coverage,
-        wall_hits=[infos[a]["wall_hits"] for a in agents],
-        frames=images,
+    (result,) = run_episodes(
+        policy, env_cfg, 1, seed, copies=1, record_paths=True, frames_every=every if frames else 0
     )
+    return result
 
 
 def episode_frames(

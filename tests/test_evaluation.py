@@ -115,3 +115,18 @@ def test_negative_temperature_is_rejected():
 
     with pytest.raises(ValueError, match="temperature"):
         model_policy(_FixedQ(), temperature=-1.0)
+
+
+def test_stack_observations_is_copy_major_for_arrays_and_dicts() -> None:
+    from harness.evaluation import stack_observations
+
+    flat = [{"agent_0": np.array([0.0]), "agent_1": np.array([1.0])}, {"agent_0": np.array([2.0])}]
+    np.testing.assert_array_equal(stack_observations(flat), [[0.0], [1.0], [2.0]])
+    dicts = [
+        {"agent_0": {"a": np.zeros((2, 2)), "v": np.array([0.0])}},
+        {"agent_0": {"a": np.ones((2, 2)), "v": np.array([1.0])}},
+    ]
+    stacked = stack_observations(dicts)
+    assert set(stacked) == {"a", "v"}
+    assert stacked["a"].shape == (2, 2, 2)
+    np.testing.assert_array_equal(stacked["v"], [[0.0], [1.0]])

@@ -13,7 +13,7 @@ from envs import coverage_v0
 from harness import plots
 from harness.baselines import make_baseline
 from harness.config import EnvConfig
-from harness.evaluation import run_episodes
+from harness.evaluation import EpisodeResult, run_episodes
 from harness.rundir import EPISODE_COLUMNS
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -34,7 +34,7 @@ def tiny_env(n_agents: int = 2, max_steps: int = 30, size: int = 8) -> EnvConfig
 
 
 @pytest.fixture(scope="module")
-def episodes() -> dict[int, plots.EpisodeRecording]:
+def episodes() -> dict[int, EpisodeResult]:
     """A short frontier episode with 1 and with 4 agents (paths only)."""
     policy = make_baseline("frontier", 0)
     return {

@@ -19,7 +19,13 @@ from typing import Any
 
 from harness.baselines import BASELINES, make_baseline
 from harness.config import ConfigError, ExperimentConfig, load_config
-from harness.evaluation import BatchPolicy, model_policy, run_episodes, summarize
+from harness.evaluation import (
+    BatchPolicy,
+    model_policy,
+    run_episodes,
+    selection_score,
+    summarize,
+)
 from harness.rundir import atomic_write_text
 
 #: Episodes of a standard evaluation (the thesis tested on 100).
@@ -225,13 +231,12 @@ TUNE_KEYS = (
 def choose_temperature(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """The row of a temperature sweep to test with.
 
-    The target is zero wall hits first and coverage second (SPEC §6), so: the fewest wall hits
-    per episode, then the highest median coverage, then the lower temperature (the one closer
-    to the greedy policy).
+    :func:`harness.evaluation.selection_score` (fewest wall hits, then the highest median
+    coverage) picks it; among equals, the lower temperature (the one closer to the greedy policy).
     """
     if not rows:
         raise ValueError("no temperatures to choose from")
-    return min(rows, key=lambda r: (r["wall_hits_mean"], -r["coverage_median"], r["temperature"]))
+    return max(rows, key=lambda r: (selection_score(r), -r["temperature"]))
 
 
 def tune_temperature(

@@ -193,6 +193,18 @@ def run_episodes(
     return results
 
 
+def selection_score(summary: dict[str, Any]) -> float:
+    """The project's one rule for picking a policy: fewest wall hits first, then the highest
+    median coverage (the thesis's tests show zero wall hits). Higher is better.
+
+    ``best_model.zip`` (the best in-training evaluation) and ``harness tune`` (the test
+    temperature) both choose by it. One more wall hit over the evaluation episodes costs
+    ``1000 / episodes`` and a median never exceeds 1, so the order is lexicographic for fewer
+    than 1000 episodes. A single float, because a checkpoint's training state keeps it.
+    """
+    return float(summary["coverage_median"]) - 1000.0 * float(summary["wall_hits_mean"])
+
+
 def summarize(results: list[EpisodeResult]) -> dict[str, Any]:
     """The thesis's numbers over a list of episodes (all fractions in [0, 1])."""
     cov = np.array([r.coverage for r in results])

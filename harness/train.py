@@ -50,7 +50,7 @@ from harness.checkpoints import (
 )
 from harness.config import ExperimentConfig, PhaseConfig
 from harness.dqn import DoubleDQN, NonFiniteLossError
-from harness.evaluation import model_policy, run_episodes, summarize
+from harness.evaluation import model_policy, run_episodes, selection_score, summarize
 from harness.rundir import (
     EVALUATION_COLUMNS,
     RunDir,
@@ -164,24 +164,13 @@ def phase_callbacks(
     return callbacks, episode_log
 
 
-def best_model_score(summary: dict[str, Any]) -> float:
-    """The number ``best_model.zip`` maximises over the in-training evaluations.
-
-    Fewest wall hits first, then the highest median coverage (the rule of ``harness tune``;
-    SPEC §6 asks for zero wall hits): one more wall hit over the evaluation episodes costs
-    ``1000 / episodes`` and a median never exceeds 1, so the order is lexicographic for fewer
-    than 1000 episodes. A single float, because the checkpoint's training state keeps it.
-    """
-    return float(summary["coverage_median"]) - 1000.0 * float(summary["wall_hits_mean"])
-
-
 class Evaluator:
     """Evaluation on validation episodes during training; keeps the best model.
 
     The episodes come from ``eval.validation_seed``, never the test seed of ``harness eval``, so
     ``best_model.zip`` is chosen without seeing the test maps. The same maps and start cells are
     used at every evaluation, so the curve is comparable over training. "Best": see
-    :func:`best_model_score`.
+    :func:`harness.evaluation.selection_score`.
     """
 
     def __init__(self, config: ExperimentConfig, run: RunDir, best: float = -np.inf) -> None:
@@ -198,7 +187,7 @@ class Evaluator:
         model.logger.record("eval/wall_hits_mean", summary["wall_hits_mean"])
         model.logger.dump(model.num_timesteps)
         self._append_row(model.num_timesteps, summary)
-        score = best_model_score(summary)
+        score = selection_score(summary)
         if score > self.best:
             self.best = score
             save_model(model, self.run.best_model)

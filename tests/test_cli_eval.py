@@ -275,14 +275,14 @@ def test_best_model_is_chosen_on_validation_episodes(smoke_run, capsys):
     assert validation["wall_hits_mean"] == pytest.approx(float(best["wall_hits_mean"]))
 
 
-def test_best_model_score_puts_zero_wall_hits_before_coverage():
-    from harness.train import best_model_score
+def test_selection_score_puts_zero_wall_hits_before_coverage():
+    from harness.evaluation import selection_score
 
-    clean = best_model_score({"coverage_median": 0.30, "wall_hits_mean": 0.0})
-    one_hit = best_model_score({"coverage_median": 0.95, "wall_hits_mean": 1 / 999})
-    wider = best_model_score({"coverage_median": 0.31, "wall_hits_mean": 0.0})
+    clean = selection_score({"coverage_median": 0.30, "wall_hits_mean": 0.0})
+    one_hit = selection_score({"coverage_median": 0.95, "wall_hits_mean": 1 / 999})
+    wider = selection_score({"coverage_median": 0.31, "wall_hits_mean": 0.0})
     assert wider > clean > one_hit
-    assert best_model_score({"coverage_median": 0.9, "wall_hits_mean": 0.05}) > best_model_score(
+    assert selection_score({"coverage_median": 0.9, "wall_hits_mean": 0.05}) > selection_score(
         {"coverage_median": 0.2, "wall_hits_mean": 0.10}
     )
 

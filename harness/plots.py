@@ -14,6 +14,7 @@ import csv
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -71,54 +72,119 @@ def plot_paths(
     paths = [np.asarray(p, dtype=np.int64).reshape(-1, 2) for p in paths]
     if not paths:
         raise ValueError("plot_paths needs at least one agent's path")
-    steps = len(paths[0]) - 1
-    if any(len(p) != steps + 1 for p in paths):
+    if any(len(p) != len(paths[0]) for p in paths):
         raise ValueError("all agents' paths must have the same length")
-    height, width = walls.shape
-    n_agents = len(paths)
     first_step, credited = first_visits(walls.shape, paths)
-    n_free = int((~walls).sum())
-    coverage = (first_step >= 0).sum() / n_free if n_free else 0.0
-    colours = [AGENT_HEX[i % len(AGENT_HEX)] for i in range(n_agents)]
+    layout = _PathsLayout.make(walls.shape, len(paths), snapshots, bool(title))
+    fig = Figure(figsize=(layout.fig_w, layout.fig_h), dpi=DPI)
+    y = layout.title_h + layout.row_top
+    _draw_team_and_agents(layout.row(fig, len(paths) + 1, y), walls, paths, first_step, credited)
+    y += layout.panel_h + layout.row_bottom
+    _draw_paths_legend(fig, len(paths), 1 - (y + layout.legend_h / 2) / layout.fig_h)
+    y += layout.legend_h
+    if snapshots:
+        fig.text(
+            0.5,
+            1 - (y + layout.snap_head / 2) / layout.fig_h,
+            "Team coverage during the episode (cells tinted by the agent credited with them)",
+            ha="center",
+            va="center",
+            fontsize="medium",
+            fontweight="bold",
+        )
+        y += layout.snap_head + layout.row_top
+        axes = layout.row(fig, len(CHECKPOINT_FRACTIONS), y)
+        _draw_snapshots(axes, walls, paths, first_step, credited)
+    if title:
+        fig.text(
+            0.5,
+            1 - layout.title_h / 2 / layout.fig_h,
+            title,
+            ha="center",
+            va="center",
+            fontsize="large",
+            fontweight="bold",
+        )
+    return _save(fig, out)
 
-    # Layout in inches, so every panel has the same size whatever the number of agents, and
-    # each row is centred: [title] [team + agents] [legend] [snapshot header] [snapshots].
-    top_n = n_agents + 1
-    bottom_n = len(CHECKPOINT_FRACTIONS) if snapshots else 0
-    panel_w = 2.8 if top_n <= 5 else 2.3
-    panel_h = panel_w * height / width
-    gap, side = 0.55, 0.35
-    fig_w = side * 2 + max(top_n, bottom_n) * (panel_w + gap)
-    title_h = 0.45 if title else 0.1
-    row_top = 0.55  # two-line panel titles
-    row_bottom = 0.5  # tick labels and x label
-    legend_h = 0.4
-    snap_head = 0.55 if snapshots else 0.0
-    snap_h = (row_top + panel_h + row_bottom) if snapshots else 0.0
-    fig_h = title_h + row_top + panel_h + row_bottom + legend_h + snap_head + snap_h
-    fig = Figure(figsize=(fig_w, fig_h), dpi=DPI)
 
-    def row(n: int, top: float) -> list[Any]:
+@dataclass(frozen=True)
+class _PathsLayout:
+    """Sizes of :func:`plot_paths`'s figure in inches, so every panel has the same size whatever
+    the number of agents: [title] [team + agents] [legend] [snapshot header] [snapshots]."""
+
+    panel_w: float
+    panel_h: float
+    fig_w: float
+    fig_h: float
+    title_h: float
+    row_top: float = 0.55  # two-line panel titles
+    row_bottom: float = 0.5  # tick labels and x label
+    legend_h: float = 0.4
+    snap_head: float = 0.55
+    gap: float = 0.55
+
+    @classmethod
+    def make(
+        cls, shape: tuple[int, int], n_agents: int, snapshots: bool, titled: bool
+    ) -> _PathsLayout:
+        height, width = shape
+        top_n = n_agents + 1
+        bottom_n = len(CHECKPOINT_FRACTIONS) if snapshots else 0
+        panel_w = 2.8 if top_n <= 5 else 2.3
+        panel_h = panel_w * height / width
+        side, gap = 0.35, cls.gap
+        title_h = 0.45 if titled else 0.1
+        rows = cls.row_top + panel_h + cls.row_bottom
+        snap = (cls.snap_head + rows) if snapshots else 0.0
+        return cls(
+            panel_w=panel_w,
+            panel_h=panel_h,
+            fig_w=side * 2 + max(top_n, bottom_n) * (panel_w + gap),
+            fig_h=title_h + rows + cls.legend_h + snap,
+            title_h=title_h,
+        )
+
+    def row(self, fig: Figure, n: int, top: float) -> list[Any]:
         """``n`` centred panels whose upper edge is ``top`` inches below the figure's top."""
-        width_in = n * panel_w + (n - 1) * gap
-        left = (fig_w - width_in) / 2
-        bottom = fig_h - top - panel_h
+        width_in = n * self.panel_w + (n - 1) * self.gap
+        left = (self.fig_w - width_in) / 2
+        bottom = self.fig_h - top - self.panel_h
         return [
             fig.add_axes(
                 (
-                    (left + k * (panel_w + gap)) / fig_w,
-                    bottom / fig_h,
-                    panel_w / fig_w,
-                    panel_h / fig_h,
+                    (left + k * (self.panel_w + self.gap)) / self.fig_w,
+                    bottom / self.fig_h,
+                    self.panel_w / self.fig_w,
+                    self.panel_h / self.fig_h,
                 )
             )
             for k in range(n)
         ]
 
-    lw = float(np.clip(90 / max(height, width), 0.6, 2.2))
-    marker = float(np.clip(220 / max(height, width), 3.5, 9.0))
-    y = title_h + row_top
-    axes = row(top_n, y)
+
+def _line_sizes(walls: np.ndarray) -> tuple[float, float]:
+    """Path line width and marker size for a map of this size."""
+    size = max(walls.shape)
+    return float(np.clip(90 / size, 0.6, 2.2)), float(np.clip(220 / size, 3.5, 9.0))
+
+
+def _agent_hex(n_agents: int) -> list[str]:
+    return [AGENT_HEX[i % len(AGENT_HEX)] for i in range(n_agents)]
+
+
+def _draw_team_and_agents(
+    axes: list[Any],
+    walls: np.ndarray,
+    paths: list[np.ndarray],
+    first_step: np.ndarray,
+    credited: np.ndarray,
+) -> None:
+    """The top row: the team's paths over the map, then each agent's own path and cells."""
+    n_agents, steps = len(paths), len(paths[0]) - 1
+    n_free = int((~walls).sum())
+    colours = _agent_hex(n_agents)
+    lw, marker = _line_sizes(walls)
     team_bg = _map_image(walls)
     team_bg[first_step >= 0] = _SEEN
     _show_map(axes[0], team_bg)
@@ -127,6 +193,7 @@ def plot_paths(
     for i, path in enumerate(paths):
         offset = (i - (n_agents - 1) / 2) * spread
         _draw_path(axes[0], path, colours[i], 0.8 * lw, marker, offset)
+    coverage = (first_step >= 0).sum() / n_free if n_free else 0.0
     axes[0].set_title(f"Team\n{100 * coverage:.1f} % covered", fontsize="medium")
     for i, path in enumerate(paths):
         ax = axes[i + 1]
@@ -141,58 +208,52 @@ def plot_paths(
             f"agent_{i}: {100 * share:.1f} % of map\n{100 * useful:.1f} % useful moves",
             fontsize="medium",
         )
+
+
+def _draw_paths_legend(fig: Figure, n_agents: int, y: float) -> None:
+    """One legend entry per agent, plus the start and end markers, centred at height ``y``."""
+    colours = _agent_hex(n_agents)
     handles = [Line2D([], [], color=c, lw=2, label=f"agent_{i}") for i, c in enumerate(colours)]
     handles += [
         Line2D([], [], ls="", marker="o", mfc="white", mec="black", label="start"),
         Line2D([], [], ls="", marker="s", mfc="white", mec="black", label="end"),
     ]
-    y += panel_h + row_bottom
     fig.legend(
         handles=handles,
         loc="center",
-        bbox_to_anchor=(0.5, 1 - (y + legend_h / 2) / fig_h),
+        bbox_to_anchor=(0.5, y),
         ncol=min(len(handles), 10),
         frameon=False,
     )
-    y += legend_h
 
-    if snapshots:
-        fig.text(
-            0.5,
-            1 - (y + snap_head / 2) / fig_h,
-            "Team coverage during the episode (cells tinted by the agent credited with them)",
-            ha="center",
-            va="center",
+
+def _draw_snapshots(
+    axes: list[Any],
+    walls: np.ndarray,
+    paths: list[np.ndarray],
+    first_step: np.ndarray,
+    credited: np.ndarray,
+) -> None:
+    """The bottom row: what the team had covered at 33, 66 and 100 % of the episode."""
+    steps = len(paths[0]) - 1
+    n_free = int((~walls).sum())
+    colours = _agent_hex(len(paths))
+    _, marker = _line_sizes(walls)
+    tints = 1 - render.TINT * (1 - render.AGENT_COLOURS / 255)
+    for k, (ax, frac) in enumerate(zip(axes, CHECKPOINT_FRACTIONS)):
+        step = round(frac * steps)
+        covered = (first_step >= 0) & (first_step <= step)
+        img = _map_image(walls)
+        img[covered] = tints[credited[covered] % len(tints)]
+        _show_map(ax, img, ylabel=k == 0)
+        for i, path in enumerate(paths):
+            r, c = path[step]
+            ax.plot(c, r, "o", ms=marker, mfc=colours[i], mec="black", mew=0.8)
+        share = covered.sum() / n_free if n_free else 0.0
+        ax.set_title(
+            f"step {step} ({100 * frac:.0f} % of episode)\n{100 * share:.1f} % covered",
             fontsize="medium",
-            fontweight="bold",
         )
-        y += snap_head + row_top
-        tints = 1 - render.TINT * (1 - render.AGENT_COLOURS / 255)
-        for k, (ax, frac) in enumerate(zip(row(bottom_n, y), CHECKPOINT_FRACTIONS)):
-            step = round(frac * steps)
-            covered = (first_step >= 0) & (first_step <= step)
-            img = _map_image(walls)
-            img[covered] = tints[credited[covered] % len(tints)]
-            _show_map(ax, img, ylabel=k == 0)
-            for i, path in enumerate(paths):
-                r, c = path[step]
-                ax.plot(c, r, "o", ms=marker, mfc=colours[i], mec="black", mew=0.8)
-            share = covered.sum() / n_free if n_free else 0.0
-            ax.set_title(
-                f"step {step} ({100 * frac:.0f} % of episode)\n{100 * share:.1f} % covered",
-                fontsize="medium",
-            )
-    if title:
-        fig.text(
-            0.5,
-            1 - title_h / 2 / fig_h,
-            title,
-            ha="center",
-            va="center",
-            fontsize="large",
-            fontweight="bold",
-        )
-    return _save(fig, out)
 
 
 def first_visits(
@@ -273,43 +334,13 @@ def plot_eval_episodes(
     Returns:
         The path of the PNG.
     """
-    items = list(results_or_coverages)
-    if not items:
-        raise ValueError("plot_eval_episodes needs at least one episode")
-    if hasattr(items[0], "coverage"):
-        coverage = np.array([r.coverage for r in items], dtype=float)
-        if wall_hits is None:
-            wall_hits = [sum(r.wall_hits) for r in items]
-    else:
-        coverage = np.asarray(items, dtype=float)
-    hits = None if wall_hits is None else np.asarray(wall_hits, dtype=float)
-    if hits is not None and len(hits) != len(coverage):
-        raise ValueError(f"{len(hits)} wall-hit counts for {len(coverage)} episodes")
+    coverage, hits = _episode_arrays(results_or_coverages, wall_hits)
     episodes = np.arange(1, len(coverage) + 1)
     median = float(np.median(coverage))
 
     fig = Figure(figsize=(7.0, 3.8), dpi=DPI)
     ax = fig.add_subplot()
-    handles = []
-    if hits is not None:
-        # Wall hits behind the coverage line, on their own axis at the right.
-        ax_hits = ax.twinx()
-        total = int(hits.sum())
-        bars = ax_hits.bar(
-            episodes,
-            hits,
-            width=0.8,
-            color=_HITS_COLOUR,
-            alpha=0.35,
-            label=f"wall hits ({total} in {len(hits)} episodes)",
-        )
-        ax_hits.set_ylabel("wall hits per episode", color=_HITS_COLOUR)
-        ax_hits.tick_params(axis="y", colors=_HITS_COLOUR)
-        ax_hits.set_ylim(0, max(1.0, float(hits.max())) * 1.15)
-        ax_hits.yaxis.set_major_locator(MaxNLocator(integer=True))
-        ax.set_zorder(ax_hits.get_zorder() + 1)  # coverage drawn over the bars
-        ax.patch.set_visible(False)
-        handles.append(bars)
+    handles = [] if hits is None else [_draw_wall_hits(ax, episodes, hits)]
     (line,) = ax.plot(
         episodes,
         100 * coverage,
@@ -340,6 +371,47 @@ def plot_eval_episodes(
     ax.set_title(title or f"Coverage of {len(coverage)} test episodes")
     fig.tight_layout()
     return _save(fig, out)
+
+
+def _episode_arrays(
+    results_or_coverages: Sequence[EpisodeResult] | Sequence[float] | np.ndarray,
+    wall_hits: Sequence[int] | np.ndarray | None,
+) -> tuple[np.ndarray, np.ndarray | None]:
+    """Coverage per episode and wall hits per episode (``None``: none to draw)."""
+    items = list(results_or_coverages)
+    if not items:
+        raise ValueError("plot_eval_episodes needs at least one episode")
+    if hasattr(items[0], "coverage"):
+        coverage = np.array([r.coverage for r in items], dtype=float)
+        if wall_hits is None:
+            wall_hits = [sum(r.wall_hits) for r in items]
+    else:
+        coverage = np.asarray(items, dtype=float)
+    hits = None if wall_hits is None else np.asarray(wall_hits, dtype=float)
+    if hits is not None and len(hits) != len(coverage):
+        raise ValueError(f"{len(hits)} wall-hit counts for {len(coverage)} episodes")
+    return coverage, hits
+
+
+def _draw_wall_hits(ax: Any, episodes: np.ndarray, hits: np.ndarray) -> Any:
+    """Wall hits as bars behind the coverage line, on their own axis at the right."""
+    ax_hits = ax.twinx()
+    total = int(hits.sum())
+    bars = ax_hits.bar(
+        episodes,
+        hits,
+        width=0.8,
+        color=_HITS_COLOUR,
+        alpha=0.35,
+        label=f"wall hits ({total} in {len(hits)} episodes)",
+    )
+    ax_hits.set_ylabel("wall hits per episode", color=_HITS_COLOUR)
+    ax_hits.tick_params(axis="y", colors=_HITS_COLOUR)
+    ax_hits.set_ylim(0, max(1.0, float(hits.max())) * 1.15)
+    ax_hits.yaxis.set_major_locator(MaxNLocator(integer=True))
+    ax.set_zorder(ax_hits.get_zorder() + 1)  # coverage drawn over the bars
+    ax.patch.set_visible(False)
+    return bars
 
 
 # ---------------------------------------------------------------------- learning curves

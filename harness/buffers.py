@@ -21,6 +21,7 @@ __all__ = [
     "PrioritizedReplayBufferSamples",
     "SumTree",
     "importance_weights",
+    "replay_memory_bytes",
 ]
 
 
@@ -137,6 +138,49 @@ class SumTree:
             queries = np.where(go_right, queries - left_sum, queries)
             idx = left + go_right
         return (idx - self.size).reshape(shape)
+
+
+def replay_memory_bytes(
+    observation_space: spaces.Space,
+    action_space: spaces.Space,
+    buffer_size: int,
+    n_envs: int,
+    prioritized: bool = True,
+) -> int:
+    """Bytes the replay buffer will hold once full, from the spaces (nothing is allocated).
+
+    As SB3's ``ReplayBuffer``/``DictReplayBuffer`` store them: ``buffer_size // n_envs`` rows of
+    ``n_envs`` transitions, each with the observation and the next observation (every key of a
+    ``Dict``), the action (one per ``Discrete``, in its dtype), and float32 reward, done and
+    timeout. The prioritized buffer adds a float64 raw priority per transition and a float64 sum
+    tree of ``2 * next_power_of_two(transitions)`` nodes.
+
+    Args:
+        observation_space: One slot's observation space (``Box`` or ``Dict`` of ``Box``).
+        action_space: One slot's action space.
+        buffer_size: Transitions over all envs, as in SB3.
+        n_envs: VecEnv slots.
+        prioritized: Add the prioritized buffer's bookkeeping.
+    """
+    boxes = (
+        list(observation_space.spaces.values())
+        if isinstance(observation_space, spaces.Dict)
+        else [observation_space]
+    )
+    obs = sum(int(np.prod(b.shape)) * np.dtype(b.dtype).itemsize for b in boxes)
+    action_dtype = np.dtype(action_space.dtype if action_space.dtype is not None else np.float32)
+    if action_dtype == np.float64:  # SB3 stores float64 actions as float32
+        action_dtype = np.dtype(np.float32)
+    action_dim = (
+        1 if isinstance(action_space, spaces.Discrete) else int(np.prod(action_space.shape))
+    )
+    per_transition = 2 * obs + action_dim * action_dtype.itemsize + 3 * 4
+    transitions = max(buffer_size // n_envs, 1) * n_envs
+    total = per_transition * transitions
+    if prioritized:
+        tree_leaves = 1 << (transitions - 1).bit_length()
+        total += 8 * transitions + 8 * 2 * tree_leaves
+    return int(total)
 
 
 def importance_weights(

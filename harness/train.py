@@ -48,8 +48,9 @@ from harness.checkpoints import (
     save_checkpoint,
     set_rng_states,
 )
+from harness.checks import optimizer_kwargs_with_foreach
 from harness.config import ExperimentConfig, PhaseConfig
-from harness.dqn import DoubleDQN, NonFiniteLossError
+from harness.dqn import DoubleDQN, NonFiniteLossError, resolve_optimizer_class
 from harness.evaluation import model_policy, run_episodes, selection_score, summarize
 from harness.rundir import (
     EVALUATION_COLUMNS,
@@ -71,12 +72,11 @@ def configure_torch(threads: int | None) -> None:
 def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
     """Make the ``DoubleDQN`` of ``config.algo`` with the first phase's settings."""
     algo, first = config.algo, config.phases[0]
+    optimizer_class = resolve_optimizer_class(algo.optimizer)
     policy_kwargs: dict[str, Any] = {
         "net_arch": list(algo.net_arch),
-        "optimizer_class": getattr(torch.optim, algo.optimizer),
-        # foreach: torch's multi-tensor optimizer step, ~20 % more gradient steps/s on CPU
-        # for the thesis's 3x512 net (harness bench); torch enables it by itself only on GPU.
-        "optimizer_kwargs": {"foreach": True, **algo.optimizer_kwargs},
+        "optimizer_class": optimizer_class,
+        "optimizer_kwargs": optimizer_kwargs_with_foreach(optimizer_class, algo.optimizer_kwargs),
     }
     if algo.policy == "DuelingMlpPolicy":
         policy_kwargs["aggregator"] = algo.dueling_aggregator

@@ -18,8 +18,8 @@ def write(tmp_path: Path, text: str) -> Path:
     return path
 
 
-def test_empty_file_gives_thesis_defaults(tmp_path):
-    cfg = load_config(write(tmp_path, ""))
+def test_minimal_file_gives_thesis_defaults(tmp_path):
+    cfg = load_config(write(tmp_path, "name: defaults\n"))
     assert cfg.env.n_agents == 4 and cfg.env.max_steps == 1000
     assert cfg.algo.optimizer == "RMSprop" and cfg.algo.buffer_size == 100_000
     assert cfg.algo.target_update_interval == 10_000
@@ -107,7 +107,7 @@ def test_overrides_are_typed_and_reach_nested_keys(tmp_path):
 )
 def test_bad_overrides(tmp_path, override, message):
     with pytest.raises(ConfigError, match=message):
-        load_config(write(tmp_path, ""), [override])
+        load_config(write(tmp_path, "name: x\n"), [override])
 
 
 def test_parse_override_uses_yaml_types():

@@ -8,10 +8,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
+from typing import NoReturn
 
 from harness.checkpoints import CheckpointError, latest_checkpoint, read_state
 from harness.commands import (
@@ -20,26 +22,75 @@ from harness.commands import (
     DEFAULT_TUNE_EPISODES,
     Target,
     TargetError,
-    check_run_folder,
     eval_filename,
     export_reference,
     format_summary,
     format_tune,
     read_eval_json,
+    read_run_curves,
     resolve_target,
     run_label,
     sampling_note,
     tune_temperature,
     write_temperature,
 )
-from harness.config import ConfigError, ExperimentConfig, load_config
-from harness.rundir import RunDir, RunDirError, atomic_write_text
+from harness.config import MAX_SEED, ConfigError, ExperimentConfig, load_config
+from harness.rundir import (
+    RunDir,
+    RunDirError,
+    atomic_write_text,
+    check_output_file,
+    is_reference,
+)
 
 EXIT_USAGE = 2
 
 
 class HarnessError(Exception):
     """A user-facing error: printed as one line, exit code 2."""
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse, with its usage errors on one line (``harness: error: ...``, exit code 2) like
+    every other error of the command; ``--help`` shows the usage."""
+
+    def error(self, message: str) -> NoReturn:
+        self.exit(EXIT_USAGE, f"harness: error: {self.prog}: {message} (see {self.prog} --help)\n")
+
+
+def seed_arg(text: str) -> int:
+    """A ``--seed`` value: an integer in ``[0, MAX_SEED]``."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"seed must be an integer, got {text!r}") from None
+    if not 0 <= value <= MAX_SEED:
+        raise argparse.ArgumentTypeError(f"seed must be in [0, {MAX_SEED}], got {value}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """An integer >= 1 (episode counts, windows, frame intervals)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
+    return value
+
+
+def temperature_arg(text: str) -> float:
+    """A finite temperature > 0."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(
+            f"temperatures must be finite and > 0, got {text} (T = 0: harness eval's greedy policy)"
+        )
+    return value
 
 
 def _add_overrides(parser: argparse.ArgumentParser) -> None:
@@ -54,11 +105,13 @@ def _add_overrides(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="harness",
         description="Train, evaluate and compare multi-agent coverage policies.",
     )
-    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    sub = parser.add_subparsers(
+        dest="command", required=True, metavar="COMMAND", parser_class=_Parser
+    )
 
     run = sub.add_parser("run", help="train an experiment from a YAML config")
     run.add_argument("config", type=Path, nargs="?", help="experiment YAML file (see configs/)")
@@ -69,7 +122,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="continue an interrupted run from its latest checkpoint (uses its config.yaml)",
     )
     _add_overrides(run)
-    run.add_argument("--seed", type=int, help="override the config's seed")
+    run.add_argument("--seed", type=seed_arg, help="override the config's seed")
     run.add_argument("--name", help="override the config's name (the run folder's prefix)")
     run.add_argument("--runs-dir", type=Path, default=Path("runs"), help="where runs are written")
     run.add_argument("--no-progress", action="store_true", help="hide the progress bar")
@@ -77,7 +130,10 @@ def build_parser() -> argparse.ArgumentParser:
     ev = sub.add_parser("eval", help="evaluate a trained model or a baseline on fresh episodes")
     _add_target(ev)
     ev.add_argument(
-        "--episodes", type=int, default=DEFAULT_EPISODES, help="test episodes (default 100)"
+        "--episodes",
+        type=positive_int,
+        default=DEFAULT_EPISODES,
+        help="test episodes (default 100)",
     )
     ev.add_argument("--json", action="store_true", help="print one JSON object")
     ev.add_argument("--plot", type=Path, help="coverage/wall hits per episode PNG (Fig. 4.11)")
@@ -88,7 +144,7 @@ def build_parser() -> argparse.ArgumentParser:
     tune.add_argument("target", type=Path, metavar="RUN_DIR_OR_MODEL", help="run folder or zip")
     tune.add_argument(
         "--temperatures",
-        type=float,
+        type=temperature_arg,
         nargs="+",
         default=list(DEFAULT_TEMPERATURES),
         metavar="T",
@@ -96,12 +152,12 @@ def build_parser() -> argparse.ArgumentParser:
     )
     tune.add_argument(
         "--episodes",
-        type=int,
+        type=positive_int,
         default=DEFAULT_TUNE_EPISODES,
         help="validation episodes per temperature (default %(default)s)",
     )
     tune.add_argument(
-        "--seed", type=int, help="seed of the episodes (default: config eval.validation_seed)"
+        "--seed", type=seed_arg, help="seed of the episodes (default: config eval.validation_seed)"
     )
     _add_overrides(tune)
     tune.add_argument(
@@ -114,7 +170,7 @@ def build_parser() -> argparse.ArgumentParser:
     cmp_ = sub.add_parser("compare", help="learning curves and eval tables of several runs")
     cmp_.add_argument("runs", type=Path, nargs="+", metavar="RUN_DIR")
     cmp_.add_argument("--out", type=Path, default=Path("compare.png"), help="PNG to write")
-    cmp_.add_argument("--window", type=int, default=20, help="episodes per rolling median")
+    cmp_.add_argument("--window", type=positive_int, default=20, help="episodes per rolling median")
     cmp_.add_argument(
         "--labels",
         nargs="+",
@@ -126,7 +182,7 @@ def build_parser() -> argparse.ArgumentParser:
     _add_target(ren)
     ren.add_argument("--out", type=Path, help="paths PNG (default: RUN_DIR/paths.png or paths.png)")
     ren.add_argument("--gif", type=Path, help="also write an animated GIF of the episode")
-    ren.add_argument("--every", type=int, default=2, help="GIF: one frame every N steps")
+    ren.add_argument("--every", type=positive_int, default=2, help="GIF: one frame every N steps")
 
     exp = sub.add_parser("export", help="copy a run's policy into a compact reference folder")
     exp.add_argument("run", type=Path, metavar="RUN_DIR")
@@ -147,7 +203,9 @@ def _add_target(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--policy", help="a baseline instead of a model: random, local or frontier")
     parser.add_argument("--config", type=Path, help="the experiment config of a --policy")
-    parser.add_argument("--seed", type=int, help="seed of the episodes (default: config eval.seed)")
+    parser.add_argument(
+        "--seed", type=seed_arg, help="seed of the episodes (default: config eval.seed)"
+    )
     _add_overrides(parser)
 
 
@@ -224,8 +282,8 @@ def _target(args: argparse.Namespace) -> Target:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    if args.episodes < 1:
-        raise HarnessError(f"--episodes must be >= 1, got {args.episodes}")
+    if args.plot is not None:
+        check_output_file(args.plot, "--plot")
     target = _target(args)
     from harness.evaluation import run_episodes, summarize
 
@@ -241,11 +299,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
         "coverage": [r.coverage for r in results],
         "wall_hits": [sum(r.wall_hits) for r in results],
     }
-    if target.run_dir is not None:
+    if target.results_dir is not None:
         seed_changed = None if target.seed == target.config.eval.seed else str(target.seed)
         name = eval_filename(args.overrides, target.model_name, args.episodes, seed_changed)
-        out = target.run_dir / name
-        atomic_write_text(out, json.dumps(summary, indent=2))
+        out = target.results_dir / name
+        target.results_dir.mkdir(parents=True, exist_ok=True)
+        atomic_write_text(out, json.dumps(summary, indent=2, allow_nan=False))
         print(f"saved {out}", file=sys.stderr)
     if args.plot is not None:
         from harness.plots import plot_eval_episodes
@@ -260,10 +319,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
 
 def cmd_tune(args: argparse.Namespace) -> int:
-    if args.episodes < 1:
-        raise HarnessError(f"--episodes must be >= 1, got {args.episodes}")
-    if any(t <= 0 for t in args.temperatures):
-        raise HarnessError("--temperatures must be > 0 (0 is the greedy policy: harness eval)")
     if args.write and args.overrides:
         raise HarnessError("--write stores a choice for the run's own config; drop --set")
     args.policy = args.config = None
@@ -273,7 +328,11 @@ def cmd_tune(args: argparse.Namespace) -> int:
         target.seed = target.config.eval.validation_seed
     result = tune_temperature(target, args.temperatures, args.episodes)
     result["overrides"] = list(args.overrides)
-    assert target.run_dir is not None  # a trained model always has its run folder
+    assert target.run_dir is not None and target.results_dir is not None  # a trained model
+    if args.write and is_reference(target.run_dir):
+        raise HarnessError(
+            f"{target.run_dir}: a reference is read-only; --write tunes a run folder's config"
+        )
     if args.write:
         result["previous_temperature"] = write_temperature(target.run_dir, result["chosen"])
         print(
@@ -283,14 +342,15 @@ def cmd_tune(args: argparse.Namespace) -> int:
         )
     # tune.json, or tune-best_model.json, tune-env.max_steps-500.json, ... like harness eval's.
     name = "tune" + eval_filename(args.overrides, target.model_name)[len("eval") :]
-    atomic_write_text(target.run_dir / name, json.dumps(result, indent=2))
-    print(f"saved {target.run_dir / name}", file=sys.stderr)
+    target.results_dir.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(target.results_dir / name, json.dumps(result, indent=2, allow_nan=False))
+    print(f"saved {target.results_dir / name}", file=sys.stderr)
     print(json.dumps(result) if args.json else format_tune(result))
     return 0
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    from harness.plots import plot_learning_curves, read_episodes_csv, read_evaluations_csv
+    from harness.plots import plot_learning_curves
 
     curves: dict[str, list] = {}
     evaluations: dict[str, list] = {}
@@ -298,14 +358,14 @@ def cmd_compare(args: argparse.Namespace) -> int:
     if args.labels is not None and len(args.labels) != len(args.runs):
         raise HarnessError(f"--labels needs one label per run ({len(args.runs)})")
     labels = args.labels or [None] * len(args.runs)
+    check_output_file(args.out, "--out")
     for run, given in zip(args.runs, labels, strict=True):
-        check_run_folder(run)
         label = given or run_label(run)
-        curves.setdefault(label, []).append(read_episodes_csv(run / "episodes.csv"))
-        if (run / "evaluations.csv").is_file():
-            evaluations.setdefault(label, []).append(read_evaluations_csv(run / "evaluations.csv"))
-        ev = read_eval_json(run)
-        rows.append((label, run.name, ev))
+        episodes, evals = read_run_curves(run)
+        curves.setdefault(label, []).append(episodes)
+        if evals is not None:
+            evaluations.setdefault(label, []).append(evals)
+        rows.append((label, run.name, read_eval_json(run)))
     plot_learning_curves(
         curves,
         args.out,
@@ -327,15 +387,16 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    if args.every < 1:
-        raise HarnessError(f"--every must be >= 1, got {args.every}")
+    for path, flag in ((args.out, "--out"), (args.gif, "--gif")):
+        if path is not None:
+            check_output_file(path, flag)
     target = _target(args)
     from harness.plots import play_episode, plot_paths, write_gif
 
     rec = play_episode(
         target.config.env, target.policy, target.seed, args.every, args.gif is not None
     )
-    out = args.out or (target.run_dir / "paths.png" if target.run_dir else Path("paths.png"))
+    out = args.out or (target.results_dir or Path()) / "paths.png"
     title = f"{target.label}: coverage {rec.coverage:.1%}, seed {target.seed}"
     note = sampling_note(target.config.eval.temperature) if target.run_dir else ""
     title += f", {note}" if note else ""
@@ -375,7 +436,10 @@ COMMANDS = {
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``harness`` console script."""
     argv = list(sys.argv[1:] if argv is None else argv)
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as exc:  # --help (0) or a usage error (2, already printed on one line)
+        return int(exc.code or 0)
     args.argv = argv
     try:
         with warnings.catch_warnings():

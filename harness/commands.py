@@ -10,7 +10,11 @@ from __future__ import annotations
 import csv
 import io
 import json
+import math
+import os
 import re
+import shutil
+import tempfile
 import zipfile
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -26,7 +30,7 @@ from harness.evaluation import (
     selection_score,
     summarize,
 )
-from harness.rundir import atomic_write_text
+from harness.rundir import REFERENCE_MARKER, atomic_write_text, check_output_file, results_folder
 
 #: Episodes of a standard evaluation (the thesis tested on 100).
 DEFAULT_EPISODES = 100
@@ -51,6 +55,12 @@ class Target:
     """The model's path in its run folder without ``.zip`` (for the eval file's name)."""
     model: Any = None
     """The loaded SB3 model of a trained target (``None`` for a baseline)."""
+
+    @property
+    def results_dir(self) -> Path | None:
+        """Where eval, tune and render results go: the run folder, or ``runs/evals/<name>/``
+        for an exported reference (never changed by evaluating it); ``None`` for a baseline."""
+        return None if self.run_dir is None else results_folder(self.run_dir)
 
 
 def find_run_config(model_path: Path) -> Path:
@@ -86,11 +96,42 @@ def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) ->
         raise TargetError(
             f"{model_path}: cannot load model ({type(exc).__name__}: {exc})"
         ) from None
+    check_model_fits(model, model_path, config)
     run_dir = config_path.parent
     seed = config.eval.seed if seed is None else seed
-    name = model_path.resolve().relative_to(run_dir.resolve()).with_suffix("").as_posix()
+    # The model's place in its run folder names the eval file ("best_model", ...): taken from the
+    # path as given, so that a symlink to a model elsewhere is named like the link.
+    name = Path(os.path.relpath(model_path.absolute(), run_dir.absolute())).with_suffix("")
     policy = model_policy(model, config.eval.temperature)
-    return Target(policy, config, str(model_path), run_dir, seed, name, model)
+    return Target(policy, config, str(model_path), run_dir, seed, name.as_posix(), model)
+
+
+def check_model_fits(model: Any, model_path: Path, config: ExperimentConfig) -> None:
+    """Refuse a model whose observation or action space is not its config's env's (a zip of
+    another experiment, or made for another observation kind or team size)."""
+    from envs import coverage_v0
+
+    env = coverage_v0.parallel_env(**config.env.kwargs())
+    agent = env.possible_agents[0]
+    for what, expected, got in (
+        ("observation", env.observation_space(agent), model.observation_space),
+        ("action", env.action_space(agent), model.action_space),
+    ):
+        if _space_layout(expected) != _space_layout(got):
+            raise TargetError(
+                f"{model_path}: the model's {what} space {got} is not its config's env's "
+                f"{expected} (a model of another experiment?)"
+            )
+
+
+def _space_layout(space: Any) -> Any:
+    """What a network needs to match: kind, shape and dtype (per key of a ``Dict``), or the
+    number of actions. Bounds may differ (raw coordinates on a map of another size)."""
+    if hasattr(space, "spaces") and isinstance(space.spaces, dict):
+        return {key: _space_layout(sub) for key, sub in space.spaces.items()}
+    if hasattr(space, "n"):
+        return ("discrete", int(space.n))
+    return (type(space).__name__, tuple(space.shape), str(space.dtype))
 
 
 def resolve_target(
@@ -185,15 +226,57 @@ def format_summary(summary: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+#: Numbers of ``eval.json`` that ``harness compare`` prints.
+COMPARE_KEYS = ("coverage_median", "coverage_iqr", "wall_hits_mean")
+
+
 def read_eval_json(run: Path) -> dict[str, Any] | None:
-    """A run's ``eval.json``, or ``None`` if it was not evaluated."""
+    """A run's ``eval.json``, or ``None`` if it was not evaluated.
+
+    Raises:
+        TargetError: when the file is there but is not an evaluation (not JSON, not an object,
+            or a number missing, not a number or not finite), naming the file and the key.
+    """
     path = run / "eval.json"
     if not path.is_file():
         return None
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError):
-        return None
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, ValueError) as exc:
+        raise TargetError(f"{path}: not a readable eval JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise TargetError(f"{path}: expected a JSON object, got {type(data).__name__}")
+    for key in COMPARE_KEYS:
+        value = data.get(key)
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise TargetError(f"{path}: {key} must be a number, got {value!r}")
+        if not math.isfinite(value):
+            raise TargetError(f"{path}: {key} must be finite, got {value!r}")
+    return data
+
+
+def read_run_curves(run: Path) -> tuple[Any, Any]:
+    """The training episodes' and the in-training evaluations' curves of a run folder
+    (``None`` for the evaluations of a run made without them).
+
+    Raises:
+        TargetError: naming the file and line of anything that is not a curve.
+    """
+    from harness.plots import read_episodes_csv, read_evaluations_csv
+
+    try:
+        check_run_folder(run)
+        episodes = read_episodes_csv(run / "episodes.csv")
+        evaluations = (
+            read_evaluations_csv(run / "evaluations.csv")
+            if (run / "evaluations.csv").is_file()
+            else None
+        )
+    except (ValueError, csv.Error) as exc:  # UnicodeDecodeError is a ValueError
+        raise TargetError(str(exc).splitlines()[0]) from None
+    if len(episodes[0]) == 0:
+        raise TargetError(f"{run}/episodes.csv: no finished episode yet")
+    return episodes, evaluations
 
 
 def run_label(run: Path) -> str:
@@ -306,8 +389,9 @@ def export_reference(run: Path, out: Path, model: str = "model") -> Path:
     the ``harness tune`` sweep of the exported model as ``tune.json``, and ``model.zip`` (or
     ``best_model.zip`` with ``model="best_model"``, saved as ``model.zip``) without the
     optimizer's state and the target network, which matter only to continue training (together
-    two thirds of a model zip). ``harness eval`` and ``harness
-    render`` work on the folder as on the run, with the same actions.
+    two thirds of a model zip), and ``reference.json`` (where it came from; it marks the folder
+    as a reference). ``harness eval`` and ``harness render`` work on the folder as on the run,
+    with the same actions, and write their results to ``runs/evals/<name>/``.
 
     Raises:
         TargetError: when the run or model is missing, or ``out`` exists (never overwritten).
@@ -326,7 +410,22 @@ def export_reference(run: Path, out: Path, model: str = "model") -> Path:
     old = policy.policy.optimizer
     # SB3 (>= 2.4) optimises only the online network, not the target network.
     policy.policy.optimizer = type(old)(policy.q_net.parameters(), **old.defaults)
-    out.mkdir(parents=True)
+    check_output_file(out / "model.zip", "--out")
+    # Written into a temporary folder beside `out`, renamed into place when complete: an
+    # interrupted export leaves no half-made reference.
+    out.parent.mkdir(parents=True, exist_ok=True)
+    final, out = out, Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        _write_reference(run, out, model, policy)
+        out.rename(final)
+    except BaseException:
+        shutil.rmtree(out, ignore_errors=True)
+        raise
+    return final
+
+
+def _write_reference(run: Path, out: Path, model: str, policy: Any) -> None:
+    """The files of :func:`export_reference`, into the (new, empty) folder ``out``."""
     for name in REFERENCE_FILES:
         # harness tune writes tune.json for model.zip and tune-<model>.json for the others; the
         # reference keeps the sweep of the model it holds, as its tune.json.
@@ -341,7 +440,8 @@ def export_reference(run: Path, out: Path, model: str = "model") -> Path:
     buffer = io.BytesIO()
     policy.save(buffer)
     (out / "model.zip").write_bytes(_without_target_network(buffer.getvalue()))
-    return out
+    marker = {"exported_from": str(run), "model": f"{model}.zip"}
+    (out / REFERENCE_MARKER).write_text(json.dumps(marker, indent=2) + "\n", encoding="utf-8")
 
 
 def _without_target_network(model_zip: bytes) -> bytes:

@@ -11,6 +11,7 @@ tell apart; map colours are the env's own, so figures and ``rgb_array`` frames m
 from __future__ import annotations
 
 import csv
+import math
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -459,8 +460,10 @@ def _read_columns(path: str | Path, x: str, y: str) -> tuple[np.ndarray, np.ndar
             try:
                 xs.append(int(float(row[x])))
                 ys.append(float(row[y]))
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, OverflowError):
                 raise ValueError(f"{path}, line {reader.line_num}: {x}/{y} not a number") from None
+            if not math.isfinite(ys[-1]):
+                raise ValueError(f"{path}, line {reader.line_num}: {y} is {row[y]}")
     xa = np.asarray(xs, dtype=np.int64)
     order = np.argsort(xa, kind="stable")
     return xa[order], np.asarray(ys, dtype=np.float64)[order]

@@ -12,6 +12,8 @@
     best_model.zip     the model with the best periodic evaluation so far
     eval.json          written by ``harness eval`` (eval-*.json: other settings)
     tune.json          written by ``harness tune``
+    reference.json     only in a folder made by ``harness export``: marks a reference, whose
+                       eval/tune/render results go to ``runs/evals/<name>/`` instead
 
 An existing run directory is never overwritten, and every file that matters is written
 atomically (a temporary file in the same folder, then a rename).
@@ -54,8 +56,56 @@ EVALUATION_COLUMNS = (
 )
 
 
+#: Marks a folder made by ``harness export`` (a shipped reference policy): commands read it but
+#: never write into it (see :func:`results_folder`).
+REFERENCE_MARKER = "reference.json"
+
+#: Where ``harness eval``/``tune``/``render`` write the results of a reference policy, per
+#: reference name (relative to the current directory, like ``runs/``).
+REFERENCE_RESULTS = Path("runs") / "evals"
+
+
+def is_reference(folder: Path) -> bool:
+    """Whether ``folder`` is an exported reference (it holds :data:`REFERENCE_MARKER`)."""
+    return (Path(folder) / REFERENCE_MARKER).is_file()
+
+
+def results_folder(run_dir: Path) -> Path:
+    """Where results about a run's policy go: the run folder itself, or for a reference
+    ``runs/evals/<name>/``, so that evaluating a shipped reference never changes its files."""
+    if is_reference(run_dir):
+        return REFERENCE_RESULTS / Path(run_dir).resolve().name
+    return Path(run_dir)
+
+
 class RunDirError(OSError):
     """A run folder that cannot be created or read, with a one-line message."""
+
+
+def check_output_file(path: Path, flag: str) -> None:
+    """Fail early, before any work, if a file cannot be written at ``path``.
+
+    Checks that no part of the path is an existing file, that ``path`` is not a folder, and that
+    the nearest existing folder accepts a new file (by creating and removing a temporary one: it
+    also catches read-only file systems, which permission bits do not show to root). Nothing is
+    left behind; missing folders are created only when the file is written.
+
+    Raises:
+        RunDirError: naming ``flag`` and the path.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise RunDirError(f"{flag} {path}: is a folder, not a file name")
+    ancestor = path.parent
+    while not ancestor.exists():
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise RunDirError(f"{flag} {path}: {ancestor} is a file, not a folder")
+    try:
+        with tempfile.TemporaryFile(dir=ancestor):
+            pass
+    except OSError as exc:
+        raise RunDirError(f"{flag} {path}: cannot write in {ancestor} ({exc.strerror})") from None
 
 
 @dataclass(frozen=True)

@@ -334,8 +334,11 @@ def test_tune_sweeps_temperatures_on_validation_episodes(smoke_run, tmp_path, ca
 @pytest.mark.parametrize(
     ("extra", "message"),
     [
-        (["--temperatures", "0"], "--temperatures must be > 0"),
-        (["--episodes", "0"], "--episodes must be >= 1"),
+        (["--temperatures", "0"], "--temperatures: temperatures must be finite and > 0"),
+        (["--temperatures", "nan"], "--temperatures: temperatures must be finite and > 0"),
+        (["--temperatures", "inf"], "--temperatures: temperatures must be finite and > 0"),
+        (["--episodes", "0"], "--episodes: must be >= 1"),
+        (["--seed", "-1"], "--seed: seed must be in [0, 2147483647]"),
         (["--write", "--set", "env.max_steps=20"], "--write stores a choice"),
     ],
 )

@@ -59,9 +59,27 @@ class TrainingState:
 
     @classmethod
     def from_json(cls, text: str) -> TrainingState:
+        """Parse ``state.json``; every field must be there with its type.
+
+        Raises:
+            ValueError: naming the field.
+        """
         data = json.loads(text)
+        if not isinstance(data, dict):
+            raise ValueError("not a JSON object")
         if data.get("best_eval") is None:
             data["best_eval"] = float("-inf")
+        types = {"best_eval": (int, float), "finished": (bool,)}
+        for name in cls.__dataclass_fields__:
+            value = data.get(name)
+            expected = types.get(name, (int,))
+            if name not in data or not isinstance(value, expected):
+                raise ValueError(f"{name} is {value!r}")
+            if expected == (int,) and (isinstance(value, bool) or value < 0):
+                raise ValueError(f"{name} is {value!r}")
+        extra = set(data) - set(cls.__dataclass_fields__)
+        if extra:
+            raise ValueError(f"unknown field(s) {', '.join(sorted(extra))}")
         return cls(**data)
 
 
@@ -94,16 +112,20 @@ def save_checkpoint(model: Any, folder: Path, state: TrainingState) -> Path:
     tmp = folder / f".{name}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
-    with (tmp / "model.zip").open("wb") as f:
-        model.save(f)
-    with (tmp / "replay_buffer.pkl").open("wb") as f:
-        model.save_replay_buffer(f)
-    with (tmp / "rng.pkl").open("wb") as f:
-        pickle.dump(rng_states(), f)
-    (tmp / "state.json").write_text(state.to_json(), encoding="utf-8")
-    if final.exists():  # same step written twice (e.g. a periodic and a phase-end checkpoint)
-        shutil.rmtree(final)
-    tmp.rename(final)
+    try:
+        with (tmp / "model.zip").open("wb") as f:
+            model.save(f)
+        with (tmp / "replay_buffer.pkl").open("wb") as f:
+            model.save_replay_buffer(f)
+        with (tmp / "rng.pkl").open("wb") as f:
+            pickle.dump(rng_states(), f)
+        (tmp / "state.json").write_text(state.to_json(), encoding="utf-8")
+        if final.exists():  # same step written twice (e.g. a periodic and a phase-end checkpoint)
+            shutil.rmtree(final)
+        tmp.rename(final)
+    except BaseException:  # an error or an interrupt: leave no temporary folder behind
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
     for old in complete_checkpoints(folder)[:-KEEP]:
         shutil.rmtree(old, ignore_errors=True)
     return final
@@ -141,6 +163,11 @@ def read_rng(checkpoint: Path) -> dict[str, Any]:
     """The random states of a checkpoint folder."""
     try:
         with (checkpoint / "rng.pkl").open("rb") as f:
-            return pickle.load(f)
-    except (OSError, pickle.UnpicklingError, EOFError) as exc:
+            states = pickle.load(f)
+        # Check by setting them on a copy of the current states, then putting those back.
+        current = rng_states()
+        set_rng_states(states)
+        set_rng_states(current)
+        return states
+    except Exception as exc:  # a damaged pickle raises many kinds
         raise CheckpointError(f"{checkpoint / 'rng.pkl'}: unreadable ({exc})") from None

@@ -15,7 +15,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import NoReturn
 
-from harness.checkpoints import CheckpointError, latest_checkpoint, read_state
+from harness.checkpoints import CheckpointError, complete_checkpoints, read_state
 from harness.commands import (
     DEFAULT_EPISODES,
     DEFAULT_TEMPERATURES,
@@ -226,9 +226,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise HarnessError("run needs a CONFIG.yaml (or --resume RUN_DIR)")
     config = resolve_run_config(args)
     run = RunDir.create(args.runs_dir, config.name)
-    run.write_command(args.argv)
-    print(f"run folder: {run.path}", file=sys.stderr)
-    return _train(config, run, args, resume=False)
+    with run.lock():
+        print(f"run folder: {run.path}", file=sys.stderr)
+        return _train(config, run, args, mode="new")
 
 
 def _resume(args: argparse.Namespace) -> int:
@@ -239,23 +239,43 @@ def _resume(args: argparse.Namespace) -> int:
     run = RunDir(args.resume)
     if not run.config.is_file():
         raise HarnessError(f"{run.path}: not a run folder (no config.yaml)")
-    config = load_config(run.config)
-    state = read_state(latest_checkpoint(run.checkpoints))
-    if state.finished:
-        print(
-            f"{run.path}: this run already finished ({state.num_timesteps} steps)", file=sys.stderr
-        )
-        return 0
-    run.write_command(args.argv)
-    print(f"resuming {run.path} at step {state.num_timesteps}", file=sys.stderr)
-    return _train(config, run, args, resume=True)
+    with run.lock():  # a second resume of a live run stops here
+        config = load_config(run.config)
+        found = complete_checkpoints(run.checkpoints)
+        if not found:
+            print(
+                f"{run.path}: no checkpoint yet (stopped before the first one): starting the run "
+                "again from step 0 in the same folder",
+                file=sys.stderr,
+            )
+            return _train(config, run, args, mode="restart")
+        try:
+            newest = read_state(found[-1])
+        except CheckpointError:
+            newest = None  # train() falls back to the older checkpoint and says so
+        if newest is not None and newest.finished and run.model.is_file():
+            print(
+                f"{run.path}: this run already finished ({newest.num_timesteps} steps)",
+                file=sys.stderr,
+            )
+            return 0
+        print(f"resuming {run.path}", file=sys.stderr)
+        return _train(config, run, args, mode="resume")
 
 
-def _train(config: ExperimentConfig, run: RunDir, args: argparse.Namespace, resume: bool) -> int:
+def _train(config: ExperimentConfig, run: RunDir, args: argparse.Namespace, mode: str) -> int:
+    """Train ``config`` into ``run``: ``mode`` is ``new``, ``resume`` or ``restart``."""
     from harness.train import TrainingFailed, TrainingInterrupted, train  # torch, SB3: only here
 
     try:
-        train(config, run, progress_bar=not args.no_progress, resume=resume)
+        train(
+            config,
+            run,
+            progress_bar=not args.no_progress,
+            resume=mode == "resume",
+            restart=mode == "restart",
+            command=args.argv,
+        )
     except TrainingInterrupted as exc:
         print(
             f"harness: stopped by {exc} after writing {exc.checkpoint}; "
@@ -266,6 +286,14 @@ def _train(config: ExperimentConfig, run: RunDir, args: argparse.Namespace, resu
     except TrainingFailed as exc:
         print(f"harness: error: {exc}", file=sys.stderr)
         return 1
+    except KeyboardInterrupt:
+        found = complete_checkpoints(run.checkpoints)
+        kept = f"the newest checkpoint is {found[-1]}" if found else "no checkpoint yet"
+        print(
+            f"harness: interrupted ({kept}); resume with: harness run --resume {run.path}",
+            file=sys.stderr,
+        )
+        return 130
     print(f"done: {run.model}", file=sys.stderr)
     return 0
 
@@ -448,6 +476,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             return COMMANDS[args.command](args)
     except (ConfigError, RunDirError, HarnessError, CheckpointError, TargetError) as exc:
         print(f"harness: error: {exc}", file=sys.stderr)
+        return EXIT_USAGE
+    except OSError as exc:  # a file the command had to read or write (full disk, permissions)
+        where = f": {exc.filename}" if exc.filename else ""
+        print(f"harness: error: {exc.strerror or exc}{where}", file=sys.stderr)
         return EXIT_USAGE
 
 

@@ -21,11 +21,13 @@ atomically (a temporary file in the same folder, then a rename).
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import fcntl
 import os
 import shlex
 import tempfile
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
@@ -178,6 +180,41 @@ class RunDir:
             ) from None
         raise RunDirError(f"{root}: too many runs named {name!r} in one second")
 
+    @property
+    def lock_file(self) -> Path:
+        return self.path / ".lock"
+
+    @contextlib.contextmanager
+    def lock(self) -> Iterator[None]:
+        """Hold the run folder for this process: a second ``harness run --resume`` (or any other
+        process training into this folder) is refused while this one lives.
+
+        An OS lock (``flock``) on ``.lock``: the kernel releases it when the process ends, however
+        it ends, so a lock left by a dead process is simply taken over. The file holds the
+        holder's pid, for the message.
+
+        Raises:
+            RunDirError: when another live process holds the folder.
+        """
+        try:
+            fd = os.open(self.lock_file, os.O_RDWR | os.O_CREAT, 0o644)
+        except OSError as exc:
+            raise RunDirError(f"{self.path}: cannot lock the run folder ({exc.strerror})") from None
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "?"
+                raise RunDirError(
+                    f"{self.path}: in use by process {holder} (a run or resume still going); "
+                    "wait for it to end or stop it first"
+                ) from None
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, f"{os.getpid()}\n".encode("ascii"), 0)
+            yield
+        finally:
+            os.close(fd)  # releases the lock
+
     def write_command(self, args: Sequence[str]) -> None:
         """Append the ``harness`` command line with its arguments ``args`` (a resumed run gets a
         second line)."""
@@ -223,14 +260,117 @@ def atomic_write_text(path: Path, text: str) -> None:
     atomic_write(path, lambda p: p.write_text(text, encoding="utf-8"))
 
 
-def truncate_csv(path: Path, below: int) -> None:
-    """Keep the header and the rows whose first column is below ``below``.
+class LogMismatchError(ValueError):
+    """A run's CSV log that disagrees with the checkpoint a resume restores."""
 
-    A resumed run drops what it logged after its checkpoint (episodes from ``next_episode``
-    on, evaluations after the checkpoint's timesteps), so nothing appears twice.
+
+def read_csv_log(path: Path, columns: Sequence[str]) -> tuple[list[list[str]], int]:
+    """The rows of a run's CSV log, without a torn last line.
+
+    A kill while a row was being appended leaves a last line without its newline (or with fewer
+    fields): that row is after any checkpoint (checkpoints are written between appends), so it
+    is left out. Anything else that is not a row of ``columns`` is an error.
+
+    Returns:
+        The rows (as text fields) and the number of torn lines dropped (0 or 1).
+
+    Raises:
+        LogMismatchError: naming the file and line.
     """
-    if not path.exists():
-        return
-    lines = path.read_text(encoding="utf-8").splitlines(keepends=True)
-    kept = lines[:1] + [ln for ln in lines[1:] if int(ln.split(",", 1)[0]) < below]
-    atomic_write_text(path, "".join(kept))
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise LogMismatchError(f"{path}: not a text file") from None
+    lines = text.splitlines(keepends=True)
+    torn = 0
+    if lines and not lines[-1].endswith("\n"):
+        lines, torn = lines[:-1], 1
+    try:
+        rows = list(csv.reader(lines))
+    except csv.Error as exc:
+        raise LogMismatchError(f"{path}: not a CSV log ({exc})") from None
+    if not rows:
+        return [], torn
+    if tuple(rows[0]) != tuple(columns):
+        raise LogMismatchError(f"{path}: line 1: expected the header {','.join(columns)}")
+    for number, row in enumerate(rows[1:], start=2):
+        if len(row) != len(columns):
+            raise LogMismatchError(f"{path}: line {number}: {len(row)} fields, not {len(columns)}")
+    return rows[1:], torn
+
+
+def rewind_logs(run: RunDir, next_episode: int, num_timesteps: int) -> tuple[int, int]:
+    """Drop from ``episodes.csv`` and ``evaluations.csv`` what was logged after a checkpoint.
+
+    Only rows provably after the checkpoint go: episodes numbered ``next_episode`` or later whose
+    ``timesteps`` exceed ``num_timesteps``, and evaluations after ``num_timesteps``. If the logs
+    disagree with the checkpoint (rows missing before it, or a row that should go but finished
+    before it: a damaged log or ``state.json``), nothing is changed and an error says why.
+
+    Returns:
+        Episode and evaluation rows dropped.
+
+    Raises:
+        LogMismatchError: with one line naming the file, the row and the checkpoint.
+    """
+    plans: list[tuple[Path, Sequence[str], list[list[str]], int]] = []
+    episodes, torn = (
+        read_csv_log(run.episodes_csv, EPISODE_COLUMNS) if run.episodes_csv.exists() else ([], 0)
+    )
+    keep = []
+    for row in episodes:
+        try:
+            number, steps = int(row[0]), int(row[2])
+        except ValueError:
+            raise LogMismatchError(
+                f"{run.episodes_csv}: episode {row[0]!r} is not a number"
+            ) from None
+        if number < next_episode:
+            if steps > num_timesteps:
+                raise LogMismatchError(
+                    f"{run.episodes_csv}: episode {number} finished at step {steps}, after the "
+                    f"checkpoint's step {num_timesteps} that counts it; nothing was changed"
+                )
+            keep.append(row)
+        elif steps <= num_timesteps:
+            raise LogMismatchError(
+                f"{run.episodes_csv}: episode {number} finished at step {steps}, before the "
+                f"checkpoint (step {num_timesteps}, next episode {next_episode}): the log and "
+                "the checkpoint disagree; nothing was changed"
+            )
+    if len(keep) != next_episode or [int(r[0]) for r in keep] != list(range(next_episode)):
+        raise LogMismatchError(
+            f"{run.episodes_csv}: the checkpoint counts {next_episode} episodes but the log has "
+            f"{len(keep)} of them; nothing was changed"
+        )
+    plans.append((run.episodes_csv, EPISODE_COLUMNS, keep, len(episodes) - len(keep) + torn))
+    evaluations, torn = (
+        read_csv_log(run.evaluations_csv, EVALUATION_COLUMNS)
+        if run.evaluations_csv.exists()
+        else ([], 0)
+    )
+    try:
+        kept_evals = [r for r in evaluations if int(r[0]) <= num_timesteps]
+    except ValueError:
+        raise LogMismatchError(
+            f"{run.evaluations_csv}: a timesteps value is not a number"
+        ) from None
+    plans.append(
+        (
+            run.evaluations_csv,
+            EVALUATION_COLUMNS,
+            kept_evals,
+            len(evaluations) - len(kept_evals) + torn,
+        )
+    )
+    for path, columns, rows, dropped in plans:
+        if dropped and path.exists():
+            atomic_write(path, lambda p, c=columns, r=rows: _write_csv(p, c, r))
+    return plans[0][3], plans[1][3]
+
+
+def _write_csv(path: Path, columns: Sequence[str], rows: Sequence[Sequence[str]]) -> None:
+    with path.open("w", newline="", encoding="utf-8") as f:
+        writer = csv.writer(f)
+        writer.writerow(columns)
+        writer.writerows(rows)

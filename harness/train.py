@@ -14,7 +14,9 @@ from __future__ import annotations
 
 import contextlib
 import signal
-from collections.abc import Iterator
+import sys
+from collections.abc import Iterator, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +44,6 @@ from harness.checkpoints import (
     CheckpointError,
     TrainingState,
     complete_checkpoints,
-    latest_checkpoint,
     read_rng,
     read_state,
     save_checkpoint,
@@ -54,11 +55,12 @@ from harness.dqn import DoubleDQN, NonFiniteLossError, resolve_optimizer_class
 from harness.evaluation import model_policy, run_episodes, selection_score, summarize
 from harness.rundir import (
     EVALUATION_COLUMNS,
+    LogMismatchError,
     RunDir,
     append_csv_rows,
     atomic_write,
     atomic_write_text,
-    truncate_csv,
+    rewind_logs,
 )
 from harness.schedules import PhaseLinearSchedule
 
@@ -216,31 +218,47 @@ def save_model(model: DoubleDQN, path: Path) -> None:
     atomic_write(path, write)
 
 
+class StopOnSignal(BaseCallback):
+    """Ends ``learn()`` once SIGINT or SIGTERM arrived (see :func:`train`), at the end of the
+    current collection round (at most ``train_freq`` env steps later), so that the checkpoint
+    resumes on the uninterrupted run's rounds (``DoubleDQN.at_round_boundary``).
+
+    While :meth:`saving` is active (a checkpoint or model being written), a further Ctrl-C is
+    ignored with a note, so that it cannot tear a save in two.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.signum: int | None = None
+        self.saving_now = False
+
+    @contextlib.contextmanager
+    def saving(self) -> Iterator[None]:
+        self.saving_now = True
+        try:
+            yield
+        finally:
+            self.saving_now = False
+
+    def _on_step(self) -> bool:
+        return self.signum is None or not self.model.at_round_boundary()
+
+
 class Checkpointer:
     """Writes checkpoints with the live training state (episode counter, best evaluation)."""
 
-    def __init__(self, run: RunDir, state: TrainingState, evaluator: Evaluator) -> None:
-        self.run, self.state, self.evaluator = run, state, evaluator
+    def __init__(
+        self, run: RunDir, state: TrainingState, evaluator: Evaluator, stopper: StopOnSignal
+    ) -> None:
+        self.run, self.state, self.evaluator, self.stopper = run, state, evaluator, stopper
         self.episode_log: EpisodeLogCallback | None = None
 
     def __call__(self, model: DoubleDQN) -> Path:
         if self.episode_log is not None:
             self.state.next_episode = self.episode_log.next_episode
         self.state.best_eval = self.evaluator.best
-        return save_checkpoint(model, self.run.checkpoints, self.state)
-
-
-class StopOnSignal(BaseCallback):
-    """Ends ``learn()`` once SIGINT or SIGTERM arrived (see :func:`train`), at the end of the
-    current collection round (at most ``train_freq`` env steps later), so that the checkpoint
-    resumes on the uninterrupted run's rounds (``DoubleDQN.at_round_boundary``)."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.signum: int | None = None
-
-    def _on_step(self) -> bool:
-        return self.signum is None or not self.model.at_round_boundary()
+        with self.stopper.saving():
+            return save_checkpoint(model, self.run.checkpoints, self.state)
 
 
 class TrainingInterrupted(Exception):
@@ -257,10 +275,14 @@ class TrainingFailed(Exception):
 
 @contextlib.contextmanager
 def stop_on_signals(stopper: StopOnSignal) -> Iterator[None]:
-    """Turn the first SIGINT/SIGTERM into a clean stop; a second SIGINT interrupts at once."""
+    """Turn the first SIGINT/SIGTERM into a clean stop; a second SIGINT interrupts at once,
+    unless a checkpoint is being written (then it waits for the write to end)."""
 
     def handler(signum: int, frame: Any) -> None:
         if stopper.signum is not None and signum == signal.SIGINT:
+            if stopper.saving_now:
+                print("harness: still writing the checkpoint, one moment", file=sys.stderr)
+                return
             raise KeyboardInterrupt
         stopper.signum = signum
 
@@ -288,13 +310,20 @@ class _ResumedTensorBoardFormat(TensorBoardOutputFormat):
         self._is_closed = False
 
 
-def make_logger(folder: Path, state: TrainingState) -> Logger:
+def make_logger(folder: Path, state: TrainingState, restart: bool = False) -> Logger:
     """SB3's logger for a run: TensorBoard events and ``progress.csv`` in ``folder``.
 
     A resumed run (``state.resumes > 0``) neither repeats nor loses what was logged before its
     checkpoint: its TensorBoard events purge the earlier session's steps after the checkpoint,
     and its CSV goes to ``progress-resume<N>.csv`` (SB3's CSV writer empties the file it opens).
+    A restarted run (no checkpoint to resume from) purges every earlier step.
     """
+    if restart:
+        formats = [
+            _ResumedTensorBoardFormat(str(folder), purge_step=0),
+            CSVOutputFormat(str(folder / "progress.csv")),
+        ]
+        return Logger(folder=str(folder), output_formats=formats)
     if state.resumes == 0:
         return configure(str(folder), ["tensorboard", "csv"])
     formats = [
@@ -305,50 +334,70 @@ def make_logger(folder: Path, state: TrainingState) -> Logger:
 
 
 def train(
-    config: ExperimentConfig, run: RunDir, progress_bar: bool = True, resume: bool = False
+    config: ExperimentConfig,
+    run: RunDir,
+    progress_bar: bool = True,
+    resume: bool = False,
+    restart: bool = False,
+    command: Sequence[str] | None = None,
 ) -> DoubleDQN:
-    """Train ``config`` into ``run``; with ``resume``, continue from its latest checkpoint.
+    """Train ``config`` into ``run``; with ``resume``, continue from its newest readable
+    checkpoint; with ``restart``, start again from step 0 in a run folder that has no checkpoint
+    yet (what it logged before is dropped). The caller holds ``run.lock()``. ``command`` (the
+    ``harness`` arguments) is appended to ``command.txt`` once the run is ready to go: a resume
+    refused for a damaged checkpoint changes no file.
 
     Raises:
         TrainingInterrupted: on SIGINT/SIGTERM, after writing a checkpoint.
         TrainingFailed: on a non-finite loss (the last good checkpoint stays).
-        CheckpointError: when resuming without a usable checkpoint.
+        CheckpointError: when resuming without a usable checkpoint, or when the run's logs
+            disagree with it (nothing is changed then).
     """
     configure_torch(config.algo.threads)
     if resume:
-        checkpoint = latest_checkpoint(run.checkpoints)
-        state = read_state(checkpoint)
+        point = find_resume_point(run, config)
+        state, model = point.state, point.model
+        try:
+            rewind_logs(run, state.next_episode, state.num_timesteps)
+        except LogMismatchError as exc:
+            raise CheckpointError(f"cannot resume from {point.checkpoint.name}: {exc}") from None
+        set_rng_states(point.rng)
         state.resumes += 1
+        if command is not None:
+            run.write_command(command)
     else:
         set_random_seed(config.seed)
         atomic_write_text(run.config, config.to_yaml())
         state = TrainingState()
+        if command is not None:
+            run.write_command(command)
+        if restart:
+            rewind_logs(run, 0, 0)
+            run.best_model.unlink(missing_ok=True)
 
     venv = make_vec_env(
         config.env, config.vec.copies, config.vec.num_cpus, seed=_env_seed(config, state)
     )
-    logger = make_logger(run.tb, state)
+    logger = make_logger(run.tb, state, restart=restart)
     try:
         if resume:
-            model = load_checkpoint_model(checkpoint, venv, config)
-            set_rng_states(read_rng(checkpoint))
-            truncate_csv(run.episodes_csv, state.next_episode)
-            truncate_csv(run.evaluations_csv, model.num_timesteps + 1)
+            model.set_env(venv)  # fresh episodes: the saved env state is gone with the process
         else:
             model = build_model(config, venv)
             model.action_space.seed(config.seed)
         model.set_logger(logger)
         evaluator = Evaluator(config, run, state.best_eval)
-        checkpointer = Checkpointer(run, state, evaluator)
         stopper = StopOnSignal()
+        checkpointer = Checkpointer(run, state, evaluator, stopper)
         with stop_on_signals(stopper):
             for index in range(state.phase, len(config.phases)):
                 _run_phase(
                     model, config, run, index, state, evaluator, checkpointer, stopper, progress_bar
                 )
-        save_model(model, run.model)
-        state.finished = True
-        checkpointer(model)
+            with stopper.saving():
+                save_model(model, run.model)
+            state.finished = True
+            checkpointer(model)
         return model
     finally:
         logger.close()
@@ -401,13 +450,68 @@ def _run_phase(
     checkpointer(model)
 
 
-def load_checkpoint_model(checkpoint: Path, venv: VecEnv, config: ExperimentConfig) -> DoubleDQN:
-    """Load a checkpoint's model and replay buffer onto a fresh VecEnv."""
+@dataclass
+class ResumePoint:
+    """A checkpoint read back whole: the model with its replay buffer, the training state and
+    the random states."""
+
+    checkpoint: Path
+    state: TrainingState
+    rng: dict[str, Any]
+    model: DoubleDQN
+
+
+def find_resume_point(run: RunDir, config: ExperimentConfig) -> ResumePoint:
+    """The newest checkpoint of ``run`` that reads back whole, saying which one when the newest
+    cannot be used (the older one kept is the fallback).
+
+    Raises:
+        CheckpointError: when no checkpoint reads back whole (the reasons of each).
+    """
+    found = complete_checkpoints(run.checkpoints)
+    if not found:
+        raise CheckpointError(f"{run.checkpoints}: no complete checkpoint to resume from")
+    problems = []
+    for checkpoint in reversed(found):
+        try:
+            point = load_resume_point(checkpoint, config)
+        except CheckpointError as exc:
+            problems.append(str(exc))
+            continue
+        if problems:
+            print(
+                f"harness: {'; '.join(problems)}; resuming from the older {checkpoint.name}",
+                file=sys.stderr,
+            )
+        print(f"resuming at step {point.state.num_timesteps} ({checkpoint})", file=sys.stderr)
+        return point
+    raise CheckpointError("; ".join(problems))
+
+
+def load_resume_point(checkpoint: Path, config: ExperimentConfig) -> ResumePoint:
+    """Read a checkpoint's state, random states, model and replay buffer, and check that they
+    belong together.
+
+    Raises:
+        CheckpointError: naming the file that cannot be used.
+    """
+    state = read_state(checkpoint)
+    rng = read_rng(checkpoint)
     try:
-        model = DoubleDQN.load(checkpoint / "model.zip", env=venv, device=config.algo.device)
-        model.load_replay_buffer(checkpoint / "replay_buffer.pkl")
-    except Exception as exc:  # SB3 raises many kinds on a damaged zip or pickle
-        raise CheckpointError(f"{checkpoint}: cannot load checkpoint ({exc})") from None
-    # The saved env state is gone with the old process: start fresh episodes.
-    model._last_obs = None
-    return model
+        model = DoubleDQN.load(checkpoint / "model.zip", device=config.algo.device)
+    except Exception as exc:  # SB3 raises many kinds on a damaged zip
+        raise CheckpointError(f"{checkpoint / 'model.zip'}: unreadable ({exc})") from None
+    try:
+        with (checkpoint / "replay_buffer.pkl").open("rb") as f:
+            model.load_replay_buffer(f)
+    except Exception as exc:  # a damaged pickle raises many kinds
+        raise CheckpointError(f"{checkpoint / 'replay_buffer.pkl'}: unreadable ({exc})") from None
+    if model.num_timesteps != state.num_timesteps or not 0 <= state.phase <= len(config.phases):
+        raise CheckpointError(
+            f"{checkpoint / 'state.json'}: says step {state.num_timesteps}, phase "
+            f"{state.phase}, but the model is at step {model.num_timesteps} of a "
+            f"{len(config.phases)}-phase run"
+        )
+    if not 0 <= state.phase_start <= state.num_timesteps or state.next_episode < 0:
+        raise CheckpointError(f"{checkpoint / 'state.json'}: inconsistent counters")
+    return ResumePoint(checkpoint, state, rng, model)

@@ -1,0 +1,226 @@
+"""Resuming survives damage: a kill before the first checkpoint, a second process on the same
+run, an unreadable newest checkpoint, tampered or torn files. Each case either resumes correctly
+or stops with one line and exit code 2, changing nothing."""
+
+from __future__ import annotations
+
+import csv
+import hashlib
+import json
+import os
+import pickle
+import shutil
+import signal
+from pathlib import Path
+
+import pytest
+
+from harness.checkpoints import TrainingState, complete_checkpoints, save_checkpoint
+from harness.cli import main
+from harness.config import load_config
+from harness.dqn import DoubleDQN
+from harness.rundir import RunDir
+from harness.train import StopOnSignal, stop_on_signals
+
+ROOT = Path(__file__).resolve().parents[1]
+SMOKE = ROOT / "configs" / "smoke.yaml"
+TINY = [
+    "phases.initial.timesteps=1200",
+    "phases.optimizing.timesteps=400",
+    "checkpoint.every=400",
+    "eval.every=600",
+    "eval.episodes=2",
+]
+
+
+@pytest.fixture(scope="module")
+def stopped_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A tiny run stopped by Ctrl-C at about step 1000 (checkpoints kept: 800 and ~1000)."""
+    runs = tmp_path_factory.mktemp("runs")
+    original = DoubleDQN.train
+    fired = []
+
+    def train_then_interrupt(model, gradient_steps, batch_size=100):
+        original(model, gradient_steps, batch_size)
+        if model.num_timesteps >= 1000 and not fired:
+            fired.append(model.num_timesteps)
+            os.kill(os.getpid(), signal.SIGINT)
+
+    args = ["run", str(SMOKE), "--runs-dir", str(runs), "--no-progress"]
+    args += [a for o in TINY for a in ("--set", o)]
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(DoubleDQN, "train", train_then_interrupt)
+        assert main(args) == 128 + signal.SIGINT
+    (run,) = runs.iterdir()
+    assert len(complete_checkpoints(run / "checkpoints")) == 2
+    return run
+
+
+@pytest.fixture
+def run_copy(stopped_run: Path, tmp_path: Path) -> Path:
+    copy = tmp_path / stopped_run.name
+    shutil.copytree(stopped_run, copy)
+    return copy
+
+
+def snapshot(folder: Path) -> dict[str, str]:
+    """Every file under ``folder`` (but the lock file) with a hash of its content."""
+    return {
+        str(p.relative_to(folder)): hashlib.sha256(p.read_bytes()).hexdigest()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p.name != ".lock"
+    }
+
+
+def episode_numbers(run: Path) -> list[int]:
+    with (run / "episodes.csv").open(newline="") as f:
+        return [int(row["episode"]) for row in csv.DictReader(f)]
+
+
+def resume(run: Path) -> int:
+    return main(["run", "--resume", str(run), "--no-progress"])
+
+
+def one_line_error(capsys: pytest.CaptureFixture[str]) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err and err[-1].startswith("harness: error:"), err
+    assert "Traceback" not in "\n".join(err)
+    return err[-1]
+
+
+def newest(run: Path) -> Path:
+    return complete_checkpoints(run / "checkpoints")[-1]
+
+
+def test_resume_finishes_with_consecutive_episodes(run_copy, capsys):
+    assert resume(run_copy) == 0
+    numbers = episode_numbers(run_copy)
+    assert numbers == list(range(len(numbers)))
+    assert (run_copy / "model.zip").is_file()
+
+
+def test_resume_before_the_first_checkpoint_starts_again_in_the_same_folder(tmp_path, capsys):
+    run = RunDir(tmp_path / "killed-early")
+    run.tb.mkdir(parents=True)
+    run.checkpoints.mkdir()
+    run.config.write_text(load_config(SMOKE, TINY).to_yaml())
+    # What a first attempt killed at step ~300 left behind (0.123456: a marker).
+    run.episodes_csv.write_text(
+        "episode,phase,timesteps,copy,coverage,reward_mean,wall_hits,new_cells,length\n"
+        "0,initial,200,0,0.123456,1.0,0,1;2,50\n"
+    )
+    assert resume(run.path) == 0
+    assert "starting the run again from step 0" in capsys.readouterr().err
+    text = run.episodes_csv.read_text()
+    assert "0.123456" not in text
+    assert episode_numbers(run.path) == list(range(len(episode_numbers(run.path))))
+    assert run.model.is_file()
+
+
+def test_a_second_process_on_a_live_run_is_refused(run_copy, capsys):
+    before = snapshot(run_copy)
+    with RunDir(run_copy).lock():  # this process plays the live run
+        assert resume(run_copy) == 2
+    err = one_line_error(capsys)
+    assert f"in use by process {os.getpid()}" in err
+    assert snapshot(run_copy) == before
+
+
+def test_a_lock_left_by_a_dead_process_is_taken_over(run_copy):
+    (run_copy / ".lock").write_text("999999999\n")  # no process holds it any more
+    assert resume(run_copy) == 0
+
+
+def test_unreadable_newest_checkpoint_falls_back_to_the_older_one(run_copy, capsys):
+    older, latest = complete_checkpoints(run_copy / "checkpoints")
+    (latest / "model.zip").write_bytes(b"not a zip")
+    assert resume(run_copy) == 0
+    err = capsys.readouterr().err
+    assert f"resuming from the older {older.name}" in err and "model.zip: unreadable" in err
+    assert episode_numbers(run_copy) == list(range(len(episode_numbers(run_copy))))
+
+
+@pytest.mark.parametrize("damaged", ["model.zip", "rng.pkl", "state.json", "replay_buffer.pkl"])
+def test_no_readable_checkpoint_is_one_line_and_changes_nothing(run_copy, capsys, damaged):
+    for checkpoint in complete_checkpoints(run_copy / "checkpoints"):
+        (checkpoint / damaged).write_bytes(b"\x80garbage")
+    before = snapshot(run_copy)
+    assert resume(run_copy) == 2
+    assert f"{damaged}: unreadable" in one_line_error(capsys)
+    assert snapshot(run_copy) == before
+
+
+def test_tampered_state_never_deletes_episode_rows(run_copy, capsys):
+    latest = newest(run_copy)
+    state = json.loads((latest / "state.json").read_text())
+    assert state["next_episode"] > 0
+    state["next_episode"] = 0  # would drop every row if it were believed
+    (latest / "state.json").write_text(json.dumps(state))
+    before = snapshot(run_copy)
+    assert resume(run_copy) == 2
+    err = one_line_error(capsys)
+    assert "episodes.csv" in err and "nothing was changed" in err
+    assert snapshot(run_copy) == before
+
+
+def test_state_that_contradicts_its_model_is_not_used(run_copy, capsys):
+    latest = newest(run_copy)
+    state = json.loads((latest / "state.json").read_text())
+    state["num_timesteps"] += 4000
+    (latest / "state.json").write_text(json.dumps(state))
+    assert resume(run_copy) == 0  # the older checkpoint is consistent
+    assert "but the model is at step" in capsys.readouterr().err
+
+
+def test_torn_last_line_is_dropped_and_numbering_continues(run_copy):
+    with (run_copy / "episodes.csv").open("a") as f:
+        f.write("57,initial,99999,1,0.5")  # a kill in the middle of an append
+    assert resume(run_copy) == 0
+    numbers = episode_numbers(run_copy)
+    assert numbers == list(range(len(numbers)))
+
+
+def test_damaged_episode_log_is_one_line_and_changes_nothing(run_copy, capsys):
+    lines = (run_copy / "episodes.csv").read_text().splitlines(keepends=True)
+    lines.insert(2, "this,is,not,an,episode\n")
+    (run_copy / "episodes.csv").write_text("".join(lines))
+    before = snapshot(run_copy)
+    assert resume(run_copy) == 2
+    assert "episodes.csv: line 3" in one_line_error(capsys)
+    assert snapshot(run_copy) == before
+
+
+def test_an_interrupted_checkpoint_write_leaves_no_temporary_folder(tmp_path):
+    class FailingModel:
+        num_timesteps = 40
+
+        def save(self, f):
+            f.write(b"half")
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        save_checkpoint(FailingModel(), tmp_path / "checkpoints", TrainingState())
+    assert list((tmp_path / "checkpoints").iterdir()) == []
+
+
+def test_second_ctrl_c_while_saving_waits_for_the_save(capsys):
+    stopper = StopOnSignal()
+    with stop_on_signals(stopper):
+        os.kill(os.getpid(), signal.SIGINT)  # first: a clean stop is asked for
+        assert stopper.signum == signal.SIGINT
+        with stopper.saving():
+            os.kill(os.getpid(), signal.SIGINT)  # second, during the save: ignored
+        assert "still writing the checkpoint" in capsys.readouterr().err
+        with pytest.raises(KeyboardInterrupt):  # outside a save it interrupts at once
+            os.kill(os.getpid(), signal.SIGINT)
+
+
+def test_rng_file_round_trip_checks_its_content(run_copy):
+    from harness.checkpoints import CheckpointError, read_rng
+
+    latest = newest(run_copy)
+    read_rng(latest)  # intact: fine
+    with (latest / "rng.pkl").open("wb") as f:
+        pickle.dump({"numpy": "nonsense"}, f)
+    with pytest.raises(CheckpointError, match=r"rng\.pkl: unreadable"):
+        read_rng(latest)

@@ -291,9 +291,12 @@ def check_run_folder(run: Path) -> None:
     """Raise :class:`TargetError` unless ``run`` has an ``episodes.csv``."""
     if not (run / "episodes.csv").is_file():
         raise TargetError(f"{run}: not a run folder with episodes.csv")
-    with (run / "episodes.csv").open(newline="", encoding="utf-8") as f:
-        if next(csv.reader(f), None) is None:
-            raise TargetError(f"{run}/episodes.csv: empty")
+    try:
+        with (run / "episodes.csv").open(newline="", encoding="utf-8") as f:
+            if next(csv.reader(f), None) is None:
+                raise TargetError(f"{run}/episodes.csv: empty")
+    except (UnicodeDecodeError, csv.Error):
+        raise TargetError(f"{run}/episodes.csv: not a CSV text file") from None
 
 
 #: Temperatures ``harness tune`` tries unless told otherwise.

@@ -22,6 +22,7 @@ Step counts (``timesteps``, schedule ``steps``, ``eval.every``, ``checkpoint.eve
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import re
 from collections.abc import Sequence
 from pathlib import Path
@@ -88,6 +89,35 @@ class EnvConfig(_Section):
     coords: Literal["normalized", "raw"] = "normalized"
     rewards: RewardsConfig = RewardsConfig()
     starts: list[tuple[int, int]] | None = None
+    map_sha256: str | None = None
+    """For a map file: SHA-256 of its content. Filled in when the config is loaded (with the
+    file's absolute path in ``map``), so a run's ``config.yaml`` names exactly the map it was made
+    with, from any directory; loading that config again checks the file is unchanged."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _resolve_map_file(cls, data: Any) -> Any:
+        # Once, when the config is loaded: a relative path is taken from the current directory,
+        # then stored absolute with the content's hash (not re-resolved where it is read later).
+        if not isinstance(data, dict):
+            return data
+        name = data.get("map", "random")
+        if not isinstance(name, str) or name == "random" or name in shipped_maps():
+            return data
+        path = Path(name).expanduser()
+        if not path.is_file():
+            return data  # _map_exists names the problem
+        try:
+            digest = hashlib.sha256(path.read_bytes()).hexdigest()
+        except OSError as exc:
+            raise ValueError(f"cannot read map file {name!r} ({exc.strerror})") from None
+        given = data.get("map_sha256")
+        if given is not None and given != digest:
+            raise ValueError(
+                f"map file {str(path)!r} has changed since this config was written "
+                f"(sha256 {digest[:12]}..., the config says {str(given)[:12]}...)"
+            )
+        return {**data, "map": str(path.resolve()), "map_sha256": digest}
 
     @field_validator("wall_fraction")
     @classmethod
@@ -133,7 +163,7 @@ class EnvConfig(_Section):
 
     def kwargs(self) -> dict[str, Any]:
         """Keyword arguments for ``coverage_v0.parallel_env``."""
-        out = self.model_dump()
+        out = self.model_dump(exclude={"map_sha256"})
         out["wall_fraction"] = tuple(out["wall_fraction"])
         return out
 

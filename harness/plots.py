@@ -11,6 +11,7 @@ tell apart; map colours are the env's own, so figures and ``rgb_array`` frames m
 from __future__ import annotations
 
 import csv
+import io
 import math
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
@@ -451,8 +452,12 @@ def _read_columns(path: str | Path, x: str, y: str) -> tuple[np.ndarray, np.ndar
     path = Path(path)
     xs: list[int] = []
     ys: list[float] = []
-    with path.open(newline="", encoding="utf-8") as fh:
-        reader = csv.DictReader(fh)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a CSV text file") from None
+    reader = csv.DictReader(io.StringIO(text, newline=""))
+    try:
         missing = {x, y} - set(reader.fieldnames or ())
         if missing:
             raise ValueError(f"{path}: missing column(s) {', '.join(sorted(missing))}")
@@ -464,6 +469,8 @@ def _read_columns(path: str | Path, x: str, y: str) -> tuple[np.ndarray, np.ndar
                 raise ValueError(f"{path}, line {reader.line_num}: {x}/{y} not a number") from None
             if not math.isfinite(ys[-1]):
                 raise ValueError(f"{path}, line {reader.line_num}: {y} is {row[y]}")
+    except csv.Error as exc:
+        raise ValueError(f"{path}, line {reader.line_num}: not CSV ({exc})") from None
     xa = np.asarray(xs, dtype=np.int64)
     order = np.argsort(xa, kind="stable")
     return xa[order], np.asarray(ys, dtype=np.float64)[order]

@@ -122,3 +122,27 @@ def test_resolved_yaml_round_trips():
     cfg = ExperimentConfig()
     again = ExperimentConfig.model_validate(yaml.safe_load(cfg.to_yaml()))
     assert again == cfg
+
+
+def test_relative_map_path_is_stored_absolute_with_its_hash(tmp_path, monkeypatch):
+    maps = tmp_path / "maps"
+    maps.mkdir()
+    (maps / "room.txt").write_text("....\n.##.\n....\n")
+    monkeypatch.chdir(tmp_path)
+    cfg = load_config(write(tmp_path, "env: {map: maps/room.txt, n_agents: 2}\n"))
+    assert cfg.env.map == str((maps / "room.txt").resolve())
+    assert cfg.env.map_sha256 is not None and len(cfg.env.map_sha256) == 64
+    # The run's config.yaml reproduces the run from any directory...
+    saved = tmp_path / "run.yaml"
+    saved.write_text(cfg.to_yaml())
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "maps").mkdir()
+    (elsewhere / "maps" / "room.txt").write_text("....\n....\n....\n")  # a different map there
+    monkeypatch.chdir(elsewhere)
+    again = load_config(saved)
+    assert again.env.map == cfg.env.map and again.env.map_sha256 == cfg.env.map_sha256
+    # ...and refuses a map file that changed since.
+    (maps / "room.txt").write_text("....\n....\n....\n")
+    with pytest.raises(ConfigError, match=r"env: .*has changed since this config was written"):
+        load_config(saved)

@@ -1,0 +1,280 @@
+"""Every kind of bad input ends the same way: exit code 2, one line on stderr naming the problem,
+no traceback, and no file created, changed or deleted.
+
+Each case is a row of :data:`CASES`: the ``harness`` arguments (``{cfg}``, ``{run}``, ... are
+filled in with paths in a scratch folder), files to write there first, and a fragment the
+one-line message must contain. The scratch folder holds a tiny valid config, a run folder with an
+untrained model of that config, and a finished-looking run folder for ``compare``.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from harness.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+SMOKE = ROOT / "configs" / "smoke.yaml"
+GOOD = "name: tiny\nenv: {height: 8, width: 8, n_agents: 2, max_steps: 20}\nvec: {copies: 1}\n"
+GOOD += "algo: {net_arch: [8], buffer_size: 1000, learning_starts: 50}\n"
+GOOD += "phases: [{name: only, timesteps: 100}]\neval: {every: 0, episodes: 2}\n"
+EPISODES = (
+    "episode,phase,timesteps,copy,coverage,reward_mean,wall_hits,new_cells,length\n"
+    "0,only,20,0,0.5,1.0,0,3;4,20\n"
+)
+
+
+def cfg(extra: str) -> dict[str, str]:
+    """Files for a config case: the good config plus ``extra`` YAML lines."""
+    return {"bad.yaml": GOOD + extra}
+
+
+# (id, arguments, files to write first, fragment of the message)
+CASES: list[tuple[str, list[str], dict[str, str | bytes], str]] = [
+    # ---- config files
+    ("missing-config", ["run", "{tmp}/nope.yaml"], {}, "config file not found"),
+    ("empty-config", ["run", "{tmp}/bad.yaml"], {"bad.yaml": ""}, "the config file is empty"),
+    ("duplicate-key", ["run", "{tmp}/bad.yaml"], {"bad.yaml": GOOD + "name: again\n"},
+     "duplicate key 'name'"),
+    ("nested-yaml", ["run", "{tmp}/bad.yaml"], {"bad.yaml": "a: " + "[" * 5000},
+     "nested too deeply"),
+    ("huge-yaml", ["run", "{tmp}/bad.yaml"], {"bad.yaml": GOOD + "#" * (1 << 21) + "\n"},
+     "too large for a config file"),
+    ("binary-config", ["run", "{tmp}/bad.yaml"], {"bad.yaml": b"\x80\x81\xfe"},
+     "cannot read config"),
+    ("unknown-key", ["run", "{tmp}/bad.yaml"], cfg("extra_section: 1\n"),
+     "extra_section: Extra inputs are not permitted"),
+    ("optimizer-lbfgs", ["run", "{cfg}", "--set", "algo.optimizer=LBFGS"], {},
+     "algo.optimizer: torch.optim.LBFGS cannot train"),
+    ("optimizer-sparseadam", ["run", "{cfg}", "--set", "algo.optimizer=SparseAdam"], {},
+     "algo.optimizer: torch.optim.SparseAdam cannot train"),
+    ("optimizer-base", ["run", "{cfg}", "--set", "algo.optimizer=Optimizer"], {},
+     "torch's base class"),
+    ("optimizer-unknown", ["run", "{cfg}", "--set", "algo.optimizer=Adamm"], {},
+     "unknown torch optimizer 'Adamm'"),
+    ("optimizer-kwargs-unknown", ["run", "{cfg}", "--set", "algo.optimizer_kwargs={{nope: 1}}"],
+     {}, "algo.optimizer_kwargs: RMSprop does not take"),
+    ("optimizer-kwargs-negative-lr", ["run", "{cfg}", "--set", "algo.optimizer_kwargs={{lr: -1}}"],
+     {}, "algo.optimizer_kwargs"),
+    ("device-meta", ["run", "{cfg}", "--set", "algo.device=meta"], {},
+     "algo.device: cannot train on 'meta'"),
+    ("device-unknown", ["run", "{cfg}", "--set", "algo.device=gpu9"], {},
+     "algo.device: unknown device 'gpu9'"),
+    ("buffer-too-large", ["run", "{cfg}", "--set", "algo.buffer_size=1000000000000"], {},
+     "algo.buffer_size: a replay buffer of 1,000,000,000,000 transitions needs"),
+    ("map-too-large", ["run", "{cfg}", "--set", "env.height=100000", "--set", "env.width=100000"],
+     {}, "more than the 4,000,000 this harness handles"),
+    ("map-too-walled", ["run", "{cfg}", "--set", "env.height=3", "--set", "env.width=3",
+                        "--set", "env.wall_fraction=[0.9, 0.95]"], {}, "could not draw a 3x3 map"),
+    ("map-too-small", ["run", "{cfg}", "--set", "env.height=1", "--set", "env.width=1"], {},
+     "n_agents=2 is more than the 1x1 map's cells"),
+    ("config-seed-negative", ["run", "{cfg}", "--set", "seed=-1"], {},
+     "seed: Input should be greater than or equal to 0"),
+    ("config-seed-huge", ["run", "{cfg}", "--set", "seed=1099511627776"], {},
+     "seed: Input should be less than or equal to 2147483647"),
+    ("eval-seed-negative", ["run", "{cfg}", "--set", "eval.seed=-5"], {},
+     "eval.seed: Input should be greater than or equal to 0"),
+    ("validation-seed-negative", ["run", "{cfg}", "--set", "eval.validation_seed=-5"], {},
+     "eval.validation_seed: Input should be greater than or equal to 0"),
+    ("run-seed-negative", ["run", "{cfg}", "--seed", "-1"], {}, "argument --seed"),
+    ("run-seed-text", ["run", "{cfg}", "--seed", "x"], {}, "argument --seed"),
+    ("name-trailing-newline", ["run", "{cfg}", "--name", "ok\n"], {}, "name: must be 1-64"),
+    ("name-traversal", ["run", "{cfg}", "--name", "../up"], {}, "name: must be 1-64"),
+    ("override-nested", ["run", "{cfg}", "--set", "seed=" + "[" * 5000], {},
+     "nested too deeply"),
+    ("override-no-value", ["run", "{cfg}", "--set", "seed"], {}, "expected key.path=value"),
+    ("runs-dir-under-file", ["run", "{cfg}", "--runs-dir", "{tmp}/afile/runs"],
+     {"afile": "x"}, "cannot create a run folder"),
+    # ---- evaluating models
+    ("eval-seed-negative", ["eval", "{run}", "--seed", "-3"], {}, "argument --seed"),
+    ("eval-episodes-zero", ["eval", "{run}", "--episodes", "0"], {}, "argument --episodes"),
+    ("eval-nothing", ["eval", "{tmp}/nowhere"], {}, "no such run folder or model file"),
+    ("eval-not-a-run", ["eval", "{tmp}/emptydir"], {"emptydir/.keep": ""},
+     "not a run folder (no config.yaml)"),
+    ("eval-truncated-zip", ["eval", "{tmp}/trunc/model.zip"], {"trunc/model.zip": b"PK\x03\x04"},
+     "cannot load model"),
+    ("eval-dangling-symlink", ["eval", "{tmp}/link/model.zip"], {}, "no such run folder"),
+    ("eval-other-algorithm", ["eval", "{tmp}/ppo/model.zip"], {}, "cannot load model"),
+    ("eval-other-spaces", ["eval", "{tmp}/cartpole/model.zip"], {},
+     "observation space Box"),
+    ("eval-plot-under-file", ["eval", "{run}", "--plot", "{tmp}/afile/p.png"], {"afile": "x"},
+     "is a file, not a folder"),
+    ("eval-plot-read-only", ["eval", "{run}", "--plot", "/proc/p.png"], {}, "cannot write in"),
+    ("eval-plot-is-folder", ["eval", "{run}", "--plot", "{tmp}"], {}, "is a folder"),
+    ("eval-policy-unknown", ["eval", "--policy", "greedy", "--config", "{cfg}"], {},
+     "unknown policy 'greedy'"),
+    ("render-out-under-file", ["render", "{run}", "--out", "{tmp}/afile/x.png"], {"afile": "x"},
+     "is a file, not a folder"),
+    ("render-gif-is-folder", ["render", "{run}", "--gif", "{tmp}"], {}, "--gif"),
+    ("render-every-zero", ["render", "{run}", "--every", "0"], {}, "argument --every"),
+    ("render-seed-huge", ["render", "{run}", "--seed", "4294967296"], {}, "argument --seed"),
+    ("export-under-file", ["export", "{run}", "--out", "{tmp}/afile/ref"], {"afile": "x"},
+     "is a file, not a folder"),
+    ("export-existing", ["export", "{run}", "--out", "{tmp}/emptydir"], {"emptydir/.keep": ""},
+     "already exists"),
+    ("tune-nan", ["tune", "{run}", "--temperatures", "nan"], {}, "finite and > 0"),
+    ("tune-inf", ["tune", "{run}", "--temperatures", "0.5", "inf"], {}, "finite and > 0"),
+    ("tune-negative", ["tune", "{run}", "--temperatures", "-1"], {}, "finite and > 0"),
+    ("tune-seed-negative", ["tune", "{run}", "--seed", "-1"], {}, "argument --seed"),
+    ("tune-write-reference", ["tune", "{ref}", "--write", "--episodes", "1"], {},
+     "a reference is read-only"),
+    # ---- compare
+    ("compare-window-zero", ["compare", "{done}", "--window", "0"], {}, "argument --window"),
+    ("compare-not-a-run", ["compare", "{tmp}/emptydir"], {"emptydir/.keep": ""},
+     "not a run folder with episodes.csv"),
+    ("compare-empty-csv", ["compare", "{tmp}/c"], {"c/episodes.csv": ""}, "episodes.csv: empty"),
+    ("compare-header-only", ["compare", "{tmp}/c"], {"c/episodes.csv": EPISODES.split("\n")[0]
+                                                      + "\n"}, "no finished episode yet"),
+    ("compare-binary-csv", ["compare", "{tmp}/c"], {"c/episodes.csv": b"\x80\x81garbage"},
+     "not a CSV text file"),
+    ("compare-garbage-row", ["compare", "{tmp}/c"],
+     {"c/episodes.csv": EPISODES + "1,only,forty,0,0.5,1,0,1;1,20\n"}, "line 3"),
+    ("compare-nan-coverage", ["compare", "{tmp}/c"],
+     {"c/episodes.csv": EPISODES + "1,only,40,0,nan,1,0,1;1,20\n"}, "coverage is nan"),
+    ("compare-missing-column", ["compare", "{tmp}/c"], {"c/episodes.csv": "a,b\n1,2\n"},
+     "missing column"),
+    ("compare-json-list", ["compare", "{tmp}/c"],
+     {"c/episodes.csv": EPISODES, "c/eval.json": "[1, 2]"}, "expected a JSON object"),
+    ("compare-json-garbage", ["compare", "{tmp}/c"],
+     {"c/episodes.csv": EPISODES, "c/eval.json": "{nope"}, "not a readable eval JSON"),
+    ("compare-json-wrong-type", ["compare", "{tmp}/c"],
+     {"c/episodes.csv": EPISODES, "c/eval.json": '{"coverage_median": "high"}'},
+     "coverage_median must be a number"),
+    ("compare-out-under-file", ["compare", "{done}", "--out", "{tmp}/afile/c.png"],
+     {"afile": "x"}, "is a file, not a folder"),
+    ("compare-bad-evaluations", ["compare", "{tmp}/c"],
+     {"c/episodes.csv": EPISODES, "c/evaluations.csv": "timesteps,coverage_median\n5,x\n"},
+     "evaluations.csv, line 2"),
+    # ---- usage
+    ("unknown-command", ["fly"], {}, "invalid choice: 'fly'"),
+    ("resume-with-config", ["run", "--resume", "{run}", "{cfg}"], {}, "drop the other options"),
+]  # fmt: skip
+
+if not torch.cuda.is_available():
+    CASES.append(("device-cuda-missing", ["run", "{cfg}", "--set", "algo.device=cuda"], {},
+                  "this machine has no CUDA GPU"))  # fmt: skip
+
+
+def snapshot(folder: Path) -> dict[str, str]:
+    """Every file and folder under ``folder``, with a hash of each file's content."""
+    out = {}
+    for p in sorted(folder.rglob("*")):
+        if p.is_symlink():
+            out[str(p.relative_to(folder))] = f"link:{os.readlink(p)}"
+        elif p.is_file():
+            out[str(p.relative_to(folder))] = hashlib.sha256(p.read_bytes()).hexdigest()
+        else:
+            out[str(p.relative_to(folder))] = "dir"
+    return out
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """Model zips made once: an untrained DoubleDQN of the good config, a PPO model (another
+    algorithm) and a DQN for CartPole (other spaces)."""
+    import gymnasium as gym
+    from stable_baselines3 import PPO
+
+    from harness.adapters import make_vec_env
+    from harness.config import config_from_dict
+    from harness.dqn import DoubleDQN
+    from harness.train import build_model
+
+    folder = tmp_path_factory.mktemp("models")
+    import yaml
+
+    config = config_from_dict(yaml.safe_load(GOOD))
+    venv = make_vec_env(config.env, config.vec.copies, 0, seed=0)
+    build_model(config, venv).save(folder / "tiny.zip")
+    venv.close()
+    (folder / "tiny.yaml").write_text(config.to_yaml())
+    PPO("MlpPolicy", gym.make("CartPole-v1"), n_steps=64, batch_size=32).save(folder / "ppo.zip")
+    DoubleDQN("MlpPolicy", gym.make("CartPole-v1"), buffer_size=100).save(folder / "cart.zip")
+    return folder
+
+
+@pytest.fixture
+def scratch(tmp_path: Path, models: Path) -> dict[str, Path]:
+    """The scratch folder: a good config, a run folder with a model, copies of bad models."""
+    (tmp_path / "good.yaml").write_text(GOOD)
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text((models / "tiny.yaml").read_text())
+    (run / "model.zip").write_bytes((models / "tiny.zip").read_bytes())
+    done = tmp_path / "done"
+    done.mkdir()
+    (done / "episodes.csv").write_text(EPISODES)
+    for name, zip_name in (("ppo", "ppo.zip"), ("cartpole", "cart.zip"), ("trunc", None)):
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "config.yaml").write_text((models / "tiny.yaml").read_text())
+        if zip_name:
+            (tmp_path / name / "model.zip").write_bytes((models / zip_name).read_bytes())
+    (tmp_path / "link").mkdir()
+    (tmp_path / "link" / "config.yaml").write_text((models / "tiny.yaml").read_text())
+    (tmp_path / "link" / "model.zip").symlink_to(tmp_path / "gone.zip")
+    return {"tmp": tmp_path, "cfg": tmp_path / "good.yaml", "run": run, "done": done}
+
+
+@pytest.mark.parametrize(
+    ("args", "files", "message"), [c[1:] for c in CASES], ids=[c[0] for c in CASES]
+)
+def test_bad_input_is_one_line_exit_2_and_changes_nothing(
+    scratch, capsys, monkeypatch, args, files, message
+):
+    tmp = scratch["tmp"]
+    for name, content in files.items():
+        path = tmp / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        if isinstance(content, bytes):
+            path.write_bytes(content)
+        else:
+            path.write_text(content)
+    monkeypatch.chdir(tmp)  # anything written relative to the current folder shows up here
+    values = {k: str(v) for k, v in scratch.items()}
+    values["ref"] = str(ROOT / "runs" / "reference" / "ddqn_15x15")
+    argv = [a.format(**values) for a in args]
+    if "--runs-dir" not in argv and argv[0] == "run" and "--resume" not in argv:
+        argv += ["--runs-dir", str(tmp / "runs")]
+    before, reference_before = snapshot(tmp), snapshot(ROOT / "runs" / "reference")
+    capsys.readouterr()
+    assert main(argv) == 2
+    captured = capsys.readouterr()
+    lines = captured.err.strip().splitlines()
+    assert len(lines) == 1, lines
+    assert lines[0].startswith("harness: error:"), lines
+    assert message in lines[0], lines[0]
+    assert "Traceback" not in captured.err + captured.out
+    assert snapshot(tmp) == before
+    assert snapshot(ROOT / "runs" / "reference") == reference_before
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["run", "{cfg}", "--set", "algo.optimizer=LBFGS"], "cannot train"),
+        (["eval", "{tmp}/trunc/model.zip"], "cannot load model"),
+        (["compare", "{tmp}/c"], "not a run folder"),
+    ],
+    ids=["config", "model", "compare"],
+)
+def test_the_console_script_shows_no_traceback(scratch, args, message):
+    values = {k: str(v) for k, v in scratch.items()}
+    (scratch["tmp"] / "trunc" / "model.zip").write_bytes(b"PK\x03\x04")
+    proc = subprocess.run(
+        [sys.executable, "-m", "harness.cli", *[a.format(**values) for a in args]],
+        capture_output=True,
+        text=True,
+        cwd=scratch["tmp"],
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    assert proc.returncode == 2
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and message in lines[0], proc.stderr
+    assert "Traceback" not in proc.stderr

@@ -46,6 +46,8 @@ class CoverageEnv(ParallelEnv):
         rewards: Mapping[str, float] | None = None,
         starts: Sequence[Sequence[int]] | None = None,
         render_mode: str | None = None,
+        crop: int = 15,
+        global_size: int = 13,
     ) -> None:
         _check_int("n_agents", n_agents, 1)
         _check_int("max_steps", max_steps, 1)
@@ -93,8 +95,14 @@ class CoverageEnv(ParallelEnv):
             grid = self._map_spec.grid if self._map_spec is not None else None
             _check_starts(self._starts, self.n_agents, self.height, self.width, grid)
 
-        self._observer: ObservationBuilder = OBSERVATIONS[observation](
-            self.height, self.width, coords
+        builder = OBSERVATIONS[observation]
+        given = {"crop": crop, "global_size": global_size}
+        self._observer: ObservationBuilder = builder(
+            self.height,
+            self.width,
+            coords,
+            self.max_steps,
+            **{name: given[name] for name in builder.options},
         )
         self.observation_kind, self.coords = observation, coords
         self.possible_agents = [f"agent_{i}" for i in range(self.n_agents)]
@@ -210,8 +218,9 @@ class CoverageEnv(ParallelEnv):
         self._new_cells = [0] * self.n_agents
         self._wall_hits = [0] * self.n_agents
         self.agents = self.possible_agents[:]
-        obs = self._observer.build(self._state)
-        return dict(zip(self.agents, obs)), {a: {} for a in self.agents}
+        self._observer.reset(self._state)
+        obs = self._per_agent(self._observer.build(self._state))
+        return obs, {a: {} for a in self.agents}
 
     def step(
         self, actions: Mapping[str, int]
@@ -259,8 +268,7 @@ class CoverageEnv(ParallelEnv):
                 # transition as a time-out (bootstrapped), not as a terminal state.
                 info["TimeLimit.truncated"] = True
             infos[a] = info
-        obs = self._observer.build(state)
-        observations = dict(zip(agents, obs))
+        observations = self._per_agent(self._observer.build(state))
         rewards = dict(zip(agents, reward))
         terminations = dict.fromkeys(agents, False)
         truncations = dict.fromkeys(agents, done)
@@ -281,6 +289,27 @@ class CoverageEnv(ParallelEnv):
         pass
 
     # ------------------------------------------------------------------ helpers
+    def _per_agent(self, obs: np.ndarray | dict[str, np.ndarray]) -> dict[str, Any]:
+        """One observation per agent from a builder's batch (an array, or a dict of arrays)."""
+        if isinstance(obs, dict):
+            return {
+                a: {key: value[i] for key, value in obs.items()} for i, a in enumerate(self.agents)
+            }
+        return dict(zip(self.agents, obs))
+
+    @property
+    def known(self) -> np.ndarray:
+        """``bool (H, W)``: cells the team has seen, i.e. that were inside some agent's 3x3 window
+        (a fresh array). Every position an agent has held is visited, so this is the visited map
+        grown by one cell in every direction (diagonals included)."""
+        visited = np.pad(self.visited, 1)
+        height, width = self.height, self.width
+        seen = np.zeros((height, width), dtype=bool)
+        for dr in range(3):
+            for dc in range(3):
+                seen |= visited[dr : dr + height, dc : dc + width]
+        return seen
+
     def _require_state(self) -> GridState:
         if self._state is None:
             raise RuntimeError("call reset() before using the environment")

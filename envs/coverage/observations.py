@@ -26,17 +26,24 @@ class ObservationBuilder(ABC):
         height: Rows of the map.
         width: Columns of the map.
         coords: ``"normalized"`` (row/(H-1), col/(W-1)) or ``"raw"`` (row, col).
+        max_steps: Episode length (for kinds that show the time elapsed).
     """
 
     name: ClassVar[str]
+    #: Names of the env's constructor arguments this kind takes (beyond height, width, coords and
+    #: max_steps), e.g. the team map's ``crop`` and ``global_size``.
+    options: ClassVar[tuple[str, ...]] = ()
     #: Cells of padding around the grid that :meth:`build` reads (``state.cells`` is padded by
     #: the largest padding of the builder in use, so windows never need bounds checks).
-    padding: ClassVar[int] = 1
+    padding: int = 1
 
-    def __init__(self, height: int, width: int, coords: str = "normalized") -> None:
+    def __init__(
+        self, height: int, width: int, coords: str = "normalized", max_steps: int = 1000
+    ) -> None:
         if coords not in COORD_MODES:
             raise ValueError(f"coords must be one of {COORD_MODES}, got {coords!r}")
         self.height, self.width, self.coords = height, width, coords
+        self.max_steps = max_steps
         if coords == "normalized":
             # max(.., 1) keeps a one-row or one-column map finite (its coordinate is always 0).
             self._scale = np.array(
@@ -46,12 +53,17 @@ class ObservationBuilder(ABC):
             self._scale = np.ones(2, dtype=np.float32)
 
     @abstractmethod
-    def space(self) -> spaces.Box:
+    def space(self) -> spaces.Space:
         """The observation space of one agent."""
 
+    def reset(self, state: GridState) -> None:  # noqa: B027 (an optional hook)
+        """Called once per episode, after ``state`` is made and before the first :meth:`build`.
+        Incremental kinds start their per-episode arrays here."""
+
     @abstractmethod
-    def build(self, state: GridState) -> np.ndarray:
-        """Return a float32 array ``(n_agents, *space().shape)``, a fresh array every call."""
+    def build(self, state: GridState) -> np.ndarray | dict[str, np.ndarray]:
+        """Every agent's observation, a fresh array (or a dict of fresh arrays) with the agents on
+        the first axis: ``(n_agents, *space().shape)`` (per key for a ``Dict`` space)."""
 
     def _coords_high(self) -> np.ndarray:
         if self.coords == "normalized":
@@ -128,5 +140,172 @@ def nearest_teammate(positions: np.ndarray) -> list[int] | np.ndarray:
     return d2.argmin(axis=1)  # argmin returns the first (lowest index) minimum
 
 
+# Categories of a cell in the team's knowledge (the team-map observation's first channels).
+KNOWN_WALL, VISITED, KNOWN_FREE, UNKNOWN = 0, 1, 2, 3
+
+
+class TeamMapObservation(ObservationBuilder):
+    """The team's knowledge of the map, as images (a ``Dict`` of uint8 arrays, channel-first).
+
+    A cell is *known* once it has been inside any agent's 3x3 window (start windows included);
+    outside the grid is known wall. Every known cell is a wall, visited, or free and not yet
+    visited; the others are unknown. Per agent:
+
+    * ``"local"`` ``(5, crop, crop)``: the crop centred on the agent; channels known wall,
+      visited, known free not visited, unknown, teammates present (0 or 255).
+    * ``"global"`` ``(6, G, G)``: the whole map cut into a G x G grid of blocks (block ``i`` holds
+      rows ``floor(i*H/G) .. floor((i+1)*H/G) - 1``, likewise columns, so any size or aspect
+      fits); channels the share of the block visited, known free not visited, unknown and known
+      wall (``round(255 * share)``; a block with no cell, on a map smaller than G, counts as
+      wall), this agent's block and the teammates' blocks (255).
+    * ``"vector"`` ``(3,)`` float32: own row / (H-1), own col / (W-1), steps / max_steps.
+
+    Built incrementally: each step only the cells of the agents' new 3x3 windows are looked at,
+    and only those whose category changed update the images and the per-block counts, so a step
+    costs ``O(agents * (crop^2 + G^2))``, whatever the map's size.
+
+    Args:
+        height, width, coords, max_steps: As :class:`ObservationBuilder`.
+        crop: Side of the local crop (odd, >= 3).
+        global_size: G, blocks per side of the global view (>= 7, so that the images' spatial
+            sides exceed their channel counts and SB3 reads them as channel-first).
+    """
+
+    name = "teammap"
+    options = ("crop", "global_size")
+    LOCAL_CHANNELS = 5
+    GLOBAL_CHANNELS = 6
+
+    def __init__(
+        self,
+        height: int,
+        width: int,
+        coords: str = "normalized",
+        max_steps: int = 1000,
+        crop: int = 15,
+        global_size: int = 13,
+    ) -> None:
+        super().__init__(height, width, coords, max_steps)
+        if not (isinstance(crop, int) and crop >= 3 and crop % 2 == 1):
+            raise ValueError(f"crop must be an odd integer >= 3, got {crop!r}")
+        if not (isinstance(global_size, int) and global_size >= 7):
+            raise ValueError(f"global_size must be an integer >= 7, got {global_size!r}")
+        self.crop, self.global_size = crop, global_size
+        self.padding = crop // 2
+        g = global_size
+        # Block of each row and column: the last block whose first row is <= r.
+        starts_r = (np.arange(g) * height) // g
+        starts_c = (np.arange(g) * width) // g
+        self._row_block = np.searchsorted(starts_r, np.arange(height), side="right") - 1
+        self._col_block = np.searchsorted(starts_c, np.arange(width), side="right") - 1
+        block_cells = np.zeros(g * g, dtype=np.int64)
+        flat = (self._row_block[:, None] * g + self._col_block[None, :]).ravel()
+        np.add.at(block_cells, flat, 1)
+        self._block_cells = block_cells
+        self._empty_blocks = block_cells == 0
+        # Block index of every padded cell (-1 on the padding: outside counts in no block).
+        p = self.padding
+        self._block_of = np.full((height + 2 * p, width + 2 * p), -1, dtype=np.int64)
+        self._block_of[p : p + height, p : p + width] = flat.reshape(height, width)
+        self._block_of = self._block_of.ravel()
+        self._scale3 = np.array(
+            [1.0 / max(height - 1, 1), 1.0 / max(width - 1, 1)], dtype=np.float32
+        )
+
+    def space(self) -> spaces.Dict:
+        c, g = self.crop, self.global_size
+        return spaces.Dict(
+            {
+                "local": spaces.Box(0, 255, (self.LOCAL_CHANNELS, c, c), np.uint8),
+                "global": spaces.Box(0, 255, (self.GLOBAL_CHANNELS, g, g), np.uint8),
+                "vector": spaces.Box(0.0, 1.0, (3,), np.float32),
+            }
+        )
+
+    # ------------------------------------------------------------------ per-episode arrays
+    def reset(self, state: GridState) -> None:
+        p, (hp, wp) = state.pad, state.cells.shape
+        if p != self.padding:
+            raise ValueError(f"the grid is padded by {p}, the team map needs {self.padding}")
+        # Category of every padded cell; the padding (outside the grid) is known wall.
+        self._cat = np.full(hp * wp, KNOWN_WALL, dtype=np.int8)
+        interior = np.zeros((hp, wp), dtype=bool)
+        interior[p:-p, p:-p] = True
+        self._cat[interior.ravel()] = UNKNOWN
+        # One 0/255 plane per category, for the local crops.
+        self._planes = np.zeros((4, hp * wp), dtype=np.uint8)
+        self._planes[self._cat, np.arange(hp * wp)] = 255
+        self._planes_2d = self._planes.reshape(4, hp, wp)
+        # Cells per block and category; all interior cells start unknown.
+        self._counts = np.zeros((self.global_size**2, 4), dtype=np.int64)
+        self._counts[:, UNKNOWN] = self._block_cells
+        self._wp = wp
+        self._window = (np.arange(-1, 2)[:, None] * wp + np.arange(-1, 2)[None, :]).ravel()
+
+    def _update(self, state: GridState) -> None:
+        """Make the agents' 3x3 windows known and bring changed cells up to date."""
+        p, wp = state.pad, self._wp
+        centres = (state.positions[:, 0] + p) * wp + (state.positions[:, 1] + p)
+        cells = np.unique((centres[:, None] + self._window).ravel())
+        values = state.cells.ravel().take(cells)
+        new = np.where(
+            values == CELL_WALL, KNOWN_WALL, np.where(values == CELL_UNVISITED, KNOWN_FREE, VISITED)
+        )
+        old = self._cat[cells]
+        changed = old != new
+        if not changed.any():
+            return
+        cells, old, new = cells[changed], old[changed], new[changed].astype(np.int8)
+        self._cat[cells] = new
+        self._planes[old, cells] = 0
+        self._planes[new, cells] = 255
+        blocks = self._block_of[cells]
+        inside = blocks >= 0
+        np.add.at(self._counts, (blocks[inside], old[inside]), -1)
+        np.add.at(self._counts, (blocks[inside], new[inside]), 1)
+
+    def build(self, state: GridState) -> dict[str, np.ndarray]:
+        self._update(state)
+        n = state.positions.shape[0]
+        c, g, half = self.crop, self.global_size, self.crop // 2
+        rows, cols = state.positions[:, 0], state.positions[:, 1]
+        local = np.empty((n, self.LOCAL_CHANNELS, c, c), dtype=np.uint8)
+        for i in range(n):  # the padded map's rows r .. r+crop are the crop centred on row r
+            r, col = int(rows[i]), int(cols[i])
+            local[i, :4] = self._planes_2d[:, r : r + c, col : col + c]
+        local[:, 4] = 0
+        if n > 1:
+            dr = rows[None, :] - rows[:, None] + half  # (agent, teammate)
+            dc = cols[None, :] - cols[:, None] + half
+            seen = (dr >= 0) & (dr < c) & (dc >= 0) & (dc < c)
+            np.fill_diagonal(seen, False)
+            i, j = np.nonzero(seen)
+            local[i, 4, dr[i, j], dc[i, j]] = 255
+        glob = np.zeros((n, self.GLOBAL_CHANNELS, g * g), dtype=np.uint8)
+        shares = np.zeros((g * g, 4), dtype=np.float64)
+        filled = ~self._empty_blocks
+        shares[filled] = self._counts[filled] / self._block_cells[filled, None]
+        shares[self._empty_blocks, KNOWN_WALL] = 1.0
+        order = (VISITED, KNOWN_FREE, UNKNOWN, KNOWN_WALL)
+        glob[:, :4] = np.rint(255.0 * shares[:, order].T)[None]
+        own = self._row_block[rows] * g + self._col_block[cols]
+        glob[np.arange(n), 4, own] = 255
+        if n > 1:
+            for i in range(n):
+                others = np.delete(own, i)
+                glob[i, 5, others] = 255
+        vector = np.empty((n, 3), dtype=np.float32)
+        vector[:, :2] = state.positions * self._scale3
+        vector[:, 2] = min(state.steps / self.max_steps, 1.0)
+        return {
+            "local": local,
+            "global": glob.reshape(n, self.GLOBAL_CHANNELS, g, g),
+            "vector": vector,
+        }
+
+
 #: Observation kinds by name (the env's ``observation=`` argument).
-OBSERVATIONS: dict[str, type[ObservationBuilder]] = {ThesisObservation.name: ThesisObservation}
+OBSERVATIONS: dict[str, type[ObservationBuilder]] = {
+    ThesisObservation.name: ThesisObservation,
+    TeamMapObservation.name: TeamMapObservation,
+}

@@ -1,0 +1,216 @@
+"""The team-map observation (``observation="teammap"``): hand-built grids, crop padding at the
+border, pooling of maps of any size, the incremental arrays against a from-scratch recomputation,
+and PettingZoo's own API and seed tests."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from pettingzoo.test import parallel_api_test, parallel_seed_test
+
+from envs import coverage_v0
+from tests.conftest import grid_from
+
+UP, DOWN, LEFT, RIGHT, STAY = range(5)
+ROOM = """
+#######
+#.....#
+#.#...#
+#.....#
+#######
+"""
+
+
+def teammap_env(text: str, starts: list[tuple[int, int]], **kwargs):
+    grid = grid_from(text)
+    env = coverage_v0.parallel_env(
+        height=grid.shape[0],
+        width=grid.shape[1],
+        n_agents=len(starts),
+        observation="teammap",
+        **kwargs,
+    )
+    obs, _ = env.reset(seed=0, options={"grid": grid, "starts": starts})
+    return env, obs
+
+
+def reference(env, crop: int, g: int) -> dict[str, np.ndarray]:
+    """The observation computed from scratch from the env's public state (slow and plain)."""
+    walls, visited, known = env.walls, env.visited, env.known
+    height, width = walls.shape
+    cat = np.full((height, width), 3)  # unknown
+    cat[known & walls] = 0
+    cat[known & visited] = 1
+    cat[known & ~walls & ~visited] = 2
+    half = crop // 2
+    positions = env.positions
+    n = len(positions)
+    local = np.zeros((n, 5, crop, crop), dtype=np.uint8)
+    for i, (r, c) in enumerate(positions):
+        for dr in range(-half, half + 1):
+            for dc in range(-half, half + 1):
+                rr, cc = r + dr, c + dc
+                k = cat[rr, cc] if 0 <= rr < height and 0 <= cc < width else 0
+                local[i, k, dr + half, dc + half] = 255
+        for j, (r2, c2) in enumerate(positions):
+            if j != i and abs(r2 - r) <= half and abs(c2 - c) <= half:
+                local[i, 4, r2 - r + half, c2 - c + half] = 255
+    glob = np.zeros((n, 6, g, g), dtype=np.uint8)
+    rows = [range(i * height // g, (i + 1) * height // g) for i in range(g)]
+    cols = [range(j * width // g, (j + 1) * width // g) for j in range(g)]
+    for bi, rr in enumerate(rows):
+        for bj, cc in enumerate(cols):
+            block = cat[np.ix_(list(rr), list(cc))]
+            if block.size == 0:
+                glob[:, 3, bi, bj] = 255
+                continue
+            for channel, k in enumerate((1, 2, 3, 0)):
+                glob[:, channel, bi, bj] = round(255 * (block == k).mean())
+    block_of = [
+        (
+            next(b for b, rr in enumerate(rows) if r in rr),
+            next(b for b, cc in enumerate(cols) if c in cc),
+        )
+        for r, c in positions
+    ]
+    for i, (bi, bj) in enumerate(block_of):
+        glob[i, 4, bi, bj] = 255
+        for j, (bi2, bj2) in enumerate(block_of):
+            if j != i:
+                glob[i, 5, bi2, bj2] = 255
+    vector = np.array(
+        [[r / (height - 1), c / (width - 1), env.steps / env.max_steps] for r, c in positions],
+        dtype=np.float32,
+    )
+    return {"local": local, "global": glob, "vector": vector}
+
+
+def check(env, obs, crop: int = 15, g: int = 13) -> None:
+    expected = reference(env, crop, g)
+    for i, agent in enumerate(env.possible_agents):
+        for key in ("local", "global"):
+            np.testing.assert_array_equal(obs[agent][key], expected[key][i], err_msg=key)
+        np.testing.assert_allclose(obs[agent]["vector"], expected["vector"][i], rtol=1e-6)
+
+
+def test_known_cells_after_a_few_moves_on_a_hand_built_grid():
+    env, obs = teammap_env(ROOM, [(1, 1)], crop=5, global_size=7)
+    local = obs["agent_0"]["local"]
+    # The crop is centred on (1, 1): its centre is visited, the 3x3 window around it is known.
+    assert local[1, 2, 2] == 255  # visited
+    assert local[0, 1, 1] == 255 and local[0, 1, 3] == 255  # walls at (0, 0) and (0, 2)
+    assert local[2, 3, 3] == 0 and local[0, 3, 3] == 255  # (2, 2) is a wall, now known
+    assert local[2, 2, 3] == 255  # (1, 2): known free, not visited
+    assert local[3, 2, 4] == 255  # (1, 3): outside the window, unknown
+    assert local[0, 0, 0] == 255  # row -1: outside the grid, known wall
+    obs, *_ = env.step({"agent_0": RIGHT})
+    obs, *_ = env.step({"agent_0": RIGHT})  # now at (1, 3)
+    local = obs["agent_0"]["local"]
+    assert local[1, 2, 1] == 255 and local[1, 2, 0] == 255  # (1, 2), (1, 1) visited
+    assert local[2, 2, 3] == 255  # (1, 4) known free
+    assert local[3, 4, 4] == 255  # (3, 5): still unknown
+    assert env.known.sum() == 15  # columns 0..4 of rows 0..2
+    check(env, obs, crop=5, g=7)
+
+
+def test_crop_is_padded_with_known_wall_at_the_border():
+    env, obs = teammap_env(ROOM, [(3, 5)], crop=9, global_size=7)
+    local = obs["agent_0"]["local"]
+    # Rows 8 .. 7 of the crop lie below the grid (row 3 + 4 > 4), columns past 6 right of it.
+    assert (local[0, 6:, :] == 255).all()  # rows 5..7 of the map do not exist
+    assert (local[0, :, 7:] == 255).all()
+    assert (local[1:4, 6:, :] == 0).all()
+    check(env, obs, crop=9, g=7)
+
+
+def test_teammates_in_the_crop_and_on_the_global_view():
+    env, obs = teammap_env(ROOM, [(1, 1), (3, 4), (1, 5)], crop=5, global_size=7)
+    a0 = obs["agent_0"]
+    assert a0["local"][4].sum() == 0  # (3, 4) and (1, 5) are 3 and 4 cells away: outside 5x5
+    a1 = obs["agent_1"]["local"]
+    assert a1[4, 0, 3] == 255  # agent_2 at (1, 5) is (-2, +1) from (3, 4)
+    assert a1[4].sum() == 255
+    assert (obs["agent_2"]["global"][5] > 0).sum() == 2  # two teammates' blocks
+    check(env, obs, crop=5, g=7)
+
+
+def test_pooling_of_a_100x50_map_matches_the_hand_computed_blocks():
+    env = coverage_v0.parallel_env(
+        map="cave_100x50", n_agents=2, observation="teammap", max_steps=200
+    )
+    obs, _ = env.reset(seed=4)
+    rng = np.random.default_rng(1)
+    for _ in range(120):
+        obs, *_ = env.step({a: int(rng.integers(5)) for a in env.agents})
+    assert obs["agent_0"]["global"].shape == (6, 13, 13)
+    check(env, obs)
+    # Blocks split 50 rows and 100 columns as evenly as the integer cuts allow.
+    shares = obs["agent_0"]["global"][:4].astype(int)
+    assert (np.abs(shares.sum(axis=0) - 255) <= 2).all()  # the four shares add up to 1
+
+
+def test_map_smaller_than_the_global_view_has_wall_blocks():
+    env, obs = teammap_env(ROOM, [(1, 1)], crop=3, global_size=9)  # 5 rows, 7 columns < 9
+    glob = obs["agent_0"]["global"]
+    # Block i holds rows floor(i*5/9) .. floor((i+1)*5/9) - 1: blocks 0, 2, 4, 6 hold none, and
+    # columns likewise (7 columns): blocks 0 and 4 hold none. Empty blocks count as wall.
+    for i in (0, 2, 4, 6):
+        assert (glob[3, i, :] == 255).all() and (glob[:3, i, :] == 0).all()
+    for j in (0, 4):
+        assert (glob[3, :, j] == 255).all()
+    # Rows 0..4 fall in blocks 1, 3, 5, 7, 8 and columns 0..6 in 1, 2, 3, 5, 6, 7, 8: the agent
+    # at (1, 1) is in block (3, 2).
+    assert glob[4, 3, 2] == 255 and glob[4].sum() == 255
+    check(env, obs, crop=3, g=9)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_incremental_arrays_equal_a_recomputation_after_many_steps(seed):
+    env = coverage_v0.parallel_env(
+        height=23, width=31, n_agents=3, observation="teammap", max_steps=300, crop=7
+    )
+    obs, _ = env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    for t in range(300):
+        if t % 60 == 0:
+            check(env, obs, crop=7)
+        obs, *_ = env.step({a: int(rng.integers(5)) for a in env.agents})
+    check(env, obs, crop=7)
+    # A second episode starts from nothing known again.
+    obs, _ = env.reset(seed=seed + 10)
+    assert env.known.sum() <= 27
+    check(env, obs, crop=7)
+
+
+def test_observations_lie_in_the_space():
+    env = coverage_v0.parallel_env(height=12, width=40, n_agents=2, observation="teammap")
+    obs, _ = env.reset(seed=2)
+    space = env.observation_space("agent_0")
+    rng = np.random.default_rng(0)
+    for _ in range(50):
+        for o in obs.values():
+            assert space.contains(o)
+        obs, *_ = env.step({a: int(rng.integers(5)) for a in env.agents})
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "message"),
+    [({"crop": 4}, "crop must be an odd integer"), ({"global_size": 5}, "global_size must be")],
+)
+def test_bad_sizes_are_value_errors(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        coverage_v0.parallel_env(observation="teammap", **kwargs)
+
+
+def test_parallel_api_and_seed_tests_pass_with_the_team_map():
+    parallel_api_test(
+        coverage_v0.parallel_env(
+            height=14, width=17, n_agents=3, max_steps=60, observation="teammap", crop=7
+        ),
+        num_cycles=100,
+    )
+    parallel_seed_test(
+        lambda: coverage_v0.parallel_env(
+            height=10, width=10, n_agents=2, max_steps=40, observation="teammap", crop=5
+        )
+    )

@@ -46,7 +46,7 @@ from scipy.sparse.csgraph import breadth_first_order
 
 from envs.coverage import CoverageEnv
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL
-from harness.evaluation import BatchPolicy, episode_draws, sample_categorical
+from harness.evaluation import BatchPolicy, batch_len, episode_draws, sample_categorical
 
 #: Names accepted by :func:`make_baseline`.
 BASELINES = ("random", "local", "frontier")
@@ -89,8 +89,8 @@ class RandomPolicy:
         self.rng = np.random.default_rng(seed)
 
     def __call__(self, obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
-        """One uniform action per row of ``obs``."""
-        return self.rng.integers(0, 5, size=len(obs))
+        """One uniform action per agent in the batch."""
+        return self.rng.integers(0, 5, size=batch_len(obs))
 
 
 #: Window index (row-major 3x3, agent in the centre, 4) of the cell that each move
@@ -103,7 +103,8 @@ def local_actions(obs: np.ndarray, uniform: np.ndarray) -> np.ndarray:
     """The ``local`` rule for a batch of thesis observations (see the module docstring).
 
     Args:
-        obs: ``(batch, 13)`` thesis observations (window: -1 unvisited, 0 visited, 1 wall).
+        obs: ``(batch, >= 9)``: the 3x3 windows of thesis observations (-1 unvisited,
+            0 visited, 1 wall) in their first 9 columns.
         uniform: ``(batch,)`` draws from U[0, 1), one per row, that break ties.
 
     Returns:
@@ -125,15 +126,24 @@ def local_actions(obs: np.ndarray, uniform: np.ndarray) -> np.ndarray:
     return sample_categorical(np.concatenate([candidates, boxed_in], axis=1).astype(float), uniform)
 
 
+def thesis_windows(env: CoverageEnv) -> np.ndarray:
+    """``(n_agents, 9)``: each agent's 3x3 window as the thesis observation shows it (-1
+    unvisited free, 0 visited, 1 wall or outside), read from the env's state, so the local rule
+    runs whatever observation the env gives its agents."""
+    cells = np.where(env.walls, CELL_WALL, np.where(env.visited, 0.0, CELL_UNVISITED))
+    padded = np.pad(cells, 1, constant_values=CELL_WALL)
+    rows, cols = env.positions[:, 0], env.positions[:, 1]
+    dr, dc = np.divmod(np.arange(9), 3)
+    return padded[rows[:, None] + dr[None, :], cols[:, None] + dc[None, :]]
+
+
 class LocalPolicy:
-    """The memoryless ``local`` rule on each agent's own observation (see the module docstring)."""
+    """The memoryless ``local`` rule on each agent's 3x3 window (see the module docstring)."""
 
     def __call__(self, obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
         """Actions for every agent of every env copy, copy-major like ``obs``."""
-        kinds = {env.observation_kind for env in envs}
-        if kinds != {"thesis"}:
-            raise ValueError(f"the local policy reads the 'thesis' observation, not {kinds}")
-        return local_actions(np.asarray(obs), episode_draws(envs, len(obs) // len(envs)))
+        windows = np.concatenate([thesis_windows(env) for env in envs])
+        return local_actions(windows, episode_draws(envs, len(windows) // len(envs)))
 
 
 class FrontierPolicy:

@@ -12,11 +12,12 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.buffers import ReplayBuffer
-from stable_baselines3.common.type_aliases import ReplayBufferSamples
+from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
+from stable_baselines3.common.type_aliases import DictReplayBufferSamples, ReplayBufferSamples
 from stable_baselines3.common.vec_env import VecNormalize
 
 __all__ = [
+    "PrioritizedDictReplayBuffer",
     "PrioritizedReplayBuffer",
     "PrioritizedReplayBufferSamples",
     "SumTree",
@@ -248,7 +249,7 @@ class PrioritizedReplayBuffer(ReplayBuffer):
 
     ``optimize_memory_usage=True`` is not supported (it would make the transition at ``pos``
     invalid, and that slot would need a zero priority tracked across wrap-arounds): a
-    ``ValueError`` is raised. Dict observation spaces are not supported either.
+    ``ValueError`` is raised. Dict observation spaces take :class:`PrioritizedDictReplayBuffer`.
 
     Args:
         buffer_size: Max number of transitions, over all envs (as in SB3).
@@ -278,8 +279,11 @@ class PrioritizedReplayBuffer(ReplayBuffer):
     ) -> None:
         if optimize_memory_usage:
             raise ValueError("PrioritizedReplayBuffer does not support optimize_memory_usage=True")
-        if isinstance(observation_space, spaces.Dict):
-            raise ValueError("PrioritizedReplayBuffer does not support Dict observation spaces")
+        if isinstance(observation_space, spaces.Dict) and not isinstance(self, DictReplayBuffer):
+            raise ValueError(
+                "PrioritizedReplayBuffer stores arrays; use PrioritizedDictReplayBuffer for Dict "
+                "observation spaces"
+            )
         if eps <= 0:
             raise ValueError(f"eps must be > 0, got {eps}")
         super().__init__(
@@ -466,3 +470,39 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         self._raw_priorities[:] = 0.0
         self._tree.rebuild(self._raw_priorities)
         self.max_priority = 1.0
+
+
+class PrioritizedDictReplayBuffer(PrioritizedReplayBuffer, DictReplayBuffer):
+    """:class:`PrioritizedReplayBuffer` for ``Dict`` observations (SB3's ``DictReplayBuffer``
+    storage: one array per key).
+
+    Everything prioritized (sum tree, priorities, stratified sampling, IS weights, flat indices
+    ``pos * n_envs + env``) is :class:`PrioritizedReplayBuffer`'s; the method resolution order
+    (this class, ``PrioritizedReplayBuffer``, ``DictReplayBuffer``, ``ReplayBuffer``) makes its
+    ``super()`` calls reach SB3's Dict storage. Only reading a batch at given indices differs.
+    """
+
+    def _get_samples_at(  # type: ignore[override]
+        self,
+        batch_inds: np.ndarray,
+        env_indices: np.ndarray,
+        env: VecNormalize | None = None,
+    ) -> DictReplayBufferSamples:
+        """SB3's ``DictReplayBuffer._get_samples`` with the env column given instead of drawn."""
+        obs = self._normalize_obs(
+            {key: o[batch_inds, env_indices, :] for key, o in self.observations.items()}, env
+        )
+        next_obs = self._normalize_obs(
+            {key: o[batch_inds, env_indices, :] for key, o in self.next_observations.items()}, env
+        )
+        assert isinstance(obs, dict) and isinstance(next_obs, dict)
+        dones = self.dones[batch_inds, env_indices] * (1 - self.timeouts[batch_inds, env_indices])
+        return DictReplayBufferSamples(
+            observations={key: self.to_torch(o) for key, o in obs.items()},
+            actions=self.to_torch(self.actions[batch_inds, env_indices]),
+            next_observations={key: self.to_torch(o) for key, o in next_obs.items()},
+            dones=self.to_torch(dones).reshape(-1, 1),
+            rewards=self.to_torch(
+                self._normalize_reward(self.rewards[batch_inds, env_indices].reshape(-1, 1), env)
+            ),
+        )

@@ -44,6 +44,8 @@ from pydantic import (
 
 from envs import coverage_v0
 from envs.coverage.maps import shipped_maps
+from envs.coverage.observations import OBSERVATIONS
+from harness.registry import POLICIES
 
 
 class ConfigError(ValueError):
@@ -85,7 +87,13 @@ class EnvConfig(_Section):
     wall_fraction: tuple[float, float] = (0.15, 0.20)
     n_agents: PositiveInt = 4
     max_steps: PositiveInt = 1000
-    observation: Literal["thesis"] = "thesis"
+    observation: str = "thesis"
+    """An observation kind of the env's registry (``envs.coverage.observations.OBSERVATIONS``):
+    ``thesis`` (13 numbers) or ``teammap`` (images of the team's knowledge)."""
+    crop: PositiveInt = 15
+    """``teammap``: side of the local crop (odd)."""
+    global_size: PositiveInt = 13
+    """``teammap``: blocks per side of the pooled whole-map view."""
     coords: Literal["normalized", "raw"] = "normalized"
     rewards: RewardsConfig = RewardsConfig()
     starts: list[tuple[int, int]] | None = None
@@ -118,6 +126,29 @@ class EnvConfig(_Section):
                 f"(sha256 {digest[:12]}..., the config says {str(given)[:12]}...)"
             )
         return {**data, "map": str(path.resolve()), "map_sha256": digest}
+
+    @field_validator("observation")
+    @classmethod
+    def _known_observation(cls, v: str) -> str:
+        if v not in OBSERVATIONS:
+            raise ValueError(f"unknown observation {v!r}; known: {', '.join(OBSERVATIONS)}")
+        return v
+
+    @field_validator("crop")
+    @classmethod
+    def _odd_crop(cls, v: int) -> int:
+        # >= 5: SB3 reads a uint8 image as channel-first only when its channel axis (5 here) is
+        # the smallest.
+        if v < 5 or v % 2 == 0:
+            raise ValueError(f"must be odd and >= 5, got {v}")
+        return v
+
+    @field_validator("global_size")
+    @classmethod
+    def _global_size(cls, v: int) -> int:
+        if v < 7:
+            raise ValueError(f"must be >= 7 (more than the view's 6 channels), got {v}")
+        return v
 
     @field_validator("wall_fraction")
     @classmethod
@@ -179,7 +210,9 @@ class VecConfig(_Section):
 class AlgoConfig(_Section):
     """The learner: ``DoubleDQN`` with its policy, buffer and optimizer (SPEC §3)."""
 
-    policy: Literal["MlpPolicy", "DuelingMlpPolicy"] = "MlpPolicy"
+    policy: str = "MlpPolicy"
+    """A policy of ``harness.registry.POLICIES``: ``MlpPolicy``, ``DuelingMlpPolicy`` (the
+    thesis observation), ``TeamMapPolicy``, ``DuelingTeamMapPolicy`` (``teammap``)."""
     net_arch: list[PositiveInt] = [512, 512, 512]
     """Hidden layers; for the dueling policy, each of the value and advantage streams."""
     dueling_aggregator: Literal["mean", "max"] = "mean"
@@ -197,6 +230,18 @@ class AlgoConfig(_Section):
     threads: PositiveInt | None = None
     """torch CPU threads (``torch.set_num_threads``); ``null`` keeps torch's default (one per
     core). On a 2-core machine 2 threads train the 3x512 net ~20 % faster than 1 (harness bench)."""
+
+    features_dim: PositiveInt = 256
+    """TeamMap policies: width of the layer that joins the image branches and the vector."""
+    cnn_channels: tuple[PositiveInt, PositiveInt] = (16, 32)
+    """TeamMap policies: filters of the two 3x3 conv layers of each image branch."""
+
+    @field_validator("policy")
+    @classmethod
+    def _known_policy(cls, v: str) -> str:
+        if v not in POLICIES:
+            raise ValueError(f"unknown policy {v!r}; known: {', '.join(POLICIES)}")
+        return v
 
     @field_validator("device")
     @classmethod
@@ -333,6 +378,19 @@ class ExperimentConfig(_Section):
                 "letter or digit"
             )
         return v
+
+    @model_validator(mode="after")
+    def _policy_fits_observation(self) -> ExperimentConfig:
+        wanted = POLICIES[self.algo.policy].observation
+        if wanted != self.env.observation:
+            fitting = [
+                name for name, p in POLICIES.items() if p.observation == self.env.observation
+            ]
+            raise ValueError(
+                f"algo.policy {self.algo.policy} is for observation {wanted!r}, but "
+                f"env.observation is {self.env.observation!r} (use one of {', '.join(fitting)})"
+            )
+        return self
 
     @field_validator("phases")
     @classmethod

@@ -16,7 +16,7 @@ from stable_baselines3.dqn.policies import DQNPolicy
 from torch.nn import functional as F
 
 from harness.buffers import PrioritizedReplayBuffer
-from harness.policies import DuelingDQNPolicy
+from harness.registry import POLICIES
 from harness.targets import double_q_target, max_q_target
 
 __all__ = ["DoubleDQN", "resolve_optimizer_class"]
@@ -64,7 +64,8 @@ class DoubleDQN(DQN):
       ``torch.optim`` class, e.g. ``"Adam"``.
     * ``predict(deterministic=False)`` draws one exploration coin per observation (per VecEnv
       slot / agent), instead of SB3's single coin for the whole batch.
-    * ``"DuelingMlpPolicy"`` selects :class:`harness.policies.DuelingDQNPolicy`.
+    * The names of :data:`harness.registry.POLICIES` select the harness's policies
+      (``"DuelingMlpPolicy"``, ``"TeamMapPolicy"``, ``"DuelingTeamMapPolicy"``).
 
     Schedules. SB3 overwrites ``exploration_rate`` in ``_on_step`` from
     ``exploration_schedule(progress_remaining)``, so assigning ``exploration_rate`` from a
@@ -113,9 +114,11 @@ class DoubleDQN(DQN):
         _init_setup_model: Build the networks now (``False`` is used by ``load``).
     """
 
+    # Every name of the harness's policy registry (MlpPolicy, DuelingMlpPolicy, TeamMapPolicy,
+    # DuelingTeamMapPolicy), beside SB3's own aliases.
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
         **DQN.policy_aliases,
-        "DuelingMlpPolicy": DuelingDQNPolicy,
+        **{name: entry.load() for name, entry in POLICIES.items()},
     }
     beta_schedule: Schedule
     #: Transition count (``num_timesteps``) at which the current phase started.

@@ -18,10 +18,10 @@ from envs import coverage_v0
 from envs.coverage import CoverageEnv
 from harness.config import EnvConfig
 
-#: A batched policy: ``policy(obs, envs)`` maps the observations ``(len(envs) * n_agents, obs_dim)``
-#: of every agent of every env copy in play (copy-major: copy 0's agents first) to actions of the
-#: same length. ``envs`` are the live ``CoverageEnv`` copies, for baselines that read the map;
-#: a learned policy ignores them.
+#: A batched policy: ``policy(obs, envs)`` maps the observations ``(len(envs) * n_agents, ...)``
+#: of every agent of every env copy in play (copy-major: copy 0's agents first; a dict of such
+#: arrays for ``Dict`` observations) to actions of the same length. ``envs`` are the live
+#: ``CoverageEnv`` copies, for baselines that read the map; a learned policy ignores them.
 BatchPolicy = Callable[[np.ndarray, Sequence[CoverageEnv]], np.ndarray]
 
 #: Fractions of the episode at which coverage is recorded (Table 4.2).
@@ -73,9 +73,16 @@ def model_policy(model: Any, temperature: float = 0.0) -> BatchPolicy:
 
         with th.no_grad():
             q = model.q_net(model.policy.obs_to_tensor(obs)[0]).cpu().numpy().astype(np.float64)
-        return softmax_sample(q, temperature, episode_draws(envs, len(obs) // len(envs)))
+        return softmax_sample(q, temperature, episode_draws(envs, batch_len(obs) // len(envs)))
 
     return greedy if temperature == 0 else boltzmann
+
+
+def batch_len(obs: np.ndarray | dict[str, np.ndarray]) -> int:
+    """Observations in a batch (a ``Dict`` observation's batch is a dict of stacked arrays)."""
+    if isinstance(obs, dict):
+        return len(next(iter(obs.values())))
+    return len(obs)
 
 
 def softmax_sample(q: np.ndarray, temperature: float, uniform: np.ndarray) -> np.ndarray:

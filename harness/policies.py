@@ -1,9 +1,12 @@
-"""Dueling Q-network policy for SB3's DQN (Wang et al., 2016, https://arxiv.org/abs/1511.06581)."""
+"""Policies for SB3's DQN: the dueling Q-network (Wang et al., 2016,
+https://arxiv.org/abs/1511.06581) and the team-map CNN policies (plain and dueling) that read the
+``"teammap"`` observation's images."""
 
 from __future__ import annotations
 
 from typing import Any
 
+import numpy as np
 import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.torch_layers import (
@@ -15,7 +18,15 @@ from stable_baselines3.common.type_aliases import Schedule
 from stable_baselines3.dqn.policies import DQNPolicy, QNetwork
 from torch import nn
 
-__all__ = ["AGGREGATORS", "DuelingDQNPolicy", "DuelingHead", "DuelingQNetwork"]
+__all__ = [
+    "AGGREGATORS",
+    "DuelingDQNPolicy",
+    "DuelingHead",
+    "DuelingQNetwork",
+    "DuelingTeamMapPolicy",
+    "TeamMapExtractor",
+    "TeamMapPolicy",
+]
 
 AGGREGATORS = ("mean", "max")
 
@@ -212,3 +223,119 @@ class DuelingDQNPolicy(DQNPolicy):
         data = super()._get_constructor_parameters()
         data.update(aggregator=self.aggregator)
         return data
+
+
+class TeamMapExtractor(BaseFeaturesExtractor):
+    """Features of the ``"teammap"`` observation: a small conv stack per image, then one layer.
+
+    Each image (``"local"`` crop, ``"global"`` pooled map; any side) goes through a 3x3 conv
+    (``channels[0]`` filters, same size) and a 3x3 conv with stride 2 (``channels[1]``), ReLU
+    after each, then is flattened; the flat images and the ``"vector"`` are concatenated and
+    mapped to ``features_dim`` with a ReLU. SB3's ``NatureCNN`` needs images of 36x36 or more,
+    hence this one. SB3 has already divided the uint8 images by 255.
+
+    Args:
+        observation_space: The ``Dict`` space (``local``, ``global``, ``vector``; any image keys
+            work: every 3-D ``Box`` is an image, every 1-D one a vector).
+        features_dim: Output size.
+        channels: Filters of the two conv layers of each image branch.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        features_dim: int = 256,
+        channels: tuple[int, int] | list[int] = (8, 16),
+    ) -> None:
+        super().__init__(observation_space, features_dim)
+        first, second = (int(c) for c in channels)
+        branches: dict[str, nn.Module] = {}
+        flat = 0
+        for key, space in observation_space.spaces.items():
+            shape = space.shape
+            assert shape is not None
+            if len(shape) == 3:
+                branch: nn.Module = nn.Sequential(
+                    nn.Conv2d(shape[0], first, kernel_size=3, padding=1),
+                    nn.ReLU(),
+                    nn.Conv2d(first, second, kernel_size=3, stride=2, padding=1),
+                    nn.ReLU(),
+                    nn.Flatten(),
+                )
+                with th.no_grad():  # the flat size, as SB3's NatureCNN computes it
+                    flat += int(branch(th.zeros(1, *shape)).shape[1])
+            else:
+                branch = nn.Flatten()
+                flat += int(np.prod(shape))
+            branches[key] = branch
+        self.branches = nn.ModuleDict(branches)
+        self.linear = nn.Sequential(nn.Linear(flat, features_dim), nn.ReLU())
+
+    def forward(self, observations: dict[str, th.Tensor]) -> th.Tensor:
+        parts = [branch(observations[key]) for key, branch in self.branches.items()]
+        return self.linear(th.cat(parts, dim=1))
+
+
+class TeamMapPolicy(DQNPolicy):
+    """DQN policy on the ``"teammap"`` observation: :class:`TeamMapExtractor`, then SB3's Q head
+    (``net_arch`` hidden layers, default none). Registered as ``"TeamMapPolicy"``."""
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        action_space: spaces.Discrete,
+        lr_schedule: Schedule,
+        net_arch: list[int] | None = None,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        features_extractor_class: type[BaseFeaturesExtractor] = TeamMapExtractor,
+        features_extractor_kwargs: dict[str, Any] | None = None,
+        normalize_images: bool = True,
+        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: dict[str, Any] | None = None,
+    ) -> None:
+        super().__init__(
+            observation_space,
+            action_space,
+            lr_schedule,
+            net_arch=[] if net_arch is None else net_arch,
+            activation_fn=activation_fn,
+            features_extractor_class=features_extractor_class,
+            features_extractor_kwargs=features_extractor_kwargs,
+            normalize_images=normalize_images,
+            optimizer_class=optimizer_class,
+            optimizer_kwargs=optimizer_kwargs,
+        )
+
+
+class DuelingTeamMapPolicy(DuelingDQNPolicy):
+    """Dueling DQN policy on the ``"teammap"`` observation: :class:`TeamMapExtractor`, then
+    value and advantage streams (``net_arch``, default none: one linear layer each).
+    Registered as ``"DuelingTeamMapPolicy"``."""
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        action_space: spaces.Discrete,
+        lr_schedule: Schedule,
+        net_arch: DuelingNetArch | None = None,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        features_extractor_class: type[BaseFeaturesExtractor] = TeamMapExtractor,
+        features_extractor_kwargs: dict[str, Any] | None = None,
+        normalize_images: bool = True,
+        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: dict[str, Any] | None = None,
+        aggregator: str = "mean",
+    ) -> None:
+        super().__init__(
+            observation_space,
+            action_space,
+            lr_schedule,
+            net_arch=[] if net_arch is None else net_arch,
+            activation_fn=activation_fn,
+            features_extractor_class=features_extractor_class,
+            features_extractor_kwargs=features_extractor_kwargs,
+            normalize_images=normalize_images,
+            optimizer_class=optimizer_class,
+            optimizer_kwargs=optimizer_kwargs,
+            aggregator=aggregator,
+        )

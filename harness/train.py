@@ -22,6 +22,7 @@ from typing import Any
 
 import numpy as np
 import torch
+from gymnasium import spaces
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.logger import (
     CSVOutputFormat,
@@ -34,7 +35,7 @@ from stable_baselines3.common.utils import set_random_seed
 from stable_baselines3.common.vec_env import VecEnv
 
 from harness.adapters import make_vec_env
-from harness.buffers import PrioritizedReplayBuffer
+from harness.buffers import PrioritizedDictReplayBuffer, PrioritizedReplayBuffer
 from harness.callbacks import (
     EpisodeLogCallback,
     EpochsByCoverageCallback,
@@ -49,10 +50,11 @@ from harness.checkpoints import (
     save_checkpoint,
     set_rng_states,
 )
-from harness.checks import optimizer_kwargs_with_foreach
+from harness.checks import check_replay_memory, format_bytes, optimizer_kwargs_with_foreach
 from harness.config import ExperimentConfig, PhaseConfig
 from harness.dqn import DoubleDQN, NonFiniteLossError, resolve_optimizer_class
 from harness.evaluation import model_policy, run_episodes, selection_score, summarize
+from harness.registry import POLICIES
 from harness.rundir import (
     EVALUATION_COLUMNS,
     LogMismatchError,
@@ -80,11 +82,20 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
         "optimizer_class": optimizer_class,
         "optimizer_kwargs": optimizer_kwargs_with_foreach(optimizer_class, algo.optimizer_kwargs),
     }
-    if algo.policy == "DuelingMlpPolicy":
+    entry = POLICIES[algo.policy]
+    if entry.dueling:
         policy_kwargs["aggregator"] = algo.dueling_aggregator
+    if entry.observation == "teammap":
+        policy_kwargs["features_extractor_kwargs"] = {
+            "features_dim": algo.features_dim,
+            "channels": list(algo.cnn_channels),
+        }
     buffer_kwargs: dict[str, Any] | None = None
+    buffer_class: type[PrioritizedReplayBuffer] | None = None
     if algo.prioritized:
         buffer_kwargs = {"alpha": first.alpha, "beta": first.beta.start, "eps": algo.per_eps}
+        dict_obs = isinstance(venv.observation_space, spaces.Dict)
+        buffer_class = PrioritizedDictReplayBuffer if dict_obs else PrioritizedReplayBuffer
     return DoubleDQN(
         algo.policy,
         venv,
@@ -95,7 +106,7 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
         gamma=algo.gamma,
         train_freq=(first.train_freq, "step"),
         gradient_steps=first.epochs[0][1],
-        replay_buffer_class=PrioritizedReplayBuffer if algo.prioritized else None,
+        replay_buffer_class=buffer_class,
         replay_buffer_kwargs=buffer_kwargs,
         target_update_interval=algo.target_update_interval,
         # ε, β and the learning rate's schedules are installed by apply_phase, in one place.
@@ -375,6 +386,11 @@ def train(
             rewind_logs(run, 0, 0)
             run.best_model.unlink(missing_ok=True)
 
+    print(
+        f"replay buffer: {config.algo.buffer_size:,} transitions, about "
+        f"{format_bytes(check_replay_memory(config))} when full",
+        file=sys.stderr,
+    )
     venv = make_vec_env(
         config.env, config.vec.copies, config.vec.num_cpus, seed=_env_seed(config, state)
     )

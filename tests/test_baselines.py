@@ -107,12 +107,17 @@ def test_local_never_hits_walls_repeats_and_beats_random(copies: int) -> None:
     assert np.median([r.coverage for r in local]) > np.median([r.coverage for r in rand]) + 0.2
 
 
-def test_local_rejects_other_observations() -> None:
-    env = coverage_v0.parallel_env(height=8, width=8)
-    obs, _ = env.reset(seed=0)
-    env.observation_kind = "wider"  # a future observation kind the rule cannot read
-    with pytest.raises(ValueError, match="thesis"):
-        make_baseline("local", 0)(np.stack(list(obs.values())), [env])
+def test_local_rule_acts_the_same_whatever_the_observation() -> None:
+    # It reads each agent's 3x3 window from the env's state, so the team-map observation gives
+    # the same episodes as the thesis one (same maps, starts and tie-breaking draws).
+    thesis = EnvConfig(height=12, width=12, n_agents=2, max_steps=60)
+    teammap = thesis.model_copy(update={"observation": "teammap", "crop": 5, "global_size": 7})
+    a = run_episodes(make_baseline("local", 0), thesis, episodes=3, seed=4, record_paths=True)
+    b = run_episodes(make_baseline("local", 0), teammap, episodes=3, seed=4, record_paths=True)
+    for x, y in zip(a, b, strict=True):
+        assert x.coverage == y.coverage
+        for p, q in zip(x.paths, y.paths, strict=True):
+            np.testing.assert_array_equal(p, q)
 
 
 # ---------------------------------------------------------------------- frontier

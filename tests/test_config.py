@@ -49,7 +49,7 @@ def test_shipped_configs_load(path):
         ("env: {map: nowhere.txt}", r"env.map: 'nowhere.txt' is not 'random'"),
         ("env: {height: 2, width: 2, n_agents: 5}", r"env: n_agents=5 is more than the 2x2 map"),
         ("algo: {optimizer: Adamm}", r"algo.optimizer: unknown torch optimizer 'Adamm'"),
-        ("algo: {policy: CnnPolicy}", r"algo.policy: Input should be 'MlpPolicy'"),
+        ("algo: {policy: CnnPolicy}", r"algo.policy: unknown policy .CnnPolicy.; known: MlpPolicy"),
         ("phases: []", r"phases: needs at least one phase"),
         ("phases: [{name: a}]", r"phases.0.timesteps: Field required"),
         ("phases: [{name: a, timesteps: 5, epochs: [[0.5, 1], [0.1, 2]]}]", r"increasing"),

@@ -3,8 +3,9 @@
 Benchmarks, not tests: they print figures and ratios measured in the same process, so a slow or
 busy machine shifts all of them together. Nothing here asserts a time.
 
-* ``env``: agent-steps per second of the bare ``parallel_env`` loop, of the SuperSuit VecEnv used in
-  training with 1, 4 and 16 copies, and of 8 copies stepped by 1 or 2 processes;
+* ``env``: agent-steps per second of the bare ``parallel_env`` loop (thesis and team-map
+  observations), of the SuperSuit VecEnv used in training with 1, 4 and 16 copies, and of 8
+  copies stepped by 1 or 2 processes;
 * ``train``: gradient steps and transitions per second of ``DoubleDQN`` + PER against SB3's
   ``DQN`` + ``ReplayBuffer`` (same network, batch and train_freq), run alternately;
   gradient steps per second over batch sizes, network widths and torch thread counts;
@@ -63,19 +64,29 @@ def bench_env(episodes: int = 3) -> dict[str, Any]:
     from envs import coverage_v0
     from harness.adapters import make_vec_env
 
-    env = coverage_v0.parallel_env(**THESIS_ENV.kwargs())
-    env.reset(seed=0)
     n, steps = THESIS_ENV.n_agents, THESIS_ENV.max_steps
     rng = np.random.default_rng(0)
-    actions = [dict(zip(env.possible_agents, a)) for a in rng.integers(0, 5, (steps, n)).tolist()]
+    moves = rng.integers(0, 5, (steps, n)).tolist()
 
-    def bare() -> None:
-        for _ in range(episodes):
-            env.reset()
-            for a in actions:
-                env.step(a)
+    def bare_rate(observation: str) -> float:
+        env = coverage_v0.parallel_env(**{**THESIS_ENV.kwargs(), "observation": observation})
+        env.reset(seed=0)
+        actions = [dict(zip(env.possible_agents, a)) for a in moves]
 
-    out: dict[str, Any] = {"env_bare_agent_steps_per_s": _rate(episodes * steps * n, bare)}
+        def bare() -> None:
+            for _ in range(episodes):
+                env.reset()
+                for a in actions:
+                    env.step(a)
+
+        return _rate(episodes * steps * n, bare)
+
+    out: dict[str, Any] = {"env_bare_agent_steps_per_s": bare_rate("thesis")}
+    # The team-map observation (images of the team's knowledge, built incrementally), same loop.
+    out["env_bare_teammap_agent_steps_per_s"] = bare_rate("teammap")
+    out["env_teammap_over_thesis"] = (
+        out["env_bare_teammap_agent_steps_per_s"] / out["env_bare_agent_steps_per_s"]
+    )
 
     def vec_rate(copies: int, num_cpus: int = 0) -> float:
         venv = make_vec_env(THESIS_ENV, copies, num_cpus, seed=0)
@@ -278,6 +289,12 @@ def format_bench(r: dict[str, Any]) -> str:
             "env (agent-steps/s)",
             f"  bare parallel_env loop     {n(bare)}   target >= 100,000",
         ]
+        if "env_bare_teammap_agent_steps_per_s" in r:
+            tm = r["env_bare_teammap_agent_steps_per_s"]
+            lines.append(
+                f"  bare loop, teammap obs.    {n(tm)}   {tm / bare:5.2f} x thesis; "
+                "target >= 30,000"
+            )
         for c, v in r["env_vec_by_copies"].items():
             lines.append(f"  VecEnv, {c:>2} copies           {n(v)}   {v / bare:5.2f} x bare")
         lines.append(

@@ -11,7 +11,13 @@ from harness.cli import main
 def test_bench_env_json_has_the_documented_keys(capsys):
     assert main(["bench", "env", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
-    for key in ("env_bare_agent_steps_per_s", "env_vec_agent_steps_per_s", "env_vec_over_bare"):
+    for key in (
+        "env_bare_agent_steps_per_s",
+        "env_bare_teammap_agent_steps_per_s",
+        "env_teammap_over_thesis",
+        "env_vec_agent_steps_per_s",
+        "env_vec_over_bare",
+    ):
         assert out[key] > 0
     assert set(out["env_vec_by_copies"]) == {"1", "4", "16"}
     assert out["torch_threads"] >= 1 and out["python"]
@@ -21,6 +27,7 @@ def test_bench_report_shows_every_section_with_targets():
     figures = {
         **machine_info(),
         "env_bare_agent_steps_per_s": 120_000.0,
+        "env_bare_teammap_agent_steps_per_s": 36_000.0,
         "env_vec_by_copies": {1: 40_000.0, 4: 50_000.0, 16: 52_000.0},
         "env_vec_agent_steps_per_s": 50_000.0,
         "env_vec_over_bare": 50_000 / 120_000,
@@ -43,6 +50,8 @@ def test_bench_report_shows_every_section_with_targets():
     text = format_bench(figures)
     for expected in (
         "120,000",
+        "36,000",
+        "0.30 x thesis",
         "0.42",
         "target >= 0.85",
         "0.83",

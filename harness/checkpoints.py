@@ -23,7 +23,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 
 STEP_PREFIX = "step-"
 KEEP = 2  # checkpoints kept: the newest and the one before it
@@ -85,6 +84,8 @@ class TrainingState:
 
 def rng_states() -> dict[str, Any]:
     """The global random states SB3 training draws from."""
+    import torch  # here, not at the top: the command line imports this module without torch
+
     return {
         "numpy": np.random.get_state(),  # noqa: NPY002 (SB3 seeds and uses the global state)
         "python": random.getstate(),
@@ -94,6 +95,8 @@ def rng_states() -> dict[str, Any]:
 
 def set_rng_states(states: dict[str, Any]) -> None:
     """Restore what :func:`rng_states` returned."""
+    import torch
+
     np.random.set_state(states["numpy"])  # noqa: NPY002
     random.setstate(states["python"])
     torch.set_rng_state(states["torch"])

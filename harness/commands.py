@@ -21,7 +21,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from harness.baselines import BASELINES, make_baseline
 from harness.config import ConfigError, ExperimentConfig, load_config
 from harness.evaluation import (
     BatchPolicy,
@@ -147,6 +146,8 @@ def resolve_target(
             raise TargetError("give either a run/model or --policy, not both")
         if config_path is None:
             raise TargetError(f"--policy {policy} needs --config CONFIG.yaml")
+        from harness.baselines import BASELINES, make_baseline  # SciPy: only when used
+
         if policy not in BASELINES:
             raise TargetError(f"unknown policy {policy!r}; known: {', '.join(BASELINES)}")
         config = load_config(config_path, overrides)

@@ -1,4 +1,4 @@
-"""The ``harness`` command: ``harness run CONFIG.yaml`` and friends (SPEC §5).
+"""The ``harness`` command: ``harness run CONFIG.yaml`` and friends (README "Commands").
 
 Every user error (a bad config, map, path or argument) ends with one line on stderr and exit
 code 2, never a traceback.

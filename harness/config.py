@@ -1,11 +1,11 @@
 """Experiment configuration: typed schema, YAML loading and ``--set`` overrides.
 
 This is the one place that turns a YAML file into objects. Every section is a pydantic model that
-rejects unknown keys, and every default is the thesis's (Table 4.1, SPEC §4). A config looks like::
+rejects unknown keys, and every default is the thesis's (Table 4.1). A config looks like::
 
     name: ddqn_4agents
     seed: 0
-    env: {n_agents: 4, max_steps: 1000}        # SPEC §2.1 arguments of coverage_v0
+    env: {n_agents: 4, max_steps: 1000}        # arguments of coverage_v0
     vec: {copies: 4}                            # env copies; VecEnv slots = copies * n_agents
     algo: {policy: MlpPolicy, net_arch: [512, 512, 512]}
     phases:                                     # run in order on one model and one buffer
@@ -71,7 +71,7 @@ MAX_CONFIG_BYTES = 1 << 20
 
 
 class RewardsConfig(_Section):
-    """Reward weights of eq. 3.1 (SPEC §2.5)."""
+    """Reward weights of eq. 3.1."""
 
     new_cell: float = 2.0
     wall_hit: float = -10.0
@@ -79,7 +79,7 @@ class RewardsConfig(_Section):
 
 
 class EnvConfig(_Section):
-    """Arguments of ``coverage_v0.parallel_env`` (SPEC §2.1)."""
+    """Arguments of ``coverage_v0.parallel_env`` (see ``envs/coverage_v0.py``)."""
 
     map: str = "random"
     height: PositiveInt = 50
@@ -208,7 +208,7 @@ class VecConfig(_Section):
 
 
 class AlgoConfig(_Section):
-    """The learner: ``DoubleDQN`` with its policy, buffer and optimizer (SPEC §3)."""
+    """The learner: ``DoubleDQN`` with its policy, buffer and optimizer (thesis §2.9-2.11, §3.4)."""
 
     policy: str = "MlpPolicy"
     """A policy of ``harness.registry.POLICIES``: ``MlpPolicy``, ``DuelingMlpPolicy`` (the
@@ -262,7 +262,7 @@ class LinearScheduleConfig(_Section):
 
 
 class PhaseConfig(_Section):
-    """One training phase (SPEC §4): its length and every setting that changes between phases."""
+    """One training phase (thesis §3.7, Table 4.1): its length and every setting that changes between phases."""
 
     name: str
     timesteps: PositiveInt

@@ -1,4 +1,5 @@
-"""Evaluation on fresh, seeded episodes (SPEC §2.6 metrics).
+"""Evaluation on fresh, seeded episodes (the thesis's metrics: coverage, useful and total
+coverage per agent, coverage at 33/66/100 % of the episode, Table 4.2).
 
 Episode ``k`` of an evaluation with seed ``s`` is the env reset with seed ``s + k``, whatever the
 number of copies stepped side by side, so results are repeatable and comparable between policies

@@ -1,4 +1,4 @@
-"""Maps (SPEC §2.2): random maps, the text format and its errors, shipped maps, cave and maze."""
+"""Maps: random maps, the text format and its errors, shipped maps, cave and maze."""
 
 from __future__ import annotations
 

@@ -58,7 +58,7 @@ ROWS = table_rows(TABLE_HEADER)
 
 
 def test_results_table_has_every_row_of_the_thesis() -> None:
-    assert len(ROWS) == 10  # SPEC §6: 2 on 15x15, 4 + 2 on 50x50, 2 on the cave
+    assert len(ROWS) == 10  # the thesis's rows: 2 on 15x15, 4 + 2 on 50x50, 2 on the cave
 
 
 @pytest.mark.parametrize("row", ROWS, ids=lambda r: r["experiment"])

@@ -1,5 +1,10 @@
-"""Pure helpers of the coverage environment's step (SPEC §2.3), kept apart so they can be tested
-and profiled on their own.
+"""Helpers of the coverage environment's step (dynamics: ``envs/coverage_v0.py``), kept apart so
+they can be tested and profiled on their own.
+
+:func:`resolve_moves` and :func:`thesis_reward` are pure (they return new lists and change
+nothing). :func:`credit_new_cells` updates the episode's grid in place (``cells`` and
+``credited_by``): the grid is the env's state, and copying a padded map every step would cost
+more than the rest of the step.
 
 They work on Python lists of a handful of agents: per-agent numpy calls on arrays of 1-16
 elements cost more in call overhead than the arithmetic they do, and the step runs millions of

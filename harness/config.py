@@ -262,7 +262,8 @@ class LinearScheduleConfig(_Section):
 
 
 class PhaseConfig(_Section):
-    """One training phase (thesis §3.7, Table 4.1): its length and every setting that changes between phases."""
+    """One training phase (thesis §3.7, Table 4.1): its length and every setting that changes
+    between phases."""
 
     name: str
     timesteps: PositiveInt

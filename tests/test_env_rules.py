@@ -1,4 +1,5 @@
-"""Every rule of the environment (``envs/coverage_v0.py``: dynamics, observation, reward, infos, rendering) on small hand-built grids."""
+"""Every rule of the environment (``envs/coverage_v0.py``: dynamics, observation, reward,
+infos, rendering) on small hand-built grids."""
 
 from __future__ import annotations
 

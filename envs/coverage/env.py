@@ -231,7 +231,7 @@ class CoverageEnv(ParallelEnv):
         dict[str, bool],
         dict[str, dict[str, Any]],
     ]:
-        """Move every agent at once (see ``envs/coverage_v0.py``) and return PettingZoo's five dicts."""
+        """Move every agent at once (rules: ``envs/coverage_v0.py``); PettingZoo's five dicts."""
         state = self._require_state()
         if not self.agents:
             raise RuntimeError("step() called on a finished episode; call reset() first")

@@ -35,6 +35,7 @@ from harness.commands import (
     write_temperature,
 )
 from harness.config import MAX_SEED, ConfigError, ExperimentConfig, load_config
+from harness.groups import GroupError
 from harness.rundir import (
     RunDir,
     RunDirError,
@@ -126,6 +127,23 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--name", help="override the config's name (the run folder's prefix)")
     run.add_argument("--runs-dir", type=Path, default=Path("runs"), help="where runs are written")
     run.add_argument("--no-progress", action="store_true", help="hide the progress bar")
+    run.add_argument(
+        "--seeds",
+        metavar="SEEDS",
+        help="a group of runs, one per seed: a list (0,1,2) or a count (3 = 0,1,2)",
+    )
+    run.add_argument(
+        "--jobs",
+        type=positive_int,
+        default=1,
+        help="with --seeds: seeds trained at a time, each on its share of the cores",
+    )
+    run.add_argument(
+        "--into",
+        type=Path,
+        metavar="RUN_DIR",
+        help="train into this new (or empty) folder instead of RUNS_DIR/NAME-TIME",
+    )
 
     ev = sub.add_parser("eval", help="evaluate a trained model or a baseline on fresh episodes")
     _add_target(ev)
@@ -225,14 +243,43 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.config is None:
         raise HarnessError("run needs a CONFIG.yaml (or --resume RUN_DIR)")
     config = resolve_run_config(args)
-    run = RunDir.create(args.runs_dir, config.name)
+    if args.seeds is not None:
+        return _run_group(args, config)
+    if args.jobs != 1:
+        raise HarnessError("--jobs goes with --seeds")
+    run = RunDir.create_at(args.into) if args.into else RunDir.create(args.runs_dir, config.name)
     with run.lock():
         print(f"run folder: {run.path}", file=sys.stderr)
         return _train(config, run, args, mode="new")
 
 
+def _run_group(args: argparse.Namespace, config: ExperimentConfig) -> int:
+    """``harness run CONFIG --seeds ...``: one run per seed in a group folder."""
+    from harness.groups import parse_seeds, run_group
+
+    if args.seed is not None or args.into is not None:
+        raise HarnessError("--seeds makes its own seeds and folders; drop --seed and --into")
+    seeds = parse_seeds(args.seeds, MAX_SEED)
+    overrides = list(args.overrides) + ([f"name={json.dumps(args.name)}"] if args.name else [])
+    group, jobs = run_group(
+        args.config, config.name, overrides, seeds, args.jobs, args.runs_dir, args.argv
+    )
+    print(f"group folder: {group}", file=sys.stderr)
+    for job in jobs:
+        state = "done" if job.returncode == 0 else f"failed (exit {job.returncode}, see its log)"
+        print(f"  seed {job.seed}: {job.run.path.name} {state}", file=sys.stderr)
+    return 0 if all(job.returncode == 0 for job in jobs) else 1
+
+
 def _resume(args: argparse.Namespace) -> int:
-    if args.config is not None or args.overrides or args.seed is not None or args.name:
+    if (
+        args.config is not None
+        or args.overrides
+        or args.seed is not None
+        or args.name
+        or args.seeds is not None
+        or args.into is not None
+    ):
         raise HarnessError(
             "--resume continues a run with its own config.yaml; drop the other options"
         )
@@ -309,7 +356,43 @@ def _target(args: argparse.Namespace) -> Target:
     return target
 
 
+def _eval_group(args: argparse.Namespace) -> int:
+    """``harness eval GROUP``: every run of a seed group on the same test episodes, then the
+    group's numbers over seeds in ``GROUP/group-eval.json``."""
+    from harness.groups import group_runs
+    from harness.stats import describe, seed_statistics
+
+    group = Path(args.target)
+    runs = group_runs(group)
+    summaries = {}
+    for run in runs:
+        one = argparse.Namespace(**{**vars(args), "target": run, "json": False})
+        print(f"== {run.name}")
+        cmd_eval(one)
+        data = read_eval_json(run) if not (args.overrides or args.episodes != 100) else None
+        if data is not None:
+            summaries[run.name] = data
+    if len(summaries) == len(runs):
+        stats = seed_statistics({"group": [s["coverage_mean"] for s in summaries.values()]})
+        result = {
+            "group": str(group),
+            "runs": {name: {k: s[k] for k in ("seed", "coverage_mean", "coverage_median",
+                                               "wall_hits_mean")} for name, s in summaries.items()},
+            "coverage_mean_over_seeds": describe(stats["group"]),
+        }  # fmt: skip
+        out = group / "group-eval.json"
+        atomic_write_text(out, json.dumps(result, indent=2, allow_nan=False))
+        print(f"saved {out}", file=sys.stderr)
+        if args.json:
+            print(json.dumps(result))
+    return 0
+
+
 def cmd_eval(args: argparse.Namespace) -> int:
+    from harness.groups import is_group
+
+    if args.target is not None and is_group(args.target):
+        return _eval_group(args)
     if args.plot is not None:
         check_output_file(args.plot, "--plot")
     target = _target(args)
@@ -378,22 +461,29 @@ def cmd_tune(args: argparse.Namespace) -> int:
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
+    """Learning curves and test results of runs and seed groups; over the seeds of each group,
+    mean and IQM with 95 % bootstrap intervals and the probability of improvement (rliable)."""
+    from harness.groups import group_runs, is_group
     from harness.plots import plot_learning_curves
 
+    if args.labels is not None and len(args.labels) != len(args.runs):
+        raise HarnessError(f"--labels needs one label per run ({len(args.runs)})")
+    check_output_file(args.out, "--out")
+    labels = args.labels or [None] * len(args.runs)
     curves: dict[str, list] = {}
     evaluations: dict[str, list] = {}
     rows = []
-    if args.labels is not None and len(args.labels) != len(args.runs):
-        raise HarnessError(f"--labels needs one label per run ({len(args.runs)})")
-    labels = args.labels or [None] * len(args.runs)
-    check_output_file(args.out, "--out")
-    for run, given in zip(args.runs, labels, strict=True):
-        label = given or run_label(run)
-        episodes, evals = read_run_curves(run)
-        curves.setdefault(label, []).append(episodes)
-        if evals is not None:
-            evaluations.setdefault(label, []).append(evals)
-        rows.append((label, run.name, read_eval_json(run)))
+    members: dict[str, list[Path]] = {}
+    for item, given in zip(args.runs, labels, strict=True):
+        runs = group_runs(item) if is_group(item) else [item]
+        label = given or (item.name if is_group(item) else run_label(item))
+        members.setdefault(label, []).extend(runs)
+        for run in runs:
+            episodes, evals = read_run_curves(run)
+            curves.setdefault(label, []).append(episodes)
+            if evals is not None:
+                evaluations.setdefault(label, []).append(evals)
+            rows.append((label, run.name, read_eval_json(run)))
     plot_learning_curves(
         curves,
         args.out,
@@ -411,7 +501,53 @@ def cmd_compare(args: argparse.Namespace) -> int:
                 f"{ev['wall_hits_mean']:>11.2f}"
             )
     print(f"saved {args.out}", file=sys.stderr)
+    _compare_over_seeds(rows, evaluations, Path(args.out))
     return 0
+
+
+def _compare_over_seeds(
+    rows: list[tuple[str, str, dict | None]], evaluations: dict[str, list], out: Path
+) -> None:
+    """The over-seeds part of ``compare``: a Markdown table, P(X > Y) per pair, two PNGs."""
+    from harness.stats import (
+        markdown_table,
+        percent,
+        plot_curves_with_ci,
+        plot_intervals,
+        probability_of_improvement,
+        seed_statistics,
+    )
+
+    scores: dict[str, list[float]] = {}
+    hits: dict[str, list[float]] = {}
+    for label, _, ev in rows:
+        if ev is not None:
+            scores.setdefault(label, []).append(float(ev["coverage_mean"]))
+            hits.setdefault(label, []).append(float(ev["wall_hits_mean"]))
+    if not scores:
+        return
+    stats = seed_statistics(scores)
+    print()
+    print("Over seeds: test coverage (each seed's mean over its eval.json episodes)")
+    print()
+    print(markdown_table(stats, {k: sum(v) / len(v) for k, v in hits.items()}))
+    names = list(scores)
+    for i, x in enumerate(names):
+        for y in names[i + 1 :]:
+            p, ci = probability_of_improvement(scores[x], scores[y])
+            where = (
+                "no interval: a group has 1 seed"
+                if ci is None
+                else (f"95 % CI [{percent(ci[0])}, {percent(ci[1])}]")
+            )
+            print(f"\nP({x} > {y}) = {percent(p)} ({where})")
+    intervals = out.with_name(f"{out.stem}-intervals.png")
+    plot_intervals(stats, intervals)
+    print(f"saved {intervals}", file=sys.stderr)
+    if evaluations:
+        banded = out.with_name(f"{out.stem}-curves-ci.png")
+        plot_curves_with_ci(evaluations, banded)
+        print(f"saved {banded}", file=sys.stderr)
 
 
 def cmd_render(args: argparse.Namespace) -> int:
@@ -474,7 +610,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             # Map warnings are worth one line each, not a stack location.
             warnings.simplefilter("default")
             return COMMANDS[args.command](args)
-    except (ConfigError, RunDirError, HarnessError, CheckpointError, TargetError) as exc:
+    except (
+        ConfigError,
+        RunDirError,
+        HarnessError,
+        CheckpointError,
+        TargetError,
+        GroupError,
+    ) as exc:
         print(f"harness: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except OSError as exc:  # a file the command had to read or write (full disk, permissions)

@@ -110,6 +110,30 @@ def check_output_file(path: Path, flag: str) -> None:
         raise RunDirError(f"{flag} {path}: cannot write in {ancestor} ({exc.strerror})") from None
 
 
+def unique_folder(root: str | Path, name: str, now: datetime | None = None) -> Path:
+    """Make a new folder ``<root>/<name>-<UTC timestamp>`` (a run, a seed group, a sweep); two
+    made in the same second get ``-1``, ``-2``, ... suffixes; an existing one is never reused.
+
+    Raises:
+        RunDirError: when ``root`` cannot be created or written.
+    """
+    stamp = (now or datetime.now(timezone.utc)).strftime("%Y%m%dT%H%M%SZ")
+    root = Path(root)
+    try:
+        root.mkdir(parents=True, exist_ok=True)
+        for attempt in range(1000):
+            suffix = "" if attempt == 0 else f"-{attempt}"
+            path = root / f"{name}-{stamp}{suffix}"
+            try:
+                path.mkdir()  # fails if it exists
+            except FileExistsError:
+                continue
+            return path
+    except OSError as exc:
+        raise RunDirError(f"{root}: cannot create a run folder ({exc.strerror or exc})") from None
+    raise RunDirError(f"{root}: too many runs named {name!r} in one second")
+
+
 @dataclass(frozen=True)
 class RunDir:
     """Paths of one run."""
@@ -154,31 +178,18 @@ class RunDir:
 
     @classmethod
     def create(cls, root: str | Path, name: str, now: datetime | None = None) -> RunDir:
-        """Make a new ``<root>/<name>-<UTC timestamp>`` folder; never reuse an existing one.
+        """Make a new ``<root>/<name>-<UTC timestamp>`` run folder; never reuse an existing one.
 
         Raises:
             RunDirError: when ``root`` cannot be created or written.
         """
-        stamp = (now or datetime.now(timezone.utc)).strftime("%Y%m%dT%H%M%SZ")
-        root = Path(root)
+        run = cls(unique_folder(root, name, now))
         try:
-            root.mkdir(parents=True, exist_ok=True)
-            for attempt in range(1000):
-                suffix = "" if attempt == 0 else f"-{attempt}"
-                path = root / f"{name}-{stamp}{suffix}"
-                try:
-                    path.mkdir()  # fails if it exists: two runs in one second get -1, -2, ...
-                except FileExistsError:
-                    continue
-                run = cls(path)
-                run.tb.mkdir()
-                run.checkpoints.mkdir()
-                return run
+            run.tb.mkdir()
+            run.checkpoints.mkdir()
         except OSError as exc:
-            raise RunDirError(
-                f"{root}: cannot create a run folder ({exc.strerror or exc})"
-            ) from None
-        raise RunDirError(f"{root}: too many runs named {name!r} in one second")
+            raise RunDirError(f"{run.path}: cannot create a run folder ({exc.strerror})") from None
+        return run
 
     @property
     def lock_file(self) -> Path:
@@ -214,6 +225,28 @@ class RunDir:
             yield
         finally:
             os.close(fd)  # releases the lock
+
+    @classmethod
+    def create_at(cls, path: str | Path) -> RunDir:
+        """Make the run folder ``path`` itself (a seed of a group, a trial of a sweep); it must not
+        exist yet, or be empty.
+
+        Raises:
+            RunDirError: when it exists with files in it, or cannot be created.
+        """
+        path = Path(path)
+        try:
+            if path.exists() and (not path.is_dir() or any(path.iterdir())):
+                raise RunDirError(f"{path}: already exists (a run folder is never reused)")
+            path.mkdir(parents=True, exist_ok=True)
+            run = cls(path)
+            run.tb.mkdir()
+            run.checkpoints.mkdir()
+        except OSError as exc:
+            if isinstance(exc, RunDirError):
+                raise
+            raise RunDirError(f"{path}: cannot create the run folder ({exc.strerror})") from None
+        return run
 
     def write_command(self, args: Sequence[str]) -> None:
         """Append the ``harness`` command line with its arguments ``args`` (a resumed run gets a

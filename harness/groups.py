@@ -1,0 +1,169 @@
+"""Seed groups: one run per training seed, found together.
+
+``harness run CONFIG --seeds 0,1,2 --jobs 2`` makes a group folder ``runs/<name>-<UTC time>/``
+holding ``group.json`` (the config, the seeds and each seed's run folder) and one ordinary run
+folder per seed, ``<name>-seed<k>-<UTC time>/``, each with its own log ``<name>-seed<k>.log``.
+Every run is a separate ``harness run`` process, so a group is no more than the runs it holds:
+``harness eval``, ``compare``, ``render`` and ``--resume`` work on each of them as on any run.
+
+``--jobs N`` runs N seeds at a time, each with ``cores // N`` torch threads (and the matching
+``OMP_NUM_THREADS``/``MKL_NUM_THREADS``), so the jobs do not fight over the cores.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from harness.rundir import RunDir, RunDirError, atomic_write_text, unique_folder
+
+#: The file that marks a folder as a seed group.
+GROUP_FILE = "group.json"
+
+
+class GroupError(ValueError):
+    """A seed list or group folder that cannot be used, with a one-line message."""
+
+
+def parse_seeds(text: str, max_seed: int) -> list[int]:
+    """``"0,1,2"`` → ``[0, 1, 2]``; a single number ``"3"`` means three seeds, ``0, 1, 2``.
+
+    Raises:
+        GroupError: for anything else, duplicates, or seeds outside ``[0, max_seed]``.
+    """
+    parts = [p.strip() for p in text.split(",")]
+    try:
+        numbers = [int(p) for p in parts]
+    except ValueError:
+        raise GroupError(f"--seeds {text!r}: expected a count (3) or a list (0,1,2)") from None
+    seeds = list(range(numbers[0])) if len(numbers) == 1 else numbers
+    if not seeds:
+        raise GroupError(f"--seeds {text!r}: needs at least one seed")
+    if len(set(seeds)) != len(seeds):
+        raise GroupError(f"--seeds {text!r}: a seed is given twice")
+    if any(not 0 <= s <= max_seed for s in seeds):
+        raise GroupError(f"--seeds {text!r}: seeds must be in [0, {max_seed}]")
+    return seeds
+
+
+def is_group(folder: Path) -> bool:
+    """Whether ``folder`` is a seed group (holds ``group.json``)."""
+    return (Path(folder) / GROUP_FILE).is_file()
+
+
+def group_runs(folder: Path) -> list[Path]:
+    """The run folders of a group, in seed order.
+
+    Raises:
+        GroupError: when ``group.json`` cannot be read or names no run that exists.
+    """
+    folder = Path(folder)
+    try:
+        data = json.loads((folder / GROUP_FILE).read_text(encoding="utf-8"))
+        runs = [folder / entry["run"] for entry in data["runs"]]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise GroupError(f"{folder / GROUP_FILE}: not a readable group file ({exc})") from None
+    found = [run for run in runs if (run / "config.yaml").is_file()]
+    if not found:
+        raise GroupError(f"{folder}: the group has no run folder yet")
+    return found
+
+
+@dataclass
+class Job:
+    """One seed's training process."""
+
+    seed: int
+    run: RunDir
+    process: subprocess.Popen[bytes] | None = None
+    returncode: int | None = None
+
+
+def threads_per_job(jobs: int, cores: int | None = None) -> int:
+    """Torch threads for each of ``jobs`` parallel trainings: an equal share of the cores."""
+    cores = cores or os.cpu_count() or 1
+    return max(1, cores // max(1, jobs))
+
+
+def run_group(
+    config_path: Path,
+    name: str,
+    overrides: Sequence[str],
+    seeds: Sequence[int],
+    jobs: int,
+    runs_dir: Path,
+    argv: Sequence[str],
+) -> tuple[Path, list[Job]]:
+    """Train one run per seed, ``jobs`` at a time, in a new group folder.
+
+    Each seed is ``harness run CONFIG --set ... --seed k`` in its own process, writing into its
+    own run folder inside the group; its output goes to ``<name>-seed<k>.log`` there.
+
+    Returns:
+        The group folder and the jobs with their exit codes.
+    """
+    group = unique_folder(runs_dir, name)
+    threads = threads_per_job(jobs)
+    pending = [Job(seed, RunDir(group / f"{name}-seed{seed}")) for seed in seeds]
+    data: dict[str, Any] = {
+        "name": name,
+        "config": str(Path(config_path).resolve()),
+        "overrides": list(overrides),
+        "seeds": list(seeds),
+        "jobs": jobs,
+        "threads_per_job": threads,
+        "command": ["harness", *argv],
+        "runs": [{"seed": job.seed, "run": job.run.path.name} for job in pending],
+    }
+    atomic_write_text(group / GROUP_FILE, json.dumps(data, indent=2) + "\n")
+    env = {
+        **os.environ,
+        "OMP_NUM_THREADS": str(threads),
+        "MKL_NUM_THREADS": str(threads),
+    }
+    running: list[Job] = []
+    done: list[Job] = []
+    queue = list(pending)
+    try:
+        while queue or running:
+            while queue and len(running) < jobs:
+                job = queue.pop(0)
+                job.process = _start(job, config_path, overrides, threads, env)
+                running.append(job)
+            time.sleep(0.2)
+            for job in list(running):
+                assert job.process is not None
+                if job.process.poll() is not None:
+                    job.returncode = job.process.returncode
+                    running.remove(job)
+                    done.append(job)
+    except KeyboardInterrupt:  # pass Ctrl-C on: each child checkpoints and stops cleanly
+        for job in running:
+            assert job.process is not None
+            job.process.wait()
+            job.returncode = job.process.returncode
+            done.append(job)
+        raise
+    return group, sorted(done, key=lambda j: seeds.index(j.seed))
+
+
+def _start(
+    job: Job, config_path: Path, overrides: Sequence[str], threads: int, env: dict[str, str]
+) -> subprocess.Popen[bytes]:
+    cmd = [sys.executable, "-m", "harness.cli", "run", str(config_path), "--no-progress"]
+    for override in (*overrides, f"seed={job.seed}", f"algo.threads={threads}"):
+        cmd += ["--set", override]
+    cmd += ["--into", str(job.run.path)]
+    try:
+        log = (job.run.path.parent / f"{job.run.path.name}.log").open("wb")
+    except OSError as exc:
+        raise RunDirError(f"{job.run.path.parent}: cannot write a log ({exc.strerror})") from None
+    with log:
+        return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)

@@ -43,6 +43,7 @@ from harness.rundir import (
     check_output_file,
     is_reference,
 )
+from harness.sweep import SweepError
 
 EXIT_USAGE = 2
 
@@ -206,6 +207,23 @@ def build_parser() -> argparse.ArgumentParser:
     exp.add_argument("run", type=Path, metavar="RUN_DIR")
     exp.add_argument("--out", type=Path, required=True, help="new folder, e.g. runs/reference/x")
     exp.add_argument("--model", default="model", help="model.zip (default) or best_model")
+
+    sw = sub.add_parser("sweep", help="a hyperparameter sweep on Optuna (one or many machines)")
+    sw.add_argument("config", type=Path, help="experiment YAML file")
+    sw.add_argument("--space", type=Path, required=True, help="SPACE.yaml: keys and distributions")
+    sw.add_argument("--trials", type=positive_int, required=True, help="trials in the whole sweep")
+    sw.add_argument("--study", help="study name (default: the config's name)")
+    sw.add_argument(
+        "--storage",
+        help="Optuna storage URL, e.g. postgresql+psycopg://user@host/db for several machines "
+        "(default: a journal file in the sweep folder)",
+    )
+    sw.add_argument("--resume", action="store_true", help="continue a killed sweep of this study")
+    sw.add_argument("--pruner", choices=["median", "none"], default="median")
+    sw.add_argument(
+        "--sweeps-dir", type=Path, default=Path("runs/sweeps"), help="where sweep folders go"
+    )
+    _add_overrides(sw)
 
     bench = sub.add_parser("bench", help="throughput and memory figures (thesis settings)")
     bench.add_argument(
@@ -578,6 +596,27 @@ def cmd_export(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_sweep(args: argparse.Namespace) -> int:
+    from harness.sweep import format_best, run_sweep  # Optuna: only here
+
+    study = args.study or load_config(args.config, args.overrides).name
+    result = run_sweep(
+        args.config,
+        args.overrides,
+        args.space,
+        args.trials,
+        study,
+        args.sweeps_dir,
+        storage_url=args.storage,
+        resume=args.resume,
+        pruner=args.pruner,
+    )
+    print(format_best(result))
+    if result is not None:
+        print(f"saved {args.sweeps_dir / study / 'best.yaml'}", file=sys.stderr)
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from harness.bench import format_bench, run_bench
 
@@ -593,6 +632,7 @@ COMMANDS = {
     "compare": cmd_compare,
     "render": cmd_render,
     "export": cmd_export,
+    "sweep": cmd_sweep,
     "bench": cmd_bench,
 }
 
@@ -617,6 +657,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         CheckpointError,
         TargetError,
         GroupError,
+        SweepError,
     ) as exc:
         print(f"harness: error: {exc}", file=sys.stderr)
         return EXIT_USAGE

@@ -15,7 +15,7 @@ from __future__ import annotations
 import contextlib
 import signal
 import sys
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -186,9 +186,18 @@ class Evaluator:
     :func:`harness.evaluation.selection_score`.
     """
 
-    def __init__(self, config: ExperimentConfig, run: RunDir, best: float = -np.inf) -> None:
+    def __init__(
+        self,
+        config: ExperimentConfig,
+        run: RunDir,
+        best: float = -np.inf,
+        on_evaluation: Callable[[int, dict[str, Any]], None] | None = None,
+    ) -> None:
         self.config, self.run = config, run
         self.best = best
+        # Called with (timesteps, summary) after each evaluation: a sweep reports to Optuna here
+        # (and may raise optuna.TrialPruned to stop the run).
+        self.on_evaluation = on_evaluation
 
     def __call__(self, model: DoubleDQN) -> None:
         cfg = self.config.eval
@@ -204,6 +213,8 @@ class Evaluator:
         if score > self.best:
             self.best = score
             save_model(model, self.run.best_model)
+        if self.on_evaluation is not None:
+            self.on_evaluation(int(model.num_timesteps), summary)
 
     def _append_row(self, timesteps: int, summary: dict[str, Any]) -> None:
         # The test policy's learning curve, next to episodes.csv (the training episodes'):
@@ -351,12 +362,14 @@ def train(
     resume: bool = False,
     restart: bool = False,
     command: Sequence[str] | None = None,
+    on_evaluation: Callable[[int, dict[str, Any]], None] | None = None,
 ) -> DoubleDQN:
     """Train ``config`` into ``run``; with ``resume``, continue from its newest readable
     checkpoint; with ``restart``, start again from step 0 in a run folder that has no checkpoint
     yet (what it logged before is dropped). The caller holds ``run.lock()``. ``command`` (the
     ``harness`` arguments) is appended to ``command.txt`` once the run is ready to go: a resume
-    refused for a damaged checkpoint changes no file.
+    refused for a damaged checkpoint changes no file. ``on_evaluation(timesteps, summary)`` is
+    called after each in-training evaluation (see :class:`Evaluator`).
 
     Raises:
         TrainingInterrupted: on SIGINT/SIGTERM, after writing a checkpoint.
@@ -402,7 +415,7 @@ def train(
             model = build_model(config, venv)
             model.action_space.seed(config.seed)
         model.set_logger(logger)
-        evaluator = Evaluator(config, run, state.best_eval)
+        evaluator = Evaluator(config, run, state.best_eval, on_evaluation)
         stopper = StopOnSignal()
         checkpointer = Checkpointer(run, state, evaluator, stopper)
         with stop_on_signals(stopper):

@@ -1,0 +1,348 @@
+"""``harness sweep``: hyperparameter sweeps on Optuna, from one machine to many.
+
+A *space file* maps config keys (the ``--set`` paths) to distributions::
+
+    algo.gamma: {float: [0.9, 0.99]}
+    phases.0.learning_rate: {float: [1.0e-5, 1.0e-3], log: true}
+    phases.initial.batch_size: {int: [32, 128], log: true}
+    algo.policy: {choice: [MlpPolicy, DuelingMlpPolicy]}
+    seed: {grid: [0, 1, 2]}          # a grid (every key must then be a grid): GridSampler
+
+Every key is checked against the config schema (both ends of a range, every choice) before any
+trial starts. Each trial is an ordinary run folder, ``<sweeps-dir>/<study>/trial-<number>/``,
+trained with the sampled values as ``--set`` overrides. Its in-training evaluations on the
+*validation* episodes are reported to Optuna, whose pruner (median by default) may stop a weak
+trial early; the trial's value is the median validation coverage of a final evaluation. The test
+episodes are never used.
+
+Storage: by default a journal file inside the sweep folder (``journal.log``), so one command works
+on a fresh machine; ``--storage URL`` takes any database Optuna supports (PostgreSQL for several
+machines: each runs the same command with the same ``--storage`` and ``--study``, Optuna hands
+out the trials, and the trial count is global). ``--resume`` continues a killed sweep; trials the
+dead process left running are marked failed. The best trial is written out as ``best.yaml`` (a
+config that ``harness run best.yaml`` trains) and ``best.json`` (its parameters and value).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from harness.config import ConfigError, load_config, parse_yaml
+from harness.rundir import RunDir, atomic_write_text
+
+#: Kinds of distribution a space file may name.
+KINDS = ("float", "int", "choice", "grid")
+PRUNERS = ("median", "none")
+
+
+class SweepError(ValueError):
+    """A space file, study or storage that cannot be used, with a one-line message."""
+
+
+@dataclass(frozen=True)
+class Dimension:
+    """One key of the search space."""
+
+    key: str
+    kind: str
+    values: tuple[Any, ...]
+    """``(low, high)`` for ``float``/``int``, the options for ``choice``/``grid``."""
+    log: bool = False
+
+    def extremes(self) -> tuple[Any, ...]:
+        """The values that must all be valid for the key: the ends, or every option."""
+        return self.values
+
+    def suggest(self, trial: Any) -> Any:
+        if self.kind == "float":
+            return trial.suggest_float(self.key, *self.values, log=self.log)
+        if self.kind == "int":
+            return trial.suggest_int(self.key, *self.values, log=self.log)
+        return trial.suggest_categorical(self.key, list(self.values))
+
+
+def load_space(path: Path) -> list[Dimension]:
+    """Read and check a space file (kinds, ranges, log scales, grids).
+
+    Raises:
+        SweepError: naming the file and the key.
+    """
+    try:
+        raw = parse_yaml(Path(path).read_text(encoding="utf-8"), str(path))
+    except OSError as exc:
+        raise SweepError(f"{path}: cannot read the space file ({exc.strerror})") from None
+    except ConfigError as exc:
+        raise SweepError(str(exc)) from None
+    if not isinstance(raw, dict) or not raw:
+        raise SweepError(f"{path}: expected a mapping of config keys to distributions")
+    dims = [_dimension(path, str(key), spec) for key, spec in raw.items()]
+    grids = [d.kind == "grid" for d in dims]
+    if any(grids) and not all(grids):
+        raise SweepError(f"{path}: a grid space must be all grids (Optuna's GridSampler)")
+    return dims
+
+
+def _dimension(path: Path, key: str, spec: Any) -> Dimension:
+    where = f"{path}: {key}"
+    if not isinstance(spec, dict):
+        raise SweepError(f"{where}: expected {{float|int|choice|grid: ...}}, got {spec!r}")
+    kinds = [k for k in spec if k in KINDS]
+    extra = set(spec) - set(KINDS) - {"log"}
+    if len(kinds) != 1 or extra:
+        raise SweepError(f"{where}: give exactly one of {', '.join(KINDS)} (and log for ranges)")
+    kind = kinds[0]
+    values = spec[kind]
+    log = spec.get("log", False)
+    if not isinstance(log, bool):
+        raise SweepError(f"{where}: log must be true or false")
+    if kind in ("float", "int"):
+        number = float if kind == "float" else int
+        ok = (
+            isinstance(values, list)
+            and len(values) == 2
+            and all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in values)
+        )
+        if not ok or (kind == "int" and not all(isinstance(v, int) for v in values)):
+            raise SweepError(f"{where}: {kind} needs [low, high] {kind}s")
+        low, high = (number(v) for v in values)
+        if not (math.isfinite(low) and math.isfinite(high)) or low >= high:
+            raise SweepError(f"{where}: needs finite low < high, got {values}")
+        if log and low <= 0:
+            raise SweepError(f"{where}: a log scale needs low > 0")
+        return Dimension(key, kind, (low, high), log)
+    if log:
+        raise SweepError(f"{where}: log goes with float or int ranges")
+    if not isinstance(values, list) or not values:
+        raise SweepError(f"{where}: {kind} needs a non-empty list")
+    return Dimension(key, kind, tuple(values))
+
+
+def override(key: str, value: Any) -> str:
+    """The ``--set`` text of one sampled value (JSON is YAML, so strings and lists survive)."""
+    return f"{key}={json.dumps(value)}"
+
+
+def check_space(config_path: Path, overrides: Sequence[str], dims: Sequence[Dimension]) -> None:
+    """Every key of the space exists in the config schema and takes every value it can be given.
+
+    Raises:
+        SweepError: naming the key and the config's own message.
+    """
+    for dim in dims:
+        for value in dim.extremes():
+            try:
+                load_config(config_path, [*overrides, override(dim.key, value)])
+            except ConfigError as exc:
+                raise SweepError(f"space key {dim.key}={value!r}: {exc}") from None
+
+
+def _storage(url: str | None, folder: Path) -> Any:
+    import optuna
+    from optuna.storages.journal import JournalFileBackend
+
+    if url is None:
+        return optuna.storages.JournalStorage(JournalFileBackend(str(folder / "journal.log")))
+    error: Exception | None = None
+    for attempt in range(5):
+        try:
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+                # A heartbeat lets fail_stale_trials (run by --resume) tell a dead worker's
+                # running trial from a live one.
+                return optuna.storages.RDBStorage(url, heartbeat_interval=30, grace_period=120)
+        except Exception as exc:  # SQLAlchemy and drivers raise many kinds
+            # Workers started together race to create the schema in an empty database; the
+            # loser sees a duplicate type or table, and finds the schema there on a retry.
+            error = exc
+            time.sleep(0.5 * (attempt + 1))
+    raise SweepError(
+        f"--storage: cannot open {url!r} ({type(error).__name__}: {str(error).splitlines()[0]})"
+    ) from None
+
+
+def run_sweep(
+    config_path: Path,
+    overrides: Sequence[str],
+    space_path: Path,
+    trials: int,
+    study_name: str,
+    sweeps_dir: Path,
+    storage_url: str | None = None,
+    resume: bool = False,
+    pruner: str = "median",
+) -> dict[str, Any] | None:
+    """Run this worker's share of a sweep of ``trials`` trials in total, then write the best.
+
+    Returns:
+        ``best.json``'s content, or ``None`` when no trial has completed yet.
+
+    Raises:
+        SweepError: for a bad space file, a study that exists without ``--resume`` (embedded
+            storage), or a storage that cannot be opened.
+        ConfigError: for a bad config.
+    """
+    import optuna
+
+    dims = load_space(space_path)
+    load_config(config_path, overrides)
+    check_space(config_path, overrides, dims)
+    folder = Path(sweeps_dir) / study_name
+    if storage_url is None and (folder / "journal.log").exists() and not resume:
+        raise SweepError(f"{folder}: a sweep of this study exists; add --resume to continue it")
+    folder.mkdir(parents=True, exist_ok=True)
+    optuna.logging.set_verbosity(optuna.logging.WARNING)
+    grid = all(d.kind == "grid" for d in dims)
+    sampler = (
+        optuna.samplers.GridSampler({d.key: list(d.values) for d in dims}, seed=0)
+        if grid
+        else optuna.samplers.TPESampler(seed=None)
+    )
+    study = optuna.create_study(
+        study_name=study_name,
+        storage=_storage(storage_url, folder),
+        direction="maximize",
+        sampler=sampler,
+        pruner=optuna.pruners.MedianPruner(n_startup_trials=2)
+        if pruner == "median"
+        else optuna.pruners.NopPruner(),
+        load_if_exists=True,
+    )
+    if resume:
+        _fail_dead_trials(study, embedded=storage_url is None)
+    counted = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED)
+    left = trials - len(study.get_trials(deepcopy=False, states=counted))
+    if left > 0:
+        study.optimize(
+            lambda trial: _objective(trial, config_path, overrides, dims, folder, trials),
+            n_trials=left,
+            callbacks=[optuna.study.MaxTrialsCallback(trials, states=counted)],
+            catch=(StudyFull,),
+        )
+    return write_best(study, config_path, overrides, folder)
+
+
+def _fail_dead_trials(study: Any, embedded: bool) -> None:
+    """Mark the trials a killed worker left RUNNING as failed (they are not lost: their run
+    folders stay, and the count of finished trials does not include them)."""
+    import optuna
+
+    if not embedded:
+        optuna.storages.fail_stale_trials(study)  # by heartbeat: live workers keep theirs
+        return
+    # One machine, one journal: --resume is run when the sweep's process is gone.
+    for trial in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)):
+        study._storage.set_trial_state_values(trial._trial_id, optuna.trial.TrialState.FAIL)
+
+
+class StudyFull(Exception):
+    """Another worker's trials already make up the sweep's total (the trial is marked failed,
+    with the user attribute ``skipped``, and this worker stops)."""
+
+
+def _claim(trial: Any, total: int) -> None:
+    """Keep the total exact with several workers: a trial counts only if fewer than ``total``
+    trials numbered before it are complete, pruned or running. Optuna numbers trials atomically
+    in the storage, so two workers never both claim the last place (``MaxTrialsCallback`` alone
+    checks after a trial, and two workers starting at once would overshoot).
+
+    Raises:
+        StudyFull: when the study has its trials already.
+    """
+    import optuna
+
+    alive = (
+        optuna.trial.TrialState.COMPLETE,
+        optuna.trial.TrialState.PRUNED,
+        optuna.trial.TrialState.RUNNING,
+    )
+    before = trial.study.get_trials(deepcopy=False, states=alive)
+    if sum(1 for t in before if t.number < trial.number) >= total:
+        trial.set_user_attr("skipped", f"the study already had its {total} trials")
+        trial.study.stop()
+        raise StudyFull(trial.number)
+
+
+def _objective(
+    trial: Any,
+    config_path: Path,
+    overrides: Sequence[str],
+    dims: Sequence[Dimension],
+    folder: Path,
+    total: int,
+) -> float:
+    """Train one trial into its own run folder; its value is the median validation coverage."""
+    import optuna
+
+    from harness.evaluation import model_policy, run_episodes, summarize
+    from harness.train import train
+
+    _claim(trial, total)
+    params = {d.key: d.suggest(trial) for d in dims}
+    config = load_config(config_path, [*overrides, *(override(k, v) for k, v in params.items())])
+    run = RunDir.create_at(folder / f"trial-{trial.number:04d}")
+    trial.set_user_attr("run", str(run.path))
+
+    def report(timesteps: int, summary: dict[str, Any]) -> None:
+        trial.report(float(summary["coverage_median"]), timesteps)
+        if trial.should_prune():
+            raise optuna.TrialPruned(f"pruned at {timesteps} transitions")
+
+    with run.lock():
+        model = train(
+            config, run, progress_bar=False, command=["sweep", str(trial.number)],
+            on_evaluation=report,
+        )  # fmt: skip
+    ev = config.eval
+    results = run_episodes(
+        model_policy(model, ev.temperature), config.env, ev.episodes, ev.validation_seed
+    )
+    return float(summarize(results)["coverage_median"])
+
+
+def write_best(
+    study: Any, config_path: Path, overrides: Sequence[str], folder: Path
+) -> dict[str, Any] | None:
+    """``best.yaml`` (a ready config) and ``best.json`` (parameters, value, trial) of a study."""
+    import optuna
+
+    complete = study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
+    if not complete:
+        return None
+    best = max(complete, key=lambda t: t.value)
+    config = load_config(
+        config_path, [*overrides, *(override(k, v) for k, v in best.params.items())]
+    )
+    atomic_write_text(folder / "best.yaml", config.to_yaml())
+    result = {
+        "study": study.study_name,
+        "trial": best.number,
+        "value": best.value,
+        "objective": "median coverage of the config's validation episodes",
+        "params": best.params,
+        "run": best.user_attrs.get("run"),
+        "trials": {
+            state.name.lower(): len(study.get_trials(deepcopy=False, states=(state,)))
+            for state in optuna.trial.TrialState
+        },
+    }
+    atomic_write_text(folder / "best.json", json.dumps(result, indent=2) + "\n")
+    return result
+
+
+def format_best(result: dict[str, Any] | None) -> str:
+    if result is None:
+        return "no trial has completed yet"
+    params = ", ".join(f"{k}={v!r}" for k, v in result["params"].items())
+    return (
+        f"best trial {result['trial']}: validation coverage {result['value']:.1%} ({params}); "
+        f"trials {yaml.safe_dump(result['trials'], default_flow_style=True).strip()}"
+    )

@@ -24,6 +24,8 @@ from typing import Any
 
 import numpy as np
 
+from harness.rundir import CheckpointDir
+
 STEP_PREFIX = "step-"
 KEEP = 2  # checkpoints kept: the newest and the one before it
 
@@ -115,14 +117,15 @@ def save_checkpoint(model: Any, folder: Path, state: TrainingState) -> Path:
     tmp = folder / f".{name}.tmp"
     shutil.rmtree(tmp, ignore_errors=True)
     tmp.mkdir()
+    files = CheckpointDir(tmp)
     try:
-        with (tmp / "model.zip").open("wb") as f:
+        with files.model.open("wb") as f:
             model.save(f)
-        with (tmp / "replay_buffer.pkl").open("wb") as f:
+        with files.replay_buffer.open("wb") as f:
             model.save_replay_buffer(f)
-        with (tmp / "rng.pkl").open("wb") as f:
+        with files.rng.open("wb") as f:
             pickle.dump(rng_states(), f)
-        (tmp / "state.json").write_text(state.to_json(), encoding="utf-8")
+        files.state.write_text(state.to_json(), encoding="utf-8")
         if final.exists():  # same step written twice (e.g. a periodic and a phase-end checkpoint)
             shutil.rmtree(final)
         tmp.rename(final)
@@ -139,7 +142,7 @@ def complete_checkpoints(folder: Path) -> list[Path]:
     if not folder.is_dir():
         return []
     found = [p for p in folder.iterdir() if p.name.startswith(STEP_PREFIX) and p.is_dir()]
-    return sorted(p for p in found if (p / "state.json").is_file())
+    return sorted(p for p in found if CheckpointDir(p).state.is_file())
 
 
 def latest_checkpoint(folder: Path) -> Path:
@@ -157,15 +160,15 @@ def latest_checkpoint(folder: Path) -> Path:
 def read_state(checkpoint: Path) -> TrainingState:
     """The training state of a checkpoint folder."""
     try:
-        return TrainingState.from_json((checkpoint / "state.json").read_text(encoding="utf-8"))
+        return TrainingState.from_json(CheckpointDir(checkpoint).state.read_text(encoding="utf-8"))
     except (OSError, ValueError, TypeError) as exc:
-        raise CheckpointError(f"{checkpoint / 'state.json'}: unreadable ({exc})") from None
+        raise CheckpointError(f"{CheckpointDir(checkpoint).state}: unreadable ({exc})") from None
 
 
 def read_rng(checkpoint: Path) -> dict[str, Any]:
     """The random states of a checkpoint folder."""
     try:
-        with (checkpoint / "rng.pkl").open("rb") as f:
+        with CheckpointDir(checkpoint).rng.open("rb") as f:
             states = pickle.load(f)
         # Check by setting them on a copy of the current states, then putting those back.
         current = rng_states()
@@ -173,4 +176,4 @@ def read_rng(checkpoint: Path) -> dict[str, Any]:
         set_rng_states(current)
         return states
     except Exception as exc:  # a damaged pickle raises many kinds
-        raise CheckpointError(f"{checkpoint / 'rng.pkl'}: unreadable ({exc})") from None
+        raise CheckpointError(f"{CheckpointDir(checkpoint).rng}: unreadable ({exc})") from None

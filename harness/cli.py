@@ -22,7 +22,6 @@ from harness.commands import (
     DEFAULT_TUNE_EPISODES,
     Target,
     TargetError,
-    eval_filename,
     export_reference,
     format_summary,
     format_tune,
@@ -42,6 +41,7 @@ from harness.rundir import (
     atomic_write_text,
     check_output_file,
     is_reference,
+    result_filename,
 )
 from harness.sweep import SweepError
 
@@ -430,7 +430,9 @@ def cmd_eval(args: argparse.Namespace) -> int:
     }
     if target.results_dir is not None:
         seed_changed = None if target.seed == target.config.eval.seed else str(target.seed)
-        name = eval_filename(args.overrides, target.model_name, args.episodes, seed_changed)
+        name = result_filename(
+            "eval", args.overrides, target.model_name, args.episodes, seed_changed
+        )
         out = target.results_dir / name
         target.results_dir.mkdir(parents=True, exist_ok=True)
         atomic_write_text(out, json.dumps(summary, indent=2, allow_nan=False))
@@ -470,7 +472,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     # tune.json, or tune-best_model.json, tune-env.max_steps-500.json, ... like harness eval's.
-    name = "tune" + eval_filename(args.overrides, target.model_name)[len("eval") :]
+    name = result_filename("tune", args.overrides, target.model_name)
     target.results_dir.mkdir(parents=True, exist_ok=True)
     atomic_write_text(target.results_dir / name, json.dumps(result, indent=2, allow_nan=False))
     print(f"saved {target.results_dir / name}", file=sys.stderr)
@@ -578,7 +580,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     rec = play_episode(
         target.config.env, target.policy, target.seed, args.every, args.gif is not None
     )
-    out = args.out or (target.results_dir or Path()) / "paths.png"
+    out = args.out or RunDir(target.results_dir or Path()).paths_png
     title = f"{target.label}: coverage {rec.coverage:.1%}, seed {target.seed}"
     note = sampling_note(target.config.eval.temperature) if target.run_dir else ""
     title += f", {note}" if note else ""

@@ -12,7 +12,6 @@ import io
 import json
 import math
 import os
-import re
 import shutil
 import tempfile
 import zipfile
@@ -29,10 +28,18 @@ from harness.evaluation import (
     selection_score,
     summarize,
 )
-from harness.rundir import REFERENCE_MARKER, atomic_write_text, check_output_file, results_folder
+from harness.rundir import (
+    REFERENCE_FILES,
+    STANDARD_EPISODES,
+    RunDir,
+    atomic_write_text,
+    check_output_file,
+    result_filename,
+    results_folder,
+)
 
 #: Episodes of a standard evaluation (the thesis tested on 100).
-DEFAULT_EPISODES = 100
+DEFAULT_EPISODES = STANDARD_EPISODES
 
 
 class TargetError(ValueError):
@@ -66,17 +73,17 @@ def find_run_config(model_path: Path) -> Path:
     """``config.yaml`` of the run a model zip belongs to (beside it, or two folders up for a
     checkpoint's ``checkpoints/step-N/model.zip``)."""
     for folder in (model_path.parent, model_path.parent.parent.parent):
-        if (folder / "config.yaml").is_file():
-            return folder / "config.yaml"
+        if RunDir(folder).config.is_file():
+            return RunDir(folder).config
     raise TargetError(f"{model_path}: no config.yaml of its run beside it")
 
 
 def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) -> Target:
     """A trained model: ``path`` is a run folder (its ``model.zip``) or a model zip."""
     if path.is_dir():
-        if not (path / "config.yaml").is_file():
+        if not RunDir(path).config.is_file():
             raise TargetError(f"{path}: not a run folder (no config.yaml)")
-        model_path, config_path = path / "model.zip", path / "config.yaml"
+        model_path, config_path = RunDir(path).model, RunDir(path).config
         if not model_path.is_file():
             raise TargetError(
                 f"{path}: no model.zip yet (training unfinished? `harness run --resume {path}`)"
@@ -162,38 +169,6 @@ def resolve_target(
     return load_model_target(target, overrides, seed)
 
 
-def eval_filename(
-    overrides: Sequence[str],
-    model: str = "model",
-    episodes: int = DEFAULT_EPISODES,
-    seed_changed: str | None = None,
-) -> str:
-    """Where ``harness eval`` saves its numbers in the run folder.
-
-    ``eval.json`` is the standard evaluation: the run's ``model.zip``, :data:`DEFAULT_EPISODES`
-    episodes with the config's ``eval.seed``. Anything else gets its own file, e.g.
-    ``eval-best_model.json``, ``eval-10ep.json``, ``eval-seed7.json`` or
-    ``eval-env.max_steps-500.json`` (``--set env.max_steps=500``), so no result replaces another.
-
-    Args:
-        overrides: The ``--set`` overrides of the evaluation.
-        model: The model's path inside the run folder without ``.zip`` (``"model"``,
-            ``"best_model"``, ``"checkpoints/step-000000001000/model"``).
-        episodes: Number of episodes evaluated.
-        seed_changed: The seed, when it is not the config's ``eval.seed``.
-    """
-    parts = [] if model == "model" else [model]
-    if episodes != DEFAULT_EPISODES:
-        parts.append(f"{episodes}ep")
-    if seed_changed is not None:
-        parts.append(f"seed{seed_changed}")
-    parts += list(overrides)
-    if not parts:
-        return "eval.json"
-    slug = re.sub(r"[^A-Za-z0-9_.-]+", "-", "_".join(parts)).strip("-")
-    return f"eval-{slug[:100]}.json"
-
-
 def sampling_note(temperature: float | None) -> str:
     """How a test policy picks actions: ``"Boltzmann, temperature T"``, or ``""`` when greedy."""
     return f"Boltzmann, temperature {temperature:g}" if temperature else ""
@@ -238,7 +213,7 @@ def read_eval_json(run: Path) -> dict[str, Any] | None:
         TargetError: when the file is there but is not an evaluation (not JSON, not an object,
             or a number missing, not a number or not finite), naming the file and the key.
     """
-    path = run / "eval.json"
+    path = RunDir(run).eval_json
     if not path.is_file():
         return None
     try:
@@ -267,11 +242,10 @@ def read_run_curves(run: Path) -> tuple[Any, Any]:
 
     try:
         check_run_folder(run)
-        episodes = read_episodes_csv(run / "episodes.csv")
+        files = RunDir(run)
+        episodes = read_episodes_csv(files.episodes_csv)
         evaluations = (
-            read_evaluations_csv(run / "evaluations.csv")
-            if (run / "evaluations.csv").is_file()
-            else None
+            read_evaluations_csv(files.evaluations_csv) if files.evaluations_csv.is_file() else None
         )
     except (ValueError, csv.Error) as exc:  # UnicodeDecodeError is a ValueError
         raise TargetError(str(exc).splitlines()[0]) from None
@@ -283,17 +257,18 @@ def read_run_curves(run: Path) -> tuple[Any, Any]:
 def run_label(run: Path) -> str:
     """The experiment name of a run folder (its config's ``name``)."""
     try:
-        return load_config(run / "config.yaml").name
+        return load_config(RunDir(run).config).name
     except ConfigError:
         return run.name
 
 
 def check_run_folder(run: Path) -> None:
     """Raise :class:`TargetError` unless ``run`` has an ``episodes.csv``."""
-    if not (run / "episodes.csv").is_file():
+    episodes = RunDir(run).episodes_csv
+    if not episodes.is_file():
         raise TargetError(f"{run}: not a run folder with episodes.csv")
     try:
-        with (run / "episodes.csv").open(newline="", encoding="utf-8") as f:
+        with episodes.open(newline="", encoding="utf-8") as f:
             if next(csv.reader(f), None) is None:
                 raise TargetError(f"{run}/episodes.csv: empty")
     except (UnicodeDecodeError, csv.Error):
@@ -373,7 +348,7 @@ def format_tune(result: dict[str, Any]) -> str:
 def write_temperature(run_dir: Path, temperature: float) -> float:
     """Store ``temperature`` as ``eval.temperature`` in a run folder's ``config.yaml``
     (atomically) and return the one it replaces."""
-    path = run_dir / "config.yaml"
+    path = RunDir(run_dir).config
     config = load_config(path)
     previous = config.eval.temperature
     config.eval.temperature = temperature
@@ -382,7 +357,6 @@ def write_temperature(run_dir: Path, temperature: float) -> float:
 
 
 #: Files of a run folder that a reference copy keeps besides the model (all small).
-REFERENCE_FILES = ("config.yaml", "command.txt", "episodes.csv", "evaluations.csv", "tune.json")
 
 
 def export_reference(run: Path, out: Path, model: str = "model") -> Path:
@@ -414,7 +388,7 @@ def export_reference(run: Path, out: Path, model: str = "model") -> Path:
     old = policy.policy.optimizer
     # SB3 (>= 2.4) optimises only the online network, not the target network.
     policy.policy.optimizer = type(old)(policy.q_net.parameters(), **old.defaults)
-    check_output_file(out / "model.zip", "--out")
+    check_output_file(RunDir(out).model, "--out")
     # Written into a temporary folder beside `out`, renamed into place when complete: an
     # interrupted export leaves no half-made reference.
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -433,19 +407,20 @@ def _write_reference(run: Path, out: Path, model: str, policy: Any) -> None:
     for name in REFERENCE_FILES:
         # harness tune writes tune.json for model.zip and tune-<model>.json for the others; the
         # reference keeps the sweep of the model it holds, as its tune.json.
-        origin = name if name != "tune.json" or model == "model" else f"tune-{model}.json"
+        tune = result_filename("tune", [])
+        origin = name if name != tune or model == "model" else result_filename("tune", [], model)
         if (run / origin).is_file():
             (out / name).write_bytes((run / origin).read_bytes())
     if model != "model":
         # The run's command made model.zip too; say which of its models this folder holds.
-        command = out / "command.txt"
+        command = RunDir(out).command
         before = command.read_text().rstrip("\n") + "\n" if command.is_file() else ""
         command.write_text(f"{before}# exported: {model}.zip (harness export --model {model})\n")
     buffer = io.BytesIO()
     policy.save(buffer)
-    (out / "model.zip").write_bytes(_without_target_network(buffer.getvalue()))
+    RunDir(out).model.write_bytes(_without_target_network(buffer.getvalue()))
     marker = {"exported_from": str(run), "model": f"{model}.zip"}
-    (out / REFERENCE_MARKER).write_text(json.dumps(marker, indent=2) + "\n", encoding="utf-8")
+    RunDir(out).reference_marker.write_text(json.dumps(marker, indent=2) + "\n", encoding="utf-8")
 
 
 def _without_target_network(model_zip: bytes) -> bytes:

@@ -70,7 +70,7 @@ def group_runs(folder: Path) -> list[Path]:
         runs = [folder / entry["run"] for entry in data["runs"]]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise GroupError(f"{folder / GROUP_FILE}: not a readable group file ({exc})") from None
-    found = [run for run in runs if (run / "config.yaml").is_file()]
+    found = [run for run in runs if RunDir(run).config.is_file()]
     if not found:
         raise GroupError(f"{folder}: the group has no run folder yet")
     return found

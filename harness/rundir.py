@@ -10,7 +10,8 @@
     evaluations.csv    one row per evaluation during training (validation episodes)
     model.zip          the final model
     best_model.zip     the model with the best periodic evaluation so far
-    eval.json          written by ``harness eval`` (eval-*.json: other settings)
+    eval.json          written by ``harness eval`` (eval-*.json: other settings, see
+                       :func:`result_filename`)
     tune.json          written by ``harness tune``
     reference.json     only in a folder made by ``harness export``: marks a reference, whose
                        eval/tune/render results go to ``runs/evals/<name>/`` instead
@@ -25,6 +26,7 @@ import contextlib
 import csv
 import fcntl
 import os
+import re
 import shlex
 import tempfile
 from collections.abc import Callable, Iterator, Sequence
@@ -110,6 +112,71 @@ def check_output_file(path: Path, flag: str) -> None:
         raise RunDirError(f"{flag} {path}: cannot write in {ancestor} ({exc.strerror})") from None
 
 
+#: Episodes of a standard evaluation (the thesis tested on 100).
+STANDARD_EPISODES = 100
+
+#: Files a reference made by ``harness export`` copies from its run (besides its model).
+REFERENCE_FILES = ("config.yaml", "command.txt", "episodes.csv", "evaluations.csv", "tune.json")
+
+
+def result_filename(
+    kind: str,
+    overrides: Sequence[str],
+    model: str = "model",
+    episodes: int = STANDARD_EPISODES,
+    seed_changed: str | None = None,
+) -> str:
+    """The file ``harness eval`` (``kind="eval"``) or ``harness tune`` (``"tune"``) saves to.
+
+    ``eval.json`` is the standard evaluation: the run's ``model.zip``, :data:`STANDARD_EPISODES`
+    episodes with the config's ``eval.seed`` (``tune.json``: the run's ``model.zip``). Anything
+    else gets its own file, e.g. ``eval-best_model.json``, ``eval-10ep.json``,
+    ``eval-seed7.json`` or ``eval-env.max_steps-500.json`` (``--set env.max_steps=500``), so no
+    result replaces another.
+
+    Args:
+        kind: ``"eval"`` or ``"tune"``.
+        overrides: The ``--set`` overrides.
+        model: The model's path inside the run folder without ``.zip`` (``"model"``,
+            ``"best_model"``, ``"checkpoints/step-000000001000/model"``).
+        episodes: Number of episodes evaluated (``eval`` only).
+        seed_changed: The seed, when it is not the config's ``eval.seed`` (``eval`` only).
+    """
+    parts = [] if model == "model" else [model]
+    if episodes != STANDARD_EPISODES:
+        parts.append(f"{episodes}ep")
+    if seed_changed is not None:
+        parts.append(f"seed{seed_changed}")
+    parts += list(overrides)
+    if not parts:
+        return f"{kind}.json"
+    slug = re.sub(r"[^A-Za-z0-9_.-]+", "-", "_".join(parts)).strip("-")
+    return f"{kind}-{slug[:100]}.json"
+
+
+@dataclass(frozen=True)
+class CheckpointDir:
+    """Paths of one checkpoint, ``checkpoints/step-<num_timesteps>/``."""
+
+    path: Path
+
+    @property
+    def model(self) -> Path:
+        return self.path / "model.zip"
+
+    @property
+    def replay_buffer(self) -> Path:
+        return self.path / "replay_buffer.pkl"
+
+    @property
+    def rng(self) -> Path:
+        return self.path / "rng.pkl"
+
+    @property
+    def state(self) -> Path:
+        return self.path / "state.json"
+
+
 def unique_folder(root: str | Path, name: str, now: datetime | None = None) -> Path:
     """Make a new folder ``<root>/<name>-<UTC timestamp>`` (a run, a seed group, a sweep); two
     made in the same second get ``-1``, ``-2``, ... suffixes; an existing one is never reused.
@@ -174,7 +241,20 @@ class RunDir:
 
     @property
     def eval_json(self) -> Path:
+        """The standard evaluation (see :func:`result_filename`)."""
         return self.path / "eval.json"
+
+    @property
+    def paths_png(self) -> Path:
+        return self.path / "paths.png"
+
+    @property
+    def reference_marker(self) -> Path:
+        return self.path / REFERENCE_MARKER
+
+    def result(self, name: str) -> Path:
+        """A result file of this folder, named by :func:`result_filename`."""
+        return self.path / name
 
     @classmethod
     def create(cls, root: str | Path, name: str, now: datetime | None = None) -> RunDir:

@@ -57,6 +57,7 @@ from harness.evaluation import model_policy, run_episodes, selection_score, summ
 from harness.registry import POLICIES
 from harness.rundir import (
     EVALUATION_COLUMNS,
+    CheckpointDir,
     LogMismatchError,
     RunDir,
     append_csv_rows,
@@ -524,23 +525,24 @@ def load_resume_point(checkpoint: Path, config: ExperimentConfig) -> ResumePoint
     Raises:
         CheckpointError: naming the file that cannot be used.
     """
+    files = CheckpointDir(checkpoint)
     state = read_state(checkpoint)
     rng = read_rng(checkpoint)
     try:
-        model = DoubleDQN.load(checkpoint / "model.zip", device=config.algo.device)
+        model = DoubleDQN.load(files.model, device=config.algo.device)
     except Exception as exc:  # SB3 raises many kinds on a damaged zip
-        raise CheckpointError(f"{checkpoint / 'model.zip'}: unreadable ({exc})") from None
+        raise CheckpointError(f"{files.model}: unreadable ({exc})") from None
     try:
-        with (checkpoint / "replay_buffer.pkl").open("rb") as f:
+        with files.replay_buffer.open("rb") as f:
             model.load_replay_buffer(f)
     except Exception as exc:  # a damaged pickle raises many kinds
-        raise CheckpointError(f"{checkpoint / 'replay_buffer.pkl'}: unreadable ({exc})") from None
+        raise CheckpointError(f"{files.replay_buffer}: unreadable ({exc})") from None
     if model.num_timesteps != state.num_timesteps or not 0 <= state.phase <= len(config.phases):
         raise CheckpointError(
-            f"{checkpoint / 'state.json'}: says step {state.num_timesteps}, phase "
+            f"{files.state}: says step {state.num_timesteps}, phase "
             f"{state.phase}, but the model is at step {model.num_timesteps} of a "
             f"{len(config.phases)}-phase run"
         )
     if not 0 <= state.phase_start <= state.num_timesteps or state.next_episode < 0:
-        raise CheckpointError(f"{checkpoint / 'state.json'}: inconsistent counters")
+        raise CheckpointError(f"{files.state}: inconsistent counters")
     return ResumePoint(checkpoint, state, rng, model)

@@ -131,8 +131,10 @@ def test_compare_writes_a_plot_and_a_table(smoke_run, tmp_path, capsys):
     assert out.read_bytes()[:8] == PNG_SIGNATURE
     labelled = ["compare", str(smoke_run), str(smoke_run), "--out", str(out), "--labels", "a", "b"]
     assert main(labelled) == 0
-    table = capsys.readouterr().out.splitlines()
+    out_lines = capsys.readouterr().out.splitlines()
+    table = out_lines[: out_lines.index("")]  # the per-run table, before the over-seeds part
     assert [line.split()[0] for line in table[1:]] == ["a", "b"]
+    assert "| a | 1 |" in "\n".join(out_lines)
 
 
 @pytest.mark.parametrize(

@@ -60,26 +60,25 @@ class _Parser(argparse.ArgumentParser):
         self.exit(EXIT_USAGE, f"harness: error: {self.prog}: {message} (see {self.prog} --help)\n")
 
 
-def seed_arg(text: str) -> int:
-    """A ``--seed`` value: an integer in ``[0, MAX_SEED]``."""
+def _int_in(text: str, low: int, high: int | None, what: str) -> int:
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"seed must be an integer, got {text!r}") from None
-    if not 0 <= value <= MAX_SEED:
-        raise argparse.ArgumentTypeError(f"seed must be in [0, {MAX_SEED}], got {value}")
+        raise argparse.ArgumentTypeError(f"{what} must be an integer, got {text!r}") from None
+    if value < low or (high is not None and value > high):
+        bounds = f"in [{low}, {high}]" if high is not None else f">= {low}"
+        raise argparse.ArgumentTypeError(f"{what} must be {bounds}, got {value}")
     return value
+
+
+def seed_arg(text: str) -> int:
+    """A ``--seed`` value: an integer in ``[0, MAX_SEED]``."""
+    return _int_in(text, 0, MAX_SEED, "seed")
 
 
 def positive_int(text: str) -> int:
     """An integer >= 1 (episode counts, windows, frame intervals)."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be >= 1, got {value}")
-    return value
+    return _int_in(text, 1, None, "the value")
 
 
 def temperature_arg(text: str) -> float:

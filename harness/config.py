@@ -24,7 +24,7 @@ from __future__ import annotations
 import contextlib
 import hashlib
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
@@ -68,6 +68,13 @@ MAX_MAP_CELLS = 4_000_000
 
 #: Largest config file: configs are a few KB; anything this large is not one.
 MAX_CONFIG_BYTES = 1 << 20
+
+
+def _registered(name: str, registry: Mapping[str, Any], kind: str) -> str:
+    """``name`` if the registry of its kind knows it, else a ValueError listing the known ones."""
+    if name not in registry:
+        raise ValueError(f"unknown {kind} {name!r}; known: {', '.join(registry)}")
+    return name
 
 
 class RewardsConfig(_Section):
@@ -130,9 +137,7 @@ class EnvConfig(_Section):
     @field_validator("observation")
     @classmethod
     def _known_observation(cls, v: str) -> str:
-        if v not in OBSERVATIONS:
-            raise ValueError(f"unknown observation {v!r}; known: {', '.join(OBSERVATIONS)}")
-        return v
+        return _registered(v, OBSERVATIONS, "observation")
 
     @field_validator("crop")
     @classmethod
@@ -239,9 +244,7 @@ class AlgoConfig(_Section):
     @field_validator("policy")
     @classmethod
     def _known_policy(cls, v: str) -> str:
-        if v not in POLICIES:
-            raise ValueError(f"unknown policy {v!r}; known: {', '.join(POLICIES)}")
-        return v
+        return _registered(v, POLICIES, "policy")
 
     @field_validator("device")
     @classmethod

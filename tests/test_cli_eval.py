@@ -339,7 +339,7 @@ def test_tune_sweeps_temperatures_on_validation_episodes(smoke_run, tmp_path, ca
         (["--temperatures", "0"], "--temperatures: temperatures must be finite and > 0"),
         (["--temperatures", "nan"], "--temperatures: temperatures must be finite and > 0"),
         (["--temperatures", "inf"], "--temperatures: temperatures must be finite and > 0"),
-        (["--episodes", "0"], "--episodes: must be >= 1"),
+        (["--episodes", "0"], "--episodes: the value must be >= 1"),
         (["--seed", "-1"], "--seed: seed must be in [0, 2147483647]"),
         (["--write", "--set", "env.max_steps=20"], "--write stores a choice"),
     ],

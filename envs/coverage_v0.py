@@ -27,7 +27,9 @@ Observation values        window -1/0/1; coordinates [0, 1] or raw (row, col)
 new map each reset: a wall share ``w ~ U(wall_fraction)``, ``round(w*H*W)`` walls on random cells,
 then every free cell outside the largest 4-connected free area is filled, so all free ground is
 reachable. ``map="cave_100x50"`` (or any shipped name, see :func:`envs.coverage.maps.shipped_maps`)
-or a path to a text map (``#`` wall, ``.`` free, ``S`` start) fixes the map.
+or a path to a text map (``#`` wall, ``.`` free, ``S`` start) fixes the map. A map source object
+from :mod:`envs.coverage.generators` (``CaveMaps``, ``MazeMaps``, ``RandomMaps``, a weighted
+``MixGenerator``) draws a new ``height`` x ``width`` map each reset.
 
 **Dynamics.** All agents act at once; moves are resolved in index order. A move into a wall or off
 the grid leaves the agent in place and counts as a wall hit; ``stay`` never does. Agents may share
@@ -35,6 +37,13 @@ a cell. The team shares one visited map; start cells are visited at reset. An ag
 unvisited free cell is credited with it (the lower index wins a tie). There is no terminal state:
 all agents are truncated after ``max_steps`` steps, and that step's infos hold
 ``"TimeLimit.truncated": True`` so Stable-Baselines3 treats it as a time-out.
+
+**Observation** ``"teammap"`` (a ``Dict`` of uint8 images): ``local``, the ``crop`` x ``crop``
+window centred on the agent with channels known wall, visited, known free not visited, unknown,
+teammates; ``global``, the map pooled into ``global_size`` x ``global_size`` blocks with the shares
+visited, known free not visited, unknown and known wall, this agent's block and the teammates'
+blocks; ``vector``, own normalised position and elapsed fraction. A cell is known once it was in
+some agent's 3x3 window (``env.known``).
 
 **Observation** ``"thesis"``: the 3x3 window around the agent (row-major; -1 unvisited free,
 0 visited free, 1 wall/outside), its own (row, col) and the (row, col) of its nearest teammate
@@ -52,13 +61,14 @@ credited to this agent so far), ``wall_hits`` (this agent's count so far), ``ste
 ``wall_fraction=(0.15, 0.20)``, ``n_agents=4``, ``max_steps=1000``, ``observation="thesis"``,
 ``coords="normalized"``, ``rewards={"new_cell": 2.0, "wall_hit": -10.0, "step": -1.0}``,
 ``starts=None`` (fixed start cells, else distinct random free cells each reset),
-``render_mode=None | "rgb_array" | "ansi"``.
+``render_mode=None | "rgb_array" | "ansi"``, ``crop=15`` and ``global_size=13`` (``"teammap"``).
 
 ``reset(seed=None, options=None)``: ``options={"grid": bool_array, "starts": [(r, c), ...]}`` fixes
 that episode's map and/or start cells. Bad input raises ``ValueError`` naming the problem.
 
 **State for baselines, rendering and tests** (read-only): ``env.walls``, ``env.visited``,
-``env.positions``, ``env.credited_by``, ``env.free_cells``, ``env.coverage``, ``env.steps``.
+``env.known``, ``env.positions``, ``env.credited_by``, ``env.free_cells``, ``env.coverage``,
+``env.steps``.
 """
 
 from __future__ import annotations

@@ -43,6 +43,7 @@ from pydantic import (
 )
 
 from envs import coverage_v0
+from envs.coverage import generators
 from envs.coverage.maps import shipped_maps
 from envs.coverage.observations import OBSERVATIONS
 from harness.registry import POLICIES
@@ -88,7 +89,10 @@ class RewardsConfig(_Section):
 class EnvConfig(_Section):
     """Arguments of ``coverage_v0.parallel_env`` (see ``envs/coverage_v0.py``)."""
 
-    map: str = "random"
+    map: str | dict[str, Any] = "random"
+    """``random``, a shipped map's name, a map file, or a map source of
+    ``envs.coverage.generators`` (``{cave: {...}}``, ``{maze: {...}}``, ``{random: {...}}``, or
+    ``{mix: [{weight: w, <source>}, ...]}``), drawing ``height`` x ``width`` maps each reset."""
     height: PositiveInt = 50
     width: PositiveInt = 50
     wall_fraction: tuple[float, float] = (0.15, 0.20)
@@ -164,7 +168,10 @@ class EnvConfig(_Section):
 
     @field_validator("map")
     @classmethod
-    def _map_exists(cls, v: str) -> str:
+    def _map_exists(cls, v: str | dict[str, Any]) -> str | dict[str, Any]:
+        if isinstance(v, dict):
+            generators.from_spec(v, 1, 1)  # names and parameters; sizes are checked below
+            return v
         if v != "random" and v not in shipped_maps() and not Path(v).is_file():
             raise ValueError(
                 f"{v!r} is not 'random', a shipped map ({', '.join(shipped_maps())}) "
@@ -174,7 +181,7 @@ class EnvConfig(_Section):
 
     @model_validator(mode="after")
     def _enough_cells(self) -> EnvConfig:
-        if self.map == "random":
+        if self.map == "random" or isinstance(self.map, dict):
             cells = self.height * self.width
             if cells > MAX_MAP_CELLS:
                 raise ValueError(
@@ -192,7 +199,7 @@ class EnvConfig(_Section):
         # draw a few random maps, so that a map too small or too walled to place the agents is
         # a config error rather than a crash in the middle of training.
         env = coverage_v0.parallel_env(**self.kwargs())
-        if self.map == "random":
+        if self.map == "random" or isinstance(self.map, dict):
             for seed in range(3):
                 env.reset(seed=seed)
         return self
@@ -201,6 +208,8 @@ class EnvConfig(_Section):
         """Keyword arguments for ``coverage_v0.parallel_env``."""
         out = self.model_dump(exclude={"map_sha256"})
         out["wall_fraction"] = tuple(out["wall_fraction"])
+        if isinstance(self.map, dict):
+            out["map"] = generators.from_spec(self.map, self.height, self.width)
         return out
 
 

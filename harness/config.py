@@ -44,7 +44,8 @@ from pydantic import (
 
 from envs import coverage_v0
 from envs.coverage import generators
-from envs.coverage.maps import shipped_maps
+from envs.coverage.env import DEFAULT_REWARDS
+from envs.coverage.maps import check_wall_fraction, shipped_maps
 from envs.coverage.observations import OBSERVATIONS
 from harness.registry import POLICIES
 
@@ -79,11 +80,11 @@ def _registered(name: str, registry: Mapping[str, Any], kind: str) -> str:
 
 
 class RewardsConfig(_Section):
-    """Reward weights of eq. 3.1."""
+    """Reward weights of eq. 3.1 (defaults: the env's ``DEFAULT_REWARDS``)."""
 
-    new_cell: float = 2.0
-    wall_hit: float = -10.0
-    step: float = -1.0
+    new_cell: float = DEFAULT_REWARDS["new_cell"]
+    wall_hit: float = DEFAULT_REWARDS["wall_hit"]
+    step: float = DEFAULT_REWARDS["step"]
 
 
 class EnvConfig(_Section):
@@ -162,9 +163,7 @@ class EnvConfig(_Section):
     @field_validator("wall_fraction")
     @classmethod
     def _fraction_range(cls, v: tuple[float, float]) -> tuple[float, float]:
-        if not 0.0 <= v[0] <= v[1] < 1.0:
-            raise ValueError("must be [low, high] with 0 <= low <= high < 1")
-        return v
+        return check_wall_fraction(v)
 
     @field_validator("map")
     @classmethod

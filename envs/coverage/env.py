@@ -74,7 +74,7 @@ class CoverageEnv(ParallelEnv):
         elif str(map) == "random":
             _check_int("height", height, 1)
             _check_int("width", width, 1)
-            self.wall_fraction = _check_wall_fraction(wall_fraction)
+            self.wall_fraction = maps.check_wall_fraction(wall_fraction)
             if height * width < n_agents:
                 raise ValueError(f"a {height}x{width} map has fewer cells than n_agents={n_agents}")
             self._generator = generators.RandomMaps(height, width, self.wall_fraction)
@@ -383,16 +383,6 @@ class CoverageEnv(ParallelEnv):
 def _check_int(name: str, value: Any, minimum: int) -> None:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
-
-
-def _check_wall_fraction(value: Any) -> tuple[float, float]:
-    try:
-        lo, hi = (float(v) for v in value)
-    except (TypeError, ValueError):
-        raise ValueError(f"wall_fraction must be a pair (low, high), got {value!r}") from None
-    if not (0.0 <= lo <= hi < 1.0):
-        raise ValueError(f"wall_fraction must satisfy 0 <= low <= high < 1, got {value!r}")
-    return lo, hi
 
 
 def _check_rewards(rewards: Mapping[str, float] | None) -> dict[str, float]:

@@ -54,12 +54,7 @@ class RandomMaps(MapGenerator):
 
     def __init__(self, height: int, width: int, wall_fraction: Sequence[float] = (0.15, 0.20)):
         super().__init__(height, width)
-        low, high = (float(x) for x in wall_fraction)
-        if not 0.0 <= low <= high < 1.0:
-            raise ValueError(
-                f"wall_fraction must satisfy 0 <= low <= high < 1, got {wall_fraction}"
-            )
-        self.wall_fraction = (low, high)
+        self.wall_fraction = maps.check_wall_fraction(wall_fraction)
 
     def __call__(self, rng: np.random.Generator, keep_free: np.ndarray | None = None) -> np.ndarray:
         return maps.random_grid(self.height, self.width, self.wall_fraction, rng, keep_free)

@@ -22,26 +22,22 @@ from harness.commands import (
     DEFAULT_TUNE_EPISODES,
     Target,
     TargetError,
+    compare,
+    evaluate,
+    evaluate_group,
     export_reference,
     format_summary,
     format_tune,
-    read_eval_json,
-    read_run_curves,
     resolve_target,
-    run_label,
     sampling_note,
-    tune_temperature,
-    write_temperature,
+    tune,
 )
 from harness.config import MAX_SEED, ConfigError, ExperimentConfig, load_config
 from harness.groups import GroupError
 from harness.rundir import (
     RunDir,
     RunDirError,
-    atomic_write_text,
     check_output_file,
-    is_reference,
-    result_filename,
 )
 from harness.sweep import SweepError
 
@@ -373,38 +369,6 @@ def _target(args: argparse.Namespace) -> Target:
     return target
 
 
-def _eval_group(args: argparse.Namespace) -> int:
-    """``harness eval GROUP``: every run of a seed group on the same test episodes, then the
-    group's numbers over seeds in ``GROUP/group-eval.json``."""
-    from harness.groups import group_runs
-    from harness.stats import describe, seed_statistics
-
-    group = Path(args.target)
-    runs = group_runs(group)
-    summaries = {}
-    for run in runs:
-        one = argparse.Namespace(**{**vars(args), "target": run, "json": False})
-        print(f"== {run.name}")
-        cmd_eval(one)
-        data = read_eval_json(run) if not (args.overrides or args.episodes != 100) else None
-        if data is not None:
-            summaries[run.name] = data
-    if len(summaries) == len(runs):
-        stats = seed_statistics({"group": [s["coverage_mean"] for s in summaries.values()]})
-        result = {
-            "group": str(group),
-            "runs": {name: {k: s[k] for k in ("seed", "coverage_mean", "coverage_median",
-                                               "wall_hits_mean")} for name, s in summaries.items()},
-            "coverage_mean_over_seeds": describe(stats["group"]),
-        }  # fmt: skip
-        out = group / "group-eval.json"
-        atomic_write_text(out, json.dumps(result, indent=2, allow_nan=False))
-        print(f"saved {out}", file=sys.stderr)
-        if args.json:
-            print(json.dumps(result))
-    return 0
-
-
 def cmd_eval(args: argparse.Namespace) -> int:
     from harness.groups import is_group
 
@@ -413,105 +377,63 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.plot is not None:
         check_output_file(args.plot, "--plot")
     target = _target(args)
-    from harness.evaluation import run_episodes, summarize
-
-    results = run_episodes(target.policy, target.config.env, args.episodes, target.seed)
-    summary = {
-        "policy": target.label,
-        "seed": target.seed,
-        # Only a learned policy has a test temperature (eval.temperature); baselines ignore it.
-        "temperature": target.config.eval.temperature if target.run_dir is not None else None,
-        "overrides": list(args.overrides),
-        "env": target.config.env.model_dump(mode="json"),
-        **summarize(results),
-        "coverage": [r.coverage for r in results],
-        "wall_hits": [sum(r.wall_hits) for r in results],
-    }
-    if target.results_dir is not None:
-        seed_changed = None if target.seed == target.config.eval.seed else str(target.seed)
-        name = result_filename(
-            "eval", args.overrides, target.model_name, args.episodes, seed_changed
-        )
-        out = target.results_dir / name
-        target.results_dir.mkdir(parents=True, exist_ok=True)
-        atomic_write_text(out, json.dumps(summary, indent=2, allow_nan=False))
-        print(f"saved {out}", file=sys.stderr)
+    summary, results = evaluate(target, args.episodes, args.overrides)
+    if summary["saved"] is not None:
+        print(f"saved {summary['saved']}", file=sys.stderr)
     if args.plot is not None:
         from harness.plots import plot_eval_episodes
 
         plot_eval_episodes(results, None, args.plot, f"{target.label}: {len(results)} episodes")
         print(f"saved {args.plot}", file=sys.stderr)
     if args.json:
-        print(json.dumps({k: v for k, v in summary.items() if k not in ("coverage", "wall_hits")}))
+        hidden = ("coverage", "wall_hits", "saved")
+        print(json.dumps({k: v for k, v in summary.items() if k not in hidden}))
     else:
         print(format_summary(summary))
     return 0
 
 
+def _eval_group(args: argparse.Namespace) -> int:
+    """``harness eval GROUP``: each run as ``harness eval RUN``, then the group's numbers."""
+
+    def evaluate_run(run: Path) -> None:
+        print(f"== {run.name}")
+        cmd_eval(argparse.Namespace(**{**vars(args), "target": run, "json": False}))
+
+    standard = not args.overrides and args.episodes == DEFAULT_EPISODES and args.seed is None
+    result, saved = evaluate_group(Path(args.target), evaluate_run, standard)
+    if saved is not None:
+        print(f"saved {saved}", file=sys.stderr)
+        if args.json:
+            print(json.dumps(result))
+    return 0
+
+
 def cmd_tune(args: argparse.Namespace) -> int:
-    if args.write and args.overrides:
-        raise HarnessError("--write stores a choice for the run's own config; drop --set")
     args.policy = args.config = None
     target = _target(args)
     if args.seed is None:
         # Choices are made on validation episodes, never on the test episodes of harness eval.
         target.seed = target.config.eval.validation_seed
-    result = tune_temperature(target, args.temperatures, args.episodes)
-    result["overrides"] = list(args.overrides)
-    assert target.run_dir is not None and target.results_dir is not None  # a trained model
-    if args.write and is_reference(target.run_dir):
-        raise HarnessError(
-            f"{target.run_dir}: a reference is read-only; --write tunes a run folder's config"
-        )
+    result, saved = tune(target, args.temperatures, args.episodes, args.overrides, args.write)
     if args.write:
-        result["previous_temperature"] = write_temperature(target.run_dir, result["chosen"])
         print(
-            f"saved eval.temperature={result['chosen']:g} in {target.run_dir / 'config.yaml'} "
+            f"saved eval.temperature={result['chosen']:g} in the run's config.yaml "
             f"(was {result['previous_temperature']:g}); eval files made before keep theirs",
             file=sys.stderr,
         )
-    # tune.json, or tune-best_model.json, tune-env.max_steps-500.json, ... like harness eval's.
-    name = result_filename("tune", args.overrides, target.model_name)
-    target.results_dir.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(target.results_dir / name, json.dumps(result, indent=2, allow_nan=False))
-    print(f"saved {target.results_dir / name}", file=sys.stderr)
+    print(f"saved {saved}", file=sys.stderr)
     print(json.dumps(result) if args.json else format_tune(result))
     return 0
 
 
 def cmd_compare(args: argparse.Namespace) -> int:
-    """Learning curves and test results of runs and seed groups; over the seeds of each group,
-    mean and IQM with 95 % bootstrap intervals and the probability of improvement (rliable)."""
-    from harness.groups import group_runs, is_group
-    from harness.plots import plot_learning_curves
-
     if args.labels is not None and len(args.labels) != len(args.runs):
         raise HarnessError(f"--labels needs one label per run ({len(args.runs)})")
-    check_output_file(args.out, "--out")
     labels = args.labels or [None] * len(args.runs)
-    curves: dict[str, list] = {}
-    evaluations: dict[str, list] = {}
-    rows = []
-    members: dict[str, list[Path]] = {}
-    for item, given in zip(args.runs, labels, strict=True):
-        runs = group_runs(item) if is_group(item) else [item]
-        label = given or (item.name if is_group(item) else run_label(item))
-        members.setdefault(label, []).extend(runs)
-        for run in runs:
-            episodes, evals = read_run_curves(run)
-            curves.setdefault(label, []).append(episodes)
-            if evals is not None:
-                evaluations.setdefault(label, []).append(evals)
-            rows.append((label, run.name, read_eval_json(run)))
-    plot_learning_curves(
-        curves,
-        args.out,
-        "team coverage of the training episodes",
-        window=args.window,
-        evaluations=evaluations,
-    )
+    result = compare(args.runs, labels, Path(args.out), args.window)
     print(f"{'experiment':<20}{'run':<40}{'median':>8}{'IQR':>8}{'wall hits':>11}")
-    for label, name, ev in rows:
+    for label, name, ev in result.rows:
         if ev is None:
             print(f"{label:<20}{name:<40}{'(no eval.json: run harness eval)':>27}")
         else:
@@ -519,54 +441,12 @@ def cmd_compare(args: argparse.Namespace) -> int:
                 f"{label:<20}{name:<40}{ev['coverage_median']:>8.1%}{ev['coverage_iqr']:>8.1%}"
                 f"{ev['wall_hits_mean']:>11.2f}"
             )
-    print(f"saved {args.out}", file=sys.stderr)
-    _compare_over_seeds(rows, evaluations, Path(args.out))
+    if result.over_seeds:
+        print()
+        print(result.over_seeds)
+    for path in result.saved:
+        print(f"saved {path}", file=sys.stderr)
     return 0
-
-
-def _compare_over_seeds(
-    rows: list[tuple[str, str, dict | None]], evaluations: dict[str, list], out: Path
-) -> None:
-    """The over-seeds part of ``compare``: a Markdown table, P(X > Y) per pair, two PNGs."""
-    from harness.stats import (
-        markdown_table,
-        percent,
-        plot_curves_with_ci,
-        plot_intervals,
-        probability_of_improvement,
-        seed_statistics,
-    )
-
-    scores: dict[str, list[float]] = {}
-    hits: dict[str, list[float]] = {}
-    for label, _, ev in rows:
-        if ev is not None:
-            scores.setdefault(label, []).append(float(ev["coverage_mean"]))
-            hits.setdefault(label, []).append(float(ev["wall_hits_mean"]))
-    if not scores:
-        return
-    stats = seed_statistics(scores)
-    print()
-    print("Over seeds: test coverage (each seed's mean over its eval.json episodes)")
-    print()
-    print(markdown_table(stats, {k: sum(v) / len(v) for k, v in hits.items()}))
-    names = list(scores)
-    for i, x in enumerate(names):
-        for y in names[i + 1 :]:
-            p, ci = probability_of_improvement(scores[x], scores[y])
-            where = (
-                "no interval: a group has 1 seed"
-                if ci is None
-                else (f"95 % CI [{percent(ci[0])}, {percent(ci[1])}]")
-            )
-            print(f"\nP({x} > {y}) = {percent(p)} ({where})")
-    intervals = out.with_name(f"{out.stem}-intervals.png")
-    plot_intervals(stats, intervals)
-    print(f"saved {intervals}", file=sys.stderr)
-    if evaluations:
-        banded = out.with_name(f"{out.stem}-curves-ci.png")
-        plot_curves_with_ci(evaluations, banded)
-        print(f"saved {banded}", file=sys.stderr)
 
 
 def cmd_render(args: argparse.Namespace) -> int:

@@ -34,6 +34,7 @@ from harness.rundir import (
     RunDir,
     atomic_write_text,
     check_output_file,
+    is_reference,
     result_filename,
     results_folder,
 )
@@ -443,3 +444,176 @@ def _without_target_network(model_zip: bytes) -> bytes:
                 data = packed.getvalue()
             zout.writestr(item, data)
     return out.getvalue()
+
+
+# ---------------------------------------------------------------------- eval, tune, compare
+def evaluate(target: Target, episodes: int, overrides: Sequence[str]) -> tuple[dict[str, Any], Any]:
+    """``harness eval``'s work: run the episodes, summarise, and save the JSON where results of
+    the target go (nothing for a baseline).
+
+    Returns:
+        The summary (with per-episode ``coverage`` and ``wall_hits``), the episode results, and
+        the saved file (``None`` for a baseline) as the summary's ``"saved"`` entry.
+    """
+    results = run_episodes(target.policy, target.config.env, episodes, target.seed)
+    summary: dict[str, Any] = {
+        "policy": target.label,
+        "seed": target.seed,
+        # Only a learned policy has a test temperature (eval.temperature); baselines ignore it.
+        "temperature": target.config.eval.temperature if target.run_dir is not None else None,
+        "overrides": list(overrides),
+        "env": target.config.env.model_dump(mode="json"),
+        **summarize(results),
+        "coverage": [r.coverage for r in results],
+        "wall_hits": [sum(r.wall_hits) for r in results],
+    }
+    saved = None
+    if target.results_dir is not None:
+        seed_changed = None if target.seed == target.config.eval.seed else str(target.seed)
+        name = result_filename("eval", overrides, target.model_name, episodes, seed_changed)
+        saved = save_result(target.results_dir / name, summary)
+    return {**summary, "saved": saved}, results
+
+
+def save_result(path: Path, data: dict[str, Any]) -> Path:
+    """Write a result JSON atomically (never NaN: a non-finite number is a bug, not a result)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(data, indent=2, allow_nan=False))
+    return path
+
+
+def evaluate_group(
+    group: Path, evaluate_run: Any, standard: bool
+) -> tuple[dict[str, Any] | None, Path | None]:
+    """``harness eval GROUP``: ``evaluate_run(run)`` for every run, then, for the standard
+    evaluation (no ``--set``, 100 episodes), the numbers over seeds in ``GROUP/group-eval.json``.
+    """
+    from harness.groups import group_runs
+    from harness.stats import describe, seed_statistics
+
+    runs = group_runs(group)
+    summaries = {}
+    for run in runs:
+        evaluate_run(run)
+        data = read_eval_json(run) if standard else None
+        if data is not None:
+            summaries[run.name] = data
+    if len(summaries) != len(runs):
+        return None, None
+    stats = seed_statistics({"group": [s["coverage_mean"] for s in summaries.values()]})
+    keys = ("seed", "coverage_mean", "coverage_median", "wall_hits_mean")
+    result = {
+        "group": str(group),
+        "runs": {name: {k: s[k] for k in keys} for name, s in summaries.items()},
+        "coverage_mean_over_seeds": describe(stats["group"]),
+    }
+    return result, save_result(group / "group-eval.json", result)
+
+
+def tune(
+    target: Target,
+    temperatures: Sequence[float],
+    episodes: int,
+    overrides: Sequence[str],
+    write: bool,
+) -> tuple[dict[str, Any], Path]:
+    """``harness tune``'s work: the sweep on validation episodes, optionally written into the run's
+    config as its test temperature, saved as ``tune*.json`` where the target's results go.
+
+    Raises:
+        TargetError: for ``write`` on a reference, or with ``--set`` overrides.
+    """
+    assert target.run_dir is not None and target.results_dir is not None  # a trained model
+    if write and overrides:
+        raise TargetError("--write stores a choice for the run's own config; drop --set")
+    if write and is_reference(target.run_dir):
+        raise TargetError(
+            f"{target.run_dir}: a reference is read-only; --write tunes a run folder's config"
+        )
+    result = tune_temperature(target, temperatures, episodes)
+    result["overrides"] = list(overrides)
+    if write:
+        result["previous_temperature"] = write_temperature(target.run_dir, result["chosen"])
+    # tune.json, or tune-best_model.json, tune-env.max_steps-500.json, ... like harness eval's.
+    name = result_filename("tune", overrides, target.model_name)
+    return result, save_result(target.results_dir / name, result)
+
+
+@dataclass
+class Comparison:
+    """What ``harness compare`` found: per-run rows, the over-seeds table and the files made."""
+
+    rows: list[tuple[str, str, dict[str, Any] | None]]
+    over_seeds: str
+    saved: list[Path]
+
+
+def compare(
+    items: Sequence[Path], labels: Sequence[str | None], out: Path, window: int
+) -> Comparison:
+    """``harness compare``'s work: learning curves of runs and seed groups, each run's test
+    numbers, and over the seeds of each group the mean and IQM with 95 % bootstrap intervals and
+    the probability of improvement (rliable)."""
+    from harness.groups import group_runs, is_group
+    from harness.plots import plot_learning_curves
+
+    check_output_file(out, "--out")
+    curves: dict[str, list[Any]] = {}
+    evaluations: dict[str, list[Any]] = {}
+    rows: list[tuple[str, str, dict[str, Any] | None]] = []
+    for item, given in zip(items, labels, strict=True):
+        runs = group_runs(item) if is_group(item) else [item]
+        label = given or (item.name if is_group(item) else run_label(item))
+        for run in runs:
+            episodes, evals = read_run_curves(run)
+            curves.setdefault(label, []).append(episodes)
+            if evals is not None:
+                evaluations.setdefault(label, []).append(evals)
+            rows.append((label, run.name, read_eval_json(run)))
+    title = "team coverage of the training episodes"
+    saved = [plot_learning_curves(curves, out, title, window=window, evaluations=evaluations)]
+    over_seeds, more = _over_seeds(rows, evaluations, Path(out))
+    return Comparison(rows, over_seeds, saved + more)
+
+
+def _over_seeds(
+    rows: list[tuple[str, str, dict[str, Any] | None]], evaluations: dict[str, list[Any]], out: Path
+) -> tuple[str, list[Path]]:
+    """The over-seeds part of ``compare``: a Markdown table, P(X > Y) per pair, two PNGs."""
+    from harness.stats import (
+        markdown_table,
+        percent,
+        plot_curves_with_ci,
+        plot_intervals,
+        probability_of_improvement,
+        seed_statistics,
+    )
+
+    scores: dict[str, list[float]] = {}
+    hits: dict[str, list[float]] = {}
+    for label, _, ev in rows:
+        if ev is not None:
+            scores.setdefault(label, []).append(float(ev["coverage_mean"]))
+            hits.setdefault(label, []).append(float(ev["wall_hits_mean"]))
+    if not scores:
+        return "", []
+    stats = seed_statistics(scores)
+    lines = [
+        "Over seeds: test coverage (each seed's mean over its eval.json episodes)",
+        "",
+        markdown_table(stats, {k: sum(v) / len(v) for k, v in hits.items()}),
+    ]
+    names = list(scores)
+    for i, x in enumerate(names):
+        for y in names[i + 1 :]:
+            p, ci = probability_of_improvement(scores[x], scores[y])
+            where = (
+                "no interval: a group has 1 seed"
+                if ci is None
+                else f"95 % CI [{percent(ci[0])}, {percent(ci[1])}]"
+            )
+            lines += ["", f"P({x} > {y}) = {percent(p)} ({where})"]
+    saved = [plot_intervals(stats, out.with_name(f"{out.stem}-intervals.png"))]
+    if evaluations:
+        saved.append(plot_curves_with_ci(evaluations, out.with_name(f"{out.stem}-curves-ci.png")))
+    return "\n".join(lines), saved

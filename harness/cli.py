@@ -13,7 +13,7 @@ import sys
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
-from typing import NoReturn
+from typing import Any, NoReturn
 
 from harness.checkpoints import CheckpointError, complete_checkpoints, read_state
 from harness.commands import (
@@ -109,7 +109,19 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(
         dest="command", required=True, metavar="COMMAND", parser_class=_Parser
     )
+    _add_run_parser(sub)
+    _add_eval_parser(sub)
+    _add_tune_parser(sub)
+    _add_compare_parser(sub)
+    _add_render_parser(sub)
+    _add_export_parser(sub)
+    _add_sweep_parser(sub)
+    _add_bench_parser(sub)
+    return parser
 
+
+def _add_run_parser(sub: Any) -> None:
+    """``harness run``: its arguments."""
     run = sub.add_parser("run", help="train an experiment from a YAML config")
     run.add_argument("config", type=Path, nargs="?", help="experiment YAML file (see configs/)")
     run.add_argument(
@@ -141,6 +153,9 @@ def build_parser() -> argparse.ArgumentParser:
         help="train into this new (or empty) folder instead of RUNS_DIR/NAME-TIME",
     )
 
+
+def _add_eval_parser(sub: Any) -> None:
+    """``harness eval``: its arguments."""
     ev = sub.add_parser("eval", help="evaluate a trained model or a baseline on fresh episodes")
     _add_target(ev)
     ev.add_argument(
@@ -152,6 +167,9 @@ def build_parser() -> argparse.ArgumentParser:
     ev.add_argument("--json", action="store_true", help="print one JSON object")
     ev.add_argument("--plot", type=Path, help="coverage/wall hits per episode PNG (Fig. 4.11)")
 
+
+def _add_tune_parser(sub: Any) -> None:
+    """``harness tune``: its arguments."""
     tune = sub.add_parser(
         "tune", help="choose the test temperature of a trained model on validation episodes"
     )
@@ -181,6 +199,9 @@ def build_parser() -> argparse.ArgumentParser:
     )
     tune.add_argument("--json", action="store_true", help="print one JSON object")
 
+
+def _add_compare_parser(sub: Any) -> None:
+    """``harness compare``: its arguments."""
     cmp_ = sub.add_parser("compare", help="learning curves and eval tables of several runs")
     cmp_.add_argument("runs", type=Path, nargs="+", metavar="RUN_DIR")
     cmp_.add_argument("--out", type=Path, default=Path("compare.png"), help="PNG to write")
@@ -192,17 +213,26 @@ def build_parser() -> argparse.ArgumentParser:
         help="one legend label per run (default: each run's config name; equal labels group)",
     )
 
+
+def _add_render_parser(sub: Any) -> None:
+    """``harness render``: its arguments."""
     ren = sub.add_parser("render", help="path pictures (and a GIF) of one episode")
     _add_target(ren)
     ren.add_argument("--out", type=Path, help="paths PNG (default: RUN_DIR/paths.png or paths.png)")
     ren.add_argument("--gif", type=Path, help="also write an animated GIF of the episode")
     ren.add_argument("--every", type=positive_int, default=2, help="GIF: one frame every N steps")
 
+
+def _add_export_parser(sub: Any) -> None:
+    """``harness export``: its arguments."""
     exp = sub.add_parser("export", help="copy a run's policy into a compact reference folder")
     exp.add_argument("run", type=Path, metavar="RUN_DIR")
     exp.add_argument("--out", type=Path, required=True, help="new folder, e.g. runs/reference/x")
     exp.add_argument("--model", default="model", help="model.zip (default) or best_model")
 
+
+def _add_sweep_parser(sub: Any) -> None:
+    """``harness sweep``: its arguments."""
     sw = sub.add_parser("sweep", help="a hyperparameter sweep on Optuna (one or many machines)")
     sw.add_argument("config", type=Path, help="experiment YAML file")
     sw.add_argument("--space", type=Path, required=True, help="SPACE.yaml: keys and distributions")
@@ -220,12 +250,14 @@ def build_parser() -> argparse.ArgumentParser:
     )
     _add_overrides(sw)
 
+
+def _add_bench_parser(sub: Any) -> None:
+    """``harness bench``: its arguments."""
     bench = sub.add_parser("bench", help="throughput and memory figures (thesis settings)")
     bench.add_argument(
         "what", nargs="?", default="all", choices=["env", "train", "eval", "memory", "all"]
     )
     bench.add_argument("--json", action="store_true", help="print one JSON object")
-    return parser
 
 
 def _add_target(parser: argparse.ArgumentParser) -> None:

@@ -43,7 +43,9 @@ from pydantic import (
 )
 
 from envs import coverage_v0
-from envs.coverage.maps import shipped_maps
+from envs.coverage import generators
+from envs.coverage.env import DEFAULT_REWARDS
+from envs.coverage.maps import check_wall_fraction, shipped_maps
 from envs.coverage.observations import OBSERVATIONS, TeamMapObservation
 from harness.registry import POLICIES
 
@@ -78,17 +80,20 @@ def _registered(name: str, registry: Mapping[str, Any], kind: str) -> str:
 
 
 class RewardsConfig(_Section):
-    """Reward weights of eq. 3.1."""
+    """Reward weights of eq. 3.1 (defaults: the env's ``DEFAULT_REWARDS``)."""
 
-    new_cell: float = 2.0
-    wall_hit: float = -10.0
-    step: float = -1.0
+    new_cell: float = DEFAULT_REWARDS["new_cell"]
+    wall_hit: float = DEFAULT_REWARDS["wall_hit"]
+    step: float = DEFAULT_REWARDS["step"]
 
 
 class EnvConfig(_Section):
     """Arguments of ``coverage_v0.parallel_env`` (see ``envs/coverage_v0.py``)."""
 
-    map: str = "random"
+    map: str | dict[str, Any] = "random"
+    """``random``, a shipped map's name, a map file, or a map source of
+    ``envs.coverage.generators`` (``{cave: {...}}``, ``{maze: {...}}``, ``{random: {...}}``, or
+    ``{mix: [{weight: w, <source>}, ...]}``), drawing ``height`` x ``width`` maps each reset."""
     height: PositiveInt = 50
     width: PositiveInt = 50
     wall_fraction: tuple[float, float] = (0.15, 0.20)
@@ -159,13 +164,14 @@ class EnvConfig(_Section):
     @field_validator("wall_fraction")
     @classmethod
     def _fraction_range(cls, v: tuple[float, float]) -> tuple[float, float]:
-        if not 0.0 <= v[0] <= v[1] < 1.0:
-            raise ValueError("must be [low, high] with 0 <= low <= high < 1")
-        return v
+        return check_wall_fraction(v)
 
     @field_validator("map")
     @classmethod
-    def _map_exists(cls, v: str) -> str:
+    def _map_exists(cls, v: str | dict[str, Any]) -> str | dict[str, Any]:
+        if isinstance(v, dict):
+            generators.from_spec(v, 1, 1)  # names and parameters; sizes are checked below
+            return v
         if v != "random" and v not in shipped_maps() and not Path(v).is_file():
             raise ValueError(
                 f"{v!r} is not 'random', a shipped map ({', '.join(shipped_maps())}) "
@@ -175,7 +181,7 @@ class EnvConfig(_Section):
 
     @model_validator(mode="after")
     def _enough_cells(self) -> EnvConfig:
-        if self.map == "random":
+        if self.map == "random" or isinstance(self.map, dict):
             cells = self.height * self.width
             if cells > MAX_MAP_CELLS:
                 raise ValueError(
@@ -193,7 +199,7 @@ class EnvConfig(_Section):
         # draw a few random maps, so that a map too small or too walled to place the agents is
         # a config error rather than a crash in the middle of training.
         env = coverage_v0.parallel_env(**self.kwargs())
-        if self.map == "random":
+        if self.map == "random" or isinstance(self.map, dict):
             for seed in range(3):
                 env.reset(seed=seed)
         return self
@@ -202,6 +208,8 @@ class EnvConfig(_Section):
         """Keyword arguments for ``coverage_v0.parallel_env``."""
         out = self.model_dump(exclude={"map_sha256"})
         out["wall_fraction"] = tuple(out["wall_fraction"])
+        if isinstance(self.map, dict):
+            out["map"] = generators.from_spec(self.map, self.height, self.width)
         return out
 
 

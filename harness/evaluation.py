@@ -27,6 +27,9 @@ BatchPolicy = Callable[[np.ndarray, Sequence[CoverageEnv]], np.ndarray]
 
 #: Fractions of the episode at which coverage is recorded (Table 4.2).
 CHECKPOINT_FRACTIONS = (0.33, 0.66, 1.0)
+#: Team coverages whose first step is recorded: policies that both reach full coverage are then
+#: compared on speed (the frontier planner's strength).
+COVERAGE_TARGETS = (0.90, 0.99)
 
 
 @dataclass
@@ -45,6 +48,8 @@ class EpisodeResult:
     free_cells: int
     paths: list[np.ndarray] = field(default_factory=list)
     """Per agent ``(steps + 1, 2)`` positions, when recorded."""
+    steps_to: dict[str, int | None] = field(default_factory=dict)
+    """Steps the team took to reach each of :data:`COVERAGE_TARGETS` (``None``: not reached)."""
     walls: np.ndarray | None = None
     """``bool (H, W)`` map of the episode (True = wall), when paths are recorded."""
     frames: list[np.ndarray] = field(default_factory=list)
@@ -168,6 +173,9 @@ def run_episodes(
         paths = [[e.positions] for e in batch] if record_paths else None
         frames: list[list[np.ndarray]] = [[e.render()] if frames_every else [] for e in batch]
         at: list[list[float]] = [[] for _ in batch]
+        reached: list[dict[str, int | None]] = [
+            {_target_key(f): None for f in COVERAGE_TARGETS} for _ in batch
+        ]
         infos: list[dict[str, Any]] = []
         for t in range(1, max_steps + 1):
             actions = np.asarray(policy(stack_observations(obs), batch))
@@ -183,6 +191,10 @@ def run_episodes(
                     frames[i].append(e.render())
                 if t in marks:  # a short episode can hit one step for two marks
                     at[i].extend([e.coverage] * marks.count(t))
+                for f in COVERAGE_TARGETS:
+                    key = _target_key(f)
+                    if reached[i][key] is None and e.coverage >= f:
+                        reached[i][key] = t
         for i, e in enumerate(batch):
             info = infos[i]
             results.append(
@@ -194,11 +206,25 @@ def run_episodes(
                     steps=max_steps,
                     free_cells=e.free_cells,
                     paths=list(np.stack(paths[i], axis=1)) if paths is not None else [],
+                    steps_to=reached[i],
                     walls=np.array(e.walls) if record_paths else None,
                     frames=frames[i],
                 )
             )
     return results
+
+
+def _target_key(fraction: float) -> str:
+    return f"steps_to_{round(fraction * 100)}"
+
+
+def median_steps_to(results: list[EpisodeResult], key: str) -> float | None:
+    """Median over episodes of the steps to reach a coverage (an episode that never reached it
+    counts as infinitely slow); ``None`` when the median episode did not reach it."""
+    values = [r.steps_to.get(key) for r in results]
+    finite = np.array([np.inf if v is None else v for v in values], dtype=float)
+    median = float(np.median(finite))
+    return None if not np.isfinite(median) else median
 
 
 def selection_score(summary: dict[str, Any]) -> float:
@@ -242,6 +268,7 @@ def summarize(results: list[EpisodeResult]) -> dict[str, Any]:
             f"{round(f * 100)}%": float(v)
             for f, v in zip(CHECKPOINT_FRACTIONS, np.median(at, axis=0))
         },
+        **{_target_key(f): median_steps_to(results, _target_key(f)) for f in COVERAGE_TARGETS},
         "wall_hits_mean": float(np.mean([sum(r.wall_hits) for r in results])),
         "wall_hits_episodes": int(sum(1 for r in results if sum(r.wall_hits) > 0)),
         "per_agent": per_agent,

@@ -44,7 +44,10 @@ def test_shipped_configs_load(path):
     [
         ("env: {n_agentz: 2}", r"exp.yaml: env.n_agentz: Extra inputs are not permitted"),
         ("env: {max_steps: -1}", r"env.max_steps: Input should be greater than 0"),
-        ("env: {wall_fraction: [0.2, 1.0]}", r"env.wall_fraction: must be \[low, high\]"),
+        (
+            "env: {wall_fraction: [0.2, 1.0]}",
+            r"env.wall_fraction: wall_fraction must satisfy 0 <= low <= high < 1",
+        ),
         ("env: {n_agents: many}", r"env.n_agents: Input should be a valid integer"),
         ("env: {map: nowhere.txt}", r"env.map: 'nowhere.txt' is not 'random'"),
         ("env: {height: 2, width: 2, n_agents: 5}", r"env: n_agents=5 is more than the 2x2 map"),

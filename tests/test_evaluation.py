@@ -130,3 +130,36 @@ def test_stack_observations_is_copy_major_for_arrays_and_dicts() -> None:
     assert set(stacked) == {"a", "v"}
     assert stacked["a"].shape == (2, 2, 2)
     np.testing.assert_array_equal(stacked["v"], [[0.0], [1.0]])
+
+
+def test_steps_to_90_and_99_percent_are_medians_with_none_for_not_reached() -> None:
+    from harness.evaluation import EpisodeResult, median_steps_to, summarize
+
+    def episode(s90, s99):
+        return EpisodeResult(
+            coverage=1.0 if s99 else 0.95,
+            coverage_at=[0.5, 0.9, 1.0],
+            wall_hits=[0],
+            new_cells=[10],
+            steps=100,
+            free_cells=20,
+            steps_to={"steps_to_90": s90, "steps_to_99": s99},
+        )
+
+    results = [episode(40, 80), episode(50, None), episode(60, 90)]
+    assert median_steps_to(results, "steps_to_90") == 50
+    assert median_steps_to(results, "steps_to_99") == 90  # None counts as slowest
+    results.append(episode(70, None))
+    summary = summarize(results)
+    assert summary["steps_to_90"] == 55
+    assert summary["steps_to_99"] is None  # the median episode never reached 99 %
+
+
+def test_frontier_reaches_full_coverage_of_a_small_map_and_reports_its_speed() -> None:
+    from harness.baselines import make_baseline
+
+    env = EnvConfig(height=8, width=8, n_agents=2, max_steps=200)
+    results = run_episodes(make_baseline("frontier", 0), env, episodes=3, seed=1)
+    for r in results:
+        assert r.coverage == 1.0
+        assert 0 < r.steps_to["steps_to_90"] <= r.steps_to["steps_to_99"] <= 200

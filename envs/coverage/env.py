@@ -13,7 +13,7 @@ from gymnasium import spaces
 from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
-from envs.coverage import maps, render
+from envs.coverage import generators, maps, render
 from envs.coverage.observations import OBSERVATIONS, ObservationBuilder
 from envs.coverage.step import credit_new_cells, resolve_moves, thesis_reward
 from envs.coverage.types import CELL_UNVISITED, CELL_VISITED, CELL_WALL, GridState
@@ -35,7 +35,7 @@ class CoverageEnv(ParallelEnv):
 
     def __init__(
         self,
-        map: str | Path = "random",
+        map: str | Path | generators.MapGenerator = "random",
         height: int = 50,
         width: int = 50,
         wall_fraction: Sequence[float] = (0.15, 0.20),
@@ -62,24 +62,33 @@ class CoverageEnv(ParallelEnv):
             )
         self.rewards = _check_rewards(rewards)
 
+        # The map source (envs/coverage/generators.py): a generator object, or built from the
+        # name: "random", a shipped map or a map file.
         self._map_spec: maps.MapSpec | None = None
-        if str(map) == "random":
-            _check_int("height", height, 1)
-            _check_int("width", width, 1)
-            self.wall_fraction = _check_wall_fraction(wall_fraction)
+        self.wall_fraction = (0.0, 0.0)
+        if isinstance(map, generators.MapGenerator):
+            self._generator: generators.MapGenerator = map
+            height, width = map.height, map.width
             if height * width < n_agents:
                 raise ValueError(f"a {height}x{width} map has fewer cells than n_agents={n_agents}")
+        elif str(map) == "random":
+            _check_int("height", height, 1)
+            _check_int("width", width, 1)
+            self.wall_fraction = maps.check_wall_fraction(wall_fraction)
+            if height * width < n_agents:
+                raise ValueError(f"a {height}x{width} map has fewer cells than n_agents={n_agents}")
+            self._generator = generators.RandomMaps(height, width, self.wall_fraction)
         else:
             self._map_spec = maps.load_map(map)
             height, width = self._map_spec.grid.shape
-            self.wall_fraction = (0.0, 0.0)
             n_free = int((~self._map_spec.grid).sum())
             if n_free < n_agents:
                 raise ValueError(
                     f"{self._map_spec.source} has {n_free} free cell(s), fewer than "
                     f"n_agents={n_agents}"
                 )
-        self.map_name = str(map)
+            self._generator = generators.FixedMap(self._map_spec)
+        self.map_name = map.name if isinstance(map, generators.MapGenerator) else str(map)
         self.height, self.width = int(height), int(width)
         self.n_agents, self.max_steps = int(n_agents), int(max_steps)
         self.render_mode = render_mode
@@ -340,9 +349,7 @@ class CoverageEnv(ParallelEnv):
             return self._map_spec.grid.copy()
         assert self._np_random is not None
         for _ in range(_MAX_MAP_DRAWS):
-            walls = maps.random_grid(
-                self.height, self.width, self.wall_fraction, self._np_random, keep_free=self._starts
-            )
+            walls = self._generator(self._np_random, keep_free=self._starts)
             if self._starts is not None:
                 if not walls[self._starts[:, 0], self._starts[:, 1]].any():
                     return walls  # fixed start cells all in the reachable area
@@ -354,8 +361,8 @@ class CoverageEnv(ParallelEnv):
             else (f"has at least n_agents={self.n_agents} free cells")
         )
         raise ValueError(
-            f"could not draw a {self.height}x{self.width} map with wall_fraction="
-            f"{self.wall_fraction} that {need} ({_MAX_MAP_DRAWS} tries)"
+            f"could not draw a {self.height}x{self.width} map ({self.map_name}, wall_fraction="
+            f"{self.wall_fraction}) that {need} ({_MAX_MAP_DRAWS} tries)"
         )
 
     def _episode_starts(self, walls: np.ndarray, starts: Any) -> np.ndarray:
@@ -376,16 +383,6 @@ class CoverageEnv(ParallelEnv):
 def _check_int(name: str, value: Any, minimum: int) -> None:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
-
-
-def _check_wall_fraction(value: Any) -> tuple[float, float]:
-    try:
-        lo, hi = (float(v) for v in value)
-    except (TypeError, ValueError):
-        raise ValueError(f"wall_fraction must be a pair (low, high), got {value!r}") from None
-    if not (0.0 <= lo <= hi < 1.0):
-        raise ValueError(f"wall_fraction must satisfy 0 <= low <= high < 1, got {value!r}")
-    return lo, hi
 
 
 def _check_rewards(rewards: Mapping[str, float] | None) -> dict[str, float]:

@@ -21,6 +21,7 @@ import warnings
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy import ndimage
@@ -75,6 +76,21 @@ def count_unreachable(grid: np.ndarray) -> int:
         return 0
     sizes = np.bincount(labels.ravel(), minlength=n + 1)[1:]
     return int(sizes.sum() - sizes.max())
+
+
+def check_wall_fraction(value: Any) -> tuple[float, float]:
+    """The one check of a ``wall_fraction`` range (env, map sources and configs call it).
+
+    Raises:
+        ValueError: unless ``value`` is a pair with ``0 <= low <= high < 1``.
+    """
+    try:
+        low, high = (float(v) for v in value)
+    except (TypeError, ValueError):
+        raise ValueError(f"wall_fraction must be a pair (low, high), got {value!r}") from None
+    if not (0.0 <= low <= high < 1.0):
+        raise ValueError(f"wall_fraction must satisfy 0 <= low <= high < 1, got {value!r}")
+    return low, high
 
 
 def random_grid(

@@ -19,8 +19,11 @@ Import                    ``from envs import coverage_v0``
 Actions                   Discrete(5): 0 up, 1 down, 2 left, 3 right, 4 stay
 Parallel API              yes (``parallel_env``); AEC through ``env()``
 Agents                    ``agent_0 ... agent_{n-1}``
-Observation shape         (13,) float32 (``observation="thesis"``)
-Observation values        window -1/0/1; coordinates [0, 1] or raw (row, col)
+Observation shape         (13,) float32 (``observation="thesis"``); a ``Dict`` for
+                          ``"teammap"``: ``local`` (5, crop, crop), ``global`` (6, G, G)
+                          uint8, ``vector`` (3,) float32
+Observation values        thesis: window -1/0/1; coordinates [0, 1] or raw (row, col);
+                          teammap: uint8 0..255 (255 = 1), vector in [0, 1]
 ========================  ==========================================================
 
 **Map.** A grid of free cells and walls; outside the grid counts as wall. ``map="random"`` draws a
@@ -38,18 +41,30 @@ unvisited free cell is credited with it (the lower index wins a tie). There is n
 all agents are truncated after ``max_steps`` steps, and that step's infos hold
 ``"TimeLimit.truncated": True`` so Stable-Baselines3 treats it as a time-out.
 
-**Observation** ``"teammap"`` (a ``Dict`` of uint8 images): ``local``, the ``crop`` x ``crop``
-window centred on the agent with channels known wall, visited, known free not visited, unknown,
-teammates; ``global``, the map pooled into ``global_size`` x ``global_size`` blocks with the shares
-visited, known free not visited, unknown and known wall, this agent's block and the teammates'
-blocks; ``vector``, own normalised position and elapsed fraction. A cell is known once it was in
-some agent's 3x3 window (``env.known``).
-
 **Observation** ``"thesis"``: the 3x3 window around the agent (row-major; -1 unvisited free,
 0 visited free, 1 wall/outside), its own (row, col) and the (row, col) of its nearest teammate
 (Euclidean, ties to the lower index; a lone agent sees itself). ``coords="normalized"`` divides by
 (H-1, W-1); ``"raw"`` gives cell indices. New kinds plug in through
 :data:`envs.coverage.observations.OBSERVATIONS`.
+
+**Observation** ``"teammap"``: the team's knowledge as channel-first images, a gymnasium ``Dict``
+per agent. A cell is *known* once it has been inside any agent's 3x3 window (start windows
+included); outside the grid is known wall. Binary channels are 0 or 255.
+
+* ``"local"`` ``Box(0, 255, (5, crop, crop), uint8)``: the ``crop`` x ``crop`` window centred on
+  the agent; channels known wall (outside the grid too), visited, known free not yet visited,
+  unknown, teammates present (other agents).
+* ``"global"`` ``Box(0, 255, (6, G, G), uint8)`` with ``G = global_size``: the map cut into a
+  G x G grid of blocks (block ``i`` holds rows ``floor(i*H/G) .. floor((i+1)*H/G) - 1``, likewise
+  columns, so any size or aspect fits; a block with no cell, on a map smaller than G, counts as
+  wall); channels ``round(255 * share)`` of the block's cells visited, known free not visited,
+  unknown and known wall, then this agent's block and the teammates' blocks (255).
+* ``"vector"`` ``Box(0, 1, (3,), float32)``: own row/(H-1), own col/(W-1), steps/max_steps.
+
+``crop`` is odd and >= 5 (default 15), ``global_size`` >= 6 (default 13): Stable-Baselines3
+reads a uint8 image as channel-first only when no side is smaller than its channel count. The
+images are updated incrementally (only the agents' new 3x3 windows), so a step costs
+O(agents * crop^2 + G^2) whatever the map's size.
 
 **Reward** (eq. 3.1): ``new_cell * n_new + wall_hit * hit + step``, by default
 ``2*new - 10*hit - 1``, per agent.
@@ -61,14 +76,15 @@ credited to this agent so far), ``wall_hits`` (this agent's count so far), ``ste
 ``wall_fraction=(0.15, 0.20)``, ``n_agents=4``, ``max_steps=1000``, ``observation="thesis"``,
 ``coords="normalized"``, ``rewards={"new_cell": 2.0, "wall_hit": -10.0, "step": -1.0}``,
 ``starts=None`` (fixed start cells, else distinct random free cells each reset),
-``render_mode=None | "rgb_array" | "ansi"``, ``crop=15`` and ``global_size=13`` (``"teammap"``).
+``render_mode=None | "rgb_array" | "ansi"``, ``crop=15`` and ``global_size=13`` (``"teammap"``
+only).
 
 ``reset(seed=None, options=None)``: ``options={"grid": bool_array, "starts": [(r, c), ...]}`` fixes
 that episode's map and/or start cells. Bad input raises ``ValueError`` naming the problem.
 
 **State for baselines, rendering and tests** (read-only): ``env.walls``, ``env.visited``,
-``env.known``, ``env.positions``, ``env.credited_by``, ``env.free_cells``, ``env.coverage``,
-``env.steps``.
+``env.known`` (the team's known cells, under any observation kind), ``env.positions``,
+``env.credited_by``, ``env.free_cells``, ``env.coverage``, ``env.steps``.
 """
 
 from __future__ import annotations

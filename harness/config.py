@@ -46,7 +46,7 @@ from envs import coverage_v0
 from envs.coverage import generators
 from envs.coverage.env import DEFAULT_REWARDS
 from envs.coverage.maps import check_wall_fraction, shipped_maps
-from envs.coverage.observations import OBSERVATIONS
+from envs.coverage.observations import OBSERVATIONS, TeamMapObservation
 from harness.registry import POLICIES
 
 
@@ -147,17 +147,18 @@ class EnvConfig(_Section):
     @field_validator("crop")
     @classmethod
     def _odd_crop(cls, v: int) -> int:
-        # >= 5: SB3 reads a uint8 image as channel-first only when its channel axis (5 here) is
-        # the smallest.
-        if v < 5 or v % 2 == 0:
-            raise ValueError(f"must be odd and >= 5, got {v}")
+        # The env owns the bound (SB3 must read the crop as a channel-first image).
+        least = TeamMapObservation.MIN_CROP
+        if v < least or v % 2 == 0:
+            raise ValueError(f"must be odd and >= {least} (the crop's channels), got {v}")
         return v
 
     @field_validator("global_size")
     @classmethod
     def _global_size(cls, v: int) -> int:
-        if v < 7:
-            raise ValueError(f"must be >= 7 (more than the view's 6 channels), got {v}")
+        least = TeamMapObservation.MIN_GLOBAL_SIZE
+        if v < least:
+            raise ValueError(f"must be >= {least} (the global view's channels), got {v}")
         return v
 
     @field_validator("wall_fraction")

@@ -6,9 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from gymnasium import spaces
 from pettingzoo.test import parallel_api_test, parallel_seed_test
 
 from envs import coverage_v0
+from harness.config import ConfigError, load_config
 from tests.conftest import grid_from
 
 UP, DOWN, LEFT, RIGHT, STAY = range(5)
@@ -149,8 +151,49 @@ def test_pooling_of_a_100x50_map_matches_the_hand_computed_blocks():
     assert (np.abs(shares.sum(axis=0) - 255) <= 2).all()  # the four shares add up to 1
 
 
+def test_pooling_of_an_open_100x50_map_by_hand():
+    # 50 rows, 100 columns, G = 13: block 0 holds rows 0..2 and columns 0..6 (21 cells); block 1
+    # rows 3..6 (28 cells with column block 0); block 12 rows 46..49 and columns 92..99 (32 cells).
+    grid = np.zeros((50, 100), dtype=bool)
+    grid[0, 2] = True
+    env = coverage_v0.parallel_env(height=50, width=100, n_agents=2, observation="teammap")
+    obs, _ = env.reset(seed=0, options={"grid": grid, "starts": [(1, 1), (48, 98)]})
+    glob = obs["agent_0"]["global"].astype(int)  # channels visited, known free, unknown, wall
+    # Block (0, 0): 9 cells known around (1, 1): 1 visited, 1 wall (0, 2), 7 free; 12 unknown.
+    assert glob[:4, 0, 0].tolist() == [12, 85, 146, 12]  # round(255 * k / 21)
+    # Block (12, 12): 9 cells known around (48, 98): 1 visited, 8 free; 23 unknown.
+    assert glob[:4, 12, 12].tolist() == [8, 64, 183, 0]  # round(255 * k / 32)
+    assert glob[:4, 1, 0].tolist() == [0, 0, 255, 0]
+    assert glob[2].sum() == 255 * (169 - 2) + 146 + 183 and glob[3].sum() == 12  # the rest unknown
+    assert np.argwhere(glob[4]).tolist() == [[0, 0]] and np.argwhere(glob[5]).tolist() == [[12, 12]]
+    other = obs["agent_1"]["global"]
+    assert np.argwhere(other[4]).tolist() == [[12, 12]] and np.argwhere(other[5]).tolist() == [
+        [0, 0]
+    ]
+    obs, *_ = env.step({"agent_0": DOWN, "agent_1": STAY})  # agent_0 to (2, 1): sees row 3
+    glob = obs["agent_0"]["global"].astype(int)
+    assert glob[:4, 0, 0].tolist() == [24, 73, 146, 12]  # 2 visited, 6 free, 12 unknown, 1 wall
+    assert glob[:4, 1, 0].tolist() == [0, 27, 228, 0]  # 3 of 28 known free
+    check(env, obs)
+
+
+def test_teammates_in_one_block_see_it_as_a_teammates_block():
+    open_room = "\n".join(["." * 12] * 10)
+    env, obs = teammap_env(open_room, [(1, 2), (2, 3), (8, 11)], crop=5, global_size=6)
+    # 10 rows in 6 blocks start at rows 0, 1, 3, 5, 6, 8; 12 columns at 0, 2, 4, 6, 8, 10:
+    # (1, 2) and (2, 3) share block (1, 1); (8, 11) is in block (5, 5).
+    for agent in ("agent_0", "agent_1"):
+        glob = obs[agent]["global"]
+        assert np.argwhere(glob[4]).tolist() == [[1, 1]]
+        assert np.argwhere(glob[5]).tolist() == [[1, 1], [5, 5]]
+    glob = obs["agent_2"]["global"]
+    assert np.argwhere(glob[4]).tolist() == [[5, 5]]
+    assert np.argwhere(glob[5]).tolist() == [[1, 1]]
+    check(env, obs, crop=5, g=6)
+
+
 def test_map_smaller_than_the_global_view_has_wall_blocks():
-    env, obs = teammap_env(ROOM, [(1, 1)], crop=3, global_size=9)  # 5 rows, 7 columns < 9
+    env, obs = teammap_env(ROOM, [(1, 1)], crop=5, global_size=9)  # 5 rows, 7 columns < 9
     glob = obs["agent_0"]["global"]
     # Block i holds rows floor(i*5/9) .. floor((i+1)*5/9) - 1: blocks 0, 2, 4, 6 hold none, and
     # columns likewise (7 columns): blocks 0 and 4 hold none. Empty blocks count as wall.
@@ -161,7 +204,18 @@ def test_map_smaller_than_the_global_view_has_wall_blocks():
     # Rows 0..4 fall in blocks 1, 3, 5, 7, 8 and columns 0..6 in 1, 2, 3, 5, 6, 7, 8: the agent
     # at (1, 1) is in block (3, 2).
     assert glob[4, 3, 2] == 255 and glob[4].sum() == 255
-    check(env, obs, crop=3, g=9)
+    check(env, obs, crop=5, g=9)
+
+
+def windows_of(positions: list[tuple[int, int]], height: int, width: int) -> np.ndarray:
+    """Cells inside the 3x3 window of any of ``positions`` (plain loops)."""
+    known = np.zeros((height, width), dtype=bool)
+    for r, c in positions:
+        for dr in (-1, 0, 1):
+            for dc in (-1, 0, 1):
+                if 0 <= r + dr < height and 0 <= c + dc < width:
+                    known[r + dr, c + dc] = True
+    return known
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -170,20 +224,29 @@ def test_incremental_arrays_equal_a_recomputation_after_many_steps(seed):
         height=23, width=31, n_agents=3, observation="teammap", max_steps=300, crop=7
     )
     obs, _ = env.reset(seed=seed)
+    held = [tuple(p) for p in env.positions.tolist()]
     rng = np.random.default_rng(seed)
     for t in range(300):
         if t % 60 == 0:
             check(env, obs, crop=7)
+            np.testing.assert_array_equal(env.known, windows_of(held, 23, 31))
         obs, *_ = env.step({a: int(rng.integers(5)) for a in env.agents})
+        held += [tuple(p) for p in env.positions.tolist()]
     check(env, obs, crop=7)
+    np.testing.assert_array_equal(env.known, windows_of(held, 23, 31))
     # A second episode starts from nothing known again.
     obs, _ = env.reset(seed=seed + 10)
     assert env.known.sum() <= 27
     check(env, obs, crop=7)
 
 
-def test_observations_lie_in_the_space():
-    env = coverage_v0.parallel_env(height=12, width=40, n_agents=2, observation="teammap")
+@pytest.mark.parametrize(
+    ("height", "width", "sizes"), [(12, 40, {}), (4, 5, {"crop": 5, "global_size": 6})]
+)
+def test_observations_lie_in_the_space(height, width, sizes):
+    env = coverage_v0.parallel_env(
+        height=height, width=width, n_agents=2, observation="teammap", **sizes
+    )
     obs, _ = env.reset(seed=2)
     space = env.observation_space("agent_0")
     rng = np.random.default_rng(0)
@@ -195,11 +258,60 @@ def test_observations_lie_in_the_space():
 
 @pytest.mark.parametrize(
     ("kwargs", "message"),
-    [({"crop": 4}, "crop must be an odd integer"), ({"global_size": 5}, "global_size must be")],
+    [
+        ({"crop": 4}, "crop must be an odd integer >= 5, got 4"),
+        ({"crop": 3}, "crop must be an odd integer >= 5, got 3"),
+        ({"crop": 7.0}, "crop must be an odd integer"),
+        ({"global_size": 5}, "global_size must be an integer >= 6, got 5"),
+        ({"global_size": True}, "global_size must be an integer"),
+    ],
 )
 def test_bad_sizes_are_value_errors(kwargs, message):
     with pytest.raises(ValueError, match=message):
         coverage_v0.parallel_env(observation="teammap", **kwargs)
+
+
+def test_smallest_sizes_are_read_as_channel_first_images_by_sb3():
+    # The reason for the bounds: SB3 transposes a uint8 image whose first axis is not the smallest.
+    from stable_baselines3.common.preprocessing import (
+        is_image_space,
+        is_image_space_channels_first,
+    )
+
+    space = coverage_v0.parallel_env(
+        observation="teammap", crop=5, global_size=6
+    ).observation_space("agent_0")
+    for key in ("local", "global"):
+        assert is_image_space(space[key]) and is_image_space_channels_first(space[key])
+    too_small = spaces.Box(0, 255, (5, 3, 3), np.uint8)  # what crop=3 would give
+    with pytest.warns(UserWarning, match="channels-last"):
+        assert not is_image_space_channels_first(too_small)
+
+
+@pytest.mark.parametrize(
+    ("env_yaml", "message"),
+    [
+        ("{crop: 4}", r"env.crop: must be odd and >= 5"),
+        ("{crop: 3}", r"env.crop: must be odd and >= 5"),
+        ("{global_size: 5}", r"env.global_size: must be >= 6"),
+    ],
+)
+def test_config_refuses_bad_sizes(tmp_path, env_yaml, message):
+    path = tmp_path / "exp.yaml"
+    path.write_text(f"name: tm\nenv: {env_yaml}\n")
+    with pytest.raises(ConfigError, match=message):
+        load_config(path)
+
+
+def test_config_sizes_reach_the_env(tmp_path):
+    path = tmp_path / "exp.yaml"
+    path.write_text(
+        "name: tm\nenv: {observation: teammap, crop: 9, global_size: 8}\n"
+        "algo: {policy: TeamMapPolicy}\n"
+    )
+    env = coverage_v0.parallel_env(**load_config(path).env.kwargs())
+    space = env.observation_space("agent_0")
+    assert space["local"].shape == (5, 9, 9) and space["global"].shape == (6, 8, 8)
 
 
 def test_parallel_api_and_seed_tests_pass_with_the_team_map():

@@ -1,9 +1,11 @@
 """Observation kinds of the coverage environment.
 
-An observation kind turns the environment's state into one float32 vector per agent. It is a
-small class with a ``space()`` and a ``build(state)`` so that new kinds (a wider egocentric view of
-the team map, for example) can be added without touching the step logic: register the class in
-:data:`OBSERVATIONS` and pass ``observation="<name>"`` to the env.
+An observation kind turns the environment's state into every agent's observation (an array, or
+a dict of arrays for a ``Dict`` space). It is a small class with a ``space()``, a ``reset(state)``
+called at the start of each episode and a ``build(state)`` called after the reset and after every
+step, so that new kinds can be added without touching the step logic: register the class in
+:data:`OBSERVATIONS` and pass ``observation="<name>"`` to the env. Kinds that keep per-episode
+arrays (the team map) start them in ``reset`` and bring them up to date in ``build``.
 """
 
 from __future__ import annotations
@@ -140,6 +142,11 @@ def nearest_teammate(positions: np.ndarray) -> list[int] | np.ndarray:
     return d2.argmin(axis=1)  # argmin returns the first (lowest index) minimum
 
 
+def _is_int(value: object) -> bool:
+    """An integer (numpy's included), not a bool."""
+    return isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+
+
 # Categories of a cell in the team's knowledge (the team-map observation's first channels).
 KNOWN_WALL, VISITED, KNOWN_FREE, UNKNOWN = 0, 1, 2, 3
 
@@ -166,15 +173,26 @@ class TeamMapObservation(ObservationBuilder):
 
     Args:
         height, width, coords, max_steps: As :class:`ObservationBuilder`.
-        crop: Side of the local crop (odd, >= 3).
-        global_size: G, blocks per side of the global view (>= 7, so that the images' spatial
-            sides exceed their channel counts and SB3 reads them as channel-first).
+        crop: Side of the local crop (odd, >= :attr:`MIN_CROP`).
+        global_size: G, blocks per side of the global view (>= :attr:`MIN_GLOBAL_SIZE`).
+
+    Raises:
+        ValueError: For a crop or global size out of range.
     """
 
     name = "teammap"
     options = ("crop", "global_size")
     LOCAL_CHANNELS = 5
     GLOBAL_CHANNELS = 6
+    # Stable-Baselines3 reads a uint8 image as channel-first only when its first axis is (one of)
+    # the smallest (``is_image_space_channels_first``; otherwise it wraps the env in
+    # ``VecTransposeImage`` and swaps the axes), so no spatial side may be below the channels.
+    #: Smallest crop: odd and at least the local view's 5 channels.
+    MIN_CROP = 5
+    #: Smallest global size: the global view's 6 channels.
+    MIN_GLOBAL_SIZE = 6
+    # Categories in the order of the global view's share channels.
+    _SHARE_ORDER = (VISITED, KNOWN_FREE, UNKNOWN, KNOWN_WALL)
 
     def __init__(
         self,
@@ -186,10 +204,13 @@ class TeamMapObservation(ObservationBuilder):
         global_size: int = 13,
     ) -> None:
         super().__init__(height, width, coords, max_steps)
-        if not (isinstance(crop, int) and crop >= 3 and crop % 2 == 1):
-            raise ValueError(f"crop must be an odd integer >= 3, got {crop!r}")
-        if not (isinstance(global_size, int) and global_size >= 7):
-            raise ValueError(f"global_size must be an integer >= 7, got {global_size!r}")
+        if not (_is_int(crop) and crop >= self.MIN_CROP and crop % 2 == 1):
+            raise ValueError(f"crop must be an odd integer >= {self.MIN_CROP}, got {crop!r}")
+        if not (_is_int(global_size) and global_size >= self.MIN_GLOBAL_SIZE):
+            raise ValueError(
+                f"global_size must be an integer >= {self.MIN_GLOBAL_SIZE}, got {global_size!r}"
+            )
+        crop, global_size = int(crop), int(global_size)
         self.crop, self.global_size = crop, global_size
         self.padding = crop // 2
         g = global_size
@@ -202,7 +223,6 @@ class TeamMapObservation(ObservationBuilder):
         flat = (self._row_block[:, None] * g + self._col_block[None, :]).ravel()
         np.add.at(block_cells, flat, 1)
         self._block_cells = block_cells
-        self._empty_blocks = block_cells == 0
         # Block index of every padded cell (-1 on the padding: outside counts in no block).
         p = self.padding
         self._block_of = np.full((height + 2 * p, width + 2 * p), -1, dtype=np.int64)
@@ -239,6 +259,9 @@ class TeamMapObservation(ObservationBuilder):
         # Cells per block and category; all interior cells start unknown.
         self._counts = np.zeros((self.global_size**2, 4), dtype=np.int64)
         self._counts[:, UNKNOWN] = self._block_cells
+        # The global view's four share channels, kept up to date block by block.
+        self._shares = np.zeros((4, self.global_size**2), dtype=np.uint8)
+        self._update_shares(np.arange(self.global_size**2))
         self._wp = wp
         self._window = (np.arange(-1, 2)[:, None] * wp + np.arange(-1, 2)[None, :]).ravel()
 
@@ -263,6 +286,15 @@ class TeamMapObservation(ObservationBuilder):
         inside = blocks >= 0
         np.add.at(self._counts, (blocks[inside], old[inside]), -1)
         np.add.at(self._counts, (blocks[inside], new[inside]), 1)
+        self._update_shares(blocks[inside])
+
+    def _update_shares(self, blocks: np.ndarray) -> None:
+        """Recompute the share channels of ``blocks`` (repeats allowed) from the counts."""
+        cells = self._block_cells[blocks]
+        empty = cells == 0
+        shares = self._counts[blocks][:, self._SHARE_ORDER] / np.maximum(cells, 1)[:, None]
+        shares[empty] = (0.0, 0.0, 0.0, 1.0)  # a block with no cell counts as wall
+        self._shares[:, blocks] = np.rint(255.0 * shares.T)
 
     def build(self, state: GridState) -> dict[str, np.ndarray]:
         self._update(state)
@@ -282,18 +314,14 @@ class TeamMapObservation(ObservationBuilder):
             i, j = np.nonzero(seen)
             local[i, 4, dr[i, j], dc[i, j]] = 255
         glob = np.zeros((n, self.GLOBAL_CHANNELS, g * g), dtype=np.uint8)
-        shares = np.zeros((g * g, 4), dtype=np.float64)
-        filled = ~self._empty_blocks
-        shares[filled] = self._counts[filled] / self._block_cells[filled, None]
-        shares[self._empty_blocks, KNOWN_WALL] = 1.0
-        order = (VISITED, KNOWN_FREE, UNKNOWN, KNOWN_WALL)
-        glob[:, :4] = np.rint(255.0 * shares[:, order].T)[None]
+        glob[:, :4] = self._shares
         own = self._row_block[rows] * g + self._col_block[cols]
-        glob[np.arange(n), 4, own] = 255
-        if n > 1:
-            for i in range(n):
-                others = np.delete(own, i)
-                glob[i, 5, others] = 255
+        agents = np.arange(n)
+        glob[agents, 4, own] = 255
+        # Teammates' blocks: every agent's block, less an agent's own block where it is alone.
+        glob[:, 5, own] = 255
+        alone = np.bincount(own, minlength=g * g)[own] == 1
+        glob[agents[alone], 5, own[alone]] = 0
         vector = np.empty((n, 3), dtype=np.float32)
         vector[:, :2] = state.positions * self._scale3
         vector[:, 2] = min(state.steps / self.max_steps, 1.0)

@@ -1,6 +1,7 @@
 """The team-map side of the learner: the CNN features extractor, the TeamMap policies (save and
-load), the prioritized replay buffer for Dict observations (sampling law, IS weights, flat
-indices), the replay memory estimate, and a tiny end-to-end run through the command."""
+load), Double-DQN steps on Dict batches with prioritized replay, the replay memory estimate, and a
+tiny end-to-end run through the command. The Dict buffer's sampling law, IS weights and flat
+indices are checked with the array buffer's tests (``tests/test_buffers.py``, both classes)."""
 
 from __future__ import annotations
 
@@ -11,7 +12,6 @@ import numpy as np
 import pytest
 import torch as th
 from gymnasium import spaces
-from stable_baselines3.common.utils import set_random_seed
 
 from harness.buffers import PrioritizedDictReplayBuffer, replay_memory_bytes
 from harness.cli import main
@@ -73,70 +73,6 @@ def test_policy_save_and_load_give_the_same_q_values(tmp_path, policy):
         b = loaded.q_net(loaded.policy.obs_to_tensor(obs)[0])
     th.testing.assert_close(a, b)
     venv.close()
-
-
-def make_dict_buffer(size: int, n_envs: int = 1, **kwargs) -> PrioritizedDictReplayBuffer:
-    space = spaces.Dict(
-        {"img": spaces.Box(0, 255, (1, 2, 2), np.uint8), "vec": spaces.Box(0, 1, (2,))}
-    )
-    return PrioritizedDictReplayBuffer(
-        size, space, spaces.Discrete(5), device="cpu", n_envs=n_envs, **kwargs
-    )
-
-
-def add_step(buffer: PrioritizedDictReplayBuffer, value: int) -> None:
-    """One step of every env; env ``e`` gets ``img = 10 * value + e`` (identifies the slot)."""
-    n = buffer.n_envs
-    img = (10 * value + np.arange(n, dtype=np.uint8))[:, None, None, None] * np.ones(
-        (1, 1, 2, 2), dtype=np.uint8
-    )
-    obs = {"img": img, "vec": np.full((n, 2), value / 10, dtype=np.float32)}
-    buffer.add(obs, obs, np.zeros((n, 1)), np.full(n, float(value)), np.zeros(n), [{}] * n)
-
-
-def test_dict_buffer_importance_weights_hand_computed():
-    # As for the array buffer: raw priorities [1, 2, 4, 8] (eps 1, alpha 1), beta 0.5:
-    # w_i = sqrt(p_min / p_i); 15 strata of width 1 hit the items 1, 2, 4, 8 times.
-    buffer = make_dict_buffer(4, alpha=1.0, beta=0.5, eps=1.0)
-    for step in range(4):
-        add_step(buffer, step)
-    buffer.update_priorities(np.arange(4), np.array([0.0, 1.0, 3.0, 7.0]))
-    batch = buffer.sample(15)
-    np.testing.assert_array_equal(np.sort(batch.indices), np.repeat(np.arange(4), [1, 2, 4, 8]))
-    expected = np.sqrt(1.0 / np.array([1.0, 2.0, 4.0, 8.0]))[batch.indices]
-    np.testing.assert_allclose(batch.weights.numpy().ravel(), expected, rtol=1e-6)
-    # Each sampled transition is the one stored at its index (reward = its step).
-    np.testing.assert_array_equal(batch.rewards.numpy().ravel(), batch.indices.astype(float))
-    assert batch.observations["img"].shape == (15, 1, 2, 2)
-
-
-def test_dict_buffer_sampling_frequencies_follow_priorities():
-    buffer = make_dict_buffer(8, alpha=0.6, eps=1e-6)
-    for step in range(8):
-        add_step(buffer, step)
-    td = np.array([0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0])
-    buffer.update_priorities(np.arange(8), td)
-    expected = (td + 1e-6) ** 0.6
-    expected /= expected.sum()
-    set_random_seed(0)
-    counts = np.zeros(8)
-    for _ in range(300):
-        np.add.at(counts, buffer.sample(100).indices, 1)
-    frequencies = counts / 30_000
-    np.testing.assert_array_less(
-        np.abs(frequencies - expected), 5 * np.sqrt(expected * (1 - expected) / 30_000)
-    )
-
-
-def test_dict_buffer_flat_index_maps_to_the_right_slot_with_several_envs():
-    buffer = make_dict_buffer(12, n_envs=3)  # 4 rows x 3 envs
-    for step in range(2):
-        add_step(buffer, step)
-    set_random_seed(1)
-    batch = buffer.sample(30)
-    row, env = np.divmod(batch.indices, 3)
-    assert batch.indices.max() < 6  # only the 2 x 3 stored transitions
-    np.testing.assert_array_equal(batch.observations["img"][:, 0, 0, 0].numpy(), 10 * row + env)
 
 
 def test_double_dqn_gradient_step_on_dict_batches_updates_priorities():

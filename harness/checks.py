@@ -9,6 +9,7 @@ for one of these reasons (an allocation error hours into a run, an optimizer tha
 from __future__ import annotations
 
 import inspect
+import os
 from typing import TYPE_CHECKING, Any
 
 import torch as th
@@ -107,15 +108,22 @@ def check_device(device: str) -> None:
 
 
 def available_memory_bytes() -> int | None:
-    """Memory available to new allocations (Linux ``MemAvailable``), ``None`` when unknown."""
+    """Memory available to new allocations, ``None`` when unknown.
+
+    Linux's ``MemAvailable`` (free memory plus what the page cache can give back); where there is
+    no ``/proc/meminfo``, the free physical pages ``os.sysconf`` reports (an underestimate).
+    """
     try:
         with open("/proc/meminfo", encoding="ascii") as f:
             for line in f:
                 if line.startswith("MemAvailable:"):
                     return int(line.split()[1]) * 1024
     except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (AttributeError, OSError, ValueError):
         return None
-    return None
 
 
 def check_replay_memory(config: ExperimentConfig, available: int | None = None) -> int:

@@ -228,7 +228,8 @@ class AlgoConfig(_Section):
     """A policy of ``harness.registry.POLICIES``: ``MlpPolicy``, ``DuelingMlpPolicy`` (the
     thesis observation), ``TeamMapPolicy``, ``DuelingTeamMapPolicy`` (``teammap``)."""
     net_arch: list[PositiveInt] = [512, 512, 512]
-    """Hidden layers; for the dueling policy, each of the value and advantage streams."""
+    """Hidden layers; for the dueling policy, each of the value and advantage streams. Not given:
+    the thesis's ``[512, 512, 512]``, or ``[]`` (none) for the TeamMap policies."""
     dueling_aggregator: Literal["mean", "max"] = "mean"
     double_q: bool = True
     gamma: Annotated[float, Field(gt=0.0, le=1.0)] = 0.99
@@ -247,8 +248,19 @@ class AlgoConfig(_Section):
 
     features_dim: PositiveInt = 256
     """TeamMap policies: width of the layer that joins the image branches and the vector."""
-    cnn_channels: tuple[PositiveInt, PositiveInt] = (16, 32)
+    cnn_channels: tuple[PositiveInt, PositiveInt] = (8, 16)
     """TeamMap policies: filters of the two 3x3 conv layers of each image branch."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _teammap_head(cls, data: Any) -> Any:
+        # A TeamMap policy's extractor already ends in a features_dim-wide layer: its Q head has
+        # no hidden layer unless asked (a 3x512 head would add ~0.66M weights to its ~0.47M).
+        if isinstance(data, dict) and "net_arch" not in data:
+            entry = POLICIES.get(str(data.get("policy", "")))
+            if entry is not None and entry.observation == "teammap":
+                return {**data, "net_arch": []}
+        return data
 
     @field_validator("policy")
     @classmethod

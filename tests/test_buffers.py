@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import pickle
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 import pytest
@@ -14,6 +16,7 @@ from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.common.utils import set_random_seed
 
 from harness.buffers import (
+    PrioritizedDictReplayBuffer,
     PrioritizedReplayBuffer,
     PrioritizedReplayBufferSamples,
     SumTree,
@@ -21,13 +24,47 @@ from harness.buffers import (
 )
 
 OBS_SPACE = spaces.Box(-1e6, 1e6, shape=(2,), dtype=np.float32)
+#: The Dict buffer's twin of OBS_SPACE: the same vector plus a uint8 image holding its first value.
+DICT_OBS_SPACE = spaces.Dict(
+    {"vec": OBS_SPACE, "img": spaces.Box(0, 255, shape=(1, 2, 2), dtype=np.uint8)}
+)
 ACTION_SPACE = spaces.Discrete(4)
 
 
-def make_buffer(buffer_size: int, n_envs: int = 1, **kwargs: float) -> PrioritizedReplayBuffer:
-    return PrioritizedReplayBuffer(
-        buffer_size, OBS_SPACE, ACTION_SPACE, device="cpu", n_envs=n_envs, **kwargs
+@pytest.fixture(
+    params=[PrioritizedReplayBuffer, PrioritizedDictReplayBuffer], ids=["array", "dict"]
+)
+def make_buffer(request: pytest.FixtureRequest) -> Callable[..., PrioritizedReplayBuffer]:
+    """Factory of an empty buffer of the test's class: every buffer test runs on both."""
+    buffer_class = request.param
+    space = DICT_OBS_SPACE if buffer_class is PrioritizedDictReplayBuffer else OBS_SPACE
+
+    def make(buffer_size: int, n_envs: int = 1, **kwargs: float) -> PrioritizedReplayBuffer:
+        return buffer_class(buffer_size, space, ACTION_SPACE, device="cpu", n_envs=n_envs, **kwargs)
+
+    return make
+
+
+def _as_stored(buffer: PrioritizedReplayBuffer, vec: np.ndarray) -> Any:
+    """``vec`` as the buffer stores it: the array, or the Dict with the image of ``vec[:, 0]``."""
+    if not isinstance(buffer, PrioritizedDictReplayBuffer):
+        return vec
+    img = np.floor(vec[:, 0]).astype(np.uint8)[:, None, None, None]
+    return {"vec": vec, "img": np.broadcast_to(img, (len(vec), 1, 2, 2))}
+
+
+def first_values(observations: th.Tensor | dict[str, th.Tensor]) -> np.ndarray:
+    """The first vector entry of each sampled observation (for a Dict batch, after checking
+    that the image was read from the same slot as the vector)."""
+    if not isinstance(observations, dict):
+        return observations.numpy()[:, 0]
+    values = observations["vec"].numpy()[:, 0]
+    img = observations["img"].numpy()
+    assert img.shape == (len(values), 1, 2, 2)
+    np.testing.assert_array_equal(
+        img, np.broadcast_to(np.floor(values)[:, None, None, None], img.shape)
     )
+    return values
 
 
 def add_step(
@@ -42,8 +79,8 @@ def add_step(
     obs = np.stack([10.0 * step + envs, -np.ones(n)], axis=1).astype(np.float32)
     next_obs = obs + 0.5
     buffer.add(
-        obs,
-        next_obs,
+        _as_stored(buffer, obs),
+        _as_stored(buffer, next_obs),
         np.full(n, step % 4),
         (100.0 * step + envs).astype(np.float32),
         np.full(n, done),
@@ -130,7 +167,7 @@ def test_sum_tree_rejects_bad_input() -> None:
 # ------------------------------------------------------------------- PrioritizedReplayBuffer
 
 
-def test_samples_extend_sb3_samples() -> None:
+def test_samples_extend_sb3_samples(make_buffer: Callable[..., PrioritizedReplayBuffer]) -> None:
     fields = ReplayBufferSamples._fields
     assert PrioritizedReplayBufferSamples._fields[: len(fields)] == fields
     buffer = make_buffer(8)
@@ -143,9 +180,17 @@ def test_samples_extend_sb3_samples() -> None:
     assert batch.discounts is None
     assert batch.indices.dtype == np.int64
     assert batch.indices.shape == (5,)
+    first_values(batch.observations)  # a Dict batch holds every key, read from one slot
 
 
-def test_new_transitions_get_max_priority() -> None:
+def test_array_buffer_refuses_a_dict_space() -> None:
+    with pytest.raises(ValueError, match="PrioritizedDictReplayBuffer"):
+        PrioritizedReplayBuffer(8, DICT_OBS_SPACE, ACTION_SPACE, device="cpu")
+
+
+def test_new_transitions_get_max_priority(
+    make_buffer: Callable[..., PrioritizedReplayBuffer],
+) -> None:
     buffer = make_buffer(8, eps=1e-6)
     add_step(buffer, 0)
     assert buffer.raw_priorities[0] == 1.0  # initial max priority
@@ -158,7 +203,9 @@ def test_new_transitions_get_max_priority() -> None:
     assert buffer.raw_priorities[2] == pytest.approx(5.0 + 1e-6)
 
 
-def test_sampling_frequencies_follow_priorities() -> None:
+def test_sampling_frequencies_follow_priorities(
+    make_buffer: Callable[..., PrioritizedReplayBuffer],
+) -> None:
     alpha = 0.6
     buffer = make_buffer(8, alpha=alpha, eps=1e-6)
     for step in range(8):
@@ -180,7 +227,9 @@ def test_sampling_frequencies_follow_priorities() -> None:
     np.testing.assert_array_less(np.abs(frequencies - expected), tolerance)
 
 
-def test_importance_weights_hand_computed() -> None:
+def test_importance_weights_hand_computed(
+    make_buffer: Callable[..., PrioritizedReplayBuffer],
+) -> None:
     # eps=1 and alpha=1 make the priorities integers: raw = |td| + 1 = [1, 2, 4, 8], total 15.
     buffer = make_buffer(4, alpha=1.0, beta=0.5, eps=1.0)
     for step in range(4):
@@ -204,7 +253,9 @@ def test_importance_weights_hand_computed() -> None:
         buffer.beta = -0.1
 
 
-def test_importance_weights_normalise_by_the_buffer_minimum_not_the_batch() -> None:
+def test_importance_weights_normalise_by_the_buffer_minimum_not_the_batch(
+    make_buffer: Callable[..., PrioritizedReplayBuffer],
+) -> None:
     # Priorities [1, 2, 4, 8] (total 15), beta 0.5. A batch of 2 has strata [0, 7.5) and
     # [7.5, 15): the first holds items 0, 1, 2 (cumulative 1, 3, 7) and item 3's range is [7, 15),
     # so draws land in item 0 only for offsets in [0, 1/7.5). Whatever the batch, a weight is
@@ -244,7 +295,9 @@ def test_importance_weights_function_hand_computed() -> None:
     np.testing.assert_allclose(importance_weights(np.array([0.1]), 0.05, 0.5), [0.5**0.5])
 
 
-def test_multi_env_flat_index_maps_to_the_right_transition() -> None:
+def test_multi_env_flat_index_maps_to_the_right_transition(
+    make_buffer: Callable[..., PrioritizedReplayBuffer],
+) -> None:
     n_envs = 3
     buffer = make_buffer(12, n_envs=n_envs)  # 4 rows x 3 envs
     # Partially filled: only the first 2 * 3 flat indices are valid.
@@ -256,9 +309,8 @@ def test_multi_env_flat_index_maps_to_the_right_transition() -> None:
         batch = buffer.sample(12)
         seen.update(batch.indices.tolist())
         pos, env = np.divmod(batch.indices, n_envs)
-        obs = batch.observations.numpy()
-        np.testing.assert_array_equal(obs[:, 0], 10 * pos + env)
-        np.testing.assert_array_equal(batch.next_observations.numpy()[:, 0], 10 * pos + env + 0.5)
+        np.testing.assert_array_equal(first_values(batch.observations), 10 * pos + env)
+        np.testing.assert_array_equal(first_values(batch.next_observations), 10 * pos + env + 0.5)
         np.testing.assert_array_equal(batch.rewards.numpy().ravel(), 100 * pos + env)
         np.testing.assert_array_equal(batch.actions.numpy().ravel(), pos % 4)
     assert seen == set(range(6))
@@ -271,7 +323,9 @@ def test_multi_env_flat_index_maps_to_the_right_transition() -> None:
     assert seen == set(range(12))
 
 
-def test_wrap_around_overwrites_priorities() -> None:
+def test_wrap_around_overwrites_priorities(
+    make_buffer: Callable[..., PrioritizedReplayBuffer],
+) -> None:
     n_envs = 2
     buffer = make_buffer(6, n_envs=n_envs, alpha=1.0, eps=1.0)  # 3 rows x 2 envs
     for step in range(3):
@@ -288,10 +342,10 @@ def test_wrap_around_overwrites_priorities() -> None:
     batch = buffer.sample(64)
     pos, env = np.divmod(batch.indices, n_envs)
     step = np.where(pos == 0, 3, pos)  # row 0 now holds step 3
-    np.testing.assert_array_equal(batch.observations.numpy()[:, 0], 10 * step + env)
+    np.testing.assert_array_equal(first_values(batch.observations), 10 * step + env)
 
 
-def test_alpha_change_rebuilds_tree() -> None:
+def test_alpha_change_rebuilds_tree(make_buffer: Callable[..., PrioritizedReplayBuffer]) -> None:
     buffer = make_buffer(8, alpha=1.0, eps=1.0)
     for step in range(5):
         add_step(buffer, step)
@@ -314,7 +368,9 @@ def test_alpha_change_rebuilds_tree() -> None:
         buffer.alpha = -1.0
 
 
-def test_update_priorities_duplicates_last_wins() -> None:
+def test_update_priorities_duplicates_last_wins(
+    make_buffer: Callable[..., PrioritizedReplayBuffer],
+) -> None:
     buffer = make_buffer(4, alpha=1.0, eps=1.0)
     for step in range(4):
         add_step(buffer, step)
@@ -327,7 +383,7 @@ def test_update_priorities_duplicates_last_wins() -> None:
         buffer.update_priorities(np.array([0]), np.array([np.nan]))
 
 
-def test_timeouts_are_not_terminal() -> None:
+def test_timeouts_are_not_terminal(make_buffer: Callable[..., PrioritizedReplayBuffer]) -> None:
     buffer = make_buffer(4)
     add_step(buffer, 0, done=True, truncated=True)
     add_step(buffer, 1, done=True, truncated=False)
@@ -336,16 +392,16 @@ def test_timeouts_are_not_terminal() -> None:
     np.testing.assert_array_equal(dones, (batch.indices == 1).astype(np.float32))
 
 
-def test_unsupported_configurations_and_empty_buffer() -> None:
+def test_unsupported_configurations_and_empty_buffer(
+    make_buffer: Callable[..., PrioritizedReplayBuffer],
+) -> None:
     with pytest.raises(ValueError, match="optimize_memory_usage"):
-        PrioritizedReplayBuffer(
-            8, OBS_SPACE, ACTION_SPACE, optimize_memory_usage=True, handle_timeout_termination=False
-        )
+        make_buffer(8, optimize_memory_usage=True, handle_timeout_termination=False)
     with pytest.raises(ValueError, match="empty"):
         make_buffer(8).sample(4)
 
 
-def test_reset_clears_priorities() -> None:
+def test_reset_clears_priorities(make_buffer: Callable[..., PrioritizedReplayBuffer]) -> None:
     buffer = make_buffer(4)
     add_step(buffer, 0)
     buffer.update_priorities(np.array([0]), np.array([9.0]))
@@ -355,7 +411,9 @@ def test_reset_clears_priorities() -> None:
     assert buffer._tree.total == 0.0
 
 
-def test_pickle_round_trip_keeps_priorities() -> None:
+def test_pickle_round_trip_keeps_priorities(
+    make_buffer: Callable[..., PrioritizedReplayBuffer],
+) -> None:
     # SB3's save_replay_buffer/load_replay_buffer pickle the whole buffer.
     buffer = make_buffer(6, n_envs=2, alpha=0.5)
     for step in range(2):

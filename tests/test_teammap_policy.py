@@ -1,10 +1,13 @@
 """The team-map side of the learner: the CNN features extractor, the TeamMap policies (save and
-load), the prioritized replay buffer for Dict observations (sampling law, IS weights, flat
-indices), the replay memory estimate, and a tiny end-to-end run through the command."""
+load), Double-DQN steps on Dict batches with prioritized replay, the replay memory estimate, and a
+tiny end-to-end run through the command. The Dict buffer's sampling law, IS weights and flat
+indices are checked with the array buffer's tests (``tests/test_buffers.py``, both classes)."""
 
 from __future__ import annotations
 
+import copy
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +17,7 @@ from gymnasium import spaces
 from stable_baselines3.common.utils import set_random_seed
 
 from harness.buffers import PrioritizedDictReplayBuffer, replay_memory_bytes
+from harness.checks import format_bytes
 from harness.cli import main
 from harness.dqn import DoubleDQN
 from harness.policies import DuelingTeamMapPolicy, TeamMapExtractor, TeamMapPolicy
@@ -75,73 +79,10 @@ def test_policy_save_and_load_give_the_same_q_values(tmp_path, policy):
     venv.close()
 
 
-def make_dict_buffer(size: int, n_envs: int = 1, **kwargs) -> PrioritizedDictReplayBuffer:
-    space = spaces.Dict(
-        {"img": spaces.Box(0, 255, (1, 2, 2), np.uint8), "vec": spaces.Box(0, 1, (2,))}
-    )
-    return PrioritizedDictReplayBuffer(
-        size, space, spaces.Discrete(5), device="cpu", n_envs=n_envs, **kwargs
-    )
-
-
-def add_step(buffer: PrioritizedDictReplayBuffer, value: int) -> None:
-    """One step of every env; env ``e`` gets ``img = 10 * value + e`` (identifies the slot)."""
-    n = buffer.n_envs
-    img = (10 * value + np.arange(n, dtype=np.uint8))[:, None, None, None] * np.ones(
-        (1, 1, 2, 2), dtype=np.uint8
-    )
-    obs = {"img": img, "vec": np.full((n, 2), value / 10, dtype=np.float32)}
-    buffer.add(obs, obs, np.zeros((n, 1)), np.full(n, float(value)), np.zeros(n), [{}] * n)
-
-
-def test_dict_buffer_importance_weights_hand_computed():
-    # As for the array buffer: raw priorities [1, 2, 4, 8] (eps 1, alpha 1), beta 0.5:
-    # w_i = sqrt(p_min / p_i); 15 strata of width 1 hit the items 1, 2, 4, 8 times.
-    buffer = make_dict_buffer(4, alpha=1.0, beta=0.5, eps=1.0)
-    for step in range(4):
-        add_step(buffer, step)
-    buffer.update_priorities(np.arange(4), np.array([0.0, 1.0, 3.0, 7.0]))
-    batch = buffer.sample(15)
-    np.testing.assert_array_equal(np.sort(batch.indices), np.repeat(np.arange(4), [1, 2, 4, 8]))
-    expected = np.sqrt(1.0 / np.array([1.0, 2.0, 4.0, 8.0]))[batch.indices]
-    np.testing.assert_allclose(batch.weights.numpy().ravel(), expected, rtol=1e-6)
-    # Each sampled transition is the one stored at its index (reward = its step).
-    np.testing.assert_array_equal(batch.rewards.numpy().ravel(), batch.indices.astype(float))
-    assert batch.observations["img"].shape == (15, 1, 2, 2)
-
-
-def test_dict_buffer_sampling_frequencies_follow_priorities():
-    buffer = make_dict_buffer(8, alpha=0.6, eps=1e-6)
-    for step in range(8):
-        add_step(buffer, step)
-    td = np.array([0.25, 0.5, 1.0, 2.0, 3.0, 4.0, 6.0, 8.0])
-    buffer.update_priorities(np.arange(8), td)
-    expected = (td + 1e-6) ** 0.6
-    expected /= expected.sum()
-    set_random_seed(0)
-    counts = np.zeros(8)
-    for _ in range(300):
-        np.add.at(counts, buffer.sample(100).indices, 1)
-    frequencies = counts / 30_000
-    np.testing.assert_array_less(
-        np.abs(frequencies - expected), 5 * np.sqrt(expected * (1 - expected) / 30_000)
-    )
-
-
-def test_dict_buffer_flat_index_maps_to_the_right_slot_with_several_envs():
-    buffer = make_dict_buffer(12, n_envs=3)  # 4 rows x 3 envs
-    for step in range(2):
-        add_step(buffer, step)
-    set_random_seed(1)
-    batch = buffer.sample(30)
-    row, env = np.divmod(batch.indices, 3)
-    assert batch.indices.max() < 6  # only the 2 x 3 stored transitions
-    np.testing.assert_array_equal(batch.observations["img"][:, 0, 0, 0].numpy(), 10 * row + env)
-
-
-def test_double_dqn_gradient_step_on_dict_batches_updates_priorities():
+def test_double_dqn_on_dict_batches_learns_and_sets_priorities_to_double_q_td_errors(monkeypatch):
     from harness.adapters import make_vec_env
 
+    set_random_seed(0)
     venv = make_vec_env(
         {"height": 9, "width": 9, "n_agents": 2, "max_steps": 20, "observation": "teammap",
          "crop": 5, "global_size": 7},
@@ -154,17 +95,47 @@ def test_double_dqn_gradient_step_on_dict_batches_updates_priorities():
         buffer_size=400,
         learning_starts=40,
         batch_size=16,
+        gamma=0.9,
         train_freq=1,
         replay_buffer_class=PrioritizedDictReplayBuffer,
-        replay_buffer_kwargs={"alpha": 0.6, "beta": 0.4},
+        replay_buffer_kwargs={"alpha": 0.6, "beta": 0.4, "eps": 1e-3},
         policy_kwargs={"features_extractor_kwargs": {"features_dim": 16, "channels": [4, 8]}},
     )
-    model.learn(120)
+    model.learn(240)  # a tiny run through SuperSuit's VecEnv of Dict observations
+    buffer = model.replay_buffer
+    assert isinstance(buffer, PrioritizedDictReplayBuffer)
     assert model._n_updates > 0
-    raw = model.replay_buffer.raw_priorities
-    stored = raw[: model.replay_buffer.n_transitions]
-    assert len(set(np.round(stored, 9))) > 2  # TD errors replaced the initial max priority
-    assert np.isfinite(model.logger.name_to_value["train/loss"])
+    assert len(set(np.round(buffer.raw_priorities[: buffer.n_transitions], 9))) > 2
+
+    # One more step, checked by hand: the target network differs from the online one, so the
+    # Double-Q target (online argmax, target value) differs from the max-Q target.
+    with th.no_grad():
+        for p in model.q_net_target.parameters():
+            p.add_(0.3 * th.randn_like(p))
+    online, target = copy.deepcopy(model.q_net), model.q_net_target
+    drawn = []
+    sample = buffer.sample
+
+    def spy(*args, **kwargs):
+        drawn.append(sample(*args, **kwargs))
+        return drawn[-1]
+
+    monkeypatch.setattr(buffer, "sample", spy)
+    model.train(gradient_steps=1, batch_size=16)
+    (batch,) = drawn
+    with th.no_grad():
+        next_online, next_target = online(batch.next_observations), target(batch.next_observations)
+        best = next_online.argmax(dim=1, keepdim=True)
+        y = batch.rewards + 0.9 * (1 - batch.dones) * next_target.gather(1, best)
+        y_max_q = batch.rewards + 0.9 * (1 - batch.dones) * next_target.max(dim=1, keepdim=True)[0]
+        q = online(batch.observations).gather(1, batch.actions.long())
+    assert not th.allclose(y, y_max_q)
+    td = (q - y).abs().ravel().numpy()
+    np.testing.assert_allclose(buffer.raw_priorities[batch.indices], td + 1e-3, rtol=1e-5)
+    loss = (batch.weights * th.nn.functional.smooth_l1_loss(q, y, reduction="none")).mean()
+    assert model.logger.name_to_value["train/loss"] == pytest.approx(loss.item(), rel=1e-5)
+    # The step moved the online network.
+    assert not th.allclose(model.q_net(batch.observations), online(batch.observations))
     venv.close()
 
 
@@ -180,11 +151,79 @@ def test_replay_memory_estimate_hand_computed():
     assert replay_memory_bytes(space, spaces.Discrete(5), 1001, 4, prioritized=False) == 4322000
 
 
-def test_policy_and_observation_must_fit(tmp_path, capsys):
+def test_replay_memory_estimate_is_what_the_buffer_allocates():
+    space, actions = teammap_space(7, 9), spaces.Discrete(5)
+    buffer = PrioritizedDictReplayBuffer(30, space, actions, device="cpu", n_envs=4)
+    arrays = [
+        *buffer.observations.values(),
+        *buffer.next_observations.values(),
+        buffer.actions,
+        buffer.rewards,
+        buffer.dones,
+        buffer.timeouts,
+        buffer._raw_priorities,
+        buffer._tree.nodes,
+    ]
+    assert sum(a.nbytes for a in arrays) == replay_memory_bytes(space, actions, 30, 4)
+
+
+def test_a_buffer_larger_than_the_available_memory_is_refused():
+    from harness.checks import check_replay_memory
+    from harness.config import ExperimentConfig
+
+    def config(observation: str, policy: str) -> ExperimentConfig:
+        return ExperimentConfig.model_validate(
+            {"env": {"observation": observation}, "vec": {"copies": 2},
+             "algo": {"policy": policy, "buffer_size": 1_000_000}}
+        )  # fmt: skip
+
+    # A million team-map transitions (15x15 crop, 13x13 map) need ~4.3 GB; thesis ones ~0.1 GB.
+    thesis = check_replay_memory(config("thesis", "MlpPolicy"), available=2**31)
+    assert thesis < 2**28
+    with pytest.raises(ValueError, match=r"^algo\.buffer_size: a replay buffer of 1,000,000 "):
+        check_replay_memory(config("teammap", "TeamMapPolicy"), available=2**31)
+
+
+@pytest.mark.parametrize(
+    ("observation", "policy", "message"),
+    [
+        ("teammap", "MlpPolicy", "algo.policy MlpPolicy is for observation 'thesis'"),
+        ("teammap", "DuelingMlpPolicy", "is for observation 'thesis'"),
+        ("thesis", "TeamMapPolicy", "algo.policy TeamMapPolicy is for observation 'teammap'"),
+        ("thesis", "DuelingTeamMapPolicy", "is for observation 'teammap'"),
+    ],
+)
+def test_policy_and_observation_must_fit(tmp_path, capsys, observation, policy, message):
     path = tmp_path / "c.yaml"
-    path.write_text("env: {observation: teammap}\nalgo: {policy: MlpPolicy}\n")
-    assert main(["run", str(path)]) == 2
-    assert "is for observation 'thesis'" in capsys.readouterr().err
+    path.write_text(f"env: {{observation: {observation}}}\nalgo: {{policy: {policy}}}\n")
+    assert main(["run", str(path), "--runs-dir", str(tmp_path / "runs")]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("harness: error:"), lines
+    assert message in lines[0]
+    assert not (tmp_path / "runs").exists()
+
+
+def test_teammap_policy_defaults_from_a_config():
+    from harness.adapters import make_vec_env
+    from harness.config import ExperimentConfig
+    from harness.train import build_model
+
+    config = ExperimentConfig.model_validate(
+        {"env": {"height": 9, "width": 9, "n_agents": 2, "observation": "teammap"},
+         "vec": {"copies": 1}, "algo": {"policy": "TeamMapPolicy", "buffer_size": 100}}
+    )  # fmt: skip
+    # The thesis's 3x512 head is the MLP policies' default; a TeamMap policy has none.
+    assert config.algo.net_arch == []
+    venv = make_vec_env(config.env, config.vec.copies, seed=0)
+    model = build_model(config, venv)
+    extractor = model.q_net.features_extractor
+    assert isinstance(extractor, TeamMapExtractor)
+    assert extractor.features_dim == 256
+    convs = [m for m in extractor.branches["local"] if isinstance(m, th.nn.Conv2d)]
+    assert [c.out_channels for c in convs] == [8, 16]
+    (head,) = model.q_net.q_net  # one linear layer: features -> 5 Q-values
+    assert (head.in_features, head.out_features) == (256, 5)
+    venv.close()
 
 
 @pytest.mark.slow
@@ -211,14 +250,21 @@ def test_tiny_teammap_run_trains_evaluates_and_resumes(tmp_path, capsys):
     assert main(["run", str(config), "--runs-dir", str(runs), "--no-progress"]) == 0
     (run,) = runs.iterdir()
     assert (run / "best_model.zip").is_file()
-    capsys.readouterr()
+    # The estimate printed at start: 2,000 transitions over 4 slots, 7x7 crop, 7x7 map, PER.
+    space = teammap_space(7, 7)
+    estimate = format_bytes(replay_memory_bytes(space, spaces.Discrete(5), 2000, 4))
+    assert f"replay buffer: 2,000 transitions, about {estimate} when full" in (
+        capsys.readouterr().err
+    )
     assert main(["eval", str(run), "--episodes", "3", "--json"]) == 0
     summary = json.loads(capsys.readouterr().out)
     assert 0 < summary["coverage_mean"] <= 1
     assert main(["tune", str(run), "--episodes", "2", "--temperatures", "0.5", "1"]) == 0
     assert main(["render", str(run), "--out", str(tmp_path / "p.png")]) == 0
-    # Resume from the older checkpoint: the run finishes again from there.
-    state = json.loads(
-        sorted((run / "checkpoints").iterdir())[-1].joinpath("state.json").read_text()
-    )
-    assert state["finished"] is True
+    # Resume from the older checkpoint (the newest one gone, as after a kill while it was
+    # written): its Dict replay buffer with priorities loads and the run finishes again.
+    older, newest = sorted((run / "checkpoints").iterdir(), key=lambda p: int(p.name[5:]))
+    shutil.rmtree(newest)
+    assert main(["run", "--resume", str(run), "--no-progress"]) == 0
+    (last,) = [p for p in (run / "checkpoints").iterdir() if p != older]
+    assert json.loads((last / "state.json").read_text())["finished"] is True

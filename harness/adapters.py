@@ -12,6 +12,8 @@ that copy's generator, and a run with the same seed repeats, whatever ``num_cpus
 from __future__ import annotations
 
 import functools
+import os
+import signal
 import warnings
 from typing import Any
 
@@ -27,8 +29,17 @@ from harness.config import EnvConfig
 EPISODE_INFO_KEYS = ("coverage", "new_cells", "wall_hits")
 
 
-def _make_copy(env_kwargs: dict[str, Any], seed: int | None) -> Any:
-    """One env copy as a SuperSuit Markov VecEnv (one slot per agent), seeded once."""
+def _make_copy(env_kwargs: dict[str, Any], seed: int | None, owner: int | None = None) -> Any:
+    """One env copy as a SuperSuit Markov VecEnv (one slot per agent), seeded once.
+
+    Built in a worker process (``vec.num_cpus > 1``: the pid is not ``owner``'s), it makes the
+    worker ignore SIGINT and SIGTERM: a Ctrl-C in a terminal reaches the whole process group, and
+    a worker that died of it would break the training process's clean stop (a checkpoint at the
+    end of the round). The training process closes its workers when it ends.
+    """
+    if owner is not None and os.getpid() != owner:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     vec = ss.pettingzoo_env_to_vec_env_v1(coverage_v0.parallel_env(**env_kwargs))
     if seed is not None:
         vec.reset(seed=seed)
@@ -57,7 +68,7 @@ def make_vec_env(
     """
     kwargs = env.kwargs() if isinstance(env, EnvConfig) else dict(env)
     fns = [
-        functools.partial(_make_copy, kwargs, None if seed is None else seed + i)
+        functools.partial(_make_copy, kwargs, None if seed is None else seed + i, os.getpid())
         for i in range(copies)
     ]
     probe = coverage_v0.parallel_env(**kwargs)

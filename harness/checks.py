@@ -1,5 +1,5 @@
-"""Config checks that need torch: is the optimizer usable, is the device there, does the replay
-buffer fit in memory.
+"""Config checks that need torch: is the optimizer usable, is the device there, do the networks
+and the replay buffer fit in memory.
 
 ``harness.config`` runs :func:`check_runtime` once a config has passed its schema, so that a
 config error never pays for importing torch, and a config that passes both never fails later
@@ -16,6 +16,7 @@ import torch as th
 
 from harness.buffers import replay_memory_bytes
 from harness.dqn import resolve_optimizer_class
+from harness.registry import POLICIES
 
 if TYPE_CHECKING:
     from harness.config import ExperimentConfig
@@ -25,13 +26,15 @@ TRAINING_DEVICE_TYPES = ("cpu", "cuda", "mps")
 
 
 def check_runtime(config: ExperimentConfig) -> None:
-    """Check what the schema cannot: the optimizer, the device and the replay memory.
+    """Check what the schema cannot: the optimizer, the device, the networks' and the replay
+    buffer's memory.
 
     Raises:
         ValueError: one line naming the key (``algo.optimizer: ...``).
     """
     check_optimizer(config.algo.optimizer, config.algo.optimizer_kwargs)
     check_device(config.algo.device)
+    check_network_memory(config)
     check_replay_memory(config)
 
 
@@ -63,17 +66,24 @@ def check_optimizer(name: str, kwargs: dict[str, Any]) -> None:
         ) from None
     if optimizer_class is th.optim.Optimizer:
         raise ValueError("algo.optimizer: 'Optimizer' is torch's base class; name a real one")
+    if "lr" in kwargs:
+        raise ValueError(
+            "algo.optimizer_kwargs: lr is set by each phase's learning_rate; remove it here"
+        )
     param = th.nn.Parameter(th.zeros(2))
+    # Built as SB3's DQNPolicy builds it (lr from the schedule, then the kwargs). torch reports
+    # unusable settings with any of several exception types (TypeError, ValueError,
+    # RuntimeError, AssertionError for capturable/differentiable on CPU): all of them mean no.
     try:
         optimizer = optimizer_class(
-            [param], **optimizer_kwargs_with_foreach(optimizer_class, kwargs)
+            [param], lr=1e-3, **optimizer_kwargs_with_foreach(optimizer_class, kwargs)
         )
-    except (TypeError, ValueError, RuntimeError) as exc:
+    except Exception as exc:
         raise ValueError(f"algo.optimizer_kwargs: {name} does not take {kwargs} ({exc})") from None
     param.grad = th.ones(2)
     try:
         optimizer.step()
-    except (TypeError, ValueError, RuntimeError) as exc:
+    except Exception as exc:
         raise ValueError(
             f"algo.optimizer: torch.optim.{name} cannot train a DQN here "
             f"({str(exc).splitlines()[0]})"
@@ -126,19 +136,72 @@ def available_memory_bytes() -> int | None:
         return None
 
 
+def _slot_spaces(config: ExperimentConfig) -> tuple[Any, Any]:
+    """One VecEnv slot's observation and action spaces (an env is built, not reset)."""
+    from envs import coverage_v0
+
+    env = coverage_v0.parallel_env(**config.env.kwargs())
+    agent = env.possible_agents[0]
+    return env.observation_space(agent), env.action_space(agent)
+
+
+def network_parameters(config: ExperimentConfig) -> int:
+    """Weights of the policy of ``config.algo`` (online and target network), counted on torch's
+    ``meta`` device: the policy is built as ``DoubleDQN`` builds it, without allocating memory."""
+    algo = config.algo
+    entry = POLICIES[algo.policy]
+    kwargs: dict[str, Any] = {"net_arch": list(algo.net_arch)}
+    if entry.dueling:
+        kwargs["aggregator"] = algo.dueling_aggregator
+    if entry.observation == "teammap":
+        kwargs["features_extractor_kwargs"] = {
+            "features_dim": algo.features_dim,
+            "channels": list(algo.cnn_channels),
+        }
+    policy_class = entry.load()
+    # SB3 moves each new Q-network to ``policy.device`` (the CPU until it has weights); pointing
+    # that hook at ``meta`` keeps every tensor on the meta device.
+    sizing_class = type(
+        f"_Sizing{policy_class.__name__}",
+        (policy_class,),
+        {"device": property(lambda self: th.device("meta"))},
+    )
+    observation_space, action_space = _slot_spaces(config)
+    with th.device("meta"):
+        policy = sizing_class(observation_space, action_space, lambda _: 1e-3, **kwargs)
+    return sum(p.numel() for p in policy.parameters())
+
+
+def check_network_memory(config: ExperimentConfig, available: int | None = None) -> int:
+    """Refuse networks larger than the memory available now; return their estimated bytes.
+
+    The estimate is float32 weights of the online and target network, plus as much again for the
+    online network's gradients and optimizer state (RMSprop keeps one value per weight).
+    """
+    n = network_parameters(config)
+    need = 4 * n * 2
+    available = available_memory_bytes() if available is None else available
+    if available is not None and need > available:
+        keys = "algo.net_arch"
+        if POLICIES[config.algo.policy].observation == "teammap":
+            keys += ", algo.features_dim, algo.cnn_channels"
+        raise ValueError(
+            f"{keys}: a policy of {n:,} weights (online and target network) needs about "
+            f"{format_bytes(need)} to train, more than the {format_bytes(available)} available"
+        )
+    return need
+
+
 def check_replay_memory(config: ExperimentConfig, available: int | None = None) -> int:
     """Refuse a replay buffer larger than the memory available now; return its size in bytes.
 
     numpy reserves the buffer lazily, so without this check an oversized buffer would fail (or
     push the machine into swap) only once it fills, hours into the run.
     """
-    from envs import coverage_v0
-
-    env = coverage_v0.parallel_env(**config.env.kwargs())
-    agent = env.possible_agents[0]
+    observation_space, action_space = _slot_spaces(config)
     need = replay_memory_bytes(
-        env.observation_space(agent),
-        env.action_space(agent),
+        observation_space,
+        action_space,
         config.algo.buffer_size,
         config.n_slots,
         prioritized=config.algo.prioritized,

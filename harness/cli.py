@@ -90,6 +90,20 @@ def temperature_arg(text: str) -> float:
     return value
 
 
+def check_image_output(path: Path, flag: str, suffix: str = ".png") -> None:
+    """An output picture: named ``*.png`` (``*.gif`` for ``--gif``) and writable.
+
+    The suffix rule keeps a mistyped path from overwriting a run's ``model.zip``,
+    ``episodes.csv`` or ``config.yaml`` with a picture.
+
+    Raises:
+        HarnessError: for another suffix; ``RunDirError`` when the place cannot take a file.
+    """
+    if path.suffix.lower() != suffix:
+        raise HarnessError(f"{flag} {path}: expected a {suffix} file name")
+    check_output_file(path, flag)
+
+
 def _add_overrides(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--set",
@@ -407,7 +421,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.target is not None and is_group(args.target):
         return _eval_group(args)
     if args.plot is not None:
-        check_output_file(args.plot, "--plot")
+        check_image_output(args.plot, "--plot")
     target = _target(args)
     summary, results = evaluate(target, args.episodes, args.overrides)
     if summary["saved"] is not None:
@@ -462,6 +476,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
 def cmd_compare(args: argparse.Namespace) -> int:
     if args.labels is not None and len(args.labels) != len(args.runs):
         raise HarnessError(f"--labels needs one label per run ({len(args.runs)})")
+    check_image_output(args.out, "--out")
     labels = args.labels or [None] * len(args.runs)
     result = compare(args.runs, labels, Path(args.out), args.window)
     print(f"{'experiment':<20}{'run':<40}{'median':>8}{'IQR':>8}{'wall hits':>11}")
@@ -482,9 +497,9 @@ def cmd_compare(args: argparse.Namespace) -> int:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    for path, flag in ((args.out, "--out"), (args.gif, "--gif")):
+    for path, flag, suffix in ((args.out, "--out", ".png"), (args.gif, "--gif", ".gif")):
         if path is not None:
-            check_output_file(path, flag)
+            check_image_output(path, flag, suffix)
     target = _target(args)
     from harness.plots import play_episode, plot_paths, write_gif
 

@@ -55,7 +55,9 @@ class ConfigError(ValueError):
 
 
 class _Section(BaseModel):
-    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+    # No NaN or infinity anywhere: a NaN reward or an infinite learning rate would only show as a
+    # NaN loss (or an error deep in the replay buffer) once training has started.
+    model_config = ConfigDict(extra="forbid", validate_assignment=True, allow_inf_nan=False)
 
 
 Fraction = Annotated[float, Field(ge=0.0, le=1.0)]
@@ -70,6 +72,17 @@ MAX_MAP_CELLS = 4_000_000
 
 #: Largest config file: configs are a few KB; anything this large is not one.
 MAX_CONFIG_BYTES = 1 << 20
+
+#: Largest side of a team-map image (``crop``, ``global_size``): the same cell count as the
+#: largest map; larger sides fail only when the env allocates its arrays.
+MAX_IMAGE_SIDE = 2_000
+
+#: Most replay-buffer transitions: more than any machine holds; the memory check says so with
+#: an estimate below this, above it the numbers stop being numbers.
+MAX_BUFFER_SIZE = 1 << 40
+
+#: Most torch threads: far beyond any useful count, and below where torch fails to start them.
+MAX_THREADS = 256
 
 
 def _registered(name: str, registry: Mapping[str, Any], kind: str) -> str:
@@ -102,9 +115,9 @@ class EnvConfig(_Section):
     observation: str = "thesis"
     """An observation kind of the env's registry (``envs.coverage.observations.OBSERVATIONS``):
     ``thesis`` (13 numbers) or ``teammap`` (images of the team's knowledge)."""
-    crop: PositiveInt = 15
+    crop: Annotated[int, Field(ge=1, le=MAX_IMAGE_SIDE)] = 15
     """``teammap``: side of the local crop (odd)."""
-    global_size: PositiveInt = 13
+    global_size: Annotated[int, Field(ge=1, le=MAX_IMAGE_SIDE)] = 13
     """``teammap``: blocks per side of the pooled whole-map view."""
     coords: Literal["normalized", "raw"] = "normalized"
     rewards: RewardsConfig = RewardsConfig()
@@ -201,7 +214,15 @@ class EnvConfig(_Section):
         env = coverage_v0.parallel_env(**self.kwargs())
         if self.map == "random" or isinstance(self.map, dict):
             for seed in range(3):
-                env.reset(seed=seed)
+                try:
+                    env.reset(seed=seed)
+                except ValueError:
+                    raise
+                except Exception as exc:  # a generator that cannot draw this size at all
+                    raise ValueError(
+                        f"cannot draw a {self.height}x{self.width} map from {self.map!r} "
+                        f"({type(exc).__name__}: {exc})"
+                    ) from None
         return self
 
     def kwargs(self) -> dict[str, Any]:
@@ -233,7 +254,7 @@ class AlgoConfig(_Section):
     dueling_aggregator: Literal["mean", "max"] = "mean"
     double_q: bool = True
     gamma: Annotated[float, Field(gt=0.0, le=1.0)] = 0.99
-    buffer_size: PositiveInt = 100_000
+    buffer_size: Annotated[int, Field(ge=1, le=MAX_BUFFER_SIZE)] = 100_000
     learning_starts: NonNegativeInt = 1_000
     target_update_interval: PositiveInt = 10_000
     optimizer: str = "RMSprop"
@@ -242,7 +263,7 @@ class AlgoConfig(_Section):
     prioritized: bool = True
     per_eps: PositiveFloat = 1e-6
     device: str = "auto"
-    threads: PositiveInt | None = None
+    threads: Annotated[int, Field(ge=1, le=MAX_THREADS)] | None = None
     """torch CPU threads (``torch.set_num_threads``); ``null`` keeps torch's default (one per
     core). On a 2-core machine 2 threads train the 3x512 net ~20 % faster than 1 (harness bench)."""
 
@@ -417,6 +438,18 @@ class ExperimentConfig(_Section):
             )
         return self
 
+    @model_validator(mode="after")
+    def _batch_fits_buffer(self) -> ExperimentConfig:
+        # A batch is drawn from the buffer: a larger one only repeats transitions, and a huge one
+        # fails allocating its arrays at the first gradient step.
+        for phase in self.phases:
+            if phase.batch_size > self.algo.buffer_size:
+                raise ValueError(
+                    f"phases.{phase.name}.batch_size: {phase.batch_size:,} is larger than "
+                    f"algo.buffer_size ({self.algo.buffer_size:,})"
+                )
+        return self
+
     @field_validator("phases")
     @classmethod
     def _phases(cls, v: list[PhaseConfig]) -> list[PhaseConfig]:
@@ -464,6 +497,8 @@ def parse_override(text: str) -> tuple[list[str], Any]:
         value = yaml.safe_load(raw) if raw.strip() else None
     except RecursionError:
         raise ConfigError(f"--set {text[:40]!r}...: value nested too deeply") from None
+    except ValueError as exc:  # e.g. an integer of more digits than Python converts
+        raise ConfigError(f"--set {text[:40]!r}: {str(exc).split(';')[0][:120]}") from None
     except yaml.YAMLError:
         value = raw  # not YAML: keep the text; the schema decides whether a string fits
     if isinstance(value, str):
@@ -543,6 +578,8 @@ def parse_yaml(text: str, source: str) -> Any:
         raise ConfigError(f"{source}: {where}invalid YAML ({problem})") from None
     except RecursionError:
         raise ConfigError(f"{source}: invalid YAML (nested too deeply)") from None
+    except ValueError as exc:  # e.g. an integer of more digits than Python converts
+        raise ConfigError(f"{source}: invalid YAML ({str(exc).split(';')[0][:120]})") from None
 
 
 def load_config(path: str | Path, overrides: Sequence[str] = ()) -> ExperimentConfig:
@@ -553,12 +590,15 @@ def load_config(path: str | Path, overrides: Sequence[str] = ()) -> ExperimentCo
     """
     path = Path(path)
     try:
-        if path.is_file() and path.stat().st_size > MAX_CONFIG_BYTES:
+        # Read at most one byte past the limit: /dev/zero or a pipe never ends, and a size from
+        # stat() says nothing about them.
+        with path.open("rb") as f:
+            data = f.read(MAX_CONFIG_BYTES + 1)
+        if len(data) > MAX_CONFIG_BYTES:
             raise ConfigError(
-                f"{path}: {path.stat().st_size:,} bytes is too large for a config file "
-                f"(at most {MAX_CONFIG_BYTES:,})"
+                f"{path}: more than {MAX_CONFIG_BYTES:,} bytes is too large for a config file"
             )
-        text = path.read_text(encoding="utf-8")
+        text = data.decode("utf-8")
     except FileNotFoundError:
         raise ConfigError(f"{path}: config file not found") from None
     except (OSError, UnicodeDecodeError) as exc:

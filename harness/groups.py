@@ -32,6 +32,10 @@ class GroupError(ValueError):
     """A seed list or group folder that cannot be used, with a one-line message."""
 
 
+#: Most runs in a seed group (``--seeds N``): far more than any comparison needs.
+MAX_GROUP_RUNS = 1_000
+
+
 def parse_seeds(text: str, max_seed: int) -> list[int]:
     """``"0,1,2"`` → ``[0, 1, 2]``; a single number ``"3"`` means three seeds, ``0, 1, 2``.
 
@@ -43,6 +47,8 @@ def parse_seeds(text: str, max_seed: int) -> list[int]:
         numbers = [int(p) for p in parts]
     except ValueError:
         raise GroupError(f"--seeds {text!r}: expected a count (3) or a list (0,1,2)") from None
+    if len(numbers) == 1 and numbers[0] > MAX_GROUP_RUNS:
+        raise GroupError(f"--seeds {text!r}: at most {MAX_GROUP_RUNS:,} runs in a group")
     seeds = list(range(numbers[0])) if len(numbers) == 1 else numbers
     if not seeds:
         raise GroupError(f"--seeds {text!r}: needs at least one seed")

@@ -3,8 +3,10 @@ no traceback, and no file created, changed or deleted.
 
 Each case is a row of :data:`CASES`: the ``harness`` arguments (``{cfg}``, ``{run}``, ... are
 filled in with paths in a scratch folder), files to write there first, and a fragment the
-one-line message must contain. The scratch folder holds a tiny valid config, a run folder with an
-untrained model of that config, and a finished-looking run folder for ``compare``.
+one-line message must contain (the same placeholders allowed). The scratch folder holds a tiny
+valid config, a run folder with an untrained model of that config, and a finished-looking run
+folder for ``compare``; every file under it and under ``runs/reference`` keeps its content and
+modification time.
 """
 
 from __future__ import annotations
@@ -31,6 +33,11 @@ EPISODES = (
 )
 
 
+#: An integer of more digits than Python converts from text (its default limit is 4300).
+HUGE_INT = "9" * 5000
+TEAMMAP = ["--set", "env.observation=teammap", "--set", "algo.policy=TeamMapPolicy"]
+
+
 def cfg(extra: str) -> dict[str, str]:
     """Files for a config case: the good config plus ``extra`` YAML lines."""
     return {"bad.yaml": GOOD + extra}
@@ -51,6 +58,37 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], str]] = [
      "cannot read config"),
     ("unknown-key", ["run", "{tmp}/bad.yaml"], cfg("extra_section: 1\n"),
      "extra_section: Extra inputs are not permitted"),
+    ("unclosed-yaml", ["run", "{tmp}/bad.yaml"], {"bad.yaml": "env: {n_agents: 2\n"},
+     "invalid YAML"),
+    ("top-level-list", ["run", "{tmp}/bad.yaml"], {"bad.yaml": "- 1\n- 2\n"},
+     "the top level must be a mapping"),
+    ("config-endless-stream", ["run", "/dev/zero"], {}, "/dev/zero: more than 1,048,576 bytes"),
+    ("yaml-int-too-long", ["run", "{tmp}/bad.yaml"], cfg(f"seed: {HUGE_INT}\n"),
+     "invalid YAML (Exceeds the limit (4300 digits)"),
+    ("override-int-too-long", ["run", "{cfg}", "--set", f"seed={HUGE_INT}"], {},
+     "Exceeds the limit (4300 digits)"),
+    ("unknown-policy", ["run", "{cfg}", "--set", "algo.policy=CnnPolicy"], {},
+     "algo.policy: unknown policy 'CnnPolicy'"),
+    ("epochs-not-increasing", ["run", "{cfg}", "--set", "phases.only.epochs=[[0.5, 1], [0.1, 2]]"],
+     {}, "thresholds must be strictly increasing"),
+    ("seeds-too-close", ["run", "{cfg}", "--set", "eval.seed=5",
+                         "--set", "eval.validation_seed=50"], {},
+     "validation_seed must be at least 100000 away from seed"),
+    ("map-file-missing", ["run", "{cfg}", "--set", "env.map=nowhere.txt"], {},
+     "env.map: 'nowhere.txt' is not 'random'"),
+    ("n-agents-zero", ["run", "{cfg}", "--set", "env.n_agents=0"], {},
+     "env.n_agents: Input should be greater"),
+    # ---- NaN and infinity: the schema takes no non-finite number anywhere
+    ("learning-rate-inf", ["run", "{cfg}", "--set", "phases.only.learning_rate=inf"], {},
+     "phases.0.learning_rate"),
+    ("reward-nan", ["run", "{cfg}", "--set", "env.rewards.new_cell=nan"], {},
+     "env.rewards.new_cell: Input should be a finite number"),
+    ("per-eps-inf", ["run", "{cfg}", "--set", "algo.per_eps=inf"], {},
+     "algo.per_eps: Input should be a finite number"),
+    ("temperature-inf", ["run", "{cfg}", "--set", "eval.temperature=inf"], {},
+     "eval.temperature: Input should be a finite number"),
+    ("eval-temperature-inf", ["eval", "{run}", "--set", "eval.temperature=inf"], {},
+     "eval.temperature: Input should be a finite number"),
     ("optimizer-lbfgs", ["run", "{cfg}", "--set", "algo.optimizer=LBFGS"], {},
      "algo.optimizer: torch.optim.LBFGS cannot train"),
     ("optimizer-sparseadam", ["run", "{cfg}", "--set", "algo.optimizer=SparseAdam"], {},
@@ -63,18 +101,56 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], str]] = [
      {}, "algo.optimizer_kwargs: RMSprop does not take"),
     ("optimizer-kwargs-negative-lr", ["run", "{cfg}", "--set", "algo.optimizer_kwargs={{lr: -1}}"],
      {}, "algo.optimizer_kwargs"),
+    ("optimizer-kwargs-lr", ["run", "{cfg}", "--set", "algo.optimizer_kwargs={{lr: 0.1}}"], {},
+     "algo.optimizer_kwargs: lr is set by each phase's learning_rate"),
+    ("optimizer-capturable-on-cpu", ["run", "{cfg}", "--set", "algo.optimizer=Adam",
+                                     "--set", "algo.optimizer_kwargs={{capturable: true}}",
+                                     "--set", "algo.device=cpu"], {},
+     "algo.optimizer: torch.optim.Adam cannot train"),
+    ("optimizer-differentiable", ["run", "{cfg}", "--set", "algo.optimizer=Adam",
+                                  "--set", "algo.optimizer_kwargs={{differentiable: true}}"], {},
+     "algo.optimizer: torch.optim.Adam cannot train"),
     ("device-meta", ["run", "{cfg}", "--set", "algo.device=meta"], {},
      "algo.device: cannot train on 'meta'"),
     ("device-unknown", ["run", "{cfg}", "--set", "algo.device=gpu9"], {},
      "algo.device: unknown device 'gpu9'"),
     ("buffer-too-large", ["run", "{cfg}", "--set", "algo.buffer_size=1000000000000"], {},
      "algo.buffer_size: a replay buffer of 1,000,000,000,000 transitions needs"),
+    ("buffer-size-astronomical", ["run", "{cfg}", "--set", "algo.buffer_size=" + "9" * 40], {},
+     "algo.buffer_size: Input should be less than or equal to 1099511627776"),
+    ("batch-larger-than-buffer", ["run", "{cfg}", "--set", "phases.only.batch_size=1000000000000"],
+     {}, "phases.only.batch_size: 1,000,000,000,000 is larger than algo.buffer_size (1,000)"),
+    ("network-too-large", ["run", "{cfg}", "--set", "algo.net_arch=[1000000, 1000000]"], {},
+     "algo.net_arch: a policy of 2,000,040,000,010 weights (online and target network) needs"),
+    ("teammap-network-too-large", ["run", "{cfg}", *TEAMMAP, "--set",
+                                   "algo.features_dim=1000000000"], {},
+     "algo.net_arch, algo.features_dim, algo.cnn_channels: a policy of"),
+    ("teammap-crop-huge", ["run", "{cfg}", *TEAMMAP, "--set", "env.crop=99999"], {},
+     "env.crop: Input should be less than or equal to 2000"),
+    ("teammap-global-size-huge", ["run", "{cfg}", *TEAMMAP, "--set", "env.global_size=99999"],
+     {}, "env.global_size: Input should be less than or equal to 2000"),
+    ("threads-huge", ["run", "{cfg}", "--set", "algo.threads=100000"], {},
+     "algo.threads: Input should be less than or equal to 256"),
+    ("map-share-out-of-range", ["run", "{cfg}", "--set", "env.map={{cave: {{rock_share: 2}}}}"],
+     {}, "env.map: cave: rock_share must be a number in [0, 1], got 2"),
+    ("map-share-nan", ["run", "{cfg}", "--set", "env.map={{cave: {{rock_share: .nan}}}}"], {},
+     "rock_share must be a number in [0, 1], got nan"),
+    ("map-share-negative", ["run", "{cfg}", "--set", "env.map={{maze: {{node_share: -1}}}}"],
+     {}, "maze: node_share must be a number in [0, 1]"),
+    ("map-passes-huge", ["run", "{cfg}", "--set", "env.map={{cave: {{iterations: 100000000}}}}"],
+     {}, "cave: iterations must be an integer in [0, 100]"),
+    ("map-in-mix-bad", ["run", "{cfg}", "--set",
+                        "env.map={{mix: [{{weight: 1, maze: {{n_chambers: 100000000}}}}]}}"], {},
+     "maze: n_chambers must be an integer in [0, 10,000]"),
     ("map-too-large", ["run", "{cfg}", "--set", "env.height=100000", "--set", "env.width=100000"],
      {}, "more than the 4,000,000 this harness handles"),
     ("map-too-walled", ["run", "{cfg}", "--set", "env.height=3", "--set", "env.width=3",
                         "--set", "env.wall_fraction=[0.9, 0.95]"], {}, "could not draw a 3x3 map"),
     ("map-too-small", ["run", "{cfg}", "--set", "env.height=1", "--set", "env.width=1"], {},
      "n_agents=2 is more than the 1x1 map's cells"),
+    ("maze-too-small", ["run", "{cfg}", "--set", "env.map={{maze: {{}}}}",
+                        "--set", "env.height=1", "--set", "env.width=2"], {},
+     "env: a maze needs at least 3x3 cells, got 1x2"),
     ("config-seed-negative", ["run", "{cfg}", "--set", "seed=-1"], {},
      "seed: Input should be greater than or equal to 0"),
     ("config-seed-huge", ["run", "{cfg}", "--set", "seed=1099511627776"], {},
@@ -85,6 +161,12 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], str]] = [
      "eval.validation_seed: Input should be greater than or equal to 0"),
     ("run-seed-negative", ["run", "{cfg}", "--seed", "-1"], {}, "argument --seed"),
     ("run-seed-text", ["run", "{cfg}", "--seed", "x"], {}, "argument --seed"),
+    ("seeds-negative", ["run", "{cfg}", "--seeds", "-1"], {}, "needs at least one seed"),
+    ("seeds-twice", ["run", "{cfg}", "--seeds", "0,0"], {}, "a seed is given twice"),
+    ("seeds-count-huge", ["run", "{cfg}", "--seeds", "99999999999999999999"], {},
+     "at most 1,000 runs in a group"),
+    ("seeds-out-of-range", ["run", "{cfg}", "--seeds", "1,2147483648"], {},
+     "seeds must be in [0, 2147483647]"),
     ("name-trailing-newline", ["run", "{cfg}", "--name", "ok\n"], {}, "name: must be 1-64"),
     ("name-traversal", ["run", "{cfg}", "--name", "../up"], {}, "name: must be 1-64"),
     ("override-nested", ["run", "{cfg}", "--set", "seed=" + "[" * 5000], {},
@@ -104,15 +186,33 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], str]] = [
     ("eval-other-algorithm", ["eval", "{tmp}/ppo/model.zip"], {}, "cannot load model"),
     ("eval-other-spaces", ["eval", "{tmp}/cartpole/model.zip"], {},
      "observation space Box"),
+    ("eval-no-target", ["eval"], {}, "give a run folder or model zip"),
+    ("eval-policy-no-config", ["eval", "--policy", "random"], {}, "needs --config"),
+    ("eval-no-model-yet", ["eval", "{tmp}/nomodel"], {"nomodel/config.yaml": GOOD},
+     "no model.zip yet"),
+    ("eval-garbage-zip", ["eval", "{tmp}/trunc/model.zip"], {"trunc/model.zip": b"garbage"},
+     "cannot load model"),
+    ("eval-plot-over-model", ["eval", "{run}", "--plot", "{run}/model.zip"], {},
+     "--plot {run}/model.zip: expected a .png file name"),
+    ("eval-plot-over-config", ["eval", "{run}", "--plot", "{run}/config.yaml"], {},
+     "expected a .png file name"),
     ("eval-plot-under-file", ["eval", "{run}", "--plot", "{tmp}/afile/p.png"], {"afile": "x"},
      "is a file, not a folder"),
     ("eval-plot-read-only", ["eval", "{run}", "--plot", "/proc/p.png"], {}, "cannot write in"),
-    ("eval-plot-is-folder", ["eval", "{run}", "--plot", "{tmp}"], {}, "is a folder"),
+    ("eval-plot-is-folder", ["eval", "{run}", "--plot", "{tmp}/d.png"], {"d.png/.keep": ""},
+     "is a folder"),
     ("eval-policy-unknown", ["eval", "--policy", "greedy", "--config", "{cfg}"], {},
      "unknown policy 'greedy'"),
     ("render-out-under-file", ["render", "{run}", "--out", "{tmp}/afile/x.png"], {"afile": "x"},
      "is a file, not a folder"),
-    ("render-gif-is-folder", ["render", "{run}", "--gif", "{tmp}"], {}, "--gif"),
+    ("render-gif-is-folder", ["render", "{run}", "--gif", "{tmp}/d.gif"], {"d.gif/.keep": ""},
+     "--gif {tmp}/d.gif: is a folder"),
+    ("render-out-over-config", ["render", "{run}", "--out", "{run}/config.yaml"], {},
+     "--out {run}/config.yaml: expected a .png file name"),
+    ("render-gif-named-png", ["render", "{run}", "--gif", "{tmp}/x.png"], {},
+     "--gif {tmp}/x.png: expected a .gif file name"),
+    ("render-config-missing", ["render", "--policy", "random", "--config", "{tmp}/nope.yaml"], {},
+     "config file not found"),
     ("render-every-zero", ["render", "{run}", "--every", "0"], {}, "argument --every"),
     ("render-seed-huge", ["render", "{run}", "--seed", "4294967296"], {}, "argument --seed"),
     ("export-under-file", ["export", "{run}", "--out", "{tmp}/afile/ref"], {"afile": "x"},
@@ -123,6 +223,9 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], str]] = [
     ("tune-inf", ["tune", "{run}", "--temperatures", "0.5", "inf"], {}, "finite and > 0"),
     ("tune-negative", ["tune", "{run}", "--temperatures", "-1"], {}, "finite and > 0"),
     ("tune-seed-negative", ["tune", "{run}", "--seed", "-1"], {}, "argument --seed"),
+    ("tune-temperature-zero", ["tune", "{run}", "--temperatures", "0"], {}, "finite and > 0"),
+    ("tune-write-with-set", ["tune", "{run}", "--write", "--set", "env.max_steps=20"], {},
+     "--write stores a choice"),
     ("tune-write-reference", ["tune", "{ref}", "--write", "--episodes", "1"], {},
      "a reference is read-only"),
     # ---- compare
@@ -147,6 +250,10 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], str]] = [
     ("compare-json-wrong-type", ["compare", "{tmp}/c"],
      {"c/episodes.csv": EPISODES, "c/eval.json": '{"coverage_median": "high"}'},
      "coverage_median must be a number"),
+    ("compare-out-over-episodes", ["compare", "{done}", "--out", "{done}/episodes.csv"], {},
+     "--out {done}/episodes.csv: expected a .png file name"),
+    ("compare-labels-count", ["compare", "{done}", "{done}", "--labels", "x"], {},
+     "--labels needs one label per run (2)"),
     ("compare-out-under-file", ["compare", "{done}", "--out", "{tmp}/afile/c.png"],
      {"afile": "x"}, "is a file, not a folder"),
     ("compare-bad-evaluations", ["compare", "{tmp}/c"],
@@ -163,13 +270,15 @@ if not torch.cuda.is_available():
 
 
 def snapshot(folder: Path) -> dict[str, str]:
-    """Every file and folder under ``folder``, with a hash of each file's content."""
+    """Every file and folder under ``folder``, with each file's modification time and a hash of
+    its content."""
     out = {}
     for p in sorted(folder.rglob("*")):
         if p.is_symlink():
             out[str(p.relative_to(folder))] = f"link:{os.readlink(p)}"
         elif p.is_file():
-            out[str(p.relative_to(folder))] = hashlib.sha256(p.read_bytes()).hexdigest()
+            digest = hashlib.sha256(p.read_bytes()).hexdigest()
+            out[str(p.relative_to(folder))] = f"{p.stat().st_mtime_ns}:{digest}"
         else:
             out[str(p.relative_to(folder))] = "dir"
     return out
@@ -249,6 +358,8 @@ def test_bad_input_is_one_line_exit_2_and_changes_nothing(
     lines = captured.err.strip().splitlines()
     assert len(lines) == 1, lines
     assert lines[0].startswith("harness: error:"), lines
+    for key, value in values.items():  # messages may name the scratch paths
+        message = message.replace("{" + key + "}", value)
     assert message in lines[0], lines[0]
     assert "Traceback" not in captured.err + captured.out
     assert snapshot(tmp) == before
@@ -261,8 +372,10 @@ def test_bad_input_is_one_line_exit_2_and_changes_nothing(
         (["run", "{cfg}", "--set", "algo.optimizer=LBFGS"], "cannot train"),
         (["eval", "{tmp}/trunc/model.zip"], "cannot load model"),
         (["compare", "{tmp}/c"], "not a run folder"),
+        (["run", "/dev/zero"], "too large for a config file"),
+        (["run", "{cfg}", "--set", "algo.net_arch=[1000000, 1000000]"], "algo.net_arch: a policy"),
     ],
-    ids=["config", "model", "compare"],
+    ids=["config", "model", "compare", "endless-config", "network-too-large"],
 )
 def test_the_console_script_shows_no_traceback(scratch, args, message):
     values = {k: str(v) for k, v in scratch.items()}
@@ -278,3 +391,27 @@ def test_the_console_script_shows_no_traceback(scratch, args, message):
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and message in lines[0], proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+@pytest.mark.parametrize(
+    ("policy", "weights"),
+    [
+        # 13 observation numbers, one hidden layer of 8, 5 actions; online + target network:
+        # 2 * ((13 + 1) * 8 + (8 + 1) * 5) = 2 * (112 + 45)
+        ("MlpPolicy", 314),
+        # dueling: a value stream 13 -> 8 -> 1 and an advantage stream 13 -> 8 -> 5:
+        # 2 * ((112 + 9) + (112 + 45))
+        ("DuelingMlpPolicy", 556),
+    ],
+)
+def test_the_memory_check_counts_the_networks_weights(policy, weights):
+    import yaml
+
+    from harness.checks import check_network_memory, network_parameters
+    from harness.config import config_from_dict
+
+    config = config_from_dict(yaml.safe_load(GOOD), overrides=[f"algo.policy={policy}"])
+    assert network_parameters(config) == weights
+    assert check_network_memory(config, available=8 * weights) == 8 * weights  # 4 bytes, twice
+    with pytest.raises(ValueError, match=f"algo.net_arch: a policy of {weights} weights"):
+        check_network_memory(config, available=8 * weights - 1)

@@ -148,12 +148,33 @@ _PARAMETERS: dict[str, tuple[str, ...]] = {
 }
 
 
+#: Allowed values of the shape parameters: shares and chances are fractions; counts are bounded
+#: so that a typo cannot make every reset take minutes (a pass or a chamber costs a map's time).
+_COUNT_LIMITS: dict[str, int] = {"iterations": 100, "min_region": 1_000_000, "n_chambers": 10_000}
+
+
+def _check_parameter(kind: str, name: str, value: Any) -> None:
+    """A shape parameter's value: ``*_share``/``*_prob`` in [0, 1], counts in [0, limit].
+
+    Raises:
+        ValueError: naming the kind, the parameter and the allowed range.
+    """
+    if name in _COUNT_LIMITS:
+        limit = _COUNT_LIMITS[name]
+        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= limit:
+            raise ValueError(f"{kind}: {name} must be an integer in [0, {limit:,}], got {value!r}")
+    elif name.endswith(("_share", "_prob")):
+        ok = isinstance(value, int | float) and not isinstance(value, bool)
+        if not ok or not 0.0 <= value <= 1.0:  # also refuses NaN
+            raise ValueError(f"{kind}: {name} must be a number in [0, 1], got {value!r}")
+
+
 def from_spec(spec: Mapping[str, Any], height: int, width: int) -> MapGenerator:
     """A generator from a config mapping: ``{cave: {rock_share: 0.45}}``, ``{random: {}}`` or
     ``{mix: [{weight: 2, random: {}}, {weight: 1, maze: {n_chambers: 6}}]}``.
 
     Raises:
-        ValueError: naming the unknown kind or parameter.
+        ValueError: naming the unknown kind or parameter, or a parameter out of its range.
     """
     if not isinstance(spec, Mapping) or len(spec) != 1:
         shown = dict(spec) if isinstance(spec, Mapping) else spec
@@ -183,4 +204,6 @@ def from_spec(spec: Mapping[str, Any], height: int, width: int) -> MapGenerator:
             f"{kind}: unknown parameter(s) {', '.join(sorted(unknown))}; "
             f"known: {', '.join(_PARAMETERS[kind])}"
         )
+    for name, value in params.items():
+        _check_parameter(kind, name, value)
     return GENERATORS[kind](height, width, **params)

@@ -62,6 +62,8 @@ def generate_maze(
         n_chambers: Number of small chambers opened along the passages.
         loop_prob: Chance per lattice edge of an extra opening, so a few passages form loops.
     """
+    if height < 3 or width < 3:
+        raise ValueError(f"a maze needs at least 3x3 cells, got {height}x{width}")
     rng = np.random.default_rng(seed)
     rock = np.ones((height, width), dtype=bool)
     # Passage lattice: node (i, j) is cell (1 + 2i, 1 + 2j); the cell between two neighbouring

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -56,6 +58,7 @@ def test_bad_seed_lists_are_errors(text):
         parse_seeds(text, 100)
 
 
+@pytest.mark.slow
 def test_seed_group_trains_evaluates_and_compares(tiny, tmp_path, capsys):
     runs = tmp_path / "runs"
     args = ["run", str(tiny), "--seeds", "2", "--jobs", "2", "--runs-dir", str(runs)]
@@ -352,7 +355,11 @@ def test_two_workers_share_one_postgresql_study(tiny, tmp_path):
     import optuna
     import pgserver
 
-    server = pgserver.get_server(str(tmp_path / "pg"), cleanup_mode="stop")
+    # Not under pytest's temporary folder: run as root, pgserver starts PostgreSQL as another
+    # user, who must traverse the data folder's parents, and any pytest that starts meanwhile
+    # (other sessions on the machine) makes /tmp/pytest-of-<user> private again.
+    data = Path(tempfile.mkdtemp(prefix="harness-pg-"))
+    server = pgserver.get_server(str(data / "pg"), cleanup_mode="stop")
     try:
         server.psql("CREATE DATABASE sweeps;")
         socket_dir = server.get_uri().split("host=")[1]
@@ -381,6 +388,7 @@ def test_two_workers_share_one_postgresql_study(tiny, tmp_path):
         assert load_config(folder / "best.yaml").name == "tiny"
     finally:
         server.cleanup()
+        shutil.rmtree(data, ignore_errors=True)
 
 
 def test_load_space_reads_every_kind(tmp_path):

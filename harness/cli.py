@@ -39,7 +39,8 @@ from harness.rundir import (
     RunDirError,
     check_output_file,
 )
-from harness.sweep import SweepError
+from harness.stats import REPS
+from harness.sweep import PRUNERS, SweepError
 
 EXIT_USAGE = 2
 
@@ -226,6 +227,12 @@ def _add_compare_parser(sub: Any) -> None:
         metavar="LABEL",
         help="one legend label per run (default: each run's config name; equal labels group)",
     )
+    cmp_.add_argument(
+        "--reps",
+        type=positive_int,
+        default=REPS,
+        help=f"bootstrap resamples of the 95 %% intervals over seeds (rliable; default {REPS})",
+    )
 
 
 def _add_render_parser(sub: Any) -> None:
@@ -258,7 +265,21 @@ def _add_sweep_parser(sub: Any) -> None:
         "(default: a journal file in the sweep folder)",
     )
     sw.add_argument("--resume", action="store_true", help="continue a killed sweep of this study")
-    sw.add_argument("--pruner", choices=["median", "none"], default="median")
+    sw.add_argument(
+        "--pruner",
+        choices=PRUNERS,
+        default="median",
+        help="Optuna pruner that stops weak trials at their evaluations (default: median)",
+    )
+    sw.add_argument(
+        "--jobs",
+        type=positive_int,
+        default=1,
+        help="worker processes on this machine, each on its share of the cores",
+    )
+    # A worker process started by --jobs: it joins the study as it is and leaves the rest to its
+    # parent (refusing an existing study, failing dead trials, writing the best).
+    sw.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     sw.add_argument(
         "--sweeps-dir", type=Path, default=Path("runs/sweeps"), help="where sweep folders go"
     )
@@ -478,7 +499,7 @@ def cmd_compare(args: argparse.Namespace) -> int:
         raise HarnessError(f"--labels needs one label per run ({len(args.runs)})")
     check_image_output(args.out, "--out")
     labels = args.labels or [None] * len(args.runs)
-    result = compare(args.runs, labels, Path(args.out), args.window)
+    result = compare(args.runs, labels, Path(args.out), args.window, args.reps)
     print(f"{'experiment':<20}{'run':<40}{'median':>8}{'IQR':>8}{'wall hits':>11}")
     for label, name, ev in result.rows:
         if ev is None:
@@ -526,19 +547,29 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 def cmd_sweep(args: argparse.Namespace) -> int:
     from harness.sweep import format_best, run_sweep  # Optuna: only here
+    from harness.train import TrainingInterrupted
 
     study = args.study or load_config(args.config, args.overrides).name
-    result = run_sweep(
-        args.config,
-        args.overrides,
-        args.space,
-        args.trials,
-        study,
-        args.sweeps_dir,
-        storage_url=args.storage,
-        resume=args.resume,
-        pruner=args.pruner,
-    )
+    try:
+        result = run_sweep(
+            args.config,
+            args.overrides,
+            args.space,
+            args.trials,
+            study,
+            args.sweeps_dir,
+            storage_url=args.storage,
+            resume=args.resume,
+            pruner=args.pruner,
+            jobs=args.jobs,
+            worker=args.worker,
+        )
+    except (KeyboardInterrupt, TrainingInterrupted):  # the trial under way is marked failed
+        print("harness: sweep stopped; continue it with the same command and --resume",
+              file=sys.stderr)  # fmt: skip
+        return 130
+    if args.worker:
+        return 0
     print(format_best(result))
     if result is not None:
         print(f"saved {args.sweeps_dir / study / 'best.yaml'}", file=sys.stderr)

@@ -203,8 +203,8 @@ def format_summary(summary: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
-#: Numbers of ``eval.json`` that ``harness compare`` prints.
-COMPARE_KEYS = ("coverage_median", "coverage_iqr", "wall_hits_mean")
+#: Numbers of ``eval.json`` that ``harness compare`` reads.
+COMPARE_KEYS = ("coverage_median", "coverage_iqr", "coverage_mean", "wall_hits_mean")
 
 
 def read_eval_json(run: Path) -> dict[str, Any] | None:
@@ -549,11 +549,15 @@ class Comparison:
 
 
 def compare(
-    items: Sequence[Path], labels: Sequence[str | None], out: Path, window: int
+    items: Sequence[Path],
+    labels: Sequence[str | None],
+    out: Path,
+    window: int,
+    reps: int,
 ) -> Comparison:
     """``harness compare``'s work: learning curves of runs and seed groups, each run's test
     numbers, and over the seeds of each group the mean and IQM with 95 % bootstrap intervals and
-    the probability of improvement (rliable)."""
+    the probability of improvement (rliable, ``reps`` bootstrap resamples)."""
     from harness.groups import group_runs, is_group
     from harness.plots import plot_learning_curves
 
@@ -572,18 +576,22 @@ def compare(
             rows.append((label, run.name, read_eval_json(run)))
     title = "team coverage of the training episodes"
     saved = [plot_learning_curves(curves, out, title, window=window, evaluations=evaluations)]
-    over_seeds, more = _over_seeds(rows, evaluations, Path(out))
+    over_seeds, more = _over_seeds(rows, evaluations, Path(out), reps)
     return Comparison(rows, over_seeds, saved + more)
 
 
 def _over_seeds(
-    rows: list[tuple[str, str, dict[str, Any] | None]], evaluations: dict[str, list[Any]], out: Path
+    rows: list[tuple[str, str, dict[str, Any] | None]],
+    evaluations: dict[str, list[Any]],
+    out: Path,
+    reps: int,
 ) -> tuple[str, list[Path]]:
     """The over-seeds part of ``compare``: a Markdown table, P(X > Y) per pair, two PNGs."""
     from harness.stats import (
         markdown_table,
         percent,
         plot_curves_with_ci,
+        plot_improvement,
         plot_intervals,
         probability_of_improvement,
         seed_statistics,
@@ -597,23 +605,29 @@ def _over_seeds(
             hits.setdefault(label, []).append(float(ev["wall_hits_mean"]))
     if not scores:
         return "", []
-    stats = seed_statistics(scores)
+    stats = seed_statistics(scores, reps)
     lines = [
         "Over seeds: test coverage (each seed's mean over its eval.json episodes)",
         "",
         markdown_table(stats, {k: sum(v) / len(v) for k, v in hits.items()}),
     ]
     names = list(scores)
+    pairs = {}
     for i, x in enumerate(names):
         for y in names[i + 1 :]:
-            p, ci = probability_of_improvement(scores[x], scores[y])
+            p, ci = probability_of_improvement(scores[x], scores[y], reps)
             where = (
                 "no interval: a group has 1 seed"
                 if ci is None
                 else f"95 % CI [{percent(ci[0])}, {percent(ci[1])}]"
             )
             lines += ["", f"P({x} > {y}) = {percent(p)} ({where})"]
+            if ci is not None:
+                pairs[x, y] = (p, ci)
     saved = [plot_intervals(stats, out.with_name(f"{out.stem}-intervals.png"))]
+    if pairs:
+        saved.append(plot_improvement(pairs, out.with_name(f"{out.stem}-improvement.png")))
     if evaluations:
-        saved.append(plot_curves_with_ci(evaluations, out.with_name(f"{out.stem}-curves-ci.png")))
+        curves_png = out.with_name(f"{out.stem}-curves-ci.png")
+        saved.append(plot_curves_with_ci(evaluations, curves_png, reps))
     return "\n".join(lines), saved

@@ -129,32 +129,59 @@ def markdown_table(stats: Mapping[str, SeedStats], wall_hits: Mapping[str, float
     return "\n".join(lines)
 
 
-def plot_intervals(stats: Mapping[str, SeedStats], out: Path) -> Path:
-    """rliable's interval plot of mean and IQM per group (groups with one seed drawn as points)."""
-    from matplotlib.figure import Figure
+def _label(name: str, seeds: int) -> str:
+    return f"{name} (1 seed: no interval)" if seeds == 1 else f"{name} ({seeds} seeds)"
 
-    names = list(stats)
-    fig = Figure(figsize=(8.0, 0.6 + 0.5 * len(names)), dpi=120)
-    axes = fig.subplots(1, 2, sharey=True)
-    for ax, title, value, ci in (
-        (axes[0], "mean", "mean", "mean_ci"),
-        (axes[1], "IQM", "iqm", "iqm_ci"),
-    ):
-        for row, name in enumerate(names):
-            s = stats[name]
-            centre = 100 * getattr(s, value)
-            interval = getattr(s, ci)
-            if interval is not None:
-                ax.barh(row, 100 * (interval[1] - interval[0]), left=100 * interval[0],
-                        height=0.6, alpha=0.5, color="#0072B2")  # fmt: skip
-            ax.plot([centre, centre], [row - 0.3, row + 0.3], color="black", lw=2)
-        ax.set_title(f"{title} test coverage (95 % CI)")
-        ax.set_xlabel("% of free cells")
-        ax.set_yticks(range(len(names)), names)
-        ax.grid(axis="x", alpha=0.3)
-    fig.tight_layout()
+
+def plot_intervals(stats: Mapping[str, SeedStats], out: Path) -> Path:
+    """rliable's interval plot (``plot_utils.plot_interval_estimates``) of mean and IQM test
+    coverage per group; a group of one seed is drawn as its point alone, labelled so."""
+    import matplotlib.pyplot as plt
+    from rliable import plot_utils
+
+    points, intervals = {}, {}
+    for name, s in stats.items():
+        label = _label(name, s.seeds)
+        points[label] = 100 * np.array([s.mean, s.iqm])
+        # Zero width for one seed: the bar vanishes and only the point is drawn.
+        mean_ci, iqm_ci = s.mean_ci or (s.mean, s.mean), s.iqm_ci or (s.iqm, s.iqm)
+        intervals[label] = 100 * np.array([[mean_ci[0], iqm_ci[0]], [mean_ci[1], iqm_ci[1]]])
+    fig, _ = plot_utils.plot_interval_estimates(
+        points,
+        intervals,
+        metric_names=["Mean", "IQM"],
+        xlabel="test coverage (% of free cells), 95 % stratified-bootstrap CIs",
+        subfigure_width=4.0,
+        row_height=0.6,
+    )
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out)
+    try:
+        fig.savefig(out, dpi=120, bbox_inches="tight")
+    finally:
+        plt.close(fig)  # rliable draws on pyplot figures; free them in long sessions
+    return out
+
+
+def plot_improvement(
+    pairs: Mapping[tuple[str, str], tuple[float, tuple[float, float]]], out: Path
+) -> Path:
+    """rliable's ``plot_utils.plot_probability_of_improvement`` of ``P(X > Y)`` per pair of
+    groups (pairs with an interval only)."""
+    from matplotlib.figure import Figure
+    from rliable import plot_utils
+
+    fig = Figure(figsize=(5.0, 0.8 + 0.6 * len(pairs)), dpi=120)
+    ax = fig.add_subplot()
+    plot_utils.plot_probability_of_improvement(
+        {f"{x};{y}": p for (x, y), (p, _) in pairs.items()},
+        {f"{x};{y}": np.array(ci) for (x, y), (_, ci) in pairs.items()},
+        pair_separator=";",
+        ax=ax,
+        left_ylabel="group X",
+        right_ylabel="group Y",
+    )
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, bbox_inches="tight")
     return out
 
 
@@ -193,23 +220,34 @@ def curve_with_ci(
 
 
 def plot_curves_with_ci(
-    groups: Mapping[str, Sequence[tuple[np.ndarray, np.ndarray]]], out: Path
+    groups: Mapping[str, Sequence[tuple[np.ndarray, np.ndarray]]], out: Path, reps: int = REPS
 ) -> Path:
-    """Validation coverage during training, IQM over seeds with 95 % bands, one line per group."""
+    """Validation coverage during training, IQM over seeds with 95 % bands, one line per group
+    (rliable's ``plot_utils.plot_sample_efficiency_curve``; one seed: its line, no band)."""
+    from matplotlib import colormaps
     from matplotlib.figure import Figure
+    from rliable import plot_utils
 
     fig = Figure(figsize=(7.0, 4.0), dpi=120)
     ax = fig.add_subplot()
+    colors = {name: colormaps["tab10"](i % 10) for i, name in enumerate(groups)}
     for name, curves in groups.items():
-        steps, iqm, band = curve_with_ci(curves)
+        steps, iqm, band = curve_with_ci(curves, reps)
         if not len(steps):
             continue
-        (line,) = ax.plot(steps, 100 * iqm, label=f"{name} ({len(curves)} seeds)")
-        if band is not None:
-            ax.fill_between(steps, 100 * band[0], 100 * band[1], alpha=0.25, color=line.get_color())
-    ax.set_xlabel("transitions")
-    ax.set_ylabel("validation coverage, IQM over seeds (%)")
-    ax.grid(alpha=0.3)
+        label = _label(name, len(curves))
+        # The groups evaluated at their own timesteps: one call per group on the same axes.
+        plot_utils.plot_sample_efficiency_curve(
+            steps,
+            {label: 100 * iqm},
+            {label: 100 * (band if band is not None else np.stack([iqm, iqm]))},
+            colors={label: colors[name]},
+            ax=ax,
+            xlabel="transitions",
+            ylabel="validation coverage, IQM (%)",
+            labelsize="medium",
+            ticklabelsize="medium",
+        )
     ax.legend(frameon=False)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)

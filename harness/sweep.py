@@ -12,21 +12,29 @@ Every key is checked against the config schema (both ends of a range, every choi
 trial starts. Each trial is an ordinary run folder, ``<sweeps-dir>/<study>/trial-<number>/``,
 trained with the sampled values as ``--set`` overrides. Its in-training evaluations on the
 *validation* episodes are reported to Optuna, whose pruner (median by default) may stop a weak
-trial early; the trial's value is the median validation coverage of a final evaluation. The test
-episodes are never used.
+trial early; the trial's value is the median validation coverage of the trained model (its last
+in-training evaluation when that was at the end, else one more evaluation). The test episodes
+are never used. A trial whose training fails (a non-finite loss) is marked failed and does not
+count.
 
 Storage: by default a journal file inside the sweep folder (``journal.log``), so one command works
 on a fresh machine; ``--storage URL`` takes any database Optuna supports (PostgreSQL for several
 machines: each runs the same command with the same ``--storage`` and ``--study``, Optuna hands
-out the trials, and the trial count is global). ``--resume`` continues a killed sweep; trials the
-dead process left running are marked failed. The best trial is written out as ``best.yaml`` (a
-config that ``harness run best.yaml`` trains) and ``best.json`` (its parameters and value).
+out the trials, and the trial count is global). ``--jobs N`` starts N worker processes on this
+machine, each with its share of the cores. ``--resume`` continues a killed sweep; trials the dead
+process left running are marked failed and queued again with the same parameters (Optuna's
+``RetryHeartbeatStaleTrialCallback``; with a database, a live worker does this by heartbeat). The
+best trial is written out as ``best.yaml`` (a config that ``harness run best.yaml`` trains) and
+``best.json`` (its parameters and value).
 """
 
 from __future__ import annotations
 
 import json
 import math
+import os
+import subprocess
+import sys
 import time
 import warnings
 from collections.abc import Sequence
@@ -41,7 +49,12 @@ from harness.rundir import RunDir, atomic_write_text
 
 #: Kinds of distribution a space file may name.
 KINDS = ("float", "int", "choice", "grid")
-PRUNERS = ("median", "none")
+#: ``--pruner`` names (rl-zoo3's, plus Hyperband).
+PRUNERS = ("median", "halving", "hyperband", "none")
+#: How often a trial that died (killed worker) is queued again before it stays failed.
+MAX_RETRY = 2
+#: Seconds between a trial's heartbeats in a database, and without one before it counts as dead.
+HEARTBEAT_S, GRACE_S = 30, 120
 
 
 class SweepError(ValueError):
@@ -156,9 +169,14 @@ def _storage(url: str | None, folder: Path) -> Any:
         try:
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
-                # A heartbeat lets fail_stale_trials (run by --resume) tell a dead worker's
-                # running trial from a live one.
-                return optuna.storages.RDBStorage(url, heartbeat_interval=30, grace_period=120)
+                # A heartbeat lets fail_stale_trials (run before each trial and by --resume) tell
+                # a dead worker's running trial from a live one; the dead one is queued again.
+                return optuna.storages.RDBStorage(
+                    url,
+                    heartbeat_interval=HEARTBEAT_S,
+                    grace_period=GRACE_S,
+                    heartbeat_stale_trial_callback=_retry_callback(),
+                )
         except Exception as exc:  # SQLAlchemy and drivers raise many kinds
             # Workers started together race to create the schema in an empty database; the
             # loser sees a duplicate type or table, and finds the schema there on a retry.
@@ -167,6 +185,28 @@ def _storage(url: str | None, folder: Path) -> Any:
     raise SweepError(
         f"--storage: cannot open {url!r} ({type(error).__name__}: {str(error).splitlines()[0]})"
     ) from None
+
+
+def _retry_callback() -> Any:
+    """Optuna's callback that queues a dead trial again (same parameters, same grid point)."""
+    import optuna
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+        return optuna.storages.RetryHeartbeatStaleTrialCallback(max_retry=MAX_RETRY)
+
+
+def make_pruner(name: str) -> Any:
+    """The Optuna pruner of a ``--pruner`` name; trials are compared at their evaluations."""
+    import optuna
+
+    if name == "median":  # the first two trials run to the end, as a baseline
+        return optuna.pruners.MedianPruner(n_startup_trials=2)
+    if name == "halving":
+        return optuna.pruners.SuccessiveHalvingPruner()
+    if name == "hyperband":
+        return optuna.pruners.HyperbandPruner()
+    return optuna.pruners.NopPruner()
 
 
 def run_sweep(
@@ -179,8 +219,14 @@ def run_sweep(
     storage_url: str | None = None,
     resume: bool = False,
     pruner: str = "median",
+    jobs: int = 1,
+    worker: bool = False,
 ) -> dict[str, Any] | None:
     """Run this worker's share of a sweep of ``trials`` trials in total, then write the best.
+
+    With ``jobs > 1``, the share is run by ``jobs`` worker processes (``harness sweep ...
+    --worker``), each with ``cores // jobs`` torch threads. A ``worker`` neither refuses an
+    existing study nor fails running trials (its siblings' are running), nor writes the best.
 
     Returns:
         ``best.json``'s content, or ``None`` when no trial has completed yet.
@@ -195,13 +241,19 @@ def run_sweep(
     dims = load_space(space_path)
     load_config(config_path, overrides)
     check_space(config_path, overrides, dims)
+    grid = all(d.kind == "grid" for d in dims)
+    points = math.prod(len(d.values) for d in dims)
+    if grid and trials > points:
+        raise SweepError(f"--trials {trials}: the grid of {space_path} has only {points}")
     folder = Path(sweeps_dir) / study_name
-    if storage_url is None and (folder / "journal.log").exists() and not resume:
+    exists = (folder / "journal.log").exists()
+    if storage_url is None and exists and not resume and not worker:
         raise SweepError(f"{folder}: a sweep of this study exists; add --resume to continue it")
     folder.mkdir(parents=True, exist_ok=True)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    grid = all(d.kind == "grid" for d in dims)
     sampler = (
+        # One fixed shuffle on every worker: trial k takes grid point k, so workers sharing a
+        # study never draw the same point (Optuna's advice for distributed grids).
         optuna.samplers.GridSampler({d.key: list(d.values) for d in dims}, seed=0)
         if grid
         else optuna.samplers.TPESampler(seed=None)
@@ -211,36 +263,87 @@ def run_sweep(
         storage=_storage(storage_url, folder),
         direction="maximize",
         sampler=sampler,
-        pruner=optuna.pruners.MedianPruner(n_startup_trials=2)
-        if pruner == "median"
-        else optuna.pruners.NopPruner(),
+        pruner=make_pruner(pruner),
         load_if_exists=True,
     )
-    if resume:
+    if resume and not worker:
         _fail_dead_trials(study, embedded=storage_url is None)
-    counted = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED)
-    left = trials - len(study.get_trials(deepcopy=False, states=counted))
-    if left > 0:
-        study.optimize(
-            lambda trial: _objective(trial, config_path, overrides, dims, folder, trials),
-            n_trials=left,
-            callbacks=[optuna.study.MaxTrialsCallback(trials, states=counted)],
-            catch=(StudyFull,),
-        )
-    return write_best(study, config_path, overrides, folder)
+    if jobs > 1:
+        _run_workers(jobs, folder, config_path, overrides, space_path, trials, study_name,
+                     sweeps_dir, storage_url, pruner)  # fmt: skip
+    else:
+        from harness.train import TrainingFailed
+
+        counted = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED)
+        left = trials - len(study.get_trials(deepcopy=False, states=counted))
+        if left > 0:
+            study.optimize(
+                lambda trial: _objective(trial, config_path, overrides, dims, folder, trials),
+                n_trials=left,
+                callbacks=[optuna.study.MaxTrialsCallback(trials, states=counted)],
+                catch=(StudyFull, TrainingFailed),
+            )
+    return None if worker else write_best(study, config_path, overrides, folder)
+
+
+def _run_workers(
+    jobs: int,
+    folder: Path,
+    config_path: Path,
+    overrides: Sequence[str],
+    space_path: Path,
+    trials: int,
+    study_name: str,
+    sweeps_dir: Path,
+    storage_url: str | None,
+    pruner: str,
+) -> None:
+    """``jobs`` worker processes on the study, each on its share of the cores; their output goes
+    to ``worker-<k>.log`` in the sweep folder.
+
+    Raises:
+        SweepError: when a worker failed (naming its log).
+    """
+    from harness.groups import threads_per_job
+
+    threads = threads_per_job(jobs)
+    cmd = [sys.executable, "-m", "harness.cli", "sweep", str(config_path), "--space",
+           str(space_path), "--trials", str(trials), "--study", study_name, "--sweeps-dir",
+           str(sweeps_dir), "--pruner", pruner, "--worker"]  # fmt: skip
+    if storage_url is not None:
+        cmd += ["--storage", storage_url]
+    for item in (*overrides, f"algo.threads={threads}"):
+        cmd += ["--set", item]
+    env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
+    processes = []
+    for k in range(jobs):
+        with (folder / f"worker-{k}.log").open("wb") as log:
+            processes.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env))
+    try:
+        codes = [p.wait() for p in processes]
+    except KeyboardInterrupt:  # Ctrl-C reached the workers too: let them end their trials
+        for p in processes:
+            p.wait()
+        raise
+    failed = [k for k, code in enumerate(codes) if code != 0]
+    if failed:
+        log = folder / f"worker-{failed[0]}.log"
+        raise SweepError(f"sweep worker {failed[0]} failed; see {log}")
 
 
 def _fail_dead_trials(study: Any, embedded: bool) -> None:
-    """Mark the trials a killed worker left RUNNING as failed (they are not lost: their run
-    folders stay, and the count of finished trials does not include them)."""
+    """Mark the trials a killed worker left RUNNING as failed and queue each again with the same
+    parameters (its run folder stays; the count of finished trials does not include it)."""
     import optuna
 
     if not embedded:
         optuna.storages.fail_stale_trials(study)  # by heartbeat: live workers keep theirs
         return
-    # One machine, one journal: --resume is run when the sweep's process is gone.
+    # One machine, one journal: --resume is run when the sweep's processes are gone.
+    retry = _retry_callback()
     for trial in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)):
         study._storage.set_trial_state_values(trial._trial_id, optuna.trial.TrialState.FAIL)
+        retry(study, study._storage.get_trial(trial._trial_id))
 
 
 class StudyFull(Exception):
@@ -279,7 +382,12 @@ def _objective(
     folder: Path,
     total: int,
 ) -> float:
-    """Train one trial into its own run folder; its value is the median validation coverage."""
+    """Train one trial into its own run folder; its value is the median validation coverage.
+
+    Raises:
+        optuna.TrialPruned: when the pruner stops it (the run folder keeps what it logged).
+        TrainingFailed: on a non-finite loss (the trial is marked failed).
+    """
     import optuna
 
     from harness.evaluation import model_policy, run_episodes, summarize
@@ -290,9 +398,11 @@ def _objective(
     config = load_config(config_path, [*overrides, *(override(k, v) for k, v in params.items())])
     run = RunDir.create_at(folder / f"trial-{trial.number:04d}")
     trial.set_user_attr("run", str(run.path))
+    last: dict[str, Any] = {}
 
     def report(timesteps: int, summary: dict[str, Any]) -> None:
-        trial.report(float(summary["coverage_median"]), timesteps)
+        last.update(timesteps=timesteps, value=float(summary["coverage_median"]))
+        trial.report(last["value"], timesteps)
         if trial.should_prune():
             raise optuna.TrialPruned(f"pruned at {timesteps} transitions")
 
@@ -301,6 +411,8 @@ def _objective(
             config, run, progress_bar=False, command=["sweep", str(trial.number)],
             on_evaluation=report,
         )  # fmt: skip
+    if last.get("timesteps") == model.num_timesteps:  # the last evaluation saw the final model
+        return last["value"]
     ev = config.eval
     results = run_episodes(
         model_policy(model, ev.temperature), config.env, ev.episodes, ev.validation_seed

@@ -5,8 +5,10 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import subprocess
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
@@ -15,7 +17,7 @@ import pytest
 from harness.cli import main
 from harness.config import load_config
 from harness.groups import GroupError, parse_seeds
-from harness.stats import probability_of_improvement, seed_statistics
+from harness.stats import curve_with_ci, probability_of_improvement, seed_statistics
 from harness.sweep import SweepError, load_space
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -56,6 +58,7 @@ def test_bad_seed_lists_are_errors(text):
         parse_seeds(text, 100)
 
 
+@pytest.mark.slow
 def test_seed_group_trains_evaluates_and_compares(tiny, tmp_path, capsys):
     runs = tmp_path / "runs"
     args = ["run", str(tiny), "--seeds", "2", "--jobs", "2", "--runs-dir", str(runs)]
@@ -105,6 +108,89 @@ def test_statistics_over_seeds_hand_checked():
     assert p == pytest.approx(0.5)
 
 
+def _fake_run(folder: Path, coverage_mean: float, curve: dict[int, float]) -> Path:
+    """A run folder with hand-made files: the config, episodes, evaluations and eval JSON."""
+    folder.mkdir(parents=True)
+    (folder / "config.yaml").write_text(TINY)
+    (folder / "episodes.csv").write_text(
+        "episode,phase,timesteps,copy,coverage,reward_mean,wall_hits,new_cells,length\n"
+        "0,0,20,0,0.5,0.1,0,10,20\n"
+    )
+    rows = "".join(f"{t},2,0,{c},{c},{c},{c},0\n" for t, c in curve.items())
+    (folder / "evaluations.csv").write_text(
+        "timesteps,episodes,temperature,coverage_median,coverage_q1,coverage_q3,"
+        "coverage_mean,wall_hits_mean\n" + rows
+    )
+    ev = {"coverage_median": coverage_mean, "coverage_iqr": 0.0, "coverage_mean": coverage_mean,
+          "wall_hits_mean": 1.0}  # fmt: skip
+    (folder / "eval.json").write_text(json.dumps(ev))
+    return folder
+
+
+def _fake_group(folder: Path, scores: list[float], curves: list[dict[int, float]]) -> Path:
+    for k, (score, curve) in enumerate(zip(scores, curves, strict=True)):
+        _fake_run(folder / f"run-seed{k}", score, curve)
+    runs = [{"seed": k, "run": f"run-seed{k}"} for k in range(len(scores))]
+    (folder / "group.json").write_text(json.dumps({"runs": runs}))
+    return folder
+
+
+def _row(text: str, name: str) -> list[str]:
+    (line,) = [line for line in text.splitlines() if line.startswith(f"| {name} |")]
+    return [cell.strip() for cell in line.strip("|").split("|")]
+
+
+def _interval(cell: str) -> tuple[float, float, float]:
+    """``"37.5 % [20.0 %, 60.0 %]"`` -> (37.5, 20.0, 60.0)."""
+    point, bounds = cell.split(" [")
+    low, high = bounds.rstrip("]").split(", ")
+    return tuple(float(x.rstrip(" %")) for x in (point, low, high))  # type: ignore[return-value]
+
+
+def test_compare_of_hand_made_groups_reports_mean_iqm_intervals_and_improvement(tmp_path, capsys):
+    # a: mean (0.1 + 0.2 + 0.3 + 0.9) / 4 = 37.5 %, IQM (middle two) (0.2 + 0.3) / 2 = 25 %.
+    # b: 0.5..0.8: mean = IQM = 65 %. P(b > a): b beats 0.1, 0.2, 0.3 always, 0.9 never: 12/16.
+    curves_a = [{100: 0.1, 200: 0.4}, {100: 0.2, 200: 0.5}, {100: 0.3, 200: 0.6},
+                {100: 0.9, 200: 0.7, 300: 0.8}]  # fmt: skip
+    a = _fake_group(tmp_path / "a", [0.1, 0.2, 0.3, 0.9], curves_a)
+    b = _fake_group(tmp_path / "b", [0.5, 0.6, 0.7, 0.8], [{100: 0.5, 200: 0.6}] * 4)
+    one = _fake_run(tmp_path / "one", 0.42, {100: 0.3, 200: 0.42})
+    out = tmp_path / "cmp.png"
+    assert main(["compare", str(a), str(b), str(one), "--labels", "a", "b", "one",
+                 "--out", str(out), "--reps", "300"]) == 0  # fmt: skip
+    text = capsys.readouterr().out
+    row_a, row_b, row_one = _row(text, "a"), _row(text, "b"), _row(text, "one")
+    assert row_a[1] == "4" and row_b[1] == "4" and row_one[1] == "1"
+    mean, low, high = _interval(row_a[2])
+    assert mean == 37.5 and 10.0 <= low < mean < high <= 90.0
+    iqm, low, high = _interval(row_a[3])
+    assert iqm == 25.0 and 10.0 <= low <= iqm <= high <= 90.0
+    assert _interval(row_b[2])[0] == 65.0 and _interval(row_b[3])[0] == 65.0
+    # One seed: the value, and no interval.
+    assert row_one[2] == row_one[3] == "42.0 % (1 seed: no interval)"
+    assert "P(a > b) = 25.0 % (95 % CI [" in text
+    assert "P(a > one) = 25.0 % (no interval: a group has 1 seed)" in text
+    assert "P(b > one) = 100.0 % (no interval: a group has 1 seed)" in text
+    for suffix in ("", "-intervals", "-curves-ci", "-improvement"):
+        assert (tmp_path / f"cmp{suffix}.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_learning_curve_over_seeds_is_the_iqm_at_the_common_timesteps():
+    curves = [
+        (np.array([100, 200]), np.array([0.1, 0.4])),
+        (np.array([100, 200]), np.array([0.2, 0.5])),
+        (np.array([100, 200]), np.array([0.3, 0.6])),
+        (np.array([100, 200, 300]), np.array([0.9, 0.7, 0.8])),  # 300: not every seed has it
+    ]
+    steps, iqm, band = curve_with_ci(curves, reps=500)
+    assert steps.tolist() == [100, 200]
+    assert iqm == pytest.approx([0.25, 0.55])  # middle two of each column
+    assert band is not None and band.shape == (2, 2)
+    assert np.all(band[0] <= iqm) and np.all(iqm <= band[1])
+    steps, iqm, band = curve_with_ci(curves[:1])
+    assert iqm == pytest.approx([0.1, 0.4]) and band is None  # one seed: no band
+
+
 def test_compare_of_a_single_seed_says_the_interval_is_undefined():
     stats = seed_statistics({"only": [0.42]})
     assert stats["only"].mean_ci is None
@@ -126,6 +212,7 @@ def test_compare_of_a_single_seed_says_the_interval_is_undefined():
         ("seed: {grid: [0, 1]}\nalgo.gamma: {float: [0.8, 0.9]}\n", "must be all grids"),
         ("[1, 2]\n", "expected a mapping"),
         ("a: 1\na: 2\n", "duplicate key"),
+        ("seed: {grid: [0]}\n", "--trials 2: the grid of"),
     ],
 )
 def test_space_keys_are_checked_before_any_trial(tiny, tmp_path, capsys, space, message):
@@ -167,22 +254,100 @@ def test_sweep_on_the_embedded_store_runs_the_trials_asked_and_writes_the_best(t
     assert best["trials"]["complete"] + best["trials"]["pruned"] == 4
 
 
-def test_resume_marks_trials_a_dead_sweep_left_running_as_failed(tiny, tmp_path):
+def _journal(folder: Path):
     import optuna
     from optuna.storages.journal import JournalFileBackend
 
+    folder.mkdir(parents=True, exist_ok=True)
+    return optuna.storages.JournalStorage(JournalFileBackend(str(folder / "journal.log")))
+
+
+def test_resume_fails_the_trial_a_dead_sweep_left_running_and_runs_it_again(tiny, tmp_path):
+    import optuna
+
     space = tmp_path / "space.yaml"
     space.write_text(SPACE)
-    folder = tmp_path / "sweeps" / "tiny"
-    folder.mkdir(parents=True)
-    storage = optuna.storages.JournalStorage(JournalFileBackend(str(folder / "journal.log")))
+    storage = _journal(tmp_path / "sweeps" / "tiny")
     study = optuna.create_study(study_name="tiny", storage=storage, direction="maximize")
-    study.ask()  # a trial that a killed process never finished
+    dead = study.ask()  # a trial that a killed process never finished
+    dead.suggest_float("algo.gamma", 0.8, 0.99)
     args = ["sweep", str(tiny), "--space", str(space), "--trials", "1", "--resume"]
     assert main([*args, "--sweeps-dir", str(tmp_path / "sweeps")]) == 0
-    states = [t.state.name for t in optuna.load_study(study_name="tiny", storage=storage).trials]
-    assert states[0] == "FAIL" and states.count("FAIL") == 1
-    assert "COMPLETE" in states or "PRUNED" in states
+    trials = optuna.load_study(study_name="tiny", storage=storage).trials
+    assert [t.state.name for t in trials] == ["FAIL", "COMPLETE"]
+    # Queued again with the dead trial's value, and not counted twice.
+    assert trials[1].params["algo.gamma"] == trials[0].params["algo.gamma"]
+    assert trials[1].system_attrs["failed_trial"] == 0
+
+
+def test_a_dead_trial_of_a_seed_grid_is_trained_again_not_lost(tiny, tmp_path):
+    import optuna
+
+    space = tmp_path / "space.yaml"
+    space.write_text("seed: {grid: [0, 1, 2]}\n")
+    storage = _journal(tmp_path / "sweeps" / "tiny")
+    grid = optuna.samplers.GridSampler({"seed": [0, 1, 2]}, seed=0)
+    study = optuna.create_study(
+        study_name="tiny", storage=storage, direction="maximize", sampler=grid
+    )
+    study.ask()  # the first grid point, left RUNNING by a killed process
+    args = ["sweep", str(tiny), "--space", str(space), "--trials", "3", "--resume"]
+    assert main([*args, "--pruner", "none", "--sweeps-dir", str(tmp_path / "sweeps")]) == 0
+    trials = optuna.load_study(study_name="tiny", storage=storage).trials
+    complete = [t for t in trials if t.state.name == "COMPLETE"]
+    assert sorted(t.params["seed"] for t in complete) == [0, 1, 2]  # every seed once
+    trained = sorted(load_config(Path(t.user_attrs["run"]) / "config.yaml").seed for t in complete)
+    assert trained == [0, 1, 2]
+
+
+def test_a_pruned_trial_ends_cleanly_with_its_run_folder(tiny, tmp_path, monkeypatch, capsys):
+    import optuna
+
+    from harness import sweep
+    from harness.rundir import RunDir
+
+    # A pruner that stops every trial at its first report (no coverage reaches 101 %).
+    monkeypatch.setattr(sweep, "make_pruner", lambda name: optuna.pruners.ThresholdPruner(1.01))
+    space = tmp_path / "space.yaml"
+    space.write_text(SPACE)
+    sweeps = tmp_path / "sweeps"
+    args = ["sweep", str(tiny), "--space", str(space), "--trials", "2", "--sweeps-dir", str(sweeps)]
+    assert main(args) == 0
+    assert "no trial has completed yet" in capsys.readouterr().out
+    trials = optuna.load_study(study_name="tiny", storage=_journal(sweeps / "tiny")).trials
+    assert [t.state.name for t in trials] == ["PRUNED", "PRUNED"]  # both count, no more run
+    for trial in trials:
+        run = RunDir(Path(trial.user_attrs["run"]))
+        assert load_config(run.config).name == "tiny"
+        # Pruned at the first evaluation (80 transitions of 240): one row, no final model.
+        assert len(run.evaluations_csv.read_text().splitlines()) == 2
+        assert list(trial.intermediate_values) == [80] and not run.model.exists()
+        with run.lock():  # released: the folder can be resumed or inspected
+            pass
+    assert not (sweeps / "tiny" / "best.yaml").exists()
+
+
+@pytest.mark.slow
+def test_seed_grid_on_two_local_workers_trains_every_seed_once(tiny, tmp_path):
+    import optuna
+
+    space = tmp_path / "space.yaml"
+    space.write_text("seed: {grid: [3, 4, 5, 6]}\n")
+    sweeps = tmp_path / "sweeps"
+    args = ["sweep", str(tiny), "--space", str(space), "--trials", "4", "--jobs", "2",
+            "--pruner", "none", "--sweeps-dir", str(sweeps)]  # fmt: skip
+    assert main(args) == 0
+    folder = sweeps / "tiny"
+    assert (folder / "worker-0.log").is_file() and (folder / "worker-1.log").is_file()
+    trials = optuna.load_study(study_name="tiny", storage=_journal(folder)).trials
+    complete = [t for t in trials if t.state.name == "COMPLETE"]
+    assert sorted(t.params["seed"] for t in complete) == [3, 4, 5, 6]
+    runs = {t.user_attrs["run"] for t in complete}
+    assert len(runs) == 4
+    # Each worker trained with its share of the cores; best.yaml is the plain config.
+    threads = {load_config(Path(run) / "config.yaml").algo.threads for run in runs}
+    assert threads == {max(1, (os.cpu_count() or 1) // 2)}
+    assert load_config(folder / "best.yaml").algo.threads is None
 
 
 @pytest.mark.slow
@@ -190,7 +355,11 @@ def test_two_workers_share_one_postgresql_study(tiny, tmp_path):
     import optuna
     import pgserver
 
-    server = pgserver.get_server(str(tmp_path / "pg"), cleanup_mode="stop")
+    # Not under pytest's temporary folder: run as root, pgserver starts PostgreSQL as another
+    # user, who must traverse the data folder's parents, and any pytest that starts meanwhile
+    # (other sessions on the machine) makes /tmp/pytest-of-<user> private again.
+    data = Path(tempfile.mkdtemp(prefix="harness-pg-"))
+    server = pgserver.get_server(str(data / "pg"), cleanup_mode="stop")
     try:
         server.psql("CREATE DATABASE sweeps;")
         socket_dir = server.get_uri().split("host=")[1]
@@ -219,6 +388,7 @@ def test_two_workers_share_one_postgresql_study(tiny, tmp_path):
         assert load_config(folder / "best.yaml").name == "tiny"
     finally:
         server.cleanup()
+        shutil.rmtree(data, ignore_errors=True)
 
 
 def test_load_space_reads_every_kind(tmp_path):

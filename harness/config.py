@@ -195,18 +195,19 @@ class EnvConfig(_Section):
     def _enough_cells(self) -> EnvConfig:
         if self.map == "random" or isinstance(self.map, dict):
             if isinstance(self.map, dict):
-                largest = build_source(self.map, self.height, self.width).max_shape
+                source = build_source(self.map, self.height, self.width)
+                largest, smallest = source.max_shape, source.min_shape
             else:
-                largest = (self.height, self.width)
+                largest = smallest = (self.height, self.width)
             cells = largest[0] * largest[1]
             if cells > MAX_MAP_CELLS:
                 raise ValueError(
                     f"a {largest[0]}x{largest[1]} map has {cells:,} cells, more than the "
                     f"{MAX_MAP_CELLS:,} this harness handles"
                 )
-            if self.n_agents > cells:
+            if self.n_agents > smallest[0] * smallest[1]:
                 raise ValueError(
-                    f"n_agents={self.n_agents} is more than the {self.height}x{self.width} "
+                    f"n_agents={self.n_agents} is more than the {smallest[0]}x{smallest[1]} "
                     "map's cells"
                 )
         if self.starts is not None and len(self.starts) != self.n_agents:
@@ -229,8 +230,10 @@ class EnvConfig(_Section):
         if self.test_maps and (isinstance(self.map, dict) or self.map == "random"):
             # Generated maps only: a fixed map named in env.map is used as given (evaluation
             # on a test map); `harness run` refuses to train on one.
-            source = out["map"] if isinstance(self.map, dict) else generators.from_name(
-                "random", self.height, self.width, self.wall_fraction
+            source = (
+                out["map"]
+                if isinstance(self.map, dict)
+                else generators.from_name("random", self.height, self.width, self.wall_fraction)
             )
             out["map"] = generators.WithoutMaps(source, self.test_grids())
         return out

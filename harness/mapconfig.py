@@ -79,7 +79,9 @@ class _OneKind(_Strict):
         given = [k for k in data if k in _PARAMETERS or k == MIX]
         if len(given) != 1:
             kinds = ", ".join([*_PARAMETERS, *([MIX] if MIX in allowed else [])])
-            raise ValueError(f"give exactly one map kind of {kinds}, got {', '.join(given) or 'none'}")
+            raise ValueError(
+                f"give exactly one map kind of {kinds}, got {', '.join(given) or 'none'}"
+            )
         # ``{cave: }`` in YAML is ``{cave: None}``: the kind with its defaults.
         return {k: ({} if v is None and k in _PARAMETERS else v) for k, v in data.items()}
 

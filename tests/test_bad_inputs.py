@@ -75,6 +75,13 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], str]] = [
                         "--set", "env.wall_fraction=[0.9, 0.95]"], {}, "could not draw a 3x3 map"),
     ("map-too-small", ["run", "{cfg}", "--set", "env.height=1", "--set", "env.width=1"], {},
      "n_agents=2 is more than the 1x1 map's cells"),
+    ("map-source-unknown-key", ["run", "{tmp}/bad.yaml"],
+     {"bad.yaml": GOOD.replace("n_agents: 2", "n_agents: 2, map: {mix: [{weight: 1, "
+                               "cave: {rocks: 0.5}}]}")},
+     "env.map: mix.0.cave.rocks: Extra inputs are not permitted"),
+    ("train-on-test-map", ["run", "{cfg}", "--set", "env.map=cave_100x50",
+                           "--set", "env.test_maps=[cave_100x50]"], {},
+     "env.map: 'cave_100x50' is a test-only map"),
     ("config-seed-negative", ["run", "{cfg}", "--set", "seed=-1"], {},
      "seed: Input should be greater than or equal to 0"),
     ("config-seed-huge", ["run", "{cfg}", "--set", "seed=1099511627776"], {},

@@ -235,7 +235,10 @@ class EnvConfig(_Section):
                 if isinstance(self.map, dict)
                 else generators.from_name("random", self.height, self.width, self.wall_fraction)
             )
-            out["map"] = generators.WithoutMaps(source, self.test_grids())
+            try:
+                out["map"] = generators.WithoutMaps(source, self.test_grids())
+            except ValueError as exc:
+                raise ValueError(f"map: {exc} (it is in env.test_maps)") from None
         return out
 
     def test_grids(self) -> list[Any]:

@@ -112,14 +112,33 @@ class RandomMaps(MapGenerator):
         return maps.random_grid(self.height, self.width, self.wall_fraction, rng, keep_free)
 
 
-def _fresh_seed(rng: np.random.Generator, shipped: int) -> int:
-    seed = int(rng.integers(_SEED_HIGH))
-    while seed == shipped:  # the shipped map is a test map: never remake it
+class _SeededMaps(MapGenerator):
+    """A procedural generator of :mod:`envs.coverage` run with a new seed each reset, drawn from
+    the env's ``rng`` and never the seed its shipped map was made with."""
+
+    #: The seed of the shipped map this generator made (a test map: never remade).
+    shipped_seed: ClassVar[int]
+
+    def _set_size(self, height: int, width: int) -> None:
+        self.height, self.width = _check_size(height, width)
+        if min(self.height, self.width) < 3:  # a rock border around at least one cell
+            raise ValueError(
+                f"a {self.name} needs at least 3x3 cells, got {self.height}x{self.width}"
+            )
+        self.shapes = frozenset({(self.height, self.width)})
+
+    @abstractmethod
+    def _generate(self, seed: int) -> np.ndarray:
+        """The map made with ``seed``."""
+
+    def __call__(self, rng: np.random.Generator, keep_free: np.ndarray | None = None) -> np.ndarray:
         seed = int(rng.integers(_SEED_HIGH))
-    return seed
+        while seed == self.shipped_seed:
+            seed = int(rng.integers(_SEED_HIGH))
+        return self._generate(seed)
 
 
-class CaveMaps(MapGenerator):
+class CaveMaps(_SeededMaps):
     """A new cellular-automaton cave each reset (:mod:`envs.coverage.cave` explains the steps).
 
     Args:
@@ -133,6 +152,7 @@ class CaveMaps(MapGenerator):
     """
 
     name = "cave"
+    shipped_seed = cave.CAVE_SEED
 
     def __init__(
         self,
@@ -144,10 +164,7 @@ class CaveMaps(MapGenerator):
         wide_share: float = 0.5,
         wander_prob: float = 0.25,
     ) -> None:
-        self.height, self.width = _check_size(height, width)
-        if min(self.height, self.width) < 3:
-            raise ValueError(f"a cave needs at least 3x3 cells, got {self.height}x{self.width}")
-        self.shapes = frozenset({(self.height, self.width)})
+        self._set_size(height, width)
         self.shape = {
             "rock_share": _check_share("rock_share", rock_share),
             "iterations": int(iterations),
@@ -158,12 +175,11 @@ class CaveMaps(MapGenerator):
         if iterations < 0 or min_region < 0:
             raise ValueError("iterations and min_region must be >= 0")
 
-    def __call__(self, rng: np.random.Generator, keep_free: np.ndarray | None = None) -> np.ndarray:
-        seed = _fresh_seed(rng, cave.CAVE_SEED)
+    def _generate(self, seed: int) -> np.ndarray:
         return cave.generate_cave(seed, self.height, self.width, **self.shape)
 
 
-class MazeMaps(MapGenerator):
+class MazeMaps(_SeededMaps):
     """A new maze each reset (:mod:`envs.coverage.maze` explains the steps).
 
     Args:
@@ -177,6 +193,7 @@ class MazeMaps(MapGenerator):
     """
 
     name = "maze"
+    shipped_seed = maze.MAZE_SEED
 
     def __init__(
         self,
@@ -188,12 +205,9 @@ class MazeMaps(MapGenerator):
         n_chambers: int = 14,
         loop_prob: float = maze.LOOP_PROB,
     ) -> None:
-        self.height, self.width = _check_size(height, width)
-        if min(self.height, self.width) < 3:
-            raise ValueError(f"a maze needs at least 3x3 cells, got {self.height}x{self.width}")
+        self._set_size(height, width)
         if n_chambers < 0:
             raise ValueError(f"n_chambers must be >= 0, got {n_chambers!r}")
-        self.shapes = frozenset({(self.height, self.width)})
         self.shape = {
             "node_share": _check_share("node_share", node_share),
             "newest_prob": _check_share("newest_prob", newest_prob),
@@ -202,8 +216,7 @@ class MazeMaps(MapGenerator):
             "loop_prob": _check_share("loop_prob", loop_prob),
         }
 
-    def __call__(self, rng: np.random.Generator, keep_free: np.ndarray | None = None) -> np.ndarray:
-        seed = _fresh_seed(rng, maze.MAZE_SEED)
+    def _generate(self, seed: int) -> np.ndarray:
         return maze.generate_maze(seed, self.height, self.width, **self.shape)
 
 

@@ -30,9 +30,11 @@ Observation values        thesis: window -1/0/1; coordinates [0, 1] or raw (row,
 new map each reset: a wall share ``w ~ U(wall_fraction)``, ``round(w*H*W)`` walls on random cells,
 then every free cell outside the largest 4-connected free area is filled, so all free ground is
 reachable. ``map="cave_100x50"`` (or any shipped name, see :func:`envs.coverage.maps.shipped_maps`)
-or a path to a text map (``#`` wall, ``.`` free, ``S`` start) fixes the map. A map source object
-from :mod:`envs.coverage.generators` (``CaveMaps``, ``MazeMaps``, ``RandomMaps``, a weighted
-``MixGenerator``) draws a new ``height`` x ``width`` map each reset.
+or a path to a text map (``#`` wall, ``.`` free, ``S`` start) fixes the map. ``map`` may also be
+a map generator of :mod:`envs.coverage.generators` (``RandomMaps``, ``CaveMaps``, ``MazeMaps``,
+``FileMap``, ``ShippedMap``, a weighted ``MixGenerator``), which draws each reset's map from the
+env's random generator; its sizes may differ between resets (``env.height`` and ``env.width`` are
+the current map's), and the observation space is made for the largest.
 
 **Dynamics.** All agents act at once; moves are resolved in index order. A move into a wall or off
 the grid leaves the agent in place and counts as a wall hit; ``stay`` never does. Agents may share

@@ -314,7 +314,12 @@ def resolve_run_config(args: argparse.Namespace) -> ExperimentConfig:
         overrides.append(f"seed={args.seed}")
     if args.name is not None:
         overrides.append(f"name={json.dumps(args.name)}")
-    return load_config(args.config, overrides)
+    config = load_config(args.config, overrides)
+    try:
+        config.env.check_training_map()
+    except ValueError as exc:
+        raise HarnessError(f"{args.config}: {exc}") from None
+    return config
 
 
 def cmd_run(args: argparse.Namespace) -> int:

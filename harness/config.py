@@ -43,10 +43,11 @@ from pydantic import (
 )
 
 from envs import coverage_v0
-from envs.coverage import generators
+from envs.coverage import generators, maps
 from envs.coverage.env import DEFAULT_REWARDS
 from envs.coverage.maps import check_wall_fraction, shipped_maps
 from envs.coverage.observations import OBSERVATIONS, TeamMapObservation
+from harness.mapconfig import build_source, parse_source
 from harness.registry import POLICIES
 
 
@@ -104,9 +105,13 @@ class EnvConfig(_Section):
     """Arguments of ``coverage_v0.parallel_env`` (see ``envs/coverage_v0.py``)."""
 
     map: str | dict[str, Any] = "random"
-    """``random``, a shipped map's name, a map file, or a map source of
-    ``envs.coverage.generators`` (``{cave: {...}}``, ``{maze: {...}}``, ``{random: {...}}``, or
-    ``{mix: [{weight: w, <source>}, ...]}``), drawing ``height`` x ``width`` maps each reset."""
+    """``random``, a shipped map's name, a map file, or a map source of the generator registry
+    (``{cave: {...}}``, ``{maze: {...}}``, ``{random: {...}}``, ``{file: {path: ...}}``,
+    ``{shipped: {name: ...}}`` or ``{mix: [{weight: w, <source>}, ...]}``; see
+    ``harness/mapconfig.py``); a source's size defaults to ``height`` x ``width``."""
+    test_maps: list[str] = []
+    """Shipped map names or map files kept for testing: a generated training map equal to one is
+    drawn again, a mix may not contain one, and ``harness run`` refuses to train on one."""
     height: PositiveInt = 50
     width: PositiveInt = 50
     wall_fraction: tuple[float, float] = (0.15, 0.20)
@@ -183,8 +188,7 @@ class EnvConfig(_Section):
     @classmethod
     def _map_exists(cls, v: str | dict[str, Any]) -> str | dict[str, Any]:
         if isinstance(v, dict):
-            generators.from_spec(v, 1, 1)  # names and parameters; sizes are checked below
-            return v
+            return parse_source(v)
         if v != "random" and v not in shipped_maps() and not Path(v).is_file():
             raise ValueError(
                 f"{v!r} is not 'random', a shipped map ({', '.join(shipped_maps())}) "
@@ -192,18 +196,31 @@ class EnvConfig(_Section):
             )
         return v
 
+    @field_validator("test_maps")
+    @classmethod
+    def _test_maps_exist(cls, v: list[str]) -> list[str]:
+        for name in v:
+            if name not in shipped_maps() and not Path(name).is_file():
+                raise ValueError(f"{name!r} is neither a shipped map nor an existing map file")
+        return [name if name in shipped_maps() else str(Path(name).resolve()) for name in v]
+
     @model_validator(mode="after")
     def _enough_cells(self) -> EnvConfig:
         if self.map == "random" or isinstance(self.map, dict):
-            cells = self.height * self.width
+            if isinstance(self.map, dict):
+                source = build_source(self.map, self.height, self.width)
+                largest, smallest = source.max_shape, source.min_shape
+            else:
+                largest = smallest = (self.height, self.width)
+            cells = largest[0] * largest[1]
             if cells > MAX_MAP_CELLS:
                 raise ValueError(
-                    f"a {self.height}x{self.width} map has {cells:,} cells, more than the "
+                    f"a {largest[0]}x{largest[1]} map has {cells:,} cells, more than the "
                     f"{MAX_MAP_CELLS:,} this harness handles"
                 )
-            if self.n_agents > cells:
+            if self.n_agents > smallest[0] * smallest[1]:
                 raise ValueError(
-                    f"n_agents={self.n_agents} is more than the {self.height}x{self.width} "
+                    f"n_agents={self.n_agents} is more than the {smallest[0]}x{smallest[1]} "
                     "map's cells"
                 )
         if self.starts is not None and len(self.starts) != self.n_agents:
@@ -227,11 +244,40 @@ class EnvConfig(_Section):
 
     def kwargs(self) -> dict[str, Any]:
         """Keyword arguments for ``coverage_v0.parallel_env``."""
-        out = self.model_dump(exclude={"map_sha256"})
+        out = self.model_dump(exclude={"map_sha256", "test_maps"})
         out["wall_fraction"] = tuple(out["wall_fraction"])
         if isinstance(self.map, dict):
-            out["map"] = generators.from_spec(self.map, self.height, self.width)
+            out["map"] = build_source(self.map, self.height, self.width)
+        if self.test_maps and (isinstance(self.map, dict) or self.map == "random"):
+            # Generated maps only: a fixed map named in env.map is used as given (evaluation
+            # on a test map); `harness run` refuses to train on one.
+            source = (
+                out["map"]
+                if isinstance(self.map, dict)
+                else generators.from_name("random", self.height, self.width, self.wall_fraction)
+            )
+            try:
+                out["map"] = generators.WithoutMaps(source, self.test_grids())
+            except ValueError as exc:
+                raise ValueError(f"map: {exc} (it is in env.test_maps)") from None
         return out
+
+    def test_grids(self) -> list[Any]:
+        """The grids of ``test_maps``."""
+        return [maps.load_map(name).grid for name in self.test_maps]
+
+    def check_training_map(self) -> None:
+        """Refuse a fixed ``map`` that is one of ``test_maps`` (training; evaluation may use it).
+
+        Raises:
+            ValueError: naming ``env.map``.
+        """
+        if isinstance(self.map, str) and self.map != "random" and self.test_maps:
+            grid = maps.load_map(self.map).grid
+            if any(t.shape == grid.shape and (t == grid).all() for t in self.test_grids()):
+                raise ValueError(
+                    f"env.map: {self.map!r} is a test-only map (env.test_maps): never trained on"
+                )
 
 
 class VecConfig(_Section):

@@ -64,31 +64,29 @@ class CoverageEnv(ParallelEnv):
 
         # The map source (envs/coverage/generators.py): a generator object, or built from the
         # name: "random", a shipped map or a map file.
-        self._map_spec: maps.MapSpec | None = None
-        self.wall_fraction = (0.0, 0.0)
-        if isinstance(map, generators.MapGenerator):
-            self._generator: generators.MapGenerator = map
-            height, width = map.height, map.width
-            if height * width < n_agents:
-                raise ValueError(f"a {height}x{width} map has fewer cells than n_agents={n_agents}")
-        elif str(map) == "random":
-            _check_int("height", height, 1)
-            _check_int("width", width, 1)
-            self.wall_fraction = maps.check_wall_fraction(wall_fraction)
-            if height * width < n_agents:
-                raise ValueError(f"a {height}x{width} map has fewer cells than n_agents={n_agents}")
-            self._generator = generators.RandomMaps(height, width, self.wall_fraction)
-        else:
-            self._map_spec = maps.load_map(map)
-            height, width = self._map_spec.grid.shape
+        self.map_name = map.name if isinstance(map, generators.MapGenerator) else str(map)
+        if not isinstance(map, generators.MapGenerator):
+            if str(map) == "random":
+                _check_int("height", height, 1)
+                _check_int("width", width, 1)
+                wall_fraction = maps.check_wall_fraction(wall_fraction)
+            map = generators.from_name(map, height, width, wall_fraction)
+        self._generator: generators.MapGenerator = map
+        self.wall_fraction = getattr(map, "wall_fraction", (0.0, 0.0))
+        self._map_spec = map.fixed
+        if self._map_spec is not None:
             n_free = int((~self._map_spec.grid).sum())
             if n_free < n_agents:
                 raise ValueError(
                     f"{self._map_spec.source} has {n_free} free cell(s), fewer than "
                     f"n_agents={n_agents}"
                 )
-            self._generator = generators.FixedMap(self._map_spec)
-        self.map_name = map.name if isinstance(map, generators.MapGenerator) else str(map)
+        elif map.min_shape[0] * map.min_shape[1] < n_agents:
+            height, width = map.min_shape
+            raise ValueError(f"a {height}x{width} map has fewer cells than n_agents={n_agents}")
+        # The current episode's map size (a mix may draw several); the largest until the first
+        # reset, which is the size the observation space is made for.
+        height, width = map.max_shape
         self.height, self.width = int(height), int(width)
         self.n_agents, self.max_steps = int(n_agents), int(max_steps)
         self.render_mode = render_mode
@@ -101,18 +99,22 @@ class CoverageEnv(ParallelEnv):
         else:
             self._starts = None
         if self._starts is not None:
+            # Fixed start cells must lie on every map size the source makes.
             grid = self._map_spec.grid if self._map_spec is not None else None
-            _check_starts(self._starts, self.n_agents, self.height, self.width, grid)
+            _check_starts(self._starts, self.n_agents, *self._generator.min_shape, grid)
 
         builder = OBSERVATIONS[observation]
         given = {"crop": crop, "global_size": global_size}
-        self._observer: ObservationBuilder = builder(
-            self.height,
-            self.width,
-            coords,
-            self.max_steps,
+        # One builder per map size: a mix may draw maps of several sizes. The space is the
+        # largest size's (with raw coordinates its bounds hold every smaller map's positions).
+        self._new_observer = functools.partial(
+            builder,
+            coords=coords,
+            max_steps=self.max_steps,
             **{name: given[name] for name in builder.options},
         )
+        self._observers: dict[tuple[int, int], ObservationBuilder] = {}
+        self._observer = self._observer_for(self.height, self.width)
         self.observation_kind, self.coords = observation, coords
         self.possible_agents = [f"agent_{i}" for i in range(self.n_agents)]
         self.agents: list[str] = []
@@ -208,6 +210,8 @@ class CoverageEnv(ParallelEnv):
             self._np_random, _ = seeding.np_random(seed)
         options = options or {}
         walls = self._episode_grid(options.get("grid"))
+        self.height, self.width = walls.shape
+        self._observer = self._observer_for(self.height, self.width)
         starts = self._episode_starts(walls, options.get("starts"))
 
         pad = self._observer.padding
@@ -319,6 +323,12 @@ class CoverageEnv(ParallelEnv):
                 seen |= visited[dr : dr + height, dc : dc + width]
         return seen
 
+    def _observer_for(self, height: int, width: int) -> ObservationBuilder:
+        key = (height, width)
+        if key not in self._observers:
+            self._observers[key] = self._new_observer(height, width)
+        return self._observers[key]
+
     def _require_state(self) -> GridState:
         if self._state is None:
             raise RuntimeError("call reset() before using the environment")
@@ -329,10 +339,11 @@ class CoverageEnv(ParallelEnv):
             walls = np.asarray(grid)
             if walls.ndim != 2:
                 raise ValueError(f"options['grid'] must be a 2D array, got shape {walls.shape}")
-            if walls.shape != (self.height, self.width):
+            if walls.shape not in self._generator.shapes:
+                made_for = " or ".join(str(s) for s in sorted(self._generator.shapes))
                 raise ValueError(
                     f"options['grid'] has shape {walls.shape} but the env was made for "
-                    f"{(self.height, self.width)}; pass height= and width= to match"
+                    f"{made_for}; pass height= and width= to match"
                 )
             walls = walls.astype(bool)
             n_free = int((~walls).sum())
@@ -345,8 +356,6 @@ class CoverageEnv(ParallelEnv):
                 )
             maps.warn_if_unreachable(walls, "options['grid']")
             return walls.copy()
-        if self._map_spec is not None:
-            return self._map_spec.grid.copy()
         assert self._np_random is not None
         for _ in range(_MAX_MAP_DRAWS):
             walls = self._generator(self._np_random, keep_free=self._starts)
@@ -360,8 +369,9 @@ class CoverageEnv(ParallelEnv):
             if self._starts is not None
             else (f"has at least n_agents={self.n_agents} free cells")
         )
+        height, width = walls.shape
         raise ValueError(
-            f"could not draw a {self.height}x{self.width} map ({self.map_name}, wall_fraction="
+            f"could not draw a {height}x{width} map ({self.map_name}, wall_fraction="
             f"{self.wall_fraction}) that {need} ({_MAX_MAP_DRAWS} tries)"
         )
 
@@ -374,8 +384,8 @@ class CoverageEnv(ParallelEnv):
             assert self._np_random is not None
             free = np.flatnonzero(~walls)
             picked = self._np_random.choice(free, size=self.n_agents, replace=False)
-            return np.stack(np.divmod(picked, self.width), axis=1).astype(np.int64)
-        _check_starts(chosen, self.n_agents, self.height, self.width, walls)
+            return np.stack(np.divmod(picked, walls.shape[1]), axis=1).astype(np.int64)
+        _check_starts(chosen, self.n_agents, *walls.shape, walls)
         return chosen
 
 

@@ -1,25 +1,32 @@
 """Map sources: objects that draw an episode's map from the env's random generator.
 
 As in Jumanji, the environment is handed a generator instead of switching on strings: every map
-source is a :class:`MapGenerator` (``__call__(rng, keep_free) -> walls``), and
-:data:`GENERATORS` is the one registry of the procedural kinds that a config can name:
+source is a :class:`MapGenerator` (``__call__(rng, keep_free) -> walls`` and a ``name``), and
+:data:`GENERATORS` is the one registry of the kinds a config can name, each with the keyword
+arguments of its constructor as its parameters:
 
 * ``random``: the thesis's random maps (:func:`envs.coverage.maps.random_grid`);
-* ``cave``: a cellular-automaton cave (:func:`envs.coverage.cave.generate_cave`), a new one each
-  reset, with the cave's shape parameters;
-* ``maze``: a maze of corridors and chambers (:func:`envs.coverage.maze.generate_maze`);
-* :class:`FixedMap`: one map (a file or a shipped name) every episode;
-* :class:`MixGenerator`: a weighted mix of sources, one picked per reset.
+* ``cave``: a new cellular-automaton cave each reset (:func:`envs.coverage.cave.generate_cave`);
+* ``maze``: a new maze of corridors and chambers each reset
+  (:func:`envs.coverage.maze.generate_maze`);
+* ``file``: one map file, every episode;
+* ``shipped``: one shipped map (``cave_100x50``, ``maze_100x50``), every episode.
 
-Every generated map has all its free cells connected. The procedural cave and maze never draw the
-seeds of the shipped ``cave_100x50`` and ``maze_100x50``, which are test maps only. All sources of
-one environment make maps of the same size (the env's ``height`` x ``width``).
+:class:`MixGenerator` picks one of several sources per reset, with given weights, and
+:class:`WithoutMaps` keeps test-only maps out of training. Every procedural map has all its free
+cells connected, and the same ``rng`` state gives the same map. The procedural cave and maze
+never draw the seeds of the shipped ``cave_100x50`` and ``maze_100x50``, so they never remake
+those test maps.
+
+Sources may make maps of different sizes (:attr:`MapGenerator.shapes`); the env then sizes its
+observation space for the largest (see ``envs/coverage_v0.py``).
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
+from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
@@ -28,182 +35,347 @@ from envs.coverage import cave, maps, maze
 
 #: Seeds a procedural source draws from: below 2**31, never the shipped maps' seeds.
 _SEED_HIGH = 2**31
+#: Draws :class:`WithoutMaps` makes before giving up on finding a map that is not a test map.
+_MAX_REDRAWS = 100
 
 
 class MapGenerator(ABC):
-    """A source of maps of ``height`` x ``width`` cells (True = wall)."""
+    """A source of maps (bool ``(rows, cols)`` arrays, True = wall).
+
+    Attributes:
+        name: The registry name of the kind (``"random"``, ``"cave"``, ...).
+        shapes: Every ``(rows, cols)`` the source can make.
+    """
 
     name: ClassVar[str]
-
-    def __init__(self, height: int, width: int) -> None:
-        if height < 1 or width < 1:
-            raise ValueError(f"map size must be positive, got {height}x{width}")
-        self.height, self.width = int(height), int(width)
+    shapes: frozenset[tuple[int, int]]
 
     @abstractmethod
     def __call__(self, rng: np.random.Generator, keep_free: np.ndarray | None = None) -> np.ndarray:
-        """A new map drawn with ``rng``; ``keep_free`` cells (fixed starts) are never walls
-        where the source can promise it."""
+        """A map drawn with ``rng`` (a fresh array the caller may change).
+
+        Args:
+            rng: The env's random generator; the map depends on its state alone.
+            keep_free: ``(k, 2)`` cells (fixed start cells) that a source that places walls at
+                random never picks; the env checks the map it gets.
+        """
+
+    @property
+    def max_shape(self) -> tuple[int, int]:
+        """The most rows and the most columns of any map the source makes."""
+        return max(h for h, _ in self.shapes), max(w for _, w in self.shapes)
+
+    @property
+    def min_shape(self) -> tuple[int, int]:
+        """The fewest rows and the fewest columns of any map the source makes."""
+        return min(h for h, _ in self.shapes), min(w for _, w in self.shapes)
+
+    @property
+    def fixed(self) -> maps.MapSpec | None:
+        """The map, for a source that always gives the same one (its start cells are used)."""
+        return None
+
+
+def _check_size(height: int, width: int) -> tuple[int, int]:
+    for what, value in (("height", height), ("width", width)):
+        if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+            raise ValueError(f"{what} must be an integer >= 1, got {value!r}")
+    return int(height), int(width)
+
+
+#: Caps on the count parameters: a pass or a chamber costs about a map's time, so a typo
+#: (``iterations: 100000000``) would make every reset take minutes.
+_MAX_ITERATIONS, _MAX_MIN_REGION, _MAX_CHAMBERS = 100, 1_000_000, 10_000
+
+
+def _check_count(what: str, value: Any, limit: int) -> int:
+    """An integer count in ``[0, limit]``."""
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, int | np.integer)
+        or not 0 <= value <= limit
+    ):
+        raise ValueError(f"{what} must be an integer in [0, {limit:,}], got {value!r}")
+    return int(value)
+
+
+def _check_share(what: str, value: float, low: float = 0.0, high: float = 1.0) -> float:
+    if not low <= float(value) <= high:
+        raise ValueError(f"{what} must be in [{low}, {high}], got {value!r}")
+    return float(value)
 
 
 class RandomMaps(MapGenerator):
     """The thesis's random maps: ``round(w*H*W)`` walls, ``w ~ U(wall_fraction)``, unreachable
-    pockets filled (§4)."""
+    pockets filled (§4).
+
+    Args:
+        height: Rows.
+        width: Columns.
+        wall_fraction: ``(low, high)``, the range the wall share is drawn from each reset.
+    """
 
     name = "random"
 
-    def __init__(self, height: int, width: int, wall_fraction: Sequence[float] = (0.15, 0.20)):
-        super().__init__(height, width)
+    def __init__(
+        self, height: int, width: int, wall_fraction: tuple[float, float] = (0.15, 0.20)
+    ) -> None:
+        self.height, self.width = _check_size(height, width)
+        self.shapes = frozenset({(self.height, self.width)})
         self.wall_fraction = maps.check_wall_fraction(wall_fraction)
 
     def __call__(self, rng: np.random.Generator, keep_free: np.ndarray | None = None) -> np.ndarray:
         return maps.random_grid(self.height, self.width, self.wall_fraction, rng, keep_free)
 
 
-def _fresh_seed(rng: np.random.Generator, shipped: int) -> int:
-    seed = int(rng.integers(_SEED_HIGH))
-    while seed == shipped:  # the shipped map is a test map: never train on it
-        seed = int(rng.integers(_SEED_HIGH))
-    return seed
+class _SeededMaps(MapGenerator):
+    """A procedural generator of :mod:`envs.coverage` run with a new seed each reset, drawn from
+    the env's ``rng`` and never the seed its shipped map was made with."""
 
+    #: The seed of the shipped map this generator made (a test map: never remade).
+    shipped_seed: ClassVar[int]
 
-class CaveMaps(MapGenerator):
-    """A new cellular-automaton cave each reset (see :mod:`envs.coverage.cave` for the shape
-    parameters: ``rock_share``, ``iterations``, ``min_region``, ``wide_share``, ``wander_prob``)."""
+    def _set_size(self, height: int, width: int) -> None:
+        self.height, self.width = _check_size(height, width)
+        if min(self.height, self.width) < 3:  # a rock border around at least one cell
+            raise ValueError(
+                f"a {self.name} needs at least 3x3 cells, got {self.height}x{self.width}"
+            )
+        self.shapes = frozenset({(self.height, self.width)})
 
-    name = "cave"
-
-    def __init__(self, height: int, width: int, **shape: Any) -> None:
-        super().__init__(height, width)
-        self.shape = dict(shape)
+    @abstractmethod
+    def _generate(self, seed: int) -> np.ndarray:
+        """The map made with ``seed``."""
 
     def __call__(self, rng: np.random.Generator, keep_free: np.ndarray | None = None) -> np.ndarray:
-        seed = _fresh_seed(rng, cave.CAVE_SEED)
+        seed = int(rng.integers(_SEED_HIGH))
+        while seed == self.shipped_seed:
+            seed = int(rng.integers(_SEED_HIGH))
+        return self._generate(seed)
+
+
+class CaveMaps(_SeededMaps):
+    """A new cellular-automaton cave each reset (:mod:`envs.coverage.cave` explains the steps).
+
+    Args:
+        height: Rows (at least 3: the cave has a rock border).
+        width: Columns (at least 3).
+        rock_share: Share of rock in the initial noise; higher gives a tighter cave.
+        iterations: Smoothing passes of the cellular automaton.
+        min_region: Pockets smaller than this are filled instead of joined by tunnels.
+        wide_share: Share of the joining tunnels that are two cells wide.
+        wander_prob: Chance per tunnel step of a random step (how much tunnels wind).
+    """
+
+    name = "cave"
+    shipped_seed = cave.CAVE_SEED
+
+    def __init__(
+        self,
+        height: int,
+        width: int,
+        rock_share: float = cave.ROCK_SHARE,
+        iterations: int = 4,
+        min_region: int = 12,
+        wide_share: float = 0.5,
+        wander_prob: float = 0.25,
+    ) -> None:
+        self._set_size(height, width)
+        self.shape = {
+            "rock_share": _check_share("rock_share", rock_share),
+            "iterations": int(iterations),
+            "min_region": int(min_region),
+            "wide_share": _check_share("wide_share", wide_share),
+            "wander_prob": _check_share("wander_prob", wander_prob),
+        }
+        _check_count("iterations", iterations, _MAX_ITERATIONS)
+        _check_count("min_region", min_region, _MAX_MIN_REGION)
+
+    def _generate(self, seed: int) -> np.ndarray:
         return cave.generate_cave(seed, self.height, self.width, **self.shape)
 
 
-class MazeMaps(MapGenerator):
-    """A new maze each reset (see :mod:`envs.coverage.maze`: ``node_share``, ``newest_prob``,
-    ``straight_prob``, ``n_chambers``, ``loop_prob``)."""
+class MazeMaps(_SeededMaps):
+    """A new maze each reset (:mod:`envs.coverage.maze` explains the steps).
+
+    Args:
+        height: Rows (at least 3: passages lie on odd rows and columns inside a rock border).
+        width: Columns (at least 3).
+        node_share: Share of the passage lattice that is carved.
+        newest_prob: Chance to extend the newest passage rather than branch from an older one.
+        straight_prob: Chance to keep a passage's direction when it can.
+        n_chambers: Small chambers opened along the passages.
+        loop_prob: Chance per lattice edge of an extra opening (loops).
+    """
 
     name = "maze"
+    shipped_seed = maze.MAZE_SEED
 
-    def __init__(self, height: int, width: int, **shape: Any) -> None:
-        super().__init__(height, width)
-        self.shape = dict(shape)
+    def __init__(
+        self,
+        height: int,
+        width: int,
+        node_share: float = maze.NODE_SHARE,
+        newest_prob: float = 0.7,
+        straight_prob: float = 0.5,
+        n_chambers: int = 14,
+        loop_prob: float = maze.LOOP_PROB,
+    ) -> None:
+        self._set_size(height, width)
+        _check_count("n_chambers", n_chambers, _MAX_CHAMBERS)
+        self.shape = {
+            "node_share": _check_share("node_share", node_share),
+            "newest_prob": _check_share("newest_prob", newest_prob),
+            "straight_prob": _check_share("straight_prob", straight_prob),
+            "n_chambers": int(n_chambers),
+            "loop_prob": _check_share("loop_prob", loop_prob),
+        }
 
-    def __call__(self, rng: np.random.Generator, keep_free: np.ndarray | None = None) -> np.ndarray:
-        seed = _fresh_seed(rng, maze.MAZE_SEED)
+    def _generate(self, seed: int) -> np.ndarray:
         return maze.generate_maze(seed, self.height, self.width, **self.shape)
 
 
 class FixedMap(MapGenerator):
-    """The same map every episode (a map file or a shipped map)."""
+    """The same map every episode; its ``S`` start cells, if any, are the agents' starts."""
 
     name = "fixed"
 
     def __init__(self, spec: maps.MapSpec) -> None:
-        super().__init__(*spec.grid.shape)
         self.spec = spec
+        self.shapes = frozenset({spec.grid.shape})
+
+    @property
+    def fixed(self) -> maps.MapSpec:
+        return self.spec
 
     def __call__(self, rng: np.random.Generator, keep_free: np.ndarray | None = None) -> np.ndarray:
         return self.spec.grid.copy()
 
 
+class FileMap(FixedMap):
+    """One map file (text format of :mod:`envs.coverage.maps`), every episode.
+
+    Args:
+        path: The file.
+    """
+
+    name = "file"
+
+    def __init__(self, path: str) -> None:
+        if not Path(path).is_file():
+            raise ValueError(f"map file {str(path)!r} does not exist")
+        super().__init__(maps.load_map(path))
+
+
+class ShippedMap(FixedMap):
+    """One shipped map (``envs/maps/<name>.txt``), every episode.
+
+    Args:
+        name: The map's name, e.g. ``"cave_100x50"``.
+    """
+
+    name = "shipped"
+
+    def __init__(self, name: str) -> None:
+        if name not in maps.shipped_maps():
+            raise ValueError(
+                f"unknown shipped map {name!r}; known: {', '.join(maps.shipped_maps())}"
+            )
+        super().__init__(maps.load_map(name))
+
+
 class MixGenerator(MapGenerator):
-    """A weighted mix of sources: each reset picks one with probability ``weight / sum``."""
+    """A weighted mix of sources: each reset picks one with probability ``weight / sum`` (one
+    draw from ``rng``), then that source draws the map from ``rng``.
+
+    Args:
+        sources: ``(weight, source)`` pairs; weights are positive.
+    """
 
     name = "mix"
 
     def __init__(self, sources: Sequence[tuple[float, MapGenerator]]) -> None:
         if not sources:
             raise ValueError("a map mix needs at least one source")
-        sizes = {(g.height, g.width) for _, g in sources}
-        if len(sizes) != 1:
-            raise ValueError(
-                f"all sources of a mix must make maps of one size, got {sorted(sizes)}"
-            )
         weights = np.array([float(w) for w, _ in sources])
         if not np.all(np.isfinite(weights)) or weights.min() <= 0:
             raise ValueError("mix weights must be positive numbers")
-        super().__init__(*sizes.pop())
         self.sources = [g for _, g in sources]
         self.probabilities = weights / weights.sum()
+        self.shapes = frozenset().union(*(g.shapes for g in self.sources))
 
     def __call__(self, rng: np.random.Generator, keep_free: np.ndarray | None = None) -> np.ndarray:
         index = int(rng.choice(len(self.sources), p=self.probabilities))
         return self.sources[index](rng, keep_free)
 
 
-#: Procedural map kinds a config can name, with the keyword arguments each takes.
+class WithoutMaps(MapGenerator):
+    """``source`` with test-only maps kept out: a drawn map equal to one of ``excluded`` is
+    drawn again (the random, cave and maze sources essentially never hit one; this makes it a
+    promise rather than a likelihood).
+
+    Args:
+        source: The training source.
+        excluded: Maps (bool grids) never to return.
+
+    Raises:
+        ValueError: When ``source`` always gives an excluded map (a fixed test map).
+    """
+
+    name = "without_test_maps"
+
+    def __init__(self, source: MapGenerator, excluded: Sequence[np.ndarray]) -> None:
+        self.source = source
+        self.shapes = source.shapes
+        self.excluded = [np.asarray(g, dtype=bool) for g in excluded]
+        for spec in _fixed_maps(source):
+            if self._is_excluded(spec.grid):
+                raise ValueError(f"{spec.source} is a test-only map: training never draws it")
+
+    @property
+    def fixed(self) -> maps.MapSpec | None:
+        return self.source.fixed
+
+    def _is_excluded(self, walls: np.ndarray) -> bool:
+        return any(g.shape == walls.shape and np.array_equal(g, walls) for g in self.excluded)
+
+    def __call__(self, rng: np.random.Generator, keep_free: np.ndarray | None = None) -> np.ndarray:
+        for _ in range(_MAX_REDRAWS):
+            walls = self.source(rng, keep_free)
+            if not self._is_excluded(walls):
+                return walls
+        raise ValueError(f"{self.source.name}: every map drawn was a test-only map")
+
+
+def _fixed_maps(source: MapGenerator) -> list[maps.MapSpec]:
+    """The fixed maps ``source`` can give (itself, or the fixed sources of a mix)."""
+    if isinstance(source, MixGenerator):
+        return [spec for g in source.sources for spec in _fixed_maps(g)]
+    return [source.fixed] if source.fixed is not None else []
+
+
+#: The map kinds a config can name (``env.map: {<name>: {<parameters>}}``); a kind's parameters
+#: are its constructor's keyword arguments.
 GENERATORS: dict[str, type[MapGenerator]] = {
-    RandomMaps.name: RandomMaps,
-    CaveMaps.name: CaveMaps,
-    MazeMaps.name: MazeMaps,
-}
-_PARAMETERS: dict[str, tuple[str, ...]] = {
-    "random": ("wall_fraction",),
-    "cave": ("rock_share", "iterations", "min_region", "wide_share", "wander_prob"),
-    "maze": ("node_share", "newest_prob", "straight_prob", "n_chambers", "loop_prob"),
+    g.name: g for g in (RandomMaps, CaveMaps, MazeMaps, FileMap, ShippedMap)
 }
 
 
-#: Allowed values of the shape parameters: shares and chances are fractions; counts are bounded
-#: so that a typo cannot make every reset take minutes (a pass or a chamber costs a map's time).
-_COUNT_LIMITS: dict[str, int] = {"iterations": 100, "min_region": 1_000_000, "n_chambers": 10_000}
-
-
-def _check_parameter(kind: str, name: str, value: Any) -> None:
-    """A shape parameter's value: ``*_share``/``*_prob`` in [0, 1], counts in [0, limit].
-
-    Raises:
-        ValueError: naming the kind, the parameter and the allowed range.
-    """
-    if name in _COUNT_LIMITS:
-        limit = _COUNT_LIMITS[name]
-        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= limit:
-            raise ValueError(f"{kind}: {name} must be an integer in [0, {limit:,}], got {value!r}")
-    elif name.endswith(("_share", "_prob")):
-        ok = isinstance(value, int | float) and not isinstance(value, bool)
-        if not ok or not 0.0 <= value <= 1.0:  # also refuses NaN
-            raise ValueError(f"{kind}: {name} must be a number in [0, 1], got {value!r}")
-
-
-def from_spec(spec: Mapping[str, Any], height: int, width: int) -> MapGenerator:
-    """A generator from a config mapping: ``{cave: {rock_share: 0.45}}``, ``{random: {}}`` or
-    ``{mix: [{weight: 2, random: {}}, {weight: 1, maze: {n_chambers: 6}}]}``.
+def from_name(
+    name: str | Path,
+    height: int = 50,
+    width: int = 50,
+    wall_fraction: tuple[float, float] = (0.15, 0.20),
+) -> MapGenerator:
+    """The source for the env's ``map=`` string: ``"random"`` (``height`` x ``width`` maps with
+    ``wall_fraction``), a shipped map's name, or a map file's path.
 
     Raises:
-        ValueError: naming the unknown kind or parameter, or a parameter out of its range.
+        ValueError: For an unknown name or a missing or malformed file.
     """
-    if not isinstance(spec, Mapping) or len(spec) != 1:
-        shown = dict(spec) if isinstance(spec, Mapping) else spec
-        raise ValueError(
-            f"a map source is one of {', '.join([*GENERATORS, 'mix'])} with its parameters, "
-            f"e.g. {{cave: {{rock_share: 0.45}}}}; got {shown!r}"
-        )
-    ((kind, params),) = spec.items()
-    if kind == "mix":
-        if not isinstance(params, list):
-            raise ValueError("mix: expected a list of {weight: w, <kind>: {...}}")
-        sources = []
-        for item in params:
-            if not isinstance(item, Mapping) or "weight" not in item:
-                raise ValueError(f"mix: every source needs a weight, got {item!r}")
-            rest = {k: v for k, v in item.items() if k != "weight"}
-            sources.append((item["weight"], from_spec(rest, height, width)))
-        return MixGenerator(sources)
-    if kind not in GENERATORS:
-        raise ValueError(f"unknown map kind {kind!r}; known: {', '.join([*GENERATORS, 'mix'])}")
-    params = {} if params is None else params
-    if not isinstance(params, Mapping):
-        raise ValueError(f"{kind}: parameters must be a mapping, got {params!r}")
-    unknown = set(params) - set(_PARAMETERS[kind])
-    if unknown:
-        raise ValueError(
-            f"{kind}: unknown parameter(s) {', '.join(sorted(unknown))}; "
-            f"known: {', '.join(_PARAMETERS[kind])}"
-        )
-    for name, value in params.items():
-        _check_parameter(kind, name, value)
-    return GENERATORS[kind](height, width, **params)
+    name = str(name)
+    if name == "random":
+        return RandomMaps(height, width, wall_fraction)
+    if name in maps.shipped_maps():
+        return ShippedMap(name)
+    return FixedMap(maps.load_map(name))  # load_map names the problem with a missing file

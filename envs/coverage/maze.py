@@ -112,7 +112,7 @@ def generate_maze(
 
 
 def _carve_chamber(rock: np.ndarray, r: int, c: int, rng: np.random.Generator) -> None:
-    """Open a small elliptical chamber centred near ``(r, c)``."""
+    """Open a small elliptical chamber centred near ``(r, c)``, in place (``rock`` changes)."""
     h, w = rock.shape
     ry, rx = rng.uniform(1.5, 3.0), rng.uniform(2.0, 4.0)
     rows, cols = np.ogrid[:h, :w]

@@ -61,7 +61,14 @@ def credit_new_cells(
     """Visit the agents' cells in index order; mark and credit the unvisited ones.
 
     When two agents enter the same unvisited cell in one step the lower index is credited, because
-    it visits the cell first. Mutates ``cells`` and ``credited_by``.
+    it visits the cell first. Not pure: it changes ``cells`` and ``credited_by`` in place (they
+    are the episode's state; see the module docstring).
+
+    Args:
+        cells: Padded cell grid; each newly visited cell becomes ``CELL_VISITED`` (in place).
+        pad: Padding width of ``cells``.
+        positions: ``(row, col)`` of each agent in map coordinates, in index order.
+        credited_by: ``(H, W)`` agent index per visited cell; set for the new cells (in place).
 
     Returns:
         1 for each agent credited with a new cell, else 0.
@@ -81,5 +88,6 @@ def credit_new_cells(
 def thesis_reward(
     credited: Sequence[int], hit: Sequence[int], new_cell: float, wall_hit: float, step: float
 ) -> list[float]:
-    """Per-agent reward of eq. 3.1: ``new_cell * n_new + wall_hit * hit + step``."""
+    """Per-agent reward of eq. 3.1: ``new_cell * n_new + wall_hit * hit + step`` (pure: a new
+    list)."""
     return [new_cell * n + wall_hit * h + step for n, h in zip(credited, hit)]

@@ -1,0 +1,150 @@
+"""The mapping form of ``env.map``: map sources and weighted mixes, typed from the env's registry.
+
+``env.map`` is a string (``random``, a shipped map's name, a map file) or one of::
+
+    map: {cave: {height: 50, width: 80, rock_share: 0.5}}       # one source, a new map each reset
+    map:
+      mix:                                                      # one source picked per reset
+        - {weight: 2, random: {wall_fraction: [0.15, 0.2]}}
+        - {weight: 1, maze: {height: 41, width: 41}}
+
+The kinds and their parameters are not listed here: each kind of
+:data:`envs.coverage.generators.GENERATORS` gets a pydantic model made from its constructor's
+signature (names, types, defaults), so the registry stays the one owner of the names and a new
+generator is configurable as soon as it is registered. Unknown kinds and keys are rejected; a
+source's ``height`` and ``width`` default to ``env.height`` and ``env.width``.
+"""
+
+from __future__ import annotations
+
+import inspect
+import typing
+from pathlib import Path
+from typing import Any
+
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    PositiveFloat,
+    PositiveInt,
+    ValidationError,
+    create_model,
+    model_validator,
+)
+
+from envs.coverage import generators
+
+#: The mix's own key; every other key of a source names a kind of the registry.
+MIX = "mix"
+#: Size of the placeholder maps a source is built for when checking its parameters alone.
+_CHECK_SIZE = 50
+
+
+class _Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", validate_assignment=True)
+
+
+def _parameters_model(kind: str, cls: type[generators.MapGenerator]) -> type[_Strict]:
+    """A pydantic model of a generator's constructor keywords (``height`` and ``width``
+    optional: the env's size)."""
+    hints = typing.get_type_hints(cls.__init__)
+    fields: dict[str, Any] = {}
+    for name, param in list(inspect.signature(cls.__init__).parameters.items())[1:]:
+        if name in ("height", "width"):
+            fields[name] = (PositiveInt | None, None)
+        else:
+            default = ... if param.default is inspect.Parameter.empty else param.default
+            fields[name] = (hints[name], default)
+    return create_model(f"{kind.title()}Source", __base__=_Strict, **fields)
+
+
+_PARAMETERS: dict[str, type[_Strict]] = {
+    kind: _parameters_model(kind, cls) for kind, cls in generators.GENERATORS.items()
+}
+
+
+class _OneKind(_Strict):
+    """Exactly one kind of the registry, with its parameters."""
+
+    @model_validator(mode="before")
+    @classmethod
+    def _known_kinds(cls, data: Any) -> Any:
+        if not isinstance(data, dict):
+            return data
+        allowed = set(cls.model_fields)
+        known = ", ".join([*_PARAMETERS, *sorted(allowed - set(_PARAMETERS))])
+        for key in data:
+            if key not in allowed:
+                raise ValueError(f"unknown map kind {key!r}; known: {known}")
+        given = [k for k in data if k in _PARAMETERS or k == MIX]
+        if len(given) != 1:
+            kinds = ", ".join([*_PARAMETERS, *([MIX] if MIX in allowed else [])])
+            raise ValueError(
+                f"give exactly one map kind of {kinds}, got {', '.join(given) or 'none'}"
+            )
+        # ``{cave: }`` in YAML is ``{cave: None}``: the kind with its defaults.
+        return {k: ({} if v is None and k in _PARAMETERS else v) for k, v in data.items()}
+
+    def _kind(self) -> str:
+        return next(k for k in [*_PARAMETERS, MIX] if getattr(self, k, None) is not None)
+
+    def build(self, height: int, width: int) -> generators.MapGenerator:
+        """The generator; sizes not given are ``height`` x ``width``.
+
+        Raises:
+            ValueError: naming the kind, for parameters the generator refuses.
+        """
+        kind = self._kind()
+        params = getattr(self, kind)
+        if kind == MIX:
+            sources = []
+            for i, item in enumerate(params):
+                try:
+                    sources.append((item.weight, item.build(height, width)))
+                except ValueError as exc:
+                    raise ValueError(f"{MIX}.{i}.{exc}") from None
+            return generators.MixGenerator(sources)
+        values = params.model_dump()
+        if "height" in values:
+            values["height"] = values["height"] or height
+            values["width"] = values["width"] or width
+        try:
+            return generators.GENERATORS[kind](**values)
+        except ValueError as exc:
+            raise ValueError(f"{kind}: {exc}") from None
+
+
+_KIND_FIELDS: dict[str, Any] = {kind: (model | None, None) for kind, model in _PARAMETERS.items()}
+
+#: One source of a mix: a weight and one kind.
+MixItem = create_model("MixItem", __base__=_OneKind, weight=(PositiveFloat, ...), **_KIND_FIELDS)
+#: ``env.map``'s mapping form: one kind, or a mix.
+MapSource = create_model(
+    "MapSource", __base__=_OneKind, mix=(list[MixItem] | None, None), **_KIND_FIELDS
+)
+
+
+def parse_source(data: dict[str, Any]) -> dict[str, Any]:
+    """Check a mapping-form ``env.map`` and return it normalised (every parameter filled in,
+    map file paths absolute), as a run's ``config.yaml`` keeps it.
+
+    Raises:
+        ValueError: One line naming the key (``mix.1.cave.rocks: ...``).
+    """
+    try:
+        source = MapSource.model_validate(data)
+    except ValidationError as err:
+        first = err.errors()[0]
+        loc = ".".join(str(p) for p in first["loc"])
+        msg = first["msg"].removeprefix("Value error, ")
+        raise ValueError(f"{loc}: {msg}" if loc else msg) from None
+    for item in [source] if source.mix is None else source.mix:
+        if item.file is not None:
+            item.file.path = str(Path(item.file.path).expanduser().resolve())
+    source.build(_CHECK_SIZE, _CHECK_SIZE)  # the generators' own checks of their parameters
+    return source.model_dump(mode="json", exclude_none=True)
+
+
+def build_source(data: dict[str, Any], height: int, width: int) -> generators.MapGenerator:
+    """The generator of a (checked) mapping-form ``env.map``; sizes not given are the env's."""
+    return MapSource.model_validate(data).build(height, width)

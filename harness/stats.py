@@ -5,7 +5,8 @@ A group's score per seed is the mean test coverage of that seed's run (its ``eva
 the seeds of a group: the mean and the interquartile mean (IQM), each with a 95 %
 stratified-bootstrap confidence interval (``rliable.library.get_interval_estimates``); between two
 groups: the probability of improvement ``P(X > Y)`` with its interval. With one seed there is no
-interval, and the functions say so (``None``) rather than print a fake one.
+interval, and the functions say so (``None``) rather than print a fake one. The pictures are
+rliable's own (``rliable.plot_utils``).
 """
 
 from __future__ import annotations

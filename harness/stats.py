@@ -5,7 +5,8 @@ A group's score per seed is the mean test coverage of that seed's run (its ``eva
 the seeds of a group: the mean and the interquartile mean (IQM), each with a 95 %
 stratified-bootstrap confidence interval (``rliable.library.get_interval_estimates``); between two
 groups: the probability of improvement ``P(X > Y)`` with its interval. With one seed there is no
-interval, and the functions say so (``None``) rather than print a fake one.
+interval, and the functions say so (``None``) rather than print a fake one. The pictures are
+rliable's own (``rliable.plot_utils``).
 """
 
 from __future__ import annotations
@@ -146,13 +147,16 @@ def plot_intervals(stats: Mapping[str, SeedStats], out: Path) -> Path:
         # Zero width for one seed: the bar vanishes and only the point is drawn.
         mean_ci, iqm_ci = s.mean_ci or (s.mean, s.mean), s.iqm_ci or (s.iqm, s.iqm)
         intervals[label] = 100 * np.array([[mean_ci[0], iqm_ci[0]], [mean_ci[1], iqm_ci[1]]])
+    row_height = 0.6
     fig, _ = plot_utils.plot_interval_estimates(
         points,
         intervals,
         metric_names=["Mean", "IQM"],
         xlabel="test coverage (% of free cells), 95 % stratified-bootstrap CIs",
         subfigure_width=4.0,
-        row_height=0.6,
+        row_height=row_height,
+        # rliable places the label in figure fractions: half an inch below, whatever the rows.
+        xlabel_y_coordinate=-0.55 / (row_height * len(points)),
     )
     out.parent.mkdir(parents=True, exist_ok=True)
     try:

@@ -163,7 +163,10 @@ def _storage(url: str | None, folder: Path) -> Any:
     from optuna.storages.journal import JournalFileBackend
 
     if url is None:
+        folder.mkdir(parents=True, exist_ok=True)
         return optuna.storages.JournalStorage(JournalFileBackend(str(folder / "journal.log")))
+    from sqlalchemy.exc import ArgumentError
+
     error: Exception | None = None
     for attempt in range(5):
         try:
@@ -177,6 +180,9 @@ def _storage(url: str | None, folder: Path) -> Any:
                     grace_period=GRACE_S,
                     heartbeat_stale_trial_callback=_retry_callback(),
                 )
+        except (ArgumentError, ImportError) as exc:  # a bad URL or a missing driver: no retry
+            error = exc
+            break
         except Exception as exc:  # SQLAlchemy and drivers raise many kinds
             # Workers started together race to create the schema in an empty database; the
             # loser sees a duplicate type or table, and finds the schema there on a retry.
@@ -249,8 +255,9 @@ def run_sweep(
     exists = (folder / "journal.log").exists()
     if storage_url is None and exists and not resume and not worker:
         raise SweepError(f"{folder}: a sweep of this study exists; add --resume to continue it")
-    folder.mkdir(parents=True, exist_ok=True)
     optuna.logging.set_verbosity(optuna.logging.WARNING)
+    storage = _storage(storage_url, folder)  # before any folder is made for a database
+    folder.mkdir(parents=True, exist_ok=True)
     sampler = (
         # One fixed shuffle on every worker: trial k takes grid point k, so workers sharing a
         # study never draw the same point (Optuna's advice for distributed grids).
@@ -260,7 +267,7 @@ def run_sweep(
     )
     study = optuna.create_study(
         study_name=study_name,
-        storage=_storage(storage_url, folder),
+        storage=storage,
         direction="maximize",
         sampler=sampler,
         pruner=make_pruner(pruner),

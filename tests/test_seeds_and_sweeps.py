@@ -226,6 +226,20 @@ def test_space_keys_are_checked_before_any_trial(tiny, tmp_path, capsys, space, 
     assert not sweeps.exists()
 
 
+def test_a_storage_url_that_cannot_be_opened_is_one_line_and_makes_no_folder(
+    tiny, tmp_path, capsys
+):
+    space = tmp_path / "space.yaml"
+    space.write_text(SPACE)
+    sweeps = tmp_path / "sweeps"
+    args = ["sweep", str(tiny), "--space", str(space), "--trials", "2", "--sweeps-dir",
+            str(sweeps), "--storage", "nosuchdb://host/db"]  # fmt: skip
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("harness: error: --storage: cannot open") and "\n" not in err
+    assert not sweeps.exists()
+
+
 def test_sweep_on_the_embedded_store_runs_the_trials_asked_and_writes_the_best(tiny, tmp_path):
     space = tmp_path / "space.yaml"
     space.write_text(SPACE)
@@ -247,6 +261,8 @@ def test_sweep_on_the_embedded_store_runs_the_trials_asked_and_writes_the_best(t
         if section == "algo":
             assert getattr(config.algo, name) == pytest.approx(value)
     assert 0 <= best["value"] <= 1
+    # best.yaml is the config the best trial trained with: `harness run best.yaml` repeats it.
+    assert config == load_config(Path(best["run"]) / "config.yaml")
     # The same command again is refused; --resume continues to a larger total.
     assert main(args) == 2
     assert main([*args[:5], "4", *args[6:], "--resume"]) == 0

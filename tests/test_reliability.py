@@ -89,7 +89,9 @@ def test_sigkill_then_resume_reaches_the_total_without_gaps_or_duplicates(tmp_pa
     # the first session's progress.csv is kept beside the resumed one's.
     events = EventAccumulator(str(run / "tb"))
     events.Reload()
-    assert [e.step for e in events.Scalars("eval/coverage_median")] == evals
+    # (TensorBoard's reservoir may list the purged-and-continued steps out of order: compare sets)
+    steps = [e.step for e in events.Scalars("eval/coverage_median")]
+    assert sorted(steps) == evals and len(steps) == len(set(steps))
     for name in ("progress.csv", "progress-resume1.csv"):
         with (run / "tb" / name).open() as f:
             assert len(list(csv.DictReader(f))) > 0, name

@@ -391,14 +391,17 @@ def train(
         if command is not None:
             run.write_command(command)
     else:
+        if restart:  # first, so that a log it cannot read stops it before any file changes
+            try:
+                rewind_logs(run, 0, 0)
+            except LogMismatchError as exc:
+                raise CheckpointError(f"cannot start the run again: {exc}") from None
+            run.best_model.unlink(missing_ok=True)
         set_random_seed(config.seed)
         atomic_write_text(run.config, config.to_yaml())
         state = TrainingState()
         if command is not None:
             run.write_command(command)
-        if restart:
-            rewind_logs(run, 0, 0)
-            run.best_model.unlink(missing_ok=True)
 
     print(
         f"replay buffer: {config.algo.buffer_size:,} transitions, about "

@@ -239,3 +239,14 @@ def test_starting_again_over_a_damaged_log_is_one_line_and_changes_nothing(tmp_p
     assert "episodes.csv: line 1" in err[-1] and "Traceback" not in "\n".join(err)
     after = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file() and p.name != ".lock"}
     assert after == before
+
+
+def test_evaluating_a_shipped_reference_changes_none_of_its_files(tmp_path, monkeypatch, capsys):
+    reference = ROOT / "runs" / "reference" / "ddqn_15x15"
+    before = {p.name: p.read_bytes() for p in reference.iterdir()}
+    monkeypatch.chdir(tmp_path)  # results of a reference go to runs/evals/ under the cwd
+    assert main(["eval", str(reference), "--episodes", "2"]) == 0
+    assert {p.name: p.read_bytes() for p in reference.iterdir()} == before
+    saved = Path("runs") / "evals" / "ddqn_15x15" / "eval-2ep.json"
+    assert f"saved {saved}" in capsys.readouterr().err
+    assert json.loads((tmp_path / saved).read_text())["episodes"] == 2

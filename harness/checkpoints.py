@@ -145,6 +145,21 @@ def complete_checkpoints(folder: Path) -> list[Path]:
     return sorted(p for p in found if CheckpointDir(p).state.is_file())
 
 
+#: Prefix of a checkpoint that a resume could not read and passed over: kept to look at, never
+#: loaded nor counted among the :data:`KEEP` newest again.
+UNUSABLE_PREFIX = "unusable-"
+
+
+def set_aside(checkpoint: Path) -> Path:
+    """Rename an unreadable checkpoint that a resume passed over to ``unusable-step-N``: the
+    resumed run's timeline no longer goes through it, and it must not take the place of one of
+    the two usable checkpoints kept."""
+    target = checkpoint.with_name(UNUSABLE_PREFIX + checkpoint.name)
+    if target.exists():
+        shutil.rmtree(target)
+    return checkpoint.rename(target)
+
+
 def latest_checkpoint(folder: Path) -> Path:
     """The newest complete checkpoint.
 

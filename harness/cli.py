@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import signal
 import sys
 import warnings
 from collections.abc import Sequence
@@ -37,6 +38,7 @@ from harness.groups import GroupError
 from harness.rundir import (
     RunDir,
     RunDirError,
+    atomic_write_text,
     check_output_file,
 )
 from harness.stats import REPS
@@ -334,6 +336,9 @@ def cmd_run(args: argparse.Namespace) -> int:
         raise HarnessError("--jobs goes with --seeds")
     run = RunDir.create_at(args.into) if args.into else RunDir.create(args.runs_dir, config.name)
     with run.lock():
+        # Before the folder is announced (and before the slow torch import): from here on a
+        # kill leaves a folder that `--resume` can start again.
+        atomic_write_text(run.config, config.to_yaml())
         print(f"run folder: {run.path}", file=sys.stderr)
         return _train(config, run, args, mode="new")
 
@@ -629,6 +634,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         where = f": {exc.filename}" if exc.filename else ""
         print(f"harness: error: {exc.strerror or exc}{where}", file=sys.stderr)
         return EXIT_USAGE
+    except KeyboardInterrupt:  # Ctrl-C outside training (which stops cleanly by itself)
+        print("harness: interrupted", file=sys.stderr)
+        return 128 + signal.SIGINT
 
 
 if __name__ == "__main__":

@@ -342,10 +342,10 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     """
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
     tmp_path = Path(tmp)
-    os.chmod(tmp_path, 0o644)  # mkstemp makes 0600; a run's files are ordinary readable files
-    try:
+    try:  # from the file's creation on, so that a Ctrl-C at any point leaves no temporary file
+        os.close(fd)
+        os.chmod(tmp_path, 0o644)  # mkstemp makes 0600; a run's files are ordinary readable files
         write(tmp_path)
         with tmp_path.open("rb") as f:
             os.fsync(f.fileno())

@@ -48,6 +48,7 @@ from harness.checkpoints import (
     read_rng,
     read_state,
     save_checkpoint,
+    set_aside,
     set_rng_states,
 )
 from harness.checks import check_replay_memory, format_bytes, optimizer_kwargs_with_foreach
@@ -386,19 +387,25 @@ def train(
             rewind_logs(run, state.next_episode, state.num_timesteps)
         except LogMismatchError as exc:
             raise CheckpointError(f"cannot resume from {point.checkpoint.name}: {exc}") from None
+        for newer in complete_checkpoints(run.checkpoints):
+            if newer.name > point.checkpoint.name:  # unreadable: find_resume_point passed it over
+                print(f"harness: set aside {set_aside(newer)}", file=sys.stderr)
         set_rng_states(point.rng)
         state.resumes += 1
         if command is not None:
             run.write_command(command)
     else:
+        if restart:  # first, so that a log it cannot read stops it before any file changes
+            try:
+                rewind_logs(run, 0, 0)
+            except LogMismatchError as exc:
+                raise CheckpointError(f"cannot start the run again: {exc}") from None
+            run.best_model.unlink(missing_ok=True)
         set_random_seed(config.seed)
         atomic_write_text(run.config, config.to_yaml())
         state = TrainingState()
         if command is not None:
             run.write_command(command)
-        if restart:
-            rewind_logs(run, 0, 0)
-            run.best_model.unlink(missing_ok=True)
 
     print(
         f"replay buffer: {config.algo.buffer_size:,} transitions, about "

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import csv
 import json
+import os
 import signal
 import subprocess
 import sys
@@ -168,3 +169,86 @@ def test_same_config_and_seed_give_the_same_episodes(tmp_path):
     rows = (a / "episodes.csv").read_text()
     assert rows.count("\n") > 10
     assert rows == (b / "episodes.csv").read_text()
+
+
+def read_until(proc: subprocess.Popen, marker: str) -> str:
+    """Lines of ``proc``'s stderr up to the first that contains ``marker``."""
+    seen = ""
+    for line in proc.stderr:
+        seen += line
+        if marker in line:
+            return seen
+    raise AssertionError(f"{marker!r} never came: {seen}")
+
+
+def no_temporary_files(run: Path) -> list[Path]:
+    return [p for p in run.rglob("*") if p.name.endswith(".tmp")]
+
+
+@pytest.mark.slow
+def test_kill_as_soon_as_the_run_folder_exists_then_a_resume_starts_again_alone(tmp_path, capsys):
+    short = ["--set", "phases.initial.timesteps=1200", "--set", "phases.optimizing.timesteps=400"]
+    cmd = [sys.executable, "-m", "harness.cli", "run", str(SMOKE), "--runs-dir", str(tmp_path)]
+    first = subprocess.Popen([*cmd, "--no-progress", *short], stderr=subprocess.PIPE, text=True)
+    read_until(first, "run folder:")
+    first.kill()  # at once: training has not even imported torch yet
+    first.wait()
+    (run,) = tmp_path.iterdir()
+    resume_cmd = [sys.executable, "-m", "harness.cli", "run", "--resume", str(run), "--no-progress"]
+    second = subprocess.Popen(resume_cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    read_until(second, "starting the run again from step 0")
+    # While it trains, a third process on the folder is refused: exit 2, one line, its pid.
+    capsys.readouterr()
+    assert main(["run", "--resume", str(run), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert f"in use by process {second.pid}" in err and "\n" not in err
+    _, rest = second.communicate(timeout=600)
+    assert second.returncode == 0, rest
+    assert (run / "model.zip").is_file()
+    episodes = episode_numbers(run)
+    assert len(episodes) > 10 and episodes == list(range(len(episodes)))
+    assert no_temporary_files(run) == []
+
+
+@pytest.mark.slow
+def test_ctrl_c_twice_in_a_terminal_with_env_worker_processes_stops_without_traceback(tmp_path):
+    # A terminal's Ctrl-C goes to the whole process group: the env worker processes too.
+    cmd = [sys.executable, "-m", "harness.cli", "run", str(SMOKE), "--runs-dir", str(tmp_path)]
+    cmd += ["--no-progress", *LONGER, "--set", "vec.num_cpus=2"]
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    run = wait_for_checkpoint(tmp_path, proc, 1000)
+    os.killpg(proc.pid, signal.SIGINT)
+    time.sleep(0.05)  # the second one lands while stopping (or saving) the first
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    # 130, or killed by the SIGINT itself while exiting after its message: $? is 130 in a shell
+    assert proc.returncode in (128 + signal.SIGINT, -signal.SIGINT), err
+    assert "Traceback" not in err and "error" not in err
+    assert f"resume with: harness run --resume {run}" in err
+    assert no_temporary_files(run) == []
+    assert complete_checkpoints(run / "checkpoints")
+
+
+def test_starting_again_over_a_damaged_log_is_one_line_and_changes_nothing(tmp_path, capsys):
+    run = tmp_path / "killed-early"
+    (run / "checkpoints").mkdir(parents=True)
+    (run / "config.yaml").write_text(load_config(SMOKE).to_yaml())
+    (run / "episodes.csv").write_text("not,the,header\n1,2,3\n")
+    before = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file()}
+    assert main(["run", "--resume", str(run), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("harness: error: cannot start the run again:")
+    assert "episodes.csv: line 1" in err[-1] and "Traceback" not in "\n".join(err)
+    after = {p.name: p.read_bytes() for p in run.iterdir() if p.is_file() and p.name != ".lock"}
+    assert after == before
+
+
+def test_evaluating_a_shipped_reference_changes_none_of_its_files(tmp_path, monkeypatch, capsys):
+    reference = ROOT / "runs" / "reference" / "ddqn_15x15"
+    before = {p.name: p.read_bytes() for p in reference.iterdir()}
+    monkeypatch.chdir(tmp_path)  # results of a reference go to runs/evals/ under the cwd
+    assert main(["eval", str(reference), "--episodes", "2"]) == 0
+    assert {p.name: p.read_bytes() for p in reference.iterdir()} == before
+    saved = Path("runs") / "evals" / "ddqn_15x15" / "eval-2ep.json"
+    assert f"saved {saved}" in capsys.readouterr().err
+    assert json.loads((tmp_path / saved).read_text())["episodes"] == 2

@@ -137,6 +137,10 @@ def test_unreadable_newest_checkpoint_falls_back_to_the_older_one(run_copy, caps
     assert resume(run_copy) == 0
     err = capsys.readouterr().err
     assert f"resuming from the older {older.name}" in err and "model.zip: unreadable" in err
+    # The unreadable one is kept to look at, but no longer counts among the two kept.
+    assert (latest.parent / f"unusable-{latest.name}" / "model.zip").read_bytes() == b"not a zip"
+    assert len(complete_checkpoints(run_copy / "checkpoints")) == 2
+    assert latest not in complete_checkpoints(run_copy / "checkpoints")
     assert episode_numbers(run_copy) == list(range(len(episode_numbers(run_copy))))
 
 

@@ -25,6 +25,21 @@ if TYPE_CHECKING:
 TRAINING_DEVICE_TYPES = ("cpu", "cuda", "mps")
 
 
+def network_kwargs(algo: Any) -> dict[str, Any]:
+    """The policy's network settings from ``config.algo`` (the one place they are read):
+    hidden layers, the dueling aggregator, the team-map extractor's sizes."""
+    entry = POLICIES[algo.policy]
+    kwargs: dict[str, Any] = {"net_arch": list(algo.net_arch)}
+    if entry.dueling:
+        kwargs["aggregator"] = algo.dueling_aggregator
+    if entry.observation == "teammap":
+        kwargs["features_extractor_kwargs"] = {
+            "features_dim": algo.features_dim,
+            "channels": list(algo.cnn_channels),
+        }
+    return kwargs
+
+
 def check_runtime(config: ExperimentConfig) -> None:
     """Check what the schema cannot: the optimizer, the device, the networks' and the replay
     buffer's memory.
@@ -150,14 +165,7 @@ def network_parameters(config: ExperimentConfig) -> int:
     ``meta`` device: the policy is built as ``DoubleDQN`` builds it, without allocating memory."""
     algo = config.algo
     entry = POLICIES[algo.policy]
-    kwargs: dict[str, Any] = {"net_arch": list(algo.net_arch)}
-    if entry.dueling:
-        kwargs["aggregator"] = algo.dueling_aggregator
-    if entry.observation == "teammap":
-        kwargs["features_extractor_kwargs"] = {
-            "features_dim": algo.features_dim,
-            "channels": list(algo.cnn_channels),
-        }
+    kwargs = network_kwargs(algo)
     policy_class = entry.load()
     # SB3 moves each new Q-network to ``policy.device`` (the CPU until it has weights); pointing
     # that hook at ``meta`` keeps every tensor on the meta device.

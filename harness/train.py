@@ -51,11 +51,15 @@ from harness.checkpoints import (
     set_aside,
     set_rng_states,
 )
-from harness.checks import check_replay_memory, format_bytes, optimizer_kwargs_with_foreach
+from harness.checks import (
+    check_replay_memory,
+    format_bytes,
+    network_kwargs,
+    optimizer_kwargs_with_foreach,
+)
 from harness.config import ExperimentConfig, PhaseConfig
 from harness.dqn import DoubleDQN, NonFiniteLossError, resolve_optimizer_class
 from harness.evaluation import model_policy, run_episodes, selection_score, summarize
-from harness.registry import POLICIES
 from harness.rundir import (
     EVALUATION_COLUMNS,
     CheckpointDir,
@@ -80,18 +84,10 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
     algo, first = config.algo, config.phases[0]
     optimizer_class = resolve_optimizer_class(algo.optimizer)
     policy_kwargs: dict[str, Any] = {
-        "net_arch": list(algo.net_arch),
+        **network_kwargs(algo),
         "optimizer_class": optimizer_class,
         "optimizer_kwargs": optimizer_kwargs_with_foreach(optimizer_class, algo.optimizer_kwargs),
     }
-    entry = POLICIES[algo.policy]
-    if entry.dueling:
-        policy_kwargs["aggregator"] = algo.dueling_aggregator
-    if entry.observation == "teammap":
-        policy_kwargs["features_extractor_kwargs"] = {
-            "features_dim": algo.features_dim,
-            "channels": list(algo.cnn_channels),
-        }
     buffer_kwargs: dict[str, Any] | None = None
     buffer_class: type[PrioritizedReplayBuffer] | None = None
     if algo.prioritized:

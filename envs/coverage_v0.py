@@ -20,8 +20,8 @@ Actions                   Discrete(5): 0 up, 1 down, 2 left, 3 right, 4 stay
 Parallel API              yes (``parallel_env``); AEC through ``env()``
 Agents                    ``agent_0 ... agent_{n-1}``
 Observation shape         (13,) float32 (``observation="thesis"``); a ``Dict`` for
-                          ``"teammap"``: ``local`` (5, crop, crop), ``global`` (6, G, G)
-                          uint8, ``vector`` (3,) float32
+                          ``"teammap"``: ``local`` (5, crop, crop), ``global`` (6, G, G),
+                          optional ``ego`` (5, E, E) uint8, ``vector`` (3,) float32
 Observation values        thesis: window -1/0/1; coordinates [0, 1] or raw (row, col);
                           teammap: uint8 0..255 (255 = 1), vector in [0, 1]
 ========================  ==========================================================
@@ -61,12 +61,19 @@ included); outside the grid is known wall. Binary channels are 0 or 255.
   columns, so any size or aspect fits; a block with no cell, on a map smaller than G, counts as
   wall); channels ``round(255 * share)`` of the block's cells visited, known free not visited,
   unknown and known wall, then this agent's block and the teammates' blocks (255).
+* ``"ego"`` ``Box(0, 255, (5, E, E), uint8)``, only when ``ego_size=E > 0``: a coarse map centred
+  on the agent, E x E blocks of ``ego_block`` x ``ego_block`` cells (the centre block is centred on
+  the agent's cell); channels the share of the block visited, known free not visited, unknown and
+  known wall (outside the grid counts as wall), and teammates present (255). The same pattern
+  means the same thing wherever the agent stands, unlike the absolute ``"global"`` view.
 * ``"vector"`` ``Box(0, 1, (3,), float32)``: own row/(H-1), own col/(W-1), steps/max_steps.
 
-``crop`` is odd and >= 5 (default 15), ``global_size`` >= 6 (default 13): Stable-Baselines3
-reads a uint8 image as channel-first only when no side is smaller than its channel count. The
-images are updated incrementally (only the agents' new 3x3 windows), so a step costs
-O(agents * crop^2 + G^2) whatever the map's size.
+``crop`` is odd and >= 5 (default 15), ``global_size`` >= 6 (default 13), ``ego_size`` 0 (no
+ego view, the default) or odd and >= 5, ``ego_block`` odd (default 5): Stable-Baselines3 reads a
+uint8 image as channel-first only when no side is smaller than its channel count. The local and
+global images are updated incrementally (only the agents' new 3x3 windows), so they cost
+O(agents * crop^2 + G^2) a step whatever the map's size; the ego view is pooled from one
+summed-area table of the map per step.
 
 **Reward** (eq. 3.1): ``new_cell * n_new + wall_hit * hit + step``, by default
 ``2*new - 10*hit - 1``, per agent.
@@ -78,8 +85,8 @@ credited to this agent so far), ``wall_hits`` (this agent's count so far), ``ste
 ``wall_fraction=(0.15, 0.20)``, ``n_agents=4``, ``max_steps=1000``, ``observation="thesis"``,
 ``coords="normalized"``, ``rewards={"new_cell": 2.0, "wall_hit": -10.0, "step": -1.0}``,
 ``starts=None`` (fixed start cells, else distinct random free cells each reset),
-``render_mode=None | "rgb_array" | "ansi"``, ``crop=15`` and ``global_size=13`` (``"teammap"``
-only).
+``render_mode=None | "rgb_array" | "ansi"``, ``crop=15``, ``global_size=13``, ``ego_size=0`` and
+``ego_block=5`` (``"teammap"`` only).
 
 ``reset(seed=None, options=None)``: ``options={"grid": bool_array, "starts": [(r, c), ...]}`` fixes
 that episode's map and/or start cells. Bad input raises ``ValueError`` naming the problem.

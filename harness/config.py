@@ -124,6 +124,10 @@ class EnvConfig(_Section):
     """``teammap``: side of the local crop (odd)."""
     global_size: Annotated[int, Field(ge=1, le=MAX_IMAGE_SIDE)] = 13
     """``teammap``: blocks per side of the pooled whole-map view."""
+    ego_size: Annotated[int, Field(ge=0, le=MAX_IMAGE_SIDE)] = 0
+    """``teammap``: blocks per side of the coarse map centred on the agent (odd; 0 = none)."""
+    ego_block: Annotated[int, Field(ge=1, le=MAX_IMAGE_SIDE)] = 5
+    """``teammap``: cells per side of a block of the ego view (odd)."""
     coords: Literal["normalized", "raw"] = "normalized"
     rewards: RewardsConfig = RewardsConfig()
     starts: list[tuple[int, int]] | None = None
@@ -177,6 +181,21 @@ class EnvConfig(_Section):
         least = TeamMapObservation.MIN_GLOBAL_SIZE
         if v < least:
             raise ValueError(f"must be >= {least} (the global view's channels), got {v}")
+        return v
+
+    @field_validator("ego_size")
+    @classmethod
+    def _ego_size(cls, v: int) -> int:
+        least = TeamMapObservation.MIN_EGO_SIZE
+        if v != 0 and (v < least or v % 2 == 0):
+            raise ValueError(f"must be 0 (no ego view) or odd and >= {least}, got {v}")
+        return v
+
+    @field_validator("ego_block")
+    @classmethod
+    def _ego_block(cls, v: int) -> int:
+        if v % 2 == 0:
+            raise ValueError(f"must be odd (the centre block is centred on the agent), got {v}")
         return v
 
     @field_validator("wall_fraction")

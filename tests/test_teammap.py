@@ -87,10 +87,41 @@ def reference(env, crop: int, g: int) -> dict[str, np.ndarray]:
     return {"local": local, "global": glob, "vector": vector}
 
 
-def check(env, obs, crop: int = 15, g: int = 13) -> None:
+def reference_ego(env, e: int, b: int) -> np.ndarray:
+    """The ego views computed cell by cell from the env's public state (slow and plain)."""
+    walls, visited, known = env.walls, env.visited, env.known
+    height, width = walls.shape
+    cat = np.full((height, width), 3)
+    cat[known & walls] = 0
+    cat[known & visited] = 1
+    cat[known & ~walls & ~visited] = 2
+    positions = env.positions
+    out = np.zeros((len(positions), 5, e, e), dtype=np.uint8)
+    for i, (r, c) in enumerate(positions):
+        for bi in range(e):
+            for bj in range(e):
+                top, left = r + (bi - e // 2) * b - b // 2, c + (bj - e // 2) * b - b // 2
+                counts = np.zeros(4)
+                for rr in range(top, top + b):
+                    for cc in range(left, left + b):
+                        inside = 0 <= rr < height and 0 <= cc < width
+                        counts[cat[rr, cc] if inside else 0] += 1
+                for channel, k in enumerate((1, 2, 3, 0)):
+                    out[i, channel, bi, bj] = round(255 * counts[k] / b**2)
+        for j, (r2, c2) in enumerate(positions):
+            bi, bj = (r2 - r + b // 2) // b + e // 2, (c2 - c + b // 2) // b + e // 2
+            if j != i and 0 <= bi < e and 0 <= bj < e:
+                out[i, 4, bi, bj] = 255
+    return out
+
+
+def check(env, obs, crop: int = 15, g: int = 13, ego: tuple[int, int] | None = None) -> None:
     expected = reference(env, crop, g)
+    if ego is not None:
+        expected["ego"] = reference_ego(env, *ego)
     for i, agent in enumerate(env.possible_agents):
-        for key in ("local", "global"):
+        assert ("ego" in obs[agent]) == (ego is not None)
+        for key in ("local", "global", "ego")[: 3 if ego else 2]:
             np.testing.assert_array_equal(obs[agent][key], expected[key][i], err_msg=key)
         np.testing.assert_allclose(obs[agent]["vector"], expected["vector"][i], rtol=1e-6)
 
@@ -134,6 +165,49 @@ def test_teammates_in_the_crop_and_on_the_global_view():
     assert a1[4].sum() == 255
     assert (obs["agent_2"]["global"][5] > 0).sum() == 2  # two teammates' blocks
     check(env, obs, crop=5, g=7)
+
+
+def test_ego_view_on_a_hand_built_grid():
+    # ROOM is 5x7; an ego view of 5x5 blocks of 3x3 cells, centred on the agent at (1, 1).
+    env, obs = teammap_env(ROOM, [(1, 1), (3, 5)], crop=5, global_size=7, ego_size=5, ego_block=3)
+    ego = obs["agent_0"]["ego"]
+    assert ego.shape == (5, 5, 5)
+    # The centre block is the agent's 3x3 window: rows 0..2, columns 0..2, all known: walls
+    # (0,0) (0,1) (0,2) (1,0) (2,0) (2,2), visited (1,1), known free (1,2) (2,1).
+    assert ego[3, 2, 2] == round(255 * 6 / 9) and ego[0, 2, 2] == round(255 / 9)
+    assert ego[1, 2, 2] == round(255 * 2 / 9) and ego[2, 2, 2] == 0
+    # The block to its right: rows 0..2, columns 3..5. Only agent_1's window (rows 2..4,
+    # columns 4..6) reaches it: (2, 4) and (2, 5) are known free; the other 7 cells are unknown
+    # (the walls of row 0 too: nobody has seen them yet).
+    assert ego[0, 2, 3] == 0 and ego[1, 2, 3] == round(255 * 2 / 9)
+    assert ego[2, 2, 3] == round(255 * 7 / 9) and ego[3, 2, 3] == 0
+    # Blocks above and left lie outside the grid: known wall.
+    assert (ego[3, :2, :] == 255).all() and (ego[3, :, :2] == 255).all()
+    # agent_1 at (+2, +4) from agent_0: block (2 + (2+1)//3, 2 + (4+1)//3) = (3, 3).
+    assert ego[4, 3, 3] == 255 and ego[4].sum() == 255
+    check(env, obs, crop=5, g=7, ego=(5, 3))
+    obs, *_ = env.step({"agent_0": RIGHT, "agent_1": STAY})
+    check(env, obs, crop=5, g=7, ego=(5, 3))
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_ego_view_equals_a_cell_by_cell_recomputation_after_many_steps(seed):
+    env = coverage_v0.parallel_env(
+        height=23,
+        width=31,
+        n_agents=3,
+        observation="teammap",
+        max_steps=200,
+        crop=7,
+        ego_size=7,
+        ego_block=5,
+    )
+    obs, _ = env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    for t in range(200):
+        if t % 50 == 0:
+            check(env, obs, crop=7, ego=(7, 5))
+        obs, *_ = env.step({a: int(rng.integers(5)) for a in env.agents})
 
 
 def test_pooling_of_a_100x50_map_matches_the_hand_computed_blocks():
@@ -241,7 +315,12 @@ def test_incremental_arrays_equal_a_recomputation_after_many_steps(seed):
 
 
 @pytest.mark.parametrize(
-    ("height", "width", "sizes"), [(12, 40, {}), (4, 5, {"crop": 5, "global_size": 6})]
+    ("height", "width", "sizes"),
+    [
+        (12, 40, {}),
+        (4, 5, {"crop": 5, "global_size": 6}),
+        (12, 40, {"ego_size": 9, "ego_block": 3}),
+    ],
 )
 def test_observations_lie_in_the_space(height, width, sizes):
     env = coverage_v0.parallel_env(
@@ -264,6 +343,9 @@ def test_observations_lie_in_the_space(height, width, sizes):
         ({"crop": 7.0}, "crop must be an odd integer"),
         ({"global_size": 5}, "global_size must be an integer >= 6, got 5"),
         ({"global_size": True}, "global_size must be an integer"),
+        ({"ego_size": 4}, "ego_size must be 0 .off. or an odd integer >= 5, got 4"),
+        ({"ego_size": 3}, "ego_size must be 0 .off. or an odd integer >= 5, got 3"),
+        ({"ego_block": 2}, "ego_block must be an odd integer >= 1, got 2"),
     ],
 )
 def test_bad_sizes_are_value_errors(kwargs, message):
@@ -279,9 +361,9 @@ def test_smallest_sizes_are_read_as_channel_first_images_by_sb3():
     )
 
     space = coverage_v0.parallel_env(
-        observation="teammap", crop=5, global_size=6
+        observation="teammap", crop=5, global_size=6, ego_size=5
     ).observation_space("agent_0")
-    for key in ("local", "global"):
+    for key in ("local", "global", "ego"):
         assert is_image_space(space[key]) and is_image_space_channels_first(space[key])
     too_small = spaces.Box(0, 255, (5, 3, 3), np.uint8)  # what crop=3 would give
     with pytest.warns(UserWarning, match="channels-last"):
@@ -294,6 +376,8 @@ def test_smallest_sizes_are_read_as_channel_first_images_by_sb3():
         ("{crop: 4}", r"env.crop: must be odd and >= 5"),
         ("{crop: 3}", r"env.crop: must be odd and >= 5"),
         ("{global_size: 5}", r"env.global_size: must be >= 6"),
+        ("{ego_size: 4}", r"env.ego_size: must be 0 \(no ego view\) or odd and >= 5"),
+        ("{ego_block: 4}", r"env.ego_block: must be odd"),
     ],
 )
 def test_config_refuses_bad_sizes(tmp_path, env_yaml, message):
@@ -306,12 +390,13 @@ def test_config_refuses_bad_sizes(tmp_path, env_yaml, message):
 def test_config_sizes_reach_the_env(tmp_path):
     path = tmp_path / "exp.yaml"
     path.write_text(
-        "name: tm\nenv: {observation: teammap, crop: 9, global_size: 8}\n"
+        "name: tm\nenv: {observation: teammap, crop: 9, global_size: 8, ego_size: 11}\n"
         "algo: {policy: TeamMapPolicy}\n"
     )
     env = coverage_v0.parallel_env(**load_config(path).env.kwargs())
     space = env.observation_space("agent_0")
     assert space["local"].shape == (5, 9, 9) and space["global"].shape == (6, 8, 8)
+    assert space["ego"].shape == (5, 11, 11)
 
 
 def test_parallel_api_and_seed_tests_pass_with_the_team_map():

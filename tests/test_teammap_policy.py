@@ -52,13 +52,29 @@ def test_extractor_output_shape_for_any_sizes(crop, g):
     assert extractor.linear[0].in_features == expected
 
 
-@pytest.mark.parametrize("policy", ["TeamMapPolicy", "DuelingTeamMapPolicy"])
-def test_policy_save_and_load_give_the_same_q_values(tmp_path, policy):
+def test_extractor_gives_the_ego_view_its_own_branch():
+    space = spaces.Dict(
+        {**teammap_space(5, 7).spaces, "ego": spaces.Box(0, 255, (5, 9, 9), np.uint8)}
+    )
+    extractor = TeamMapExtractor(space, features_dim=16, channels=(4, 8))
+    assert set(extractor.branches) == {"local", "global", "ego", "vector"}
+    assert extractor.linear[0].in_features == 8 * 3**2 + 8 * 4**2 + 8 * 5**2 + 3
+    batch = sample_batch(space, 2)
+    out = extractor(batch)
+    batch["ego"] = batch["ego"].flip(-1)  # the ego view changes the features
+    assert not th.equal(out, extractor(batch))
+
+
+@pytest.mark.parametrize(
+    ("policy", "ego_size"),
+    [("TeamMapPolicy", 0), ("DuelingTeamMapPolicy", 0), ("TeamMapPolicy", 5)],
+)
+def test_policy_save_and_load_give_the_same_q_values(tmp_path, policy, ego_size):
     from harness.adapters import make_vec_env
 
     venv = make_vec_env(
         {"height": 9, "width": 9, "n_agents": 2, "max_steps": 10, "observation": "teammap",
-         "crop": 5, "global_size": 7},
+         "crop": 5, "global_size": 7, "ego_size": ego_size, "ego_block": 3},
     )  # fmt: skip
     model = DoubleDQN(
         policy,

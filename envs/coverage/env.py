@@ -48,6 +48,8 @@ class CoverageEnv(ParallelEnv):
         render_mode: str | None = None,
         crop: int = 15,
         global_size: int = 13,
+        ego_size: int = 0,
+        ego_block: int = 5,
     ) -> None:
         _check_int("n_agents", n_agents, 1)
         _check_int("max_steps", max_steps, 1)
@@ -104,7 +106,12 @@ class CoverageEnv(ParallelEnv):
             _check_starts(self._starts, self.n_agents, *self._generator.min_shape, grid)
 
         builder = OBSERVATIONS[observation]
-        given = {"crop": crop, "global_size": global_size}
+        given = {
+            "crop": crop,
+            "global_size": global_size,
+            "ego_size": ego_size,
+            "ego_block": ego_block,
+        }
         # One builder per map size: a mix may draw maps of several sizes. The space is the
         # largest size's (with raw coordinates its bounds hold every smaller map's positions).
         self._new_observer = functools.partial(

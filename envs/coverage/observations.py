@@ -165,25 +165,38 @@ class TeamMapObservation(ObservationBuilder):
       fits); channels the share of the block visited, known free not visited, unknown and known
       wall (``round(255 * share)``; a block with no cell, on a map smaller than G, counts as
       wall), this agent's block and the teammates' blocks (255).
+    * ``"ego"`` ``(5, E, E)``, only with ``ego_size=E > 0``: a coarse map centred on the agent,
+      E x E blocks of ``ego_block`` x ``ego_block`` cells (the centre block is centred on the
+      agent's cell), so it reaches ``(E * ego_block) // 2`` cells each way; channels the share of
+      the block visited, known free not visited, unknown and known wall (outside the grid counts
+      as wall), and teammates present (255). Where the absolute ``"global"`` view tells where
+      the agent is on the map, this one makes "which way is unexplored ground, which way are my
+      teammates" the same pattern wherever the agent stands (translation-equivariant).
     * ``"vector"`` ``(3,)`` float32: own row / (H-1), own col / (W-1), steps / max_steps.
 
     Built incrementally: each step only the cells of the agents' new 3x3 windows are looked at,
     and only those whose category changed update the images and the per-block counts, so a step
-    costs ``O(agents * (crop^2 + G^2))``, whatever the map's size.
+    costs ``O(agents * (crop^2 + G^2))``, whatever the map's size. The ego view is pooled from
+    one summed-area table of the map's categories per step (``O(H * W)``, a few microseconds on
+    50x50) and ``(E + 1)^2`` look-ups per agent.
 
     Args:
         height, width, coords, max_steps: As :class:`ObservationBuilder`.
         crop: Side of the local crop (odd, >= :attr:`MIN_CROP`).
         global_size: G, blocks per side of the global view (>= :attr:`MIN_GLOBAL_SIZE`).
+        ego_size: E, blocks per side of the ego view (0: no ego view; else odd and
+            >= :attr:`MIN_EGO_SIZE`).
+        ego_block: Cells per side of an ego block (odd, >= 1).
 
     Raises:
         ValueError: For a crop or global size out of range.
     """
 
     name = "teammap"
-    options = ("crop", "global_size")
+    options = ("crop", "global_size", "ego_size", "ego_block")
     LOCAL_CHANNELS = 5
     GLOBAL_CHANNELS = 6
+    EGO_CHANNELS = 5
     # Stable-Baselines3 reads a uint8 image as channel-first only when its first axis is (one of)
     # the smallest (``is_image_space_channels_first``; otherwise it wraps the env in
     # ``VecTransposeImage`` and swaps the axes), so no spatial side may be below the channels.
@@ -191,6 +204,8 @@ class TeamMapObservation(ObservationBuilder):
     MIN_CROP = 5
     #: Smallest global size: the global view's 6 channels.
     MIN_GLOBAL_SIZE = 6
+    #: Smallest ego view (when on): odd and at least its 5 channels.
+    MIN_EGO_SIZE = 5
     # Categories in the order of the global view's share channels.
     _SHARE_ORDER = (VISITED, KNOWN_FREE, UNKNOWN, KNOWN_WALL)
 
@@ -202,6 +217,8 @@ class TeamMapObservation(ObservationBuilder):
         max_steps: int = 1000,
         crop: int = 15,
         global_size: int = 13,
+        ego_size: int = 0,
+        ego_block: int = 5,
     ) -> None:
         super().__init__(height, width, coords, max_steps)
         if not (_is_int(crop) and crop >= self.MIN_CROP and crop % 2 == 1):
@@ -210,8 +227,24 @@ class TeamMapObservation(ObservationBuilder):
             raise ValueError(
                 f"global_size must be an integer >= {self.MIN_GLOBAL_SIZE}, got {global_size!r}"
             )
+        if not (
+            _is_int(ego_size)
+            and (ego_size == 0 or (ego_size >= self.MIN_EGO_SIZE and ego_size % 2 == 1))
+        ):
+            raise ValueError(
+                f"ego_size must be 0 (off) or an odd integer >= {self.MIN_EGO_SIZE}, "
+                f"got {ego_size!r}"
+            )
+        if not (_is_int(ego_block) and ego_block >= 1 and ego_block % 2 == 1):
+            raise ValueError(f"ego_block must be an odd integer >= 1, got {ego_block!r}")
         crop, global_size = int(crop), int(global_size)
         self.crop, self.global_size = crop, global_size
+        self.ego_size, self.ego_block = int(ego_size), int(ego_block)
+        # Ego block edges relative to the agent's cell: block k spans rows
+        # offsets[k] .. offsets[k+1]-1, and block E//2 is centred on the agent.
+        self._ego_edges = (np.arange(self.ego_size + 1) - self.ego_size // 2) * self.ego_block - (
+            self.ego_block // 2
+        )
         self.padding = crop // 2
         g = global_size
         # Block of each row and column: the last block whose first row is <= r.
@@ -233,14 +266,15 @@ class TeamMapObservation(ObservationBuilder):
         )
 
     def space(self) -> spaces.Dict:
-        c, g = self.crop, self.global_size
-        return spaces.Dict(
-            {
-                "local": spaces.Box(0, 255, (self.LOCAL_CHANNELS, c, c), np.uint8),
-                "global": spaces.Box(0, 255, (self.GLOBAL_CHANNELS, g, g), np.uint8),
-                "vector": spaces.Box(0.0, 1.0, (3,), np.float32),
-            }
-        )
+        c, g, e = self.crop, self.global_size, self.ego_size
+        views = {
+            "local": spaces.Box(0, 255, (self.LOCAL_CHANNELS, c, c), np.uint8),
+            "global": spaces.Box(0, 255, (self.GLOBAL_CHANNELS, g, g), np.uint8),
+        }
+        if e:
+            views["ego"] = spaces.Box(0, 255, (self.EGO_CHANNELS, e, e), np.uint8)
+        views["vector"] = spaces.Box(0.0, 1.0, (3,), np.float32)
+        return spaces.Dict(views)
 
     # ------------------------------------------------------------------ per-episode arrays
     def reset(self, state: GridState) -> None:
@@ -325,11 +359,41 @@ class TeamMapObservation(ObservationBuilder):
         vector = np.empty((n, 3), dtype=np.float32)
         vector[:, :2] = state.positions * self._scale3
         vector[:, 2] = min(state.steps / self.max_steps, 1.0)
-        return {
-            "local": local,
-            "global": glob.reshape(n, self.GLOBAL_CHANNELS, g, g),
-            "vector": vector,
-        }
+        views = {"local": local, "global": glob.reshape(n, self.GLOBAL_CHANNELS, g, g)}
+        if self.ego_size:
+            views["ego"] = self._ego(rows, cols)
+        views["vector"] = vector
+        return views
+
+    def _ego(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """The ego views of all agents, pooled from a summed-area table of the categories."""
+        h, w, p, b = self.height, self.width, self.padding, self.ego_block
+        n, e = rows.shape[0], self.ego_size
+        cat = self._cat.reshape(h + 2 * p, w + 2 * p)[p : p + h, p : p + w]
+        # table[k, i, j]: cells of category k in rows < i and columns < j of the grid.
+        table = np.zeros((4, h + 1, w + 1), dtype=np.int32)
+        onehot = cat[None] == np.arange(4, dtype=np.int8)[:, None, None]
+        np.cumsum(onehot, axis=1, out=table[:, 1:, 1:])
+        np.cumsum(table[:, 1:, 1:], axis=2, out=table[:, 1:, 1:])
+        # Block edges clipped to the grid: the part of a block outside it counts as wall.
+        row_edges = np.clip(rows[:, None] + self._ego_edges, 0, h)  # (n, e + 1)
+        col_edges = np.clip(cols[:, None] + self._ego_edges, 0, w)
+        corners = table[:, row_edges[:, :, None], col_edges[:, None, :]]  # (4, n, e+1, e+1)
+        counts = corners[..., 1:, 1:] - corners[..., :-1, 1:] - corners[..., 1:, :-1]
+        counts += corners[..., :-1, :-1]  # (4, n, e, e)
+        inside = np.diff(row_edges)[:, :, None] * np.diff(col_edges)[:, None, :]
+        counts[KNOWN_WALL] += b * b - inside
+        ego = np.zeros((n, self.EGO_CHANNELS, e, e), dtype=np.uint8)
+        ego[:, :4] = np.rint(counts[list(self._SHARE_ORDER)].transpose(1, 0, 2, 3) * (255 / b**2))
+        if n > 1:
+            # Teammate j lies in block floor((r_j - r_i + b // 2) / b) + e // 2 of agent i.
+            br = (rows[None, :] - rows[:, None] + b // 2) // b + e // 2  # (agent, teammate)
+            bc = (cols[None, :] - cols[:, None] + b // 2) // b + e // 2
+            seen = (br >= 0) & (br < e) & (bc >= 0) & (bc < e)
+            np.fill_diagonal(seen, False)
+            i, j = np.nonzero(seen)
+            ego[i, 4, br[i, j], bc[i, j]] = 255
+        return ego
 
 
 #: Observation kinds by name (the env's ``observation=`` argument).

@@ -68,8 +68,9 @@ def bench_env(episodes: int = 3) -> dict[str, Any]:
     rng = np.random.default_rng(0)
     moves = rng.integers(0, 5, (steps, n)).tolist()
 
-    def bare_rate(observation: str) -> float:
-        env = coverage_v0.parallel_env(**{**THESIS_ENV.kwargs(), "observation": observation})
+    def bare_rate(observation: str, **options: int) -> float:
+        kwargs = {**THESIS_ENV.kwargs(), "observation": observation, **options}
+        env = coverage_v0.parallel_env(**kwargs)
         env.reset(seed=0)
         actions = [dict(zip(env.possible_agents, a)) for a in moves]
 
@@ -87,6 +88,8 @@ def bench_env(episodes: int = 3) -> dict[str, Any]:
     out["env_teammap_over_thesis"] = (
         out["env_bare_teammap_agent_steps_per_s"] / out["env_bare_agent_steps_per_s"]
     )
+    # With the ego view of the shipped team-map configs (pooled from a summed-area table).
+    out["env_bare_teammap_ego_agent_steps_per_s"] = bare_rate("teammap", ego_size=21, ego_block=5)
 
     def vec_rate(copies: int, num_cpus: int = 0) -> float:
         venv = make_vec_env(THESIS_ENV, copies, num_cpus, seed=0)
@@ -295,6 +298,9 @@ def format_bench(r: dict[str, Any]) -> str:
                 f"  bare loop, teammap obs.    {n(tm)}   {tm / bare:5.2f} x thesis; "
                 "target >= 30,000"
             )
+        if "env_bare_teammap_ego_agent_steps_per_s" in r:
+            ego = r["env_bare_teammap_ego_agent_steps_per_s"]
+            lines.append(f"  teammap + ego view 21x21   {n(ego)}   {ego / bare:5.2f} x thesis")
         for c, v in r["env_vec_by_copies"].items():
             lines.append(f"  VecEnv, {c:>2} copies           {n(v)}   {v / bare:5.2f} x bare")
         lines.append(

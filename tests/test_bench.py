@@ -15,6 +15,7 @@ def test_bench_env_json_has_the_documented_keys(capsys):
         "env_bare_agent_steps_per_s",
         "env_bare_teammap_agent_steps_per_s",
         "env_teammap_over_thesis",
+        "env_bare_teammap_ego_agent_steps_per_s",
         "env_vec_agent_steps_per_s",
         "env_vec_over_bare",
     ):
@@ -28,6 +29,7 @@ def test_bench_report_shows_every_section_with_targets():
         **machine_info(),
         "env_bare_agent_steps_per_s": 120_000.0,
         "env_bare_teammap_agent_steps_per_s": 36_000.0,
+        "env_bare_teammap_ego_agent_steps_per_s": 24_000.0,
         "env_vec_by_copies": {1: 40_000.0, 4: 50_000.0, 16: 52_000.0},
         "env_vec_agent_steps_per_s": 50_000.0,
         "env_vec_over_bare": 50_000 / 120_000,
@@ -51,6 +53,7 @@ def test_bench_report_shows_every_section_with_targets():
     for expected in (
         "120,000",
         "36,000",
+        "24,000",
         "0.30 x thesis",
         "0.42",
         "target >= 0.85",

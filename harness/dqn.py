@@ -57,8 +57,9 @@ def per_agent_loss(
     one, unchanged, over all slots. Conditional on being agent ``i``'s, a prioritized sample is
     drawn with probability ``p_j / sum_i(p)``, exactly what agent ``i``'s own prioritized buffer
     would draw; only the number of agent ``i``'s samples in a batch varies (``N * batch_size``
-    are drawn, ``batch_size`` per agent in expectation; for uniform replay exactly so on
-    average). Dividing each agent's terms by its own count gives each set the gradient of a
+    are drawn: ``batch_size`` per agent in expectation with uniform replay, as every slot holds
+    as many transitions; under PER in proportion to each agent's share of the priorities).
+    Dividing each agent's terms by its own count gives each set the gradient of a
     batch mean over its own transitions, as a separate learner with its own batch would get;
     a plain mean over the whole batch would instead scale each set's step by its share of the
     batch. Gradients reach a set only from its own samples (:class:`PerAgentQNetwork` routes
@@ -322,9 +323,8 @@ class DoubleDQN(DQN):
         """SB3's DQN update with Double-Q targets and prioritized replay when configured.
 
         With a per-agent policy (:attr:`agent_sets` = N > 1) each gradient step samples
-        ``N * batch_size`` transitions, so that each agent's set gets ``batch_size`` of its own
-        in expectation (see :func:`per_agent_loss` for why the loss is weighted rather than the
-        batch stratified).
+        ``N * batch_size`` transitions, ``batch_size`` per agent's set on average (see
+        :func:`per_agent_loss` for why the loss is weighted rather than the batch stratified).
         """
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)

@@ -384,6 +384,7 @@ TINY = [
     "checkpoint.every=400",
     "eval.every=600",
     "eval.episodes=2",
+    "algo.threads=1",  # a tiny net: a second thread only waits (and slows a busy machine)
 ]
 
 

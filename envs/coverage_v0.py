@@ -75,6 +75,11 @@ global images are updated incrementally (only the agents' new 3x3 windows), so t
 O(agents * crop^2 + G^2) a step whatever the map's size; the ego view is pooled from one
 summed-area table of the map per step.
 
+**Agent indication** (``agent_id=True``, any observation kind): each agent's observation also
+holds its one-hot index (Terry et al. 2020): ``n_agents`` floats appended to the thesis vector
+(shape ``(13 + n_agents,)``), or an ``"agent_id"`` key ``Box(0, 1, (n_agents,), float32)`` in
+the team map's ``Dict``. The harness sets it for ``algo.sharing: shared_id`` and ``per_agent``.
+
 **Reward** (eq. 3.1): ``new_cell * n_new + wall_hit * hit + step``, by default
 ``2*new - 10*hit - 1``, per agent.
 
@@ -86,7 +91,7 @@ credited to this agent so far), ``wall_hits`` (this agent's count so far), ``ste
 ``coords="normalized"``, ``rewards={"new_cell": 2.0, "wall_hit": -10.0, "step": -1.0}``,
 ``starts=None`` (fixed start cells, else distinct random free cells each reset),
 ``render_mode=None | "rgb_array" | "ansi"``, ``crop=15``, ``global_size=13``, ``ego_size=0`` and
-``ego_block=5`` (``"teammap"`` only).
+``ego_block=5`` (``"teammap"`` only), ``agent_id=False``.
 
 ``reset(seed=None, options=None)``: ``options={"grid": bool_array, "starts": [(r, c), ...]}`` fixes
 that episode's map and/or start cells. Bad input raises ``ValueError`` naming the problem.

@@ -9,6 +9,8 @@ busy machine shifts all of them together. Nothing here asserts a time.
 * ``train``: gradient steps and transitions per second of ``DoubleDQN`` + PER against SB3's
   ``DQN`` + ``ReplayBuffer`` (same network, batch and train_freq), run alternately;
   gradient steps per second over batch sizes, network widths and torch thread counts;
+* ``sharing``: gradient steps per second of each ``algo.sharing`` mode (one network, one with
+  the agent's index, one parameter set per agent), same network and batch;
 * ``eval``: episodes per second of ``harness eval`` for an MLP policy and for the frontier baseline;
 * ``memory``: peak resident memory of a training process with a full 100,000-transition buffer.
 """
@@ -201,6 +203,56 @@ def bench_scaling(grad_steps: int = 60) -> dict[str, Any]:
     return {"train_grad_steps_per_s_by_setting": out}
 
 
+# ---------------------------------------------------------------------- sharing
+SHARING_MODES = ("shared", "shared_id", "per_agent")
+
+
+def bench_sharing(
+    net: list[int] | None = None, batch: int = 32, grad_steps: int = 60, fill: int = 4_000
+) -> dict[str, Any]:
+    """DoubleDQN+PER gradient steps/s of each ``algo.sharing`` mode, 1 torch thread, measured
+    in turns. A ``per_agent`` step trains all 4 agents' sets, each on ``batch`` samples in
+    expectation (``4 * batch`` drawn), so it does about 4 times the work of a shared step."""
+    import torch
+
+    from harness import DoubleDQN, PrioritizedReplayBuffer
+    from harness.adapters import make_vec_env
+    from harness.registry import POLICIES
+
+    torch.set_num_threads(1)
+    net = THESIS_NET if net is None else net
+    n = THESIS_ENV.n_agents
+    models, venvs = {}, []
+    for mode in SHARING_MODES:
+        venv = make_vec_env({**THESIS_ENV.kwargs(), "agent_id": mode != "shared"}, copies=4, seed=0)
+        venvs.append(venv)
+        kwargs: dict[str, Any] = {"net_arch": net, "optimizer_class": torch.optim.RMSprop}
+        if mode == "per_agent":
+            kwargs["n_agents"] = n
+        model = DoubleDQN(
+            POLICIES["MlpPolicy"].per_agent_name if mode == "per_agent" else "MlpPolicy",
+            venv,
+            buffer_size=100_000,
+            batch_size=batch,
+            learning_starts=10**9,  # fill the buffer without training
+            replay_buffer_class=PrioritizedReplayBuffer,
+            policy_kwargs=kwargs,
+            device="cpu",
+        )
+        model.learn(fill)
+        model.train(3, batch)  # warm-up
+        models[mode] = model
+    try:
+        rates: dict[str, list[float]] = {mode: [] for mode in SHARING_MODES}
+        for _ in range(3):
+            for mode, model in models.items():
+                rates[mode].append(_rate(grad_steps, lambda m=model: m.train(grad_steps, batch)))
+    finally:
+        for venv in venvs:
+            venv.close()
+    return {"train_grad_steps_per_s_by_sharing": {m: float(np.median(r)) for m, r in rates.items()}}
+
+
 # ---------------------------------------------------------------------- eval
 def bench_eval(episodes: int = 8) -> dict[str, Any]:
     """Episodes per second of greedy evaluation (MLP 3x512) and of the frontier baseline."""
@@ -262,6 +314,7 @@ def _own_peak_mib() -> float:
 SECTIONS: dict[str, list[Callable[[], dict[str, Any]]]] = {
     "env": [bench_env],
     "train": [bench_train, bench_scaling],
+    "sharing": [bench_sharing],
     "eval": [bench_eval],
     "memory": [bench_memory],
 }
@@ -327,6 +380,11 @@ def format_bench(r: dict[str, Any]) -> str:
             net, batch, _ = key.split("/")
             two = s[f"{net}/{batch}/threads2"]
             lines.append(f"  {net:<8}{batch[5:]:>6}{s[key]:>11,.0f}{two:>11,.0f}")
+    if "train_grad_steps_per_s_by_sharing" in r:
+        by = r["train_grad_steps_per_s_by_sharing"]
+        lines += ["", "gradient steps/s by algo.sharing (4 agents, batch 32 per set, 1 thread)"]
+        for mode, rate in by.items():
+            lines.append(f"  {mode:<10}{rate:>11,.0f}   {rate / by['shared']:5.2f} x shared")
     if "eval_episodes_per_s" in r:
         lines += [
             "",

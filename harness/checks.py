@@ -25,11 +25,21 @@ if TYPE_CHECKING:
 TRAINING_DEVICE_TYPES = ("cpu", "cuda", "mps")
 
 
-def network_kwargs(algo: Any) -> dict[str, Any]:
+def policy_class_name(algo: Any) -> str:
+    """The policy ``DoubleDQN`` is built with: ``algo.policy``, or its per-agent version
+    (``PerAgentMlpPolicy``, ...) for ``algo.sharing: per_agent``."""
+    entry = POLICIES[algo.policy]
+    return entry.per_agent_name if algo.sharing == "per_agent" else algo.policy
+
+
+def network_kwargs(algo: Any, n_agents: int) -> dict[str, Any]:
     """The policy's network settings from ``config.algo`` (the one place they are read):
-    hidden layers, the dueling aggregator, the team-map extractor's sizes."""
+    hidden layers, the dueling aggregator, the team-map extractor's sizes, and the number of
+    parameter sets (``n_agents``, the team size) for ``algo.sharing: per_agent``."""
     entry = POLICIES[algo.policy]
     kwargs: dict[str, Any] = {"net_arch": list(algo.net_arch)}
+    if algo.sharing == "per_agent":
+        kwargs["n_agents"] = n_agents
     if entry.dueling:
         kwargs["aggregator"] = algo.dueling_aggregator
     if entry.observation == "teammap":
@@ -165,8 +175,8 @@ def network_parameters(config: ExperimentConfig) -> int:
     ``meta`` device: the policy is built as ``DoubleDQN`` builds it, without allocating memory."""
     algo = config.algo
     entry = POLICIES[algo.policy]
-    kwargs = network_kwargs(algo)
-    policy_class = entry.load()
+    kwargs = network_kwargs(algo, config.env.n_agents)
+    policy_class = entry.load(per_agent=algo.sharing == "per_agent")
     # SB3 moves each new Q-network to ``policy.device`` (the CPU until it has weights); pointing
     # that hook at ``meta`` keeps every tensor on the meta device.
     sizing_class = type(

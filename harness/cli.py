@@ -292,7 +292,10 @@ def _add_bench_parser(sub: Any) -> None:
     """``harness bench``: its arguments."""
     bench = sub.add_parser("bench", help="throughput and memory figures (thesis settings)")
     bench.add_argument(
-        "what", nargs="?", default="all", choices=["env", "train", "eval", "memory", "all"]
+        "what",
+        nargs="?",
+        default="all",
+        choices=["env", "train", "sharing", "eval", "memory", "all"],
     )
     bench.add_argument("--json", action="store_true", help="print one JSON object")
 

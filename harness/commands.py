@@ -120,6 +120,7 @@ def check_model_fits(model: Any, model_path: Path, config: ExperimentConfig) -> 
 
     env = coverage_v0.parallel_env(**config.env.kwargs())
     agent = env.possible_agents[0]
+    check_team_size(model, model_path, config, env.observation_space(agent))
     for what, expected, got in (
         ("observation", env.observation_space(agent), model.observation_space),
         ("action", env.action_space(agent), model.action_space),
@@ -129,6 +130,45 @@ def check_model_fits(model: Any, model_path: Path, config: ExperimentConfig) -> 
                 f"{model_path}: the model's {what} space {got} is not its config's env's "
                 f"{expected} (a model of another experiment?)"
             )
+
+
+def trained_team_size(model: Any, env_space: Any, n_agents: int) -> int | None:
+    """The team size a model with agent indication was trained with, read from the model: its
+    parameter sets (per-agent policy) or the width of its agent-id input; ``None`` without one.
+
+    Args:
+        model: The loaded model.
+        env_space: The observation space of the env it is to play (with its agent id).
+        n_agents: That env's team size.
+    """
+    from envs.coverage.observations import AGENT_ID_KEY
+    from harness.policies import PerAgentQNetwork
+
+    if isinstance(model.q_net, PerAgentQNetwork):
+        return model.q_net.n_agents
+    space = model.observation_space
+    if hasattr(space, "spaces") and isinstance(space.spaces, dict):
+        return int(space.spaces[AGENT_ID_KEY].shape[0]) if AGENT_ID_KEY in space.spaces else None
+    base = env_space.shape[0] - n_agents  # the observation's width without the one-hot index
+    trained = int(space.shape[0]) - base
+    return trained if trained >= 1 else None
+
+
+def check_team_size(model: Any, model_path: Path, config: ExperimentConfig, env_space: Any) -> None:
+    """Refuse to play a team of another size than the one a ``shared_id`` or ``per_agent``
+    model was trained with: it has one parameter set, or one agent-id input, per trained agent
+    (a ``shared`` model plays any team size)."""
+    sharing = config.algo.sharing
+    if sharing == "shared":
+        return
+    trained = trained_team_size(model, env_space, config.env.n_agents)
+    if trained is not None and trained != config.env.n_agents:
+        what = "one network per agent" if sharing == "per_agent" else "an agent-id input per agent"
+        raise TargetError(
+            f"{model_path}: this algo.sharing={sharing} model has {what} for {trained} agents; "
+            f"it cannot play env.n_agents={config.env.n_agents} (only algo.sharing=shared models "
+            "play any team size)"
+        )
 
 
 def _space_layout(space: Any) -> Any:

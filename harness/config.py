@@ -37,6 +37,7 @@ from pydantic import (
     NonNegativeInt,
     PositiveFloat,
     PositiveInt,
+    PrivateAttr,
     ValidationError,
     field_validator,
     model_validator,
@@ -131,6 +132,9 @@ class EnvConfig(_Section):
     coords: Literal["normalized", "raw"] = "normalized"
     rewards: RewardsConfig = RewardsConfig()
     starts: list[tuple[int, int]] | None = None
+    _agent_id: bool = PrivateAttr(default=False)
+    """Whether each observation holds the agent's one-hot index (the env's ``agent_id``): not a
+    key of its own, set by :class:`ExperimentConfig` from ``algo.sharing`` (its one owner)."""
     map_sha256: str | None = None
     """For a map file: SHA-256 of its content. Filled in when the config is loaded (with the
     file's absolute path in ``map``), so a run's ``config.yaml`` names exactly the map it was made
@@ -265,6 +269,8 @@ class EnvConfig(_Section):
         """Keyword arguments for ``coverage_v0.parallel_env``."""
         out = self.model_dump(exclude={"map_sha256", "test_maps"})
         out["wall_fraction"] = tuple(out["wall_fraction"])
+        if self._agent_id:
+            out["agent_id"] = True
         if isinstance(self.map, dict):
             out["map"] = build_source(self.map, self.height, self.width)
         if self.test_maps and (isinstance(self.map, dict) or self.map == "random"):
@@ -310,6 +316,12 @@ class VecConfig(_Section):
 class AlgoConfig(_Section):
     """The learner: ``DoubleDQN`` with its policy, buffer and optimizer (thesis §2.9-2.11, §3.4)."""
 
+    sharing: Literal["shared", "shared_id", "per_agent"] = "shared"
+    """How the agents share the Q-network: ``shared``, one network for all (parameter sharing);
+    ``shared_id``, one network that also reads the agent's one-hot index (agent indication);
+    ``per_agent``, one set of parameters per agent (the thesis's independent learners), in one
+    model that routes each agent to its set. Both non-shared modes add the one-hot index to the
+    observation (``env.agent_id``), so they are tied to the team size they were trained with."""
     policy: str = "MlpPolicy"
     """A policy of ``harness.registry.POLICIES``: ``MlpPolicy``, ``DuelingMlpPolicy`` (the
     thesis observation), ``TeamMapPolicy``, ``DuelingTeamMapPolicy`` (``teammap``)."""
@@ -489,6 +501,12 @@ class ExperimentConfig(_Section):
                 "letter or digit"
             )
         return v
+
+    @model_validator(mode="after")
+    def _agent_indication(self) -> ExperimentConfig:
+        # algo.sharing owns agent indication; the env only carries it out.
+        self.env._agent_id = self.algo.sharing != "shared"
+        return self
 
     @model_validator(mode="after")
     def _policy_fits_observation(self) -> ExperimentConfig:

@@ -16,10 +16,11 @@ from stable_baselines3.dqn.policies import DQNPolicy
 from torch.nn import functional as F
 
 from harness.buffers import PrioritizedReplayBuffer
+from harness.policies import PerAgentQNetwork
 from harness.registry import POLICIES
 from harness.targets import double_q_target, max_q_target
 
-__all__ = ["DoubleDQN", "resolve_optimizer_class"]
+__all__ = ["DoubleDQN", "per_agent_loss", "resolve_optimizer_class"]
 
 
 def resolve_optimizer_class(optimizer: str | type[th.optim.Optimizer]) -> type[th.optim.Optimizer]:
@@ -41,6 +42,48 @@ def resolve_optimizer_class(optimizer: str | type[th.optim.Optimizer]) -> type[t
     if isinstance(optimizer, type) and issubclass(optimizer, th.optim.Optimizer):
         return optimizer
     raise ValueError(f"optimizer_class must be a torch.optim.Optimizer subclass, got {optimizer!r}")
+
+
+def per_agent_loss(
+    per_sample_loss: th.Tensor,
+    agent: th.Tensor,
+    n_agents: int,
+    weights: th.Tensor | None = None,
+) -> th.Tensor:
+    """The loss of N independent learners in one batch: the sum over agents of each agent's
+    (IS-weighted) mean loss over its own samples.
+
+    Why weighting rather than stratified sampling: the replay buffer (and PER's sum tree) stays
+    one, unchanged, over all slots. Conditional on being agent ``i``'s, a prioritized sample is
+    drawn with probability ``p_j / sum_i(p)``, exactly what agent ``i``'s own prioritized buffer
+    would draw; only the number of agent ``i``'s samples in a batch varies (``N * batch_size``
+    are drawn: ``batch_size`` per agent in expectation with uniform replay, as every slot holds
+    as many transitions; under PER in proportion to each agent's share of the priorities).
+    Dividing each agent's terms by its own count gives each set the gradient of a
+    batch mean over its own transitions, as a separate learner with its own batch would get;
+    a plain mean over the whole batch would instead scale each set's step by its share of the
+    batch. Gradients reach a set only from its own samples (:class:`PerAgentQNetwork` routes
+    them), and the IS weights are normalised by each agent's own largest weight in the batch (a
+    separate buffer's normalisation), so no agent's transitions change another's step.
+
+    Args:
+        per_sample_loss: ``(batch, 1)`` or ``(batch,)`` losses.
+        agent: ``(batch,)`` agent index of each sample.
+        n_agents: Number of agents (parameter sets).
+        weights: IS weights ``(batch, 1)`` from a prioritized buffer, or ``None``.
+
+    Returns:
+        The scalar loss to minimise.
+    """
+    losses = per_sample_loss.reshape(-1)
+    if weights is not None:
+        w = weights.reshape(-1).to(losses.dtype)
+        largest = th.zeros(n_agents, dtype=w.dtype, device=w.device).scatter_reduce(
+            0, agent, w, reduce="amax", include_self=False
+        )
+        losses = losses * (w / largest[agent])
+    counts = th.bincount(agent, minlength=n_agents).clamp(min=1).to(losses.dtype)
+    return (losses / counts[agent]).sum()
 
 
 class NonFiniteLossError(FloatingPointError):
@@ -119,6 +162,7 @@ class DoubleDQN(DQN):
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
         **DQN.policy_aliases,
         **{name: entry.load() for name, entry in POLICIES.items()},
+        **{entry.per_agent_name: entry.load(per_agent=True) for entry in POLICIES.values()},
     }
     beta_schedule: Schedule
     #: Transition count (``num_timesteps``) at which the current phase started.
@@ -270,8 +314,18 @@ class DoubleDQN(DQN):
         # whatever closure a callback installed (possibly holding the callback or the model).
         return [*super()._excluded_save_params(), "exploration_schedule", "beta_schedule"]
 
+    @property
+    def agent_sets(self) -> int:
+        """Parameter sets of the Q-network: ``n_agents`` for a per-agent policy, else 1."""
+        return self.q_net.n_agents if isinstance(self.q_net, PerAgentQNetwork) else 1
+
     def train(self, gradient_steps: int, batch_size: int = 100) -> None:
-        """SB3's DQN update with Double-Q targets and prioritized replay when configured."""
+        """SB3's DQN update with Double-Q targets and prioritized replay when configured.
+
+        With a per-agent policy (:attr:`agent_sets` = N > 1) each gradient step samples
+        ``N * batch_size`` transitions, ``batch_size`` per agent's set on average (see
+        :func:`per_agent_loss` for why the loss is weighted rather than the batch stratified).
+        """
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
         buffer = self.replay_buffer
@@ -281,51 +335,9 @@ class DoubleDQN(DQN):
         losses: list[float] = []
         td_errors: list[float] = []
         for _ in range(gradient_steps):
-            replay_data = buffer.sample(batch_size, env=self._vec_normalize_env)
-            # n-step samples carry gamma**k per sample; plain/prioritized samples do not.
-            discounts = getattr(replay_data, "discounts", None)
-            if discounts is None:
-                discounts = self.gamma
-
-            with th.no_grad():
-                next_q_target = self.q_net_target(replay_data.next_observations)
-                if self.double_q:
-                    next_q_online = self.q_net(replay_data.next_observations)
-                    target_q = double_q_target(
-                        replay_data.rewards,
-                        replay_data.dones,
-                        discounts,
-                        next_q_online,
-                        next_q_target,
-                    )
-                else:
-                    target_q = max_q_target(
-                        replay_data.rewards, replay_data.dones, discounts, next_q_target
-                    )
-
-            current_q = th.gather(
-                self.q_net(replay_data.observations), dim=1, index=replay_data.actions.long()
-            )
-            # Per-sample Huber loss so that the IS weights can scale each term.
-            per_sample_loss = F.smooth_l1_loss(current_q, target_q, reduction="none")
-            if prioritized:
-                loss = (replay_data.weights * per_sample_loss).mean()  # type: ignore[union-attr]
-            else:
-                loss = per_sample_loss.mean()
-            loss_value = loss.item()
-            if not math.isfinite(loss_value):
-                raise NonFiniteLossError(
-                    f"the loss became {loss_value} at step {self.num_timesteps} "
-                    f"(update {self._n_updates + len(losses)})"
-                )
+            replay_data = buffer.sample(batch_size * self.agent_sets, env=self._vec_normalize_env)
+            loss_value, abs_td = self._gradient_step(replay_data, self._n_updates + len(losses))
             losses.append(loss_value)
-
-            self.policy.optimizer.zero_grad()
-            loss.backward()
-            th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
-            self.policy.optimizer.step()
-
-            abs_td = (current_q.detach() - target_q).abs().reshape(-1)
             td_errors.append(abs_td.mean().item())
             if prioritized:
                 # Errors from before this step's update, as in Schaul et al. (Algorithm 1).
@@ -338,6 +350,62 @@ class DoubleDQN(DQN):
         if prioritized:
             self.logger.record("train/beta", buffer.beta)  # type: ignore[union-attr]
             self.logger.record("train/alpha", buffer.alpha)  # type: ignore[union-attr]
+
+    def _gradient_step(self, replay_data: Any, update: int) -> tuple[float, th.Tensor]:
+        """One optimizer step on a sampled batch; returns the loss (per agent set: the mean
+        over sets) and the samples' ``|TD error|`` before the step, ``(batch,)``.
+
+        ``replay_data`` carries ``weights`` (IS weights) when it comes from a prioritized
+        buffer, and ``discounts`` from SB3's n-step buffer.
+        """
+        # n-step samples carry gamma**k per sample; plain/prioritized samples do not.
+        discounts = getattr(replay_data, "discounts", None)
+        if discounts is None:
+            discounts = self.gamma
+        with th.no_grad():
+            next_q_target = self.q_net_target(replay_data.next_observations)
+            if self.double_q:
+                next_q_online = self.q_net(replay_data.next_observations)
+                target_q = double_q_target(
+                    replay_data.rewards,
+                    replay_data.dones,
+                    discounts,
+                    next_q_online,
+                    next_q_target,
+                )
+            else:
+                target_q = max_q_target(
+                    replay_data.rewards, replay_data.dones, discounts, next_q_target
+                )
+
+        current_q = th.gather(
+            self.q_net(replay_data.observations), dim=1, index=replay_data.actions.long()
+        )
+        # Per-sample Huber loss so that the IS weights can scale each term.
+        per_sample_loss = F.smooth_l1_loss(current_q, target_q, reduction="none")
+        weights = getattr(replay_data, "weights", None)
+        sets = self.agent_sets
+        if sets > 1:
+            agent = self.q_net.agents_of(replay_data.observations)  # type: ignore[operator]
+            loss = per_agent_loss(per_sample_loss, agent, sets, weights)
+            loss_value = loss.item() / sets
+        else:
+            weighted = per_sample_loss if weights is None else weights * per_sample_loss
+            loss = weighted.mean()
+            loss_value = loss.item()
+        if not math.isfinite(loss_value):
+            raise NonFiniteLossError(
+                f"the loss became {loss_value} at step {self.num_timesteps} (update {update})"
+            )
+
+        self.policy.optimizer.zero_grad()
+        loss.backward()
+        if isinstance(self.q_net, PerAgentQNetwork):
+            self.q_net.clip_grad_norm_(self.max_grad_norm)
+        else:
+            th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
+        self.policy.optimizer.step()
+        return loss_value, (current_q.detach() - target_q).abs().reshape(-1)
 
     def predict(
         self,

@@ -1,22 +1,27 @@
 """Policies for SB3's DQN: the dueling Q-network (Wang et al., 2016,
-https://arxiv.org/abs/1511.06581) and the team-map CNN policies (plain and dueling) that read the
-``"teammap"`` observation's images."""
+https://arxiv.org/abs/1511.06581), the team-map CNN policies (plain and dueling) that read the
+``"teammap"`` observation's images, and per-agent versions of every policy (one parameter set
+per agent in one batched module, ``algo.sharing: per_agent``)."""
 
 from __future__ import annotations
 
+import copy
 from typing import Any
 
 import numpy as np
 import torch as th
 from gymnasium import spaces
+from stable_baselines3.common.policies import BasePolicy
 from stable_baselines3.common.torch_layers import (
     BaseFeaturesExtractor,
     FlattenExtractor,
     create_mlp,
 )
-from stable_baselines3.common.type_aliases import Schedule
+from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from stable_baselines3.dqn.policies import DQNPolicy, QNetwork
 from torch import nn
+
+from envs.coverage.observations import AGENT_ID_KEY
 
 __all__ = [
     "AGGREGATORS",
@@ -24,6 +29,11 @@ __all__ = [
     "DuelingHead",
     "DuelingQNetwork",
     "DuelingTeamMapPolicy",
+    "PerAgentDuelingMlpPolicy",
+    "PerAgentDuelingTeamMapPolicy",
+    "PerAgentMlpPolicy",
+    "PerAgentQNetwork",
+    "PerAgentTeamMapPolicy",
     "TeamMapExtractor",
     "TeamMapPolicy",
 ]
@@ -339,3 +349,187 @@ class DuelingTeamMapPolicy(DuelingDQNPolicy):
             optimizer_kwargs=optimizer_kwargs,
             aggregator=aggregator,
         )
+
+
+# ---------------------------------------------------------------------- per-agent networks
+def split_agent_id(obs: PyTorchObs, n_agents: int) -> tuple[PyTorchObs, th.Tensor]:
+    """The observation without the agent's one-hot index, and the index ``(batch,)``.
+
+    Reads the layout of :func:`envs.coverage.observations.agent_id_space`: the last
+    ``n_agents`` entries of a vector, or the :data:`~envs.coverage.observations.AGENT_ID_KEY`
+    entry of a dict.
+    """
+    if isinstance(obs, dict):
+        inner = {key: value for key, value in obs.items() if key != AGENT_ID_KEY}
+        return inner, obs[AGENT_ID_KEY].argmax(dim=1)
+    return obs[:, :-n_agents], obs[:, -n_agents:].argmax(dim=1)
+
+
+def without_agent_id(space: spaces.Space, n_agents: int) -> spaces.Space:
+    """The observation space of one agent's network: ``space`` less the one-hot index."""
+    if isinstance(space, spaces.Dict):
+        return spaces.Dict({k: v for k, v in space.spaces.items() if k != AGENT_ID_KEY})
+    assert isinstance(space, spaces.Box) and space.shape is not None
+    if space.shape != (space.shape[0],) or space.shape[0] <= n_agents:
+        raise ValueError(
+            f"a per-agent policy for {n_agents} agents needs observations that end in their "
+            f"one-hot index (env agent_id=True), got {space}"
+        )
+    return spaces.Box(space.low[:-n_agents], space.high[:-n_agents], dtype=space.dtype)  # type: ignore[arg-type]
+
+
+class PerAgentQNetwork(BasePolicy):
+    """N Q-networks of one architecture as one module: each sample goes to its agent's set.
+
+    The N networks' weights are stacked (``torch.func.stack_module_state``): every parameter
+    of agent ``i``'s network is ``params[name][i]``. A batch is routed by the agent index that
+    comes with each observation (:func:`split_agent_id`, one-hot stripped before the network):
+    the samples are scattered into an ``(N, m, ...)`` block (``m``: the largest count of one
+    agent, the rest zero padding), the N networks run at once with ``torch.func.vmap`` (batched
+    matmuls, grouped convolutions) and each sample's Q-values are gathered back in batch order.
+    So ``predict`` on VecEnv slots and ``train`` on replay samples use the same path, in any
+    order; a padding row feeds nothing back, and agent ``i``'s weights get gradients from agent
+    ``i``'s samples only. Any SB3 ``QNetwork`` works as the template (MLP, dueling, team map).
+
+    Args:
+        observation_space: The observation space with the agent's one-hot index.
+        action_space: Action space.
+        nets: The N networks (built on the space without the index), one per agent, in
+            agent order; their weights become the initial sets.
+    """
+
+    action_space: spaces.Discrete
+
+    def __init__(
+        self, observation_space: spaces.Space, action_space: spaces.Discrete, nets: list[nn.Module]
+    ) -> None:
+        super().__init__(observation_space, action_space)
+        self.n_agents = len(nets)
+        params, buffers = th.func.stack_module_state(nets)  # type: ignore[arg-type]
+        # ParameterDict keys may not contain ".": one parameter per template parameter.
+        self.params = nn.ParameterDict({_key(k): nn.Parameter(v) for k, v in params.items()})
+        for name, value in buffers.items():
+            self.register_buffer("stacked_" + _key(name), value)
+        self._buffer_names = list(buffers)
+        # A weightless copy to call with each set (kept out of the module tree: it holds no state
+        # of its own, and must not be moved, saved or counted).
+        self._template = [copy.deepcopy(nets[0]).to("meta")]
+
+    def forward(self, obs: PyTorchObs) -> th.Tensor:
+        """Q-values ``(batch, n_actions)``, each row from its agent's network."""
+        inner, agent = split_agent_id(obs, self.n_agents)
+        return self.route(inner, agent)
+
+    def agents_of(self, obs: PyTorchObs) -> th.Tensor:
+        """The agent index ``(batch,)`` of each observation."""
+        return split_agent_id(obs, self.n_agents)[1]
+
+    def route(self, inner: PyTorchObs, agent: th.Tensor) -> th.Tensor:
+        """Q-values of observations without the index, row ``j`` by agent ``agent[j]``'s set."""
+        n = self.n_agents
+        onehot = nn.functional.one_hot(agent, n)
+        rank = (onehot.cumsum(0) * onehot).sum(1) - 1  # position of each sample in its group
+        width = int(onehot.sum(0).max()) if agent.numel() else 0
+
+        def grouped(x: th.Tensor) -> th.Tensor:
+            block = x.new_zeros((n, width, *x.shape[1:]))
+            block[agent, rank] = x
+            return block
+
+        block_obs = (
+            {k: grouped(v) for k, v in inner.items()} if isinstance(inner, dict) else grouped(inner)
+        )
+        params = {name: self.params[_key(name)] for name in self._param_names}
+        buffers = {name: getattr(self, "stacked_" + _key(name)) for name in self._buffer_names}
+        template = self._template[0]
+
+        def one(p: dict[str, th.Tensor], b: dict[str, th.Tensor], x: PyTorchObs) -> th.Tensor:
+            return th.func.functional_call(template, (p, b), (x,))
+
+        q = th.func.vmap(one)(params, buffers, block_obs)  # (n, width, n_actions)
+        return q[agent, rank]
+
+    @property
+    def _param_names(self) -> list[str]:
+        return [name for name, _ in self._template[0].named_parameters()]
+
+    def _predict(self, observation: PyTorchObs, deterministic: bool = True) -> th.Tensor:
+        return self(observation).argmax(dim=1).reshape(-1)
+
+    def agent_parameters(self, agent: int) -> dict[str, th.Tensor]:
+        """Agent ``agent``'s weights by the template's parameter names (views)."""
+        return {name: self.params[_key(name)][agent] for name in self._param_names}
+
+    def clip_grad_norm_(self, max_norm: float) -> None:
+        """Clip each agent's gradient to ``max_norm`` on its own (what N separate learners, each
+        with its own ``clip_grad_norm_``, would do); a joint norm would let one agent's large
+        gradient shrink the others' steps."""
+        grads = [p.grad for p in self.params.values() if p.grad is not None]
+        if not grads:
+            return
+        squares = th.stack([g.pow(2).reshape(self.n_agents, -1).sum(1) for g in grads]).sum(0)
+        scale = (max_norm / (squares.sqrt() + 1e-6)).clamp(max=1.0)
+        for g in grads:
+            g.mul_(scale.reshape(-1, *([1] * (g.dim() - 1))))
+
+
+def _key(name: str) -> str:
+    return name.replace(".", "__")
+
+
+class _PerAgent:
+    """Mixin that gives a DQN policy one parameter set per agent (``algo.sharing: per_agent``).
+
+    The online and target networks are :class:`PerAgentQNetwork` s of ``n_agents`` networks of
+    the base policy's kind (MLP, dueling, team map), each built on the observation space less
+    the agent's one-hot index. ``n_agents`` is a constructor parameter, saved with the model.
+    Everything else (optimizer, target updates, double-Q, PER) is the base policy's.
+    """
+
+    n_agents: int
+    observation_space: spaces.Space
+    net_args: dict[str, Any]
+
+    def __init__(self, *args: Any, n_agents: int = 1, **kwargs: Any) -> None:
+        if isinstance(n_agents, bool) or not isinstance(n_agents, int) or n_agents < 1:
+            raise ValueError(f"n_agents must be an integer >= 1, got {n_agents!r}")
+        # make_q_net runs inside the base __init__ and needs it; a plain int is safe to set
+        # before nn.Module.__init__.
+        self.n_agents = n_agents
+        super().__init__(*args, **kwargs)
+
+    def make_q_net(self) -> PerAgentQNetwork:
+        full = self.observation_space
+        inner = without_agent_id(full, self.n_agents)
+        make_one = super().make_q_net  # type: ignore[misc]
+        # The base policy builds a network (features extractor included) for the space it was
+        # given: show it the space without the index while it builds the N of them.
+        self.observation_space = inner
+        self.net_args = {**self.net_args, "observation_space": inner}
+        try:
+            nets = [make_one() for _ in range(self.n_agents)]
+        finally:
+            self.observation_space = full
+            self.net_args = {**self.net_args, "observation_space": full}
+        return PerAgentQNetwork(full, self.action_space, nets).to(self.device)  # type: ignore[attr-defined]
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()  # type: ignore[misc]
+        data.update(n_agents=self.n_agents)
+        return data
+
+
+class PerAgentMlpPolicy(_PerAgent, DQNPolicy):
+    """``MlpPolicy`` with one parameter set per agent (``n_agents``)."""
+
+
+class PerAgentDuelingMlpPolicy(_PerAgent, DuelingDQNPolicy):
+    """``DuelingMlpPolicy`` with one parameter set per agent (``n_agents``)."""
+
+
+class PerAgentTeamMapPolicy(_PerAgent, TeamMapPolicy):
+    """``TeamMapPolicy`` with one parameter set per agent (``n_agents``)."""
+
+
+class PerAgentDuelingTeamMapPolicy(_PerAgent, DuelingTeamMapPolicy):
+    """``DuelingTeamMapPolicy`` with one parameter set per agent (``n_agents``)."""

@@ -23,18 +23,43 @@ class PolicyEntry:
     """The observation kind its network reads."""
     dueling: bool = False
     """Value and advantage streams (takes ``algo.dueling_aggregator``)."""
+    per_agent: str = ""
+    """``module:attribute`` of the same policy with one parameter set per agent
+    (``algo.sharing: per_agent``); its class name is also a ``DoubleDQN`` policy alias."""
 
-    def load(self) -> Any:
-        module, _, attribute = self.target.partition(":")
+    def load(self, per_agent: bool = False) -> Any:
+        """The policy class, or its per-agent version."""
+        module, _, attribute = (self.per_agent if per_agent else self.target).partition(":")
         return getattr(importlib.import_module(module), attribute)
+
+    @property
+    def per_agent_name(self) -> str:
+        """The per-agent class's name (``PerAgentMlpPolicy``, ...)."""
+        return self.per_agent.partition(":")[2]
 
 
 #: Policies by the name ``algo.policy`` takes (and ``DoubleDQN`` accepts as a string).
 POLICIES: dict[str, PolicyEntry] = {
-    "MlpPolicy": PolicyEntry("stable_baselines3.dqn.policies:MlpPolicy", "thesis"),
-    "DuelingMlpPolicy": PolicyEntry("harness.policies:DuelingDQNPolicy", "thesis", dueling=True),
-    "TeamMapPolicy": PolicyEntry("harness.policies:TeamMapPolicy", "teammap"),
+    "MlpPolicy": PolicyEntry(
+        "stable_baselines3.dqn.policies:MlpPolicy",
+        "thesis",
+        per_agent="harness.policies:PerAgentMlpPolicy",
+    ),
+    "DuelingMlpPolicy": PolicyEntry(
+        "harness.policies:DuelingDQNPolicy",
+        "thesis",
+        dueling=True,
+        per_agent="harness.policies:PerAgentDuelingMlpPolicy",
+    ),
+    "TeamMapPolicy": PolicyEntry(
+        "harness.policies:TeamMapPolicy",
+        "teammap",
+        per_agent="harness.policies:PerAgentTeamMapPolicy",
+    ),
     "DuelingTeamMapPolicy": PolicyEntry(
-        "harness.policies:DuelingTeamMapPolicy", "teammap", dueling=True
+        "harness.policies:DuelingTeamMapPolicy",
+        "teammap",
+        dueling=True,
+        per_agent="harness.policies:PerAgentDuelingTeamMapPolicy",
     ),
 }

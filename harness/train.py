@@ -56,6 +56,7 @@ from harness.checks import (
     format_bytes,
     network_kwargs,
     optimizer_kwargs_with_foreach,
+    policy_class_name,
 )
 from harness.config import ExperimentConfig, PhaseConfig
 from harness.dqn import DoubleDQN, NonFiniteLossError, resolve_optimizer_class
@@ -84,7 +85,7 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
     algo, first = config.algo, config.phases[0]
     optimizer_class = resolve_optimizer_class(algo.optimizer)
     policy_kwargs: dict[str, Any] = {
-        **network_kwargs(algo),
+        **network_kwargs(algo, config.env.n_agents),
         "optimizer_class": optimizer_class,
         "optimizer_kwargs": optimizer_kwargs_with_foreach(optimizer_class, algo.optimizer_kwargs),
     }
@@ -95,7 +96,7 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
         dict_obs = isinstance(venv.observation_space, spaces.Dict)
         buffer_class = PrioritizedDictReplayBuffer if dict_obs else PrioritizedReplayBuffer
     return DoubleDQN(
-        algo.policy,
+        policy_class_name(algo),
         venv,
         learning_rate=_lr_start(first),
         buffer_size=algo.buffer_size,

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import json
 
-from harness.bench import format_bench, machine_info
+from harness.bench import bench_sharing, format_bench, machine_info
 from harness.cli import main
 
 
@@ -63,3 +63,12 @@ def test_bench_report_shows_every_section_with_targets():
     ):
         assert expected in text, expected
     assert "2x64" in text and "450" in text
+
+
+def test_bench_sharing_reports_gradient_steps_per_mode():
+    out = bench_sharing(net=[8], batch=4, grad_steps=2, fill=64)
+    rates = out["train_grad_steps_per_s_by_sharing"]
+    assert list(rates) == ["shared", "shared_id", "per_agent"]
+    assert all(rate > 0 for rate in rates.values())
+    text = format_bench({**machine_info(), **out})
+    assert "by algo.sharing" in text and "x shared" in text

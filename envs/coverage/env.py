@@ -14,7 +14,12 @@ from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
 from envs.coverage import generators, maps, render
-from envs.coverage.observations import OBSERVATIONS, ObservationBuilder
+from envs.coverage.observations import (
+    OBSERVATIONS,
+    ObservationBuilder,
+    add_agent_id,
+    agent_id_space,
+)
 from envs.coverage.step import credit_new_cells, resolve_moves, thesis_reward
 from envs.coverage.types import CELL_UNVISITED, CELL_VISITED, CELL_WALL, GridState
 
@@ -50,8 +55,11 @@ class CoverageEnv(ParallelEnv):
         global_size: int = 13,
         ego_size: int = 0,
         ego_block: int = 5,
+        agent_id: bool = False,
     ) -> None:
         _check_int("n_agents", n_agents, 1)
+        if not isinstance(agent_id, (bool, np.bool_)):
+            raise ValueError(f"agent_id must be True or False, got {agent_id!r}")
         _check_int("max_steps", max_steps, 1)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
@@ -125,7 +133,11 @@ class CoverageEnv(ParallelEnv):
         self.observation_kind, self.coords = observation, coords
         self.possible_agents = [f"agent_{i}" for i in range(self.n_agents)]
         self.agents: list[str] = []
-        self._obs_space = self._observer.space()
+        # Agent indication: each agent's one-hot index is part of its observation (so of the
+        # observation space a model is saved with); the per-agent policy routes by it.
+        self.agent_id = bool(agent_id)
+        space = self._observer.space()
+        self._obs_space = agent_id_space(space, self.n_agents) if self.agent_id else space
         self._act_space = spaces.Discrete(5)
         self._np_random: np.random.Generator | None = None
         self._state: GridState | None = None
@@ -239,7 +251,7 @@ class CoverageEnv(ParallelEnv):
         self._wall_hits = [0] * self.n_agents
         self.agents = self.possible_agents[:]
         self._observer.reset(self._state)
-        obs = self._per_agent(self._observer.build(self._state))
+        obs = self._per_agent(self._observe(self._state))
         return obs, {a: {} for a in self.agents}
 
     def step(
@@ -288,7 +300,7 @@ class CoverageEnv(ParallelEnv):
                 # transition as a time-out (bootstrapped), not as a terminal state.
                 info["TimeLimit.truncated"] = True
             infos[a] = info
-        observations = self._per_agent(self._observer.build(state))
+        observations = self._per_agent(self._observe(state))
         rewards = dict(zip(agents, reward))
         terminations = dict.fromkeys(agents, False)
         truncations = dict.fromkeys(agents, done)
@@ -309,6 +321,10 @@ class CoverageEnv(ParallelEnv):
         pass
 
     # ------------------------------------------------------------------ helpers
+    def _observe(self, state: GridState) -> np.ndarray | dict[str, np.ndarray]:
+        obs = self._observer.build(state)
+        return add_agent_id(obs, self.n_agents) if self.agent_id else obs
+
     def _per_agent(self, obs: np.ndarray | dict[str, np.ndarray]) -> dict[str, Any]:
         """One observation per agent from a builder's batch (an array, or a dict of arrays)."""
         if isinstance(obs, dict):

@@ -396,6 +396,40 @@ class TeamMapObservation(ObservationBuilder):
         return ego
 
 
+#: Key of the agent's one-hot index in a ``Dict`` observation (``agent_id=True``).
+AGENT_ID_KEY = "agent_id"
+
+
+def agent_id_space(space: spaces.Space, n_agents: int) -> spaces.Space:
+    """``space`` with the agent's one-hot index (``n_agents`` floats in [0, 1]) added.
+
+    The one layout of agent indication (Terry et al. 2020), read back by the per-agent policy:
+    a ``Box`` vector gets the one-hot appended at its end; a ``Dict`` gets an
+    :data:`AGENT_ID_KEY` entry (a float32 vector, which every ``Dict`` policy reads as a vector).
+    """
+    if isinstance(space, spaces.Dict):
+        if AGENT_ID_KEY in space.spaces:
+            raise ValueError(f"the observation already has a {AGENT_ID_KEY!r} key")
+        return spaces.Dict(
+            {**space.spaces, AGENT_ID_KEY: spaces.Box(0.0, 1.0, (n_agents,), np.float32)}
+        )
+    if isinstance(space, spaces.Box) and len(space.shape) == 1:
+        low = np.concatenate([space.low, np.zeros(n_agents, dtype=space.dtype)])
+        high = np.concatenate([space.high, np.ones(n_agents, dtype=space.dtype)])
+        return spaces.Box(low=low, high=high, dtype=space.dtype)  # type: ignore[arg-type]
+    raise ValueError(f"agent indication needs a 1-D Box or a Dict observation, not {space}")
+
+
+def add_agent_id(
+    obs: np.ndarray | dict[str, np.ndarray], n_agents: int
+) -> np.ndarray | dict[str, np.ndarray]:
+    """Every agent's observation (agents on the first axis, as :meth:`ObservationBuilder.build`
+    makes them) with its one-hot index added, in the layout of :func:`agent_id_space`."""
+    if isinstance(obs, dict):
+        return {**obs, AGENT_ID_KEY: np.eye(n_agents, dtype=np.float32)}
+    return np.concatenate([obs, np.eye(n_agents, dtype=obs.dtype)], axis=1)
+
+
 #: Observation kinds by name (the env's ``observation=`` argument).
 OBSERVATIONS: dict[str, type[ObservationBuilder]] = {
     ThesisObservation.name: ThesisObservation,

@@ -42,7 +42,7 @@ from harness.rundir import (
     check_output_file,
 )
 from harness.stats import REPS
-from harness.sweep import PRUNERS, SweepError
+from harness.sweep import BEST_CONFIG, PRUNERS, SweepError
 
 EXIT_USAGE = 2
 
@@ -582,7 +582,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         return 0
     print(format_best(result))
     if result is not None:
-        print(f"saved {args.sweeps_dir / study / 'best.yaml'}", file=sys.stderr)
+        print(f"saved {args.sweeps_dir / study / BEST_CONFIG}", file=sys.stderr)
     return 0
 
 

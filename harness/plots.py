@@ -10,9 +10,6 @@ tell apart; map colours are the env's own, so figures and ``rgb_array`` frames m
 
 from __future__ import annotations
 
-import csv
-import io
-import math
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -417,65 +414,6 @@ def _draw_wall_hits(ax: Any, episodes: np.ndarray, hits: np.ndarray) -> Any:
 
 
 # ---------------------------------------------------------------------- learning curves
-def read_episodes_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """Read a run's ``episodes.csv``.
-
-    Args:
-        path: The file (columns ``episode, phase, timesteps, copy, coverage, reward_mean,
-            wall_hits, new_cells, length``; only ``timesteps`` and ``coverage`` are used).
-
-    Returns:
-        ``(timesteps, coverage)``: int64 and float64 arrays, one entry per finished episode,
-        in order of timesteps.
-
-    Raises:
-        ValueError: When a column is missing or a value is not a number (naming file and line).
-    """
-    # Copies finish out of order only within a step; the sort puts them back.
-    return _read_columns(path, "timesteps", "coverage")
-
-
-def read_evaluations_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """Read a run's ``evaluations.csv`` (the in-training evaluations of the test policy).
-
-    Returns:
-        ``(timesteps, coverage_median)`` arrays, one entry per evaluation, in order.
-
-    Raises:
-        ValueError: When a column is missing or a value is not a number (naming file and line).
-    """
-    return _read_columns(path, "timesteps", "coverage_median")
-
-
-def _read_columns(path: str | Path, x: str, y: str) -> tuple[np.ndarray, np.ndarray]:
-    """Columns ``x`` (int64) and ``y`` (float64) of a CSV file, sorted stably by ``x``."""
-    path = Path(path)
-    xs: list[int] = []
-    ys: list[float] = []
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise ValueError(f"{path}: not a CSV text file") from None
-    reader = csv.DictReader(io.StringIO(text, newline=""))
-    try:
-        missing = {x, y} - set(reader.fieldnames or ())
-        if missing:
-            raise ValueError(f"{path}: missing column(s) {', '.join(sorted(missing))}")
-        for row in reader:
-            try:
-                xs.append(int(float(row[x])))
-                ys.append(float(row[y]))
-            except (TypeError, ValueError, OverflowError):
-                raise ValueError(f"{path}, line {reader.line_num}: {x}/{y} not a number") from None
-            if not math.isfinite(ys[-1]):
-                raise ValueError(f"{path}, line {reader.line_num}: {y} is {row[y]}")
-    except csv.Error as exc:
-        raise ValueError(f"{path}, line {reader.line_num}: not CSV ({exc})") from None
-    xa = np.asarray(xs, dtype=np.int64)
-    order = np.argsort(xa, kind="stable")
-    return xa[order], np.asarray(ys, dtype=np.float64)[order]
-
-
 def smooth(values: Sequence[float] | np.ndarray, window: int) -> np.ndarray:
     """Trailing rolling median: entry ``i`` is the median of the last ``window`` values up to
     ``i`` (fewer at the start). A median, not a mean, because episode coverage is skewed and
@@ -520,7 +458,7 @@ def plot_learning_curves(
 
     Args:
         curves: ``label -> [(timesteps, coverage), ...]``, one pair per run, e.g. from
-            :func:`read_episodes_csv`. Coverage as fractions.
+            :func:`harness.rundir.read_episodes_csv`. Coverage as fractions.
         out: PNG file to write.
         title: Axes title.
         window: Episodes per rolling median.
@@ -528,8 +466,9 @@ def plot_learning_curves(
         references: Optional ``label -> coverage`` horizontal lines (a baseline's or the
             thesis's median coverage).
         evaluations: Optional ``label -> [(timesteps, coverage_median), ...]`` from
-            :func:`read_evaluations_csv`: when any run has one, a second panel draws the test
-            policy's evaluations during training (median across a label's runs, unsmoothed).
+            :func:`harness.rundir.read_evaluations_csv`: when any run has one, a second panel
+            draws the test policy's evaluations during training (median across a label's runs,
+            unsmoothed).
 
     Returns:
         The path of the PNG.

@@ -388,9 +388,7 @@ def _write_reference(run: Path, out: Path, model: str, policy: Any) -> None:
             RunDir(out).result(name).write_bytes(RunDir(run).result(origin).read_bytes())
     if model != "model":
         # The run's command made model.zip too; say which of its models this folder holds.
-        command = RunDir(out).command
-        before = command.read_text().rstrip("\n") + "\n" if command.is_file() else ""
-        command.write_text(f"{before}# exported: {model}.zip (harness export --model {model})\n")
+        RunDir(out).note_command(f"exported: {model}.zip (harness export --model {model})")
     buffer = io.BytesIO()
     policy.save(buffer)
     RunDir(out).model.write_bytes(_without_target_network(buffer.getvalue()))

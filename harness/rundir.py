@@ -396,6 +396,12 @@ class RunDir:
             raise RunDirError(f"{path}: cannot create the run folder ({exc.strerror})") from None
         return run
 
+    def note_command(self, note: str) -> None:
+        """Append a ``# note`` line to ``command.txt`` (making it if it is missing)."""
+        command = self.command
+        before = command.read_text().rstrip("\n") + "\n" if command.is_file() else ""
+        command.write_text(f"{before}# {note}\n")
+
     def write_command(self, args: Sequence[str]) -> None:
         """Append the ``harness`` command line with its arguments ``args`` (a resumed run gets a
         second line)."""

@@ -1,8 +1,10 @@
-"""What ``harness eval``, ``compare`` and ``render`` do, apart from parsing arguments.
+"""What ``harness eval``, ``tune``, ``compare``, ``render`` and ``export`` do, apart from parsing
+arguments and printing.
 
 A *target* is what gets evaluated: a trained model (a run folder or a model zip, with the run's
-``config.yaml``) or a baseline (``--policy random|local|frontier`` with ``--config``). All three
-commands resolve it the same way, so a baseline and a model are measured on the same episodes.
+``config.yaml``) or a baseline (``--policy random|local|frontier`` with ``--config``). ``eval``,
+``tune`` and ``render`` resolve it the same way, so a baseline and a model are measured on the same
+episodes.
 """
 
 from __future__ import annotations
@@ -501,6 +503,23 @@ def tune(
     # tune.json, or tune-best_model.json, tune-env.max_steps-500.json, ... like harness eval's.
     name = result_filename("tune", overrides, target.model_name)
     return result, RunDir(target.results_dir).write_result(name, result)
+
+
+def render(target: Target, out: Path | None, gif: Path | None, every: int) -> list[Path]:
+    """``harness render``'s work: episode 0 of the target's seed as a path picture (``out``, by
+    default ``paths.png`` where the target's results go) and, with ``gif``, an animated GIF
+    keeping a frame every ``every`` steps. Returns the files written."""
+    from harness.plots import play_episode, plot_paths, write_gif
+
+    rec = play_episode(target.config.env, target.policy, target.seed, every, gif is not None)
+    out = out or RunDir(target.results_dir or Path()).paths_png
+    title = f"{target.label}: coverage {rec.coverage:.1%}, seed {target.seed}"
+    note = sampling_note(target.config.eval.temperature) if target.run_dir else ""
+    title += f", {note}" if note else ""
+    saved = [plot_paths(rec.walls, rec.paths, out, title)]
+    if gif is not None:
+        saved.append(write_gif(rec.frames, gif))
+    return saved
 
 
 @dataclass

@@ -38,7 +38,7 @@ from __future__ import annotations
 
 import weakref
 from collections import deque
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 
 import numpy as np
 from scipy.sparse import csr_matrix
@@ -48,8 +48,14 @@ from envs.coverage import CoverageEnv
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL
 from harness.evaluation import BatchPolicy, batch_len, episode_draws, sample_categorical
 
-#: Names accepted by :func:`make_baseline`.
-BASELINES = ("random", "local", "frontier")
+#: The baselines by the name ``--policy`` takes (the one list of them), each made from the
+#: evaluation's seed (only ``random`` uses it: the others draw from each episode's generator or
+#: none).
+BASELINES: dict[str, Callable[[int], BatchPolicy]] = {
+    "random": lambda seed: RandomPolicy(seed),
+    "local": lambda seed: LocalPolicy(),
+    "frontier": lambda seed: FrontierPolicy(),
+}
 
 _STAY = 4
 #: Cells a Python search may reach before the compiled search takes over. Below it the Python
@@ -73,13 +79,9 @@ def make_baseline(name: str, seed: int) -> BatchPolicy:
     Raises:
         ValueError: For an unknown name.
     """
-    if name == "random":
-        return RandomPolicy(seed)
-    if name == "local":
-        return LocalPolicy()
-    if name == "frontier":
-        return FrontierPolicy()
-    raise ValueError(f"unknown baseline {name!r}; known: {', '.join(BASELINES)}")
+    if name not in BASELINES:
+        raise ValueError(f"unknown baseline {name!r}; known: {', '.join(BASELINES)}")
+    return BASELINES[name](seed)
 
 
 class RandomPolicy:

@@ -1,4 +1,17 @@
-"""The ``harness`` command: ``harness run CONFIG.yaml`` and friends (README "Commands").
+"""The ``harness`` command: ``harness run CONFIG.yaml`` and friends (README "Quick start" and
+the sections after it). This module parses arguments and prints; the work of each subcommand is
+elsewhere:
+
+========  ==========================================================================
+run       :func:`harness.train.train` (``--seeds``: :mod:`harness.groups`)
+eval      :func:`harness.commands.evaluate` (a seed group: ``evaluate_group``)
+tune      :func:`harness.commands.tune`
+compare   :func:`harness.commands.compare`
+render    :func:`harness.commands.render`
+export    :func:`harness.commands.export_reference`
+sweep     :func:`harness.sweep.run_sweep`
+bench     :func:`harness.bench.run_bench`
+========  ==========================================================================
 
 Every user error (a bad config, map, path or argument) ends with one line on stderr and exit
 code 2, never a traceback.
@@ -29,8 +42,8 @@ from harness.commands import (
     export_reference,
     format_summary,
     format_tune,
+    render,
     resolve_target,
-    sampling_note,
     tune,
 )
 from harness.config import MAX_SEED, ConfigError, ExperimentConfig, load_config
@@ -42,7 +55,7 @@ from harness.rundir import (
     check_output_file,
 )
 from harness.stats import REPS
-from harness.sweep import PRUNERS, SweepError
+from harness.sweep import BEST_CONFIG, PRUNERS, SweepError
 
 EXIT_USAGE = 2
 
@@ -534,21 +547,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     for path, flag, suffix in ((args.out, "--out", ".png"), (args.gif, "--gif", ".gif")):
         if path is not None:
             check_image_output(path, flag, suffix)
-    target = _target(args)
-    from harness.plots import play_episode, plot_paths, write_gif
-
-    rec = play_episode(
-        target.config.env, target.policy, target.seed, args.every, args.gif is not None
-    )
-    out = args.out or RunDir(target.results_dir or Path()).paths_png
-    title = f"{target.label}: coverage {rec.coverage:.1%}, seed {target.seed}"
-    note = sampling_note(target.config.eval.temperature) if target.run_dir else ""
-    title += f", {note}" if note else ""
-    plot_paths(rec.walls, rec.paths, out, title)
-    print(f"saved {out}", file=sys.stderr)
-    if args.gif is not None:
-        write_gif(rec.frames, args.gif)
-        print(f"saved {args.gif}", file=sys.stderr)
+    for path in render(_target(args), args.out, args.gif, args.every):
+        print(f"saved {path}", file=sys.stderr)
     return 0
 
 
@@ -585,7 +585,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
         return 0
     print(format_best(result))
     if result is not None:
-        print(f"saved {args.sweeps_dir / study / 'best.yaml'}", file=sys.stderr)
+        print(f"saved {args.sweeps_dir / study / BEST_CONFIG}", file=sys.stderr)
     return 0
 
 

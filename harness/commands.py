@@ -1,15 +1,16 @@
-"""What ``harness eval``, ``compare`` and ``render`` do, apart from parsing arguments.
+"""What ``harness eval``, ``tune``, ``compare``, ``render`` and ``export`` do, apart from parsing
+arguments and printing.
 
 A *target* is what gets evaluated: a trained model (a run folder or a model zip, with the run's
-``config.yaml``) or a baseline (``--policy random|local|frontier`` with ``--config``). All three
-commands resolve it the same way, so a baseline and a model are measured on the same episodes.
+``config.yaml``) or a baseline (``--policy random|local|frontier`` with ``--config``). ``eval``,
+``tune`` and ``render`` resolve it the same way, so a baseline and a model are measured on the same
+episodes.
 """
 
 from __future__ import annotations
 
 import csv
 import io
-import json
 import math
 import os
 import shutil
@@ -32,11 +33,13 @@ from harness.rundir import (
     REFERENCE_FILES,
     STANDARD_EPISODES,
     RunDir,
+    RunDirError,
     atomic_write_text,
     check_output_file,
     is_reference,
     result_filename,
     results_folder,
+    write_json,
 )
 
 #: Episodes of a standard evaluation (the thesis tested on 100).
@@ -254,15 +257,14 @@ def read_eval_json(run: Path) -> dict[str, Any] | None:
         TargetError: when the file is there but is not an evaluation (not JSON, not an object,
             or a number missing, not a number or not finite), naming the file and the key.
     """
-    path = RunDir(run).eval_json
-    if not path.is_file():
-        return None
+    files = RunDir(run)
     try:
-        data = json.loads(path.read_text(encoding="utf-8"))
-    except (OSError, ValueError) as exc:
-        raise TargetError(f"{path}: not a readable eval JSON ({exc})") from None
-    if not isinstance(data, dict):
-        raise TargetError(f"{path}: expected a JSON object, got {type(data).__name__}")
+        data = files.read_eval()
+    except RunDirError as exc:
+        raise TargetError(str(exc)) from None
+    if data is None:
+        return None
+    path = files.eval_json
     for key in COMPARE_KEYS:
         value = data.get(key)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -274,25 +276,15 @@ def read_eval_json(run: Path) -> dict[str, Any] | None:
 
 def read_run_curves(run: Path) -> tuple[Any, Any]:
     """The training episodes' and the in-training evaluations' curves of a run folder
-    (``None`` for the evaluations of a run made without them).
+    (:meth:`RunDir.read_curves`; ``None`` for the evaluations of a run made without them).
 
     Raises:
         TargetError: naming the file and line of anything that is not a curve.
     """
-    from harness.plots import read_episodes_csv, read_evaluations_csv
-
     try:
-        check_run_folder(run)
-        files = RunDir(run)
-        episodes = read_episodes_csv(files.episodes_csv)
-        evaluations = (
-            read_evaluations_csv(files.evaluations_csv) if files.evaluations_csv.is_file() else None
-        )
-    except (ValueError, csv.Error) as exc:  # UnicodeDecodeError is a ValueError
+        return RunDir(run).read_curves()
+    except (RunDirError, ValueError, csv.Error) as exc:  # UnicodeDecodeError is a ValueError
         raise TargetError(str(exc).splitlines()[0]) from None
-    if len(episodes[0]) == 0:
-        raise TargetError(f"{run}/episodes.csv: no finished episode yet")
-    return episodes, evaluations
 
 
 def run_label(run: Path) -> str:
@@ -301,19 +293,6 @@ def run_label(run: Path) -> str:
         return load_config(RunDir(run).config).name
     except ConfigError:
         return run.name
-
-
-def check_run_folder(run: Path) -> None:
-    """Raise :class:`TargetError` unless ``run`` has an ``episodes.csv``."""
-    episodes = RunDir(run).episodes_csv
-    if not episodes.is_file():
-        raise TargetError(f"{run}: not a run folder with episodes.csv")
-    try:
-        with episodes.open(newline="", encoding="utf-8") as f:
-            if next(csv.reader(f), None) is None:
-                raise TargetError(f"{run}/episodes.csv: empty")
-    except (UnicodeDecodeError, csv.Error):
-        raise TargetError(f"{run}/episodes.csv: not a CSV text file") from None
 
 
 #: Temperatures ``harness tune`` tries unless told otherwise.
@@ -397,9 +376,6 @@ def write_temperature(run_dir: Path, temperature: float) -> float:
     return previous
 
 
-#: Files of a run folder that a reference copy keeps besides the model (all small).
-
-
 def export_reference(run: Path, out: Path, model: str = "model") -> Path:
     """Copy a run's policy into a compact, self-contained folder (``runs/reference/<name>``).
 
@@ -415,7 +391,7 @@ def export_reference(run: Path, out: Path, model: str = "model") -> Path:
     Raises:
         TargetError: when the run or model is missing, or ``out`` exists (never overwritten).
     """
-    source = run / f"{model}.zip"
+    source = RunDir(run).model_named(model)
     if not source.is_file():
         raise TargetError(f"{source}: no such model")
     if out.exists():
@@ -450,18 +426,15 @@ def _write_reference(run: Path, out: Path, model: str, policy: Any) -> None:
         # reference keeps the sweep of the model it holds, as its tune.json.
         tune = result_filename("tune", [])
         origin = name if name != tune or model == "model" else result_filename("tune", [], model)
-        if (run / origin).is_file():
-            (out / name).write_bytes((run / origin).read_bytes())
+        if RunDir(run).result(origin).is_file():
+            RunDir(out).result(name).write_bytes(RunDir(run).result(origin).read_bytes())
     if model != "model":
         # The run's command made model.zip too; say which of its models this folder holds.
-        command = RunDir(out).command
-        before = command.read_text().rstrip("\n") + "\n" if command.is_file() else ""
-        command.write_text(f"{before}# exported: {model}.zip (harness export --model {model})\n")
+        RunDir(out).note_command(f"exported: {model}.zip (harness export --model {model})")
     buffer = io.BytesIO()
     policy.save(buffer)
     RunDir(out).model.write_bytes(_without_target_network(buffer.getvalue()))
-    marker = {"exported_from": str(run), "model": f"{model}.zip"}
-    RunDir(out).reference_marker.write_text(json.dumps(marker, indent=2) + "\n", encoding="utf-8")
+    RunDir(out).write_reference_marker(run, model)
 
 
 def _without_target_network(model_zip: bytes) -> bytes:
@@ -511,15 +484,8 @@ def evaluate(target: Target, episodes: int, overrides: Sequence[str]) -> tuple[d
     if target.results_dir is not None:
         seed_changed = None if target.seed == target.config.eval.seed else str(target.seed)
         name = result_filename("eval", overrides, target.model_name, episodes, seed_changed)
-        saved = save_result(target.results_dir / name, summary)
+        saved = RunDir(target.results_dir).write_result(name, summary)
     return {**summary, "saved": saved}, results
-
-
-def save_result(path: Path, data: dict[str, Any]) -> Path:
-    """Write a result JSON atomically (never NaN: a non-finite number is a bug, not a result)."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(path, json.dumps(data, indent=2, allow_nan=False))
-    return path
 
 
 def evaluate_group(
@@ -528,7 +494,7 @@ def evaluate_group(
     """``harness eval GROUP``: ``evaluate_run(run)`` for every run, then, for the standard
     evaluation (no ``--set``, 100 episodes), the numbers over seeds in ``GROUP/group-eval.json``.
     """
-    from harness.groups import group_runs
+    from harness.groups import GROUP_EVAL_FILE, group_runs
     from harness.stats import describe, seed_statistics
 
     runs = group_runs(group)
@@ -547,7 +513,7 @@ def evaluate_group(
         "runs": {name: {k: s[k] for k in keys} for name, s in summaries.items()},
         "coverage_mean_over_seeds": describe(stats["group"]),
     }
-    return result, save_result(group / "group-eval.json", result)
+    return result, write_json(group / GROUP_EVAL_FILE, result)
 
 
 def tune(
@@ -576,7 +542,24 @@ def tune(
         result["previous_temperature"] = write_temperature(target.run_dir, result["chosen"])
     # tune.json, or tune-best_model.json, tune-env.max_steps-500.json, ... like harness eval's.
     name = result_filename("tune", overrides, target.model_name)
-    return result, save_result(target.results_dir / name, result)
+    return result, RunDir(target.results_dir).write_result(name, result)
+
+
+def render(target: Target, out: Path | None, gif: Path | None, every: int) -> list[Path]:
+    """``harness render``'s work: episode 0 of the target's seed as a path picture (``out``, by
+    default ``paths.png`` where the target's results go) and, with ``gif``, an animated GIF
+    keeping a frame every ``every`` steps. Returns the files written."""
+    from harness.plots import play_episode, plot_paths, write_gif
+
+    rec = play_episode(target.config.env, target.policy, target.seed, every, gif is not None)
+    out = out or RunDir(target.results_dir or Path()).paths_png
+    title = f"{target.label}: coverage {rec.coverage:.1%}, seed {target.seed}"
+    note = sampling_note(target.config.eval.temperature) if target.run_dir else ""
+    title += f", {note}" if note else ""
+    saved = [plot_paths(rec.walls, rec.paths, out, title)]
+    if gif is not None:
+        saved.append(write_gif(rec.frames, gif))
+    return saved
 
 
 @dataclass

@@ -26,6 +26,8 @@ from harness.rundir import RunDir, RunDirError, atomic_write_text, unique_folder
 
 #: The file that marks a folder as a seed group.
 GROUP_FILE = "group.json"
+#: The numbers over seeds of ``harness eval GROUP`` (the standard evaluation of every run).
+GROUP_EVAL_FILE = "group-eval.json"
 
 
 class GroupError(ValueError):

@@ -10,9 +10,6 @@ tell apart; map colours are the env's own, so figures and ``rgb_array`` frames m
 
 from __future__ import annotations
 
-import csv
-import io
-import math
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -70,12 +67,7 @@ def plot_paths(
     Returns:
         The path of the PNG.
     """
-    walls = np.asarray(walls, dtype=bool)
-    paths = [np.asarray(p, dtype=np.int64).reshape(-1, 2) for p in paths]
-    if not paths:
-        raise ValueError("plot_paths needs at least one agent's path")
-    if any(len(p) != len(paths[0]) for p in paths):
-        raise ValueError("all agents' paths must have the same length")
+    walls, paths = _checked_paths(walls, paths)
     first_step, credited = first_visits(walls.shape, paths)
     layout = _PathsLayout.make(walls.shape, len(paths), snapshots, bool(title))
     fig = Figure(figsize=(layout.fig_w, layout.fig_h), dpi=DPI)
@@ -85,29 +77,32 @@ def plot_paths(
     _draw_paths_legend(fig, len(paths), 1 - (y + layout.legend_h / 2) / layout.fig_h)
     y += layout.legend_h
     if snapshots:
-        fig.text(
-            0.5,
-            1 - (y + layout.snap_head / 2) / layout.fig_h,
-            "Team coverage during the episode (cells tinted by the agent credited with them)",
-            ha="center",
-            va="center",
-            fontsize="medium",
-            fontweight="bold",
-        )
+        heading = "Team coverage during the episode (cells tinted by the agent credited with them)"
+        _heading(fig, heading, 1 - (y + layout.snap_head / 2) / layout.fig_h, "medium")
         y += layout.snap_head + layout.row_top
         axes = layout.row(fig, len(CHECKPOINT_FRACTIONS), y)
         _draw_snapshots(axes, walls, paths, first_step, credited)
     if title:
-        fig.text(
-            0.5,
-            1 - layout.title_h / 2 / layout.fig_h,
-            title,
-            ha="center",
-            va="center",
-            fontsize="large",
-            fontweight="bold",
-        )
+        _heading(fig, title, 1 - layout.title_h / 2 / layout.fig_h, "large")
     return _save(fig, out)
+
+
+def _heading(fig: Figure, text: str, y: float, size: str) -> None:
+    """A bold line of text centred across the figure at height ``y`` (figure fraction)."""
+    fig.text(0.5, y, text, ha="center", va="center", fontsize=size, fontweight="bold")
+
+
+def _checked_paths(
+    walls: np.ndarray, paths: Sequence[np.ndarray]
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """The map as ``bool`` and the paths as ``int64 (T + 1, 2)`` arrays, all of one length."""
+    walls = np.asarray(walls, dtype=bool)
+    paths = [np.asarray(p, dtype=np.int64).reshape(-1, 2) for p in paths]
+    if not paths:
+        raise ValueError("plot_paths needs at least one agent's path")
+    if any(len(p) != len(paths[0]) for p in paths):
+        raise ValueError("all agents' paths must have the same length")
+    return walls, paths
 
 
 @dataclass(frozen=True)
@@ -355,11 +350,18 @@ def plot_eval_episodes(
     med = ax.axhline(
         100 * median, color=_MEDIAN_COLOUR, ls="--", lw=1.2, label=f"median {100 * median:.1f} %"
     )
-    handles = [line, med, *handles]
+    _style_episode_axes(ax, len(coverage), [line, med, *handles])
+    ax.set_title(title or f"Coverage of {len(coverage)} test episodes")
+    fig.tight_layout()
+    return _save(fig, out)
+
+
+def _style_episode_axes(ax: Any, n_episodes: int, handles: list[Any]) -> None:
+    """Axes of coverage (in %) per test episode, the legend below them."""
     ax.set_xlabel("test episode")
     ax.set_ylabel("team coverage")
     ax.set_ylim(0, 105)
-    ax.set_xlim(0.3, len(coverage) + 0.7)
+    ax.set_xlim(0.3, n_episodes + 0.7)
     ax.yaxis.set_major_formatter(PercentFormatter(100, decimals=0))
     ax.xaxis.set_major_locator(MaxNLocator(10, integer=True))
     ax.grid(axis="y", alpha=0.3)
@@ -370,9 +372,6 @@ def plot_eval_episodes(
         ncol=len(handles),
         frameon=False,
     )
-    ax.set_title(title or f"Coverage of {len(coverage)} test episodes")
-    fig.tight_layout()
-    return _save(fig, out)
 
 
 def _episode_arrays(
@@ -417,65 +416,6 @@ def _draw_wall_hits(ax: Any, episodes: np.ndarray, hits: np.ndarray) -> Any:
 
 
 # ---------------------------------------------------------------------- learning curves
-def read_episodes_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """Read a run's ``episodes.csv``.
-
-    Args:
-        path: The file (columns ``episode, phase, timesteps, copy, coverage, reward_mean,
-            wall_hits, new_cells, length``; only ``timesteps`` and ``coverage`` are used).
-
-    Returns:
-        ``(timesteps, coverage)``: int64 and float64 arrays, one entry per finished episode,
-        in order of timesteps.
-
-    Raises:
-        ValueError: When a column is missing or a value is not a number (naming file and line).
-    """
-    # Copies finish out of order only within a step; the sort puts them back.
-    return _read_columns(path, "timesteps", "coverage")
-
-
-def read_evaluations_csv(path: str | Path) -> tuple[np.ndarray, np.ndarray]:
-    """Read a run's ``evaluations.csv`` (the in-training evaluations of the test policy).
-
-    Returns:
-        ``(timesteps, coverage_median)`` arrays, one entry per evaluation, in order.
-
-    Raises:
-        ValueError: When a column is missing or a value is not a number (naming file and line).
-    """
-    return _read_columns(path, "timesteps", "coverage_median")
-
-
-def _read_columns(path: str | Path, x: str, y: str) -> tuple[np.ndarray, np.ndarray]:
-    """Columns ``x`` (int64) and ``y`` (float64) of a CSV file, sorted stably by ``x``."""
-    path = Path(path)
-    xs: list[int] = []
-    ys: list[float] = []
-    try:
-        text = path.read_text(encoding="utf-8")
-    except UnicodeDecodeError:
-        raise ValueError(f"{path}: not a CSV text file") from None
-    reader = csv.DictReader(io.StringIO(text, newline=""))
-    try:
-        missing = {x, y} - set(reader.fieldnames or ())
-        if missing:
-            raise ValueError(f"{path}: missing column(s) {', '.join(sorted(missing))}")
-        for row in reader:
-            try:
-                xs.append(int(float(row[x])))
-                ys.append(float(row[y]))
-            except (TypeError, ValueError, OverflowError):
-                raise ValueError(f"{path}, line {reader.line_num}: {x}/{y} not a number") from None
-            if not math.isfinite(ys[-1]):
-                raise ValueError(f"{path}, line {reader.line_num}: {y} is {row[y]}")
-    except csv.Error as exc:
-        raise ValueError(f"{path}, line {reader.line_num}: not CSV ({exc})") from None
-    xa = np.asarray(xs, dtype=np.int64)
-    order = np.argsort(xa, kind="stable")
-    return xa[order], np.asarray(ys, dtype=np.float64)[order]
-
-
 def smooth(values: Sequence[float] | np.ndarray, window: int) -> np.ndarray:
     """Trailing rolling median: entry ``i`` is the median of the last ``window`` values up to
     ``i`` (fewer at the start). A median, not a mean, because episode coverage is skewed and
@@ -520,7 +460,7 @@ def plot_learning_curves(
 
     Args:
         curves: ``label -> [(timesteps, coverage), ...]``, one pair per run, e.g. from
-            :func:`read_episodes_csv`. Coverage as fractions.
+            :func:`harness.rundir.read_episodes_csv`. Coverage as fractions.
         out: PNG file to write.
         title: Axes title.
         window: Episodes per rolling median.
@@ -528,8 +468,9 @@ def plot_learning_curves(
         references: Optional ``label -> coverage`` horizontal lines (a baseline's or the
             thesis's median coverage).
         evaluations: Optional ``label -> [(timesteps, coverage_median), ...]`` from
-            :func:`read_evaluations_csv`: when any run has one, a second panel draws the test
-            policy's evaluations during training (median across a label's runs, unsmoothed).
+            :func:`harness.rundir.read_evaluations_csv`: when any run has one, a second panel
+            draws the test policy's evaluations during training (median across a label's runs,
+            unsmoothed).
 
     Returns:
         The path of the PNG.
@@ -543,28 +484,59 @@ def plot_learning_curves(
     ax = fig.add_subplot(1, 2, 1) if evaluations else fig.add_subplot()
     drawn = 0
     for k, (label, runs) in enumerate(curves.items()):
-        runs = [(np.asarray(t, dtype=float), np.asarray(c, dtype=float)) for t, c in runs]
-        runs = [(t, c) for t, c in runs if len(t)]
-        if not runs:
-            continue
-        colour = colours[k % len(colours)]
-        grid, stacked = _common_grid(runs, window)
-        reached = np.sum(~np.isnan(stacked), axis=0)
+        drawn += _draw_label_curve(ax, label, runs, colours[k % len(colours)], window, band)
+    if drawn == 0:
+        raise ValueError("plot_learning_curves: no run has any episode")
+    _draw_references(ax, references or {})
+    band_note = "" if band == "minmax" else " (band: IQR across runs)"
+    _style_timesteps_axes(
+        ax,
+        f"team coverage (rolling median of {window} episodes)",
+        (title or "Learning curves") + band_note,
+    )
+    if evaluations:
+        _plot_evaluations(fig.add_subplot(1, 2, 2), evaluations, list(curves), colours)
+    fig.tight_layout()
+    return _save(fig, out)
+
+
+def _draw_label_curve(
+    ax: Any,
+    label: str,
+    runs: Sequence[tuple[np.ndarray, np.ndarray]],
+    colour: str,
+    window: int,
+    band: str,
+) -> bool:
+    """One label's curve: the median of its runs' smoothed coverage, with a band across runs
+    when it has several. Returns whether anything was drawn (a label whose runs are empty)."""
+    runs = [(np.asarray(t, dtype=float), np.asarray(c, dtype=float)) for t, c in runs]
+    runs = [(t, c) for t, c in runs if len(t)]
+    if not runs:
+        return False
+    grid, stacked = _common_grid(runs, window)
+    reached = np.sum(~np.isnan(stacked), axis=0)
+    with _quiet_nan_warnings():
+        middle = np.nanmedian(stacked, axis=0)
+    n = len(runs)
+    ax.plot(
+        grid, 100 * middle, color=colour, lw=1.6, label=f"{label} ({n} runs)" if n > 1 else label
+    )
+    if n > 1:
+        ok = reached >= 2
         with _quiet_nan_warnings():
-            middle = np.nanmedian(stacked, axis=0)
-        n = len(runs)
-        name = f"{label} ({n} runs)" if n > 1 else label
-        ax.plot(grid, 100 * middle, color=colour, lw=1.6, label=name)
-        if n > 1:
-            ok = reached >= 2
-            with _quiet_nan_warnings():
-                if band == "iqr":
-                    lo, hi = np.nanpercentile(stacked[:, ok], [25, 75], axis=0)
-                else:
-                    lo, hi = np.nanmin(stacked[:, ok], axis=0), np.nanmax(stacked[:, ok], axis=0)
-            ax.fill_between(grid[ok], 100 * lo, 100 * hi, color=colour, alpha=0.2, lw=0)
-        drawn += 1
-    for j, (label, value) in enumerate((references or {}).items()):
+            if band == "iqr":
+                lo, hi = np.nanpercentile(stacked[:, ok], [25, 75], axis=0)
+            else:
+                lo, hi = np.nanmin(stacked[:, ok], axis=0), np.nanmax(stacked[:, ok], axis=0)
+        ax.fill_between(grid[ok], 100 * lo, 100 * hi, color=colour, alpha=0.2, lw=0)
+    return True
+
+
+def _draw_references(ax: Any, references: Mapping[str, float]) -> None:
+    """Horizontal lines at reference coverages (a baseline's, the thesis's), dotted and dashed
+    in turn."""
+    for j, (label, value) in enumerate(references.items()):
         ax.axhline(
             100 * value,
             color="0.25",
@@ -572,21 +544,18 @@ def plot_learning_curves(
             lw=1.1,
             label=f"{label} ({100 * value:.1f} %)",
         )
-    if drawn == 0:
-        raise ValueError("plot_learning_curves: no run has any episode")
+
+
+def _style_timesteps_axes(ax: Any, ylabel: str, title: str) -> None:
+    """Axes of coverage (in %) over timesteps, shared by both panels of the learning curves."""
     ax.set_xlabel("timesteps (agent transitions)")
-    ax.set_ylabel(f"team coverage (rolling median of {window} episodes)")
+    ax.set_ylabel(ylabel)
     ax.set_ylim(0, 102)
     ax.yaxis.set_major_formatter(PercentFormatter(100, decimals=0))
     ax.ticklabel_format(axis="x", style="sci", scilimits=(-3, 4), useMathText=True)
     ax.grid(alpha=0.3)
-    band_note = "" if band == "minmax" else " (band: IQR across runs)"
-    ax.set_title((title or "Learning curves") + band_note)
+    ax.set_title(title)
     ax.legend(loc="lower right", framealpha=0.9, fontsize="small")
-    if evaluations:
-        _plot_evaluations(fig.add_subplot(1, 2, 2), evaluations, list(curves), colours)
-    fig.tight_layout()
-    return _save(fig, out)
 
 
 def _plot_evaluations(
@@ -608,14 +577,11 @@ def _plot_evaluations(
         ax.plot(
             grid, 100 * middle, color=colours[k % len(colours)], lw=1.4, marker=".", label=label
         )
-    ax.set_xlabel("timesteps (agent transitions)")
-    ax.set_ylabel("team coverage (median of the evaluation episodes)")
-    ax.set_ylim(0, 102)
-    ax.yaxis.set_major_formatter(PercentFormatter(100, decimals=0))
-    ax.ticklabel_format(axis="x", style="sci", scilimits=(-3, 4), useMathText=True)
-    ax.grid(alpha=0.3)
-    ax.set_title("test policy during training (evaluations.csv)")
-    ax.legend(loc="lower right", framealpha=0.9, fontsize="small")
+    _style_timesteps_axes(
+        ax,
+        "team coverage (median of the evaluation episodes)",
+        "test policy during training (evaluations.csv)",
+    )
 
 
 def _common_grid(

@@ -4,7 +4,7 @@
 
     config.yaml        the fully resolved config
     command.txt        the command line that started (or resumed) the run
-    tb/                TensorBoard events
+    tb/                TensorBoard events (and progress.csv, SB3's CSV of the same scalars)
     checkpoints/       latest checkpoint (model, replay buffer, training state)
     episodes.csv       one row per finished training episode
     evaluations.csv    one row per evaluation during training (validation episodes)
@@ -25,6 +25,9 @@ from __future__ import annotations
 import contextlib
 import csv
 import fcntl
+import io
+import json
+import math
 import os
 import re
 import shlex
@@ -33,6 +36,9 @@ from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 #: Columns of ``episodes.csv``, one row per finished training episode (see README).
 EPISODE_COLUMNS = (
@@ -253,8 +259,70 @@ class RunDir:
         return self.path / REFERENCE_MARKER
 
     def result(self, name: str) -> Path:
-        """A result file of this folder, named by :func:`result_filename`."""
+        """A file of this folder by its name: a result named by :func:`result_filename`, or
+        one of :data:`REFERENCE_FILES`."""
         return self.path / name
+
+    def model_named(self, name: str) -> Path:
+        """A model zip of the run by its path without ``.zip`` (``"model"``, ``"best_model"``,
+        ``"checkpoints/step-N/model"``: the names :func:`result_filename` takes)."""
+        return self.path / f"{name}.zip"
+
+    def progress_csv(self, resumes: int = 0) -> Path:
+        """SB3's CSV log of the scalars (beside the TensorBoard events): ``progress.csv``, and
+        ``progress-resume<N>.csv`` after the N-th resume (SB3's writer empties the file it
+        opens)."""
+        return self.tb / ("progress.csv" if resumes == 0 else f"progress-resume{resumes}.csv")
+
+    def write_result(self, name: str, data: dict[str, Any]) -> Path:
+        """Save a result JSON of this folder (:func:`result_filename`'s ``name``), atomically."""
+        return write_json(self.result(name), data)
+
+    def read_eval(self) -> dict[str, Any] | None:
+        """The standard evaluation (``eval.json``) as a JSON object, or ``None`` if there is none.
+
+        Raises:
+            RunDirError: when the file is there but is not a JSON object, naming it.
+        """
+        path = self.eval_json
+        if not path.is_file():
+            return None
+        try:
+            data = json.loads(path.read_text(encoding="utf-8"))
+        except (OSError, ValueError) as exc:
+            raise RunDirError(f"{path}: not a readable eval JSON ({exc})") from None
+        if not isinstance(data, dict):
+            raise RunDirError(f"{path}: expected a JSON object, got {type(data).__name__}")
+        return data
+
+    def read_curves(self) -> tuple[Curve, Curve | None]:
+        """The training episodes' curve (``episodes.csv``: timesteps, coverage) and the
+        in-training evaluations' (``evaluations.csv``: timesteps, median coverage; ``None`` for a
+        run made without them).
+
+        Raises:
+            RunDirError: for a folder without ``episodes.csv``, or an empty one.
+            ValueError: naming the file and line of anything that is not a curve.
+        """
+        episodes = self.episodes_csv
+        if not episodes.is_file():
+            raise RunDirError(f"{self.path}: not a run folder with episodes.csv")
+        try:
+            with episodes.open(newline="", encoding="utf-8") as f:
+                if next(csv.reader(f), None) is None:
+                    raise RunDirError(f"{episodes}: empty")
+        except (UnicodeDecodeError, csv.Error):
+            raise RunDirError(f"{episodes}: not a CSV text file") from None
+        curve = read_episodes_csv(episodes)
+        if len(curve[0]) == 0:
+            raise RunDirError(f"{episodes}: no finished episode yet")
+        evals = self.evaluations_csv
+        return curve, read_evaluations_csv(evals) if evals.is_file() else None
+
+    def write_reference_marker(self, origin: Path, model: str) -> None:
+        """Mark this folder as a reference exported from run ``origin``'s model ``model``."""
+        marker = {"exported_from": str(origin), "model": f"{model}.zip"}
+        self.reference_marker.write_text(json.dumps(marker, indent=2) + "\n", encoding="utf-8")
 
     @classmethod
     def create(cls, root: str | Path, name: str, now: datetime | None = None) -> RunDir:
@@ -327,6 +395,12 @@ class RunDir:
                 raise
             raise RunDirError(f"{path}: cannot create the run folder ({exc.strerror})") from None
         return run
+
+    def note_command(self, note: str) -> None:
+        """Append a ``# note`` line to ``command.txt`` (making it if it is missing)."""
+        command = self.command
+        before = command.read_text().rstrip("\n") + "\n" if command.is_file() else ""
+        command.write_text(f"{before}# {note}\n")
 
     def write_command(self, args: Sequence[str]) -> None:
         """Append the ``harness`` command line with its arguments ``args`` (a resumed run gets a
@@ -487,3 +561,74 @@ def _write_csv(path: Path, columns: Sequence[str], rows: Sequence[Sequence[str]]
         writer = csv.writer(f)
         writer.writerow(columns)
         writer.writerows(rows)
+
+
+# ---------------------------------------------------------------------- curves and results
+#: A run's curve: ``(timesteps, values)``, int64 and float64 arrays in order of timesteps.
+Curve = tuple[np.ndarray, np.ndarray]
+
+
+def read_episodes_csv(path: str | Path) -> Curve:
+    """Read a run's ``episodes.csv``.
+
+    Args:
+        path: The file (columns ``episode, phase, timesteps, copy, coverage, reward_mean,
+            wall_hits, new_cells, length``; only ``timesteps`` and ``coverage`` are used).
+
+    Returns:
+        ``(timesteps, coverage)``: int64 and float64 arrays, one entry per finished episode,
+        in order of timesteps.
+
+    Raises:
+        ValueError: When a column is missing or a value is not a number (naming file and line).
+    """
+    # Copies finish out of order only within a step; the sort puts them back.
+    return _read_columns(path, "timesteps", "coverage")
+
+
+def read_evaluations_csv(path: str | Path) -> Curve:
+    """Read a run's ``evaluations.csv`` (the in-training evaluations of the test policy).
+
+    Returns:
+        ``(timesteps, coverage_median)`` arrays, one entry per evaluation, in order.
+
+    Raises:
+        ValueError: When a column is missing or a value is not a number (naming file and line).
+    """
+    return _read_columns(path, "timesteps", "coverage_median")
+
+
+def _read_columns(path: str | Path, x: str, y: str) -> Curve:
+    """Columns ``x`` (int64) and ``y`` (float64) of a CSV file, sorted stably by ``x``."""
+    path = Path(path)
+    xs: list[int] = []
+    ys: list[float] = []
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a CSV text file") from None
+    reader = csv.DictReader(io.StringIO(text, newline=""))
+    try:
+        missing = {x, y} - set(reader.fieldnames or ())
+        if missing:
+            raise ValueError(f"{path}: missing column(s) {', '.join(sorted(missing))}")
+        for row in reader:
+            try:
+                xs.append(int(float(row[x])))
+                ys.append(float(row[y]))
+            except (TypeError, ValueError, OverflowError):
+                raise ValueError(f"{path}, line {reader.line_num}: {x}/{y} not a number") from None
+            if not math.isfinite(ys[-1]):
+                raise ValueError(f"{path}, line {reader.line_num}: {y} is {row[y]}")
+    except csv.Error as exc:
+        raise ValueError(f"{path}, line {reader.line_num}: not CSV ({exc})") from None
+    xa = np.asarray(xs, dtype=np.int64)
+    order = np.argsort(xa, kind="stable")
+    return xa[order], np.asarray(ys, dtype=np.float64)[order]
+
+
+def write_json(path: Path, data: dict[str, Any]) -> Path:
+    """Write a result JSON atomically (never NaN: a non-finite number is a bug, not a result)."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    atomic_write_text(path, json.dumps(data, indent=2, allow_nan=False))
+    return path

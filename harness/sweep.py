@@ -51,6 +51,8 @@ from harness.rundir import RunDir, atomic_write_text
 KINDS = ("float", "int", "choice", "grid")
 #: ``--pruner`` names (rl-zoo3's, plus Hyperband).
 PRUNERS = ("median", "halving", "hyperband", "none")
+#: The best trial of a study, in its folder: a config ``harness run`` trains, and its numbers.
+BEST_CONFIG, BEST_RESULT = "best.yaml", "best.json"
 #: How often a trial that died (killed worker) is queued again before it stays failed.
 MAX_RETRY = 2
 #: Seconds between a trial's heartbeats in a database, and without one before it counts as dead.
@@ -440,7 +442,7 @@ def write_best(
     config = load_config(
         config_path, [*overrides, *(override(k, v) for k, v in best.params.items())]
     )
-    atomic_write_text(folder / "best.yaml", config.to_yaml())
+    atomic_write_text(folder / BEST_CONFIG, config.to_yaml())
     result = {
         "study": study.study_name,
         "trial": best.number,
@@ -453,7 +455,7 @@ def write_best(
             for state in optuna.trial.TrialState
         },
     }
-    atomic_write_text(folder / "best.json", json.dumps(result, indent=2) + "\n")
+    atomic_write_text(folder / BEST_RESULT, json.dumps(result, indent=2) + "\n")
     return result
 
 

@@ -28,7 +28,6 @@ from stable_baselines3.common.logger import (
     CSVOutputFormat,
     Logger,
     TensorBoardOutputFormat,
-    configure,
 )
 from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 from stable_baselines3.common.utils import set_random_seed
@@ -331,27 +330,23 @@ class _ResumedTensorBoardFormat(TensorBoardOutputFormat):
         self._is_closed = False
 
 
-def make_logger(folder: Path, state: TrainingState, restart: bool = False) -> Logger:
-    """SB3's logger for a run: TensorBoard events and ``progress.csv`` in ``folder``.
+def make_logger(run: RunDir, state: TrainingState, restart: bool = False) -> Logger:
+    """SB3's logger for a run: TensorBoard events and the scalars as CSV in ``run.tb``.
 
     A resumed run (``state.resumes > 0``) neither repeats nor loses what was logged before its
     checkpoint: its TensorBoard events purge the earlier session's steps after the checkpoint,
-    and its CSV goes to ``progress-resume<N>.csv`` (SB3's CSV writer empties the file it opens).
-    A restarted run (no checkpoint to resume from) purges every earlier step.
+    and its CSV goes to a file of its own (:meth:`RunDir.progress_csv`). A restarted run (no
+    checkpoint to resume from) purges every earlier step.
     """
-    if restart:
-        formats = [
-            _ResumedTensorBoardFormat(str(folder), purge_step=0),
-            CSVOutputFormat(str(folder / "progress.csv")),
-        ]
-        return Logger(folder=str(folder), output_formats=formats)
-    if state.resumes == 0:
-        return configure(str(folder), ["tensorboard", "csv"])
-    formats = [
-        _ResumedTensorBoardFormat(str(folder), purge_step=state.num_timesteps + 1),
-        CSVOutputFormat(str(folder / f"progress-resume{state.resumes}.csv")),
-    ]
-    return Logger(folder=str(folder), output_formats=formats)
+    folder = str(run.tb)
+    run.tb.mkdir(parents=True, exist_ok=True)
+    if restart or state.resumes:
+        purge_step = 0 if restart else state.num_timesteps + 1
+        events: TensorBoardOutputFormat = _ResumedTensorBoardFormat(folder, purge_step)
+    else:
+        events = TensorBoardOutputFormat(folder)
+    csv_log = CSVOutputFormat(str(run.progress_csv(0 if restart else state.resumes)))
+    return Logger(folder=folder, output_formats=[events, csv_log])
 
 
 def train(
@@ -412,7 +407,7 @@ def train(
     venv = make_vec_env(
         config.env, config.vec.copies, config.vec.num_cpus, seed=_env_seed(config, state)
     )
-    logger = make_logger(run.tb, state, restart=restart)
+    logger = make_logger(run, state, restart=restart)
     try:
         if resume:
             model.set_env(venv)  # fresh episodes: the saved env state is gone with the process

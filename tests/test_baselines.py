@@ -29,7 +29,7 @@ def small_maps(n_agents: int, max_steps: int, size: int = 8) -> EnvConfig:
 
 # ---------------------------------------------------------------------- factory
 def test_names_and_unknown_name() -> None:
-    assert BASELINES == ("random", "local", "frontier")
+    assert tuple(BASELINES) == ("random", "local", "frontier")
     for name in BASELINES:
         assert callable(make_baseline(name, 0))
     with pytest.raises(ValueError, match="greedy"):

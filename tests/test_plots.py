@@ -10,7 +10,7 @@ import pytest
 from PIL import Image
 
 from envs import coverage_v0
-from harness import plots
+from harness import plots, rundir
 from harness.baselines import make_baseline
 from harness.config import EnvConfig
 from harness.evaluation import EpisodeResult, run_episodes
@@ -118,26 +118,26 @@ def test_read_episodes_csv_round_trip(tmp_path: Path) -> None:
     cov = np.array([0.1, 0.25, 0.3, 0.5, 0.45])
     path = tmp_path / "episodes.csv"
     write_episodes_csv(path, ts, cov)
-    got_ts, got_cov = plots.read_episodes_csv(path)
+    got_ts, got_cov = rundir.read_episodes_csv(path)
     assert got_ts.dtype == np.int64 and got_cov.dtype == np.float64
     np.testing.assert_array_equal(got_ts, ts)
     np.testing.assert_allclose(got_cov, cov)
     # Rows out of order (copies finishing in one step) come back sorted by timesteps.
     write_episodes_csv(path, ts[::-1], cov[::-1])
-    np.testing.assert_array_equal(plots.read_episodes_csv(path)[0], ts)
+    np.testing.assert_array_equal(rundir.read_episodes_csv(path)[0], ts)
     # A header-only file is an empty run.
     write_episodes_csv(path, np.array([]), np.array([]))
-    assert all(len(a) == 0 for a in plots.read_episodes_csv(path))
+    assert all(len(a) == 0 for a in rundir.read_episodes_csv(path))
 
 
 def test_read_episodes_csv_errors_name_the_problem(tmp_path: Path) -> None:
     path = tmp_path / "episodes.csv"
     path.write_text("episode,timesteps\n0,10\n")
     with pytest.raises(ValueError, match="missing column"):
-        plots.read_episodes_csv(path)
+        rundir.read_episodes_csv(path)
     path.write_text("episode,timesteps,coverage\n0,10,0.5\n1,20,oops\n")
     with pytest.raises(ValueError, match="line 3"):
-        plots.read_episodes_csv(path)
+        rundir.read_episodes_csv(path)
 
 
 def test_smooth_is_a_trailing_median() -> None:
@@ -173,7 +173,7 @@ def test_plot_learning_curves_from_csv_files(tmp_path: Path) -> None:
     rng = np.random.default_rng(1)
     for k in range(3):
         write_episodes_csv(tmp_path / f"run{k}.csv", *fake_run(rng, 40, 10_000))
-    curves = {"exp": [plots.read_episodes_csv(tmp_path / f"run{k}.csv") for k in range(3)]}
+    curves = {"exp": [rundir.read_episodes_csv(tmp_path / f"run{k}.csv") for k in range(3)]}
     check_png(plots.plot_learning_curves(curves, tmp_path / "c.png", window=5))
     with pytest.raises(ValueError, match="no run"):
         plots.plot_learning_curves({"empty": [(np.array([]), np.array([]))]}, tmp_path / "e.png")
@@ -187,7 +187,7 @@ def test_read_evaluations_csv_and_draw_the_evaluations_panel(tmp_path: Path) -> 
         "2000,4,1.0,0.5,0.4,0.6,0.5,0.0\n1000,4,1.0,0.25,0.2,0.3,0.25,0.5\n",
         encoding="utf-8",
     )
-    ts, median = plots.read_evaluations_csv(path)
+    ts, median = rundir.read_evaluations_csv(path)
     np.testing.assert_array_equal(ts, [1000, 2000])
     np.testing.assert_array_equal(median, [0.25, 0.5])
     rng = np.random.default_rng(2)
@@ -200,7 +200,7 @@ def test_read_evaluations_csv_and_draw_the_evaluations_panel(tmp_path: Path) -> 
     assert both[0] > 1.5 * single[0]  # a second panel beside the first
     path.write_text("timesteps,coverage_median\n10,high\n", encoding="utf-8")
     with pytest.raises(ValueError, match="line 2"):
-        plots.read_evaluations_csv(path)
+        rundir.read_evaluations_csv(path)
 
 
 # ---------------------------------------------------------------------- episodes and GIFs

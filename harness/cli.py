@@ -611,7 +611,16 @@ COMMANDS = {
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``harness`` console script."""
-    argv = list(sys.argv[1:] if argv is None else argv)
+    code = _main(list(sys.argv[1:] if argv is None else argv))
+    if argv is None and code in (128 + signal.SIGINT, 128 + signal.SIGTERM):
+        # Stopped by a signal, the message printed: the process only has to exit now. A further
+        # Ctrl-C (a terminal sends one to the whole group, and people press it twice) would
+        # otherwise land in the interpreter's shutdown (torch's finalizers) with a traceback.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    return code
+
+
+def _main(argv: list[str]) -> int:
     try:
         args = build_parser().parse_args(argv)
     except SystemExit as exc:  # --help (0) or a usage error (2, already printed on one line)

@@ -112,7 +112,7 @@ def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) ->
     # The model's place in its run folder names the eval file ("best_model", ...): taken from the
     # path as given, so that a symlink to a model elsewhere is named like the link.
     name = Path(os.path.relpath(model_path.absolute(), run_dir.absolute())).with_suffix("")
-    policy = model_policy(model, config.eval.temperature)
+    policy = model_policy(model, config.eval.temperature, config.eval.shield)
     return Target(policy, config, str(model_path), run_dir, seed, name.as_posix(), model)
 
 
@@ -334,13 +334,14 @@ def tune_temperature(
         raise TargetError("harness tune needs a trained model, not a baseline")
     rows = []
     for temperature in temperatures:
-        policy = model_policy(target.model, temperature)
+        policy = model_policy(target.model, temperature, target.config.eval.shield)
         summary = summarize(run_episodes(policy, target.config.env, episodes, target.seed))
         rows.append({"temperature": temperature, **{k: summary[k] for k in TUNE_KEYS}})
     return {
         "policy": target.label,
         "seed": target.seed,
         "episodes": episodes,
+        "shield": target.config.eval.shield,
         "rows": rows,
         "chosen": choose_temperature(rows)["temperature"],
     }
@@ -474,6 +475,7 @@ def evaluate(target: Target, episodes: int, overrides: Sequence[str]) -> tuple[d
         "seed": target.seed,
         # Only a learned policy has a test temperature (eval.temperature); baselines ignore it.
         "temperature": target.config.eval.temperature if target.run_dir is not None else None,
+        "shield": target.config.eval.shield if target.run_dir is not None else None,
         "overrides": list(overrides),
         "env": target.config.env.model_dump(mode="json"),
         **summarize(results),

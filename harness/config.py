@@ -457,6 +457,11 @@ class EvalConfig(_Section):
     temperature: NonNegativeFloat = 0.0
     """Test-time action choice: 0 is greedy (ε = 0, the thesis's test); above 0 each agent samples
     from softmax(Q / temperature) (Boltzmann), which breaks the loops of a greedy policy."""
+    shield: bool = False
+    """Test-time wall shield: leave out the moves the agent's observation shows to be blocked
+    (a wall or the edge next to it) before the choice, so the test policy never hits a wall.
+    Applies to ``harness eval``/``tune``, the in-training evaluations and sweeps; training's
+    own (ε-greedy) actions are unchanged."""
 
     @model_validator(mode="after")
     def _separate_seeds(self) -> EvalConfig:

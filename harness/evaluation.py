@@ -17,6 +17,7 @@ import numpy as np
 
 from envs import coverage_v0
 from envs.coverage import CoverageEnv
+from envs.coverage.observations import blocked_moves
 from harness.config import EnvConfig
 
 #: A batched policy: ``policy(obs, envs)`` maps the observations ``(len(envs) * n_agents, ...)``
@@ -57,9 +58,15 @@ class EpisodeResult:
     and the last step, when asked for."""
 
 
-def model_policy(model: Any, temperature: float = 0.0) -> BatchPolicy:
+def model_policy(model: Any, temperature: float = 0.0, shield: bool = False) -> BatchPolicy:
     """A batched policy from an SB3 model: greedy (ε = 0) when ``temperature`` is 0, else
     Boltzmann, each agent sampling its action from ``softmax(Q / temperature)``.
+
+    With ``shield`` the moves that the agent's own observation shows to be blocked (a wall or
+    the grid's edge next to it, :func:`envs.coverage.observations.blocked_moves`) are left out
+    before the choice: a safety shield on the learned policy (Alshiekh et al. 2018, "Safe
+    Reinforcement Learning via Shielding"), so the test policy never hits a wall, and an agent
+    whose best Q-value is a blocked move takes its best free one instead of pushing forever.
 
     A memoryless greedy policy on a partial observation repeats itself once its surroundings are
     visited (a loop it cannot leave); sampling near-tied actions breaks such loops, while actions
@@ -70,15 +77,23 @@ def model_policy(model: Any, temperature: float = 0.0) -> BatchPolicy:
     if temperature < 0:
         raise ValueError(f"temperature must be >= 0, got {temperature}")
 
-    def greedy(obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
-        actions, _ = model.policy.predict(obs, deterministic=True)
-        return np.asarray(actions)
-
-    def boltzmann(obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
+    def q_values(obs: np.ndarray) -> np.ndarray:
         import torch as th
 
         with th.no_grad():
             q = model.q_net(model.policy.obs_to_tensor(obs)[0]).cpu().numpy().astype(np.float64)
+        if shield:
+            q[blocked_moves(obs)] = -np.inf  # stay is never blocked: a row keeps a finite value
+        return q
+
+    def greedy(obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
+        if shield:
+            return q_values(obs).argmax(axis=1)
+        actions, _ = model.policy.predict(obs, deterministic=True)
+        return np.asarray(actions)
+
+    def boltzmann(obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
+        q = q_values(obs)
         return softmax_sample(q, temperature, episode_draws(envs, batch_len(obs) // len(envs)))
 
     return greedy if temperature == 0 else boltzmann

@@ -163,3 +163,85 @@ def test_frontier_reaches_full_coverage_of_a_small_map_and_reports_its_speed() -
     for r in results:
         assert r.coverage == 1.0
         assert 0 < r.steps_to["steps_to_90"] <= r.steps_to["steps_to_99"] <= 200
+
+
+# ---------------------------------------------------------------------- the wall shield
+SHIELD_ROOM = """
+#####
+#...#
+#.#.#
+#####
+"""
+
+
+@pytest.mark.parametrize("observation", ["thesis", "teammap"])
+def test_blocked_moves_read_the_walls_next_to_the_agent_from_its_observation(observation):
+    from envs import coverage_v0
+    from envs.coverage.observations import blocked_moves
+    from harness.evaluation import stack_observations
+    from tests.conftest import grid_from
+
+    grid = grid_from(SHIELD_ROOM)
+    env = coverage_v0.parallel_env(
+        height=4, width=5, n_agents=2, observation=observation, crop=5, global_size=6
+    )
+    obs, _ = env.reset(seed=0, options={"grid": grid, "starts": [(1, 1), (1, 2)]})
+    blocked = blocked_moves(stack_observations([obs]))
+    # (1, 1): wall above and left, (2, 1) below and (1, 2) right free.
+    # (1, 2): wall above and below (2, 2), (1, 1) and (1, 3) free. Stay is never blocked.
+    up, down, left, right, stay = True, False, True, False, False
+    assert blocked.tolist() == [[up, down, left, right, stay], [True, True, False, False, False]]
+
+
+class FixedQModel:
+    """A stand-in for an SB3 model whose Q-values prefer ``up``, then ``stay``, whatever it sees."""
+
+    class policy:  # noqa: N801 (mirrors model.policy)
+        @staticmethod
+        def obs_to_tensor(obs):
+            import torch as th
+
+            n = len(obs["local"]) if isinstance(obs, dict) else len(obs)
+            return th.zeros(n, 1), True
+
+        @staticmethod
+        def predict(obs, deterministic=True):
+            return np.zeros(len(obs), dtype=np.int64), None  # up, the best Q-value
+
+    @staticmethod
+    def q_net(x):
+        import torch as th
+
+        return th.tensor([[5.0, -3.0, -2.0, -4.0, 1.0]]).repeat(len(x), 1)
+
+
+@pytest.mark.parametrize("temperature", [0.0, 0.5])
+def test_shielded_test_policy_never_hits_a_wall_where_the_plain_one_pushes_into_it(temperature):
+    from harness.evaluation import model_policy
+
+    env = EnvConfig(height=8, width=8, n_agents=2, max_steps=40)
+    plain = run_episodes(model_policy(FixedQModel, temperature), env, episodes=4, seed=3)
+    shielded = run_episodes(
+        model_policy(FixedQModel, temperature, shield=True), env, episodes=4, seed=3
+    )
+    assert sum(sum(r.wall_hits) for r in plain) > 40  # it walks up to the wall and pushes on
+    assert all(sum(r.wall_hits) == 0 for r in shielded)
+    # Shielded, the agents still follow the Q-values among the free moves: up while they can.
+    assert all(r.coverage > 0 for r in shielded)
+
+
+def test_shield_masks_blocked_actions_in_the_boltzmann_draw():
+    from harness.evaluation import model_policy
+
+    obs = np.zeros((3, 13), dtype=np.float32)
+    obs[:, 1] = 1.0  # a wall above every agent: `up`, the best Q-value, is blocked
+
+    class Env:  # episode_draws reads one np_random per env copy
+        def __init__(self) -> None:
+            self.np_random = np.random.default_rng(0)
+
+    policy = model_policy(FixedQModel, temperature=0.5, shield=True)
+    actions = policy(obs, [Env()])
+    assert (actions != 0).all() and len(actions) == 3
+    # Greedy and shielded: the best free move is stay (1.0 > -2.0 > -3.0 > -4.0).
+    assert model_policy(FixedQModel, 0.0, shield=True)(obs, [Env()]).tolist() == [4, 4, 4]

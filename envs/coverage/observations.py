@@ -430,6 +430,38 @@ def add_agent_id(
     return np.concatenate([obs, np.eye(n_agents, dtype=obs.dtype)], axis=1)
 
 
+def blocked_moves(obs: np.ndarray | dict[str, np.ndarray]) -> np.ndarray:
+    """Which moves each observation shows to be blocked: ``(batch, 5)`` bool in action order
+    (up, down, left, right, stay), True where the neighbouring cell in that direction is a
+    wall or outside the grid. ``stay`` is never blocked.
+
+    Read from the observation alone (what the agent itself sees), for any observation kind:
+    the thesis window's elements 1, 7, 3 and 5 (value 1: wall or outside), or the team map
+    crop's known-wall channel next to its centre. Used by the test policy's wall shield.
+
+    Args:
+        obs: A batch of observations: ``(batch, 13 + ...)`` thesis vectors, or a dict of stacked
+            team-map arrays (``"local"`` of shape ``(batch, 5, crop, crop)``).
+    """
+    if isinstance(obs, dict):
+        local = np.asarray(obs["local"])
+        c = local.shape[-1] // 2
+        walls = local[:, KNOWN_WALL] > 0
+        neighbours = [
+            walls[:, c - 1, c],
+            walls[:, c + 1, c],
+            walls[:, c, c - 1],
+            walls[:, c, c + 1],
+        ]
+    else:
+        window = np.asarray(obs)[:, :9]
+        neighbours = [window[:, 1] == CELL_WALL, window[:, 7] == CELL_WALL]
+        neighbours += [window[:, 3] == CELL_WALL, window[:, 5] == CELL_WALL]
+    blocked = np.zeros((len(neighbours[0]), 5), dtype=bool)
+    blocked[:, :4] = np.stack(neighbours, axis=1)
+    return blocked
+
+
 #: Observation kinds by name (the env's ``observation=`` argument).
 OBSERVATIONS: dict[str, type[ObservationBuilder]] = {
     ThesisObservation.name: ThesisObservation,

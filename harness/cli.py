@@ -248,6 +248,13 @@ def _add_compare_parser(sub: Any) -> None:
         default=REPS,
         help=f"bootstrap resamples of the 95 %% intervals over seeds (rliable; default {REPS})",
     )
+    cmp_.add_argument(
+        "--eval",
+        default="eval",
+        metavar="NAME",
+        help="which evaluation of each run: eval (eval.json, default) or another eval file's "
+        "stem, e.g. eval-env.map-random",
+    )
 
 
 def _add_render_parser(sub: Any) -> None:
@@ -525,11 +532,12 @@ def cmd_compare(args: argparse.Namespace) -> int:
         raise HarnessError(f"--labels needs one label per run ({len(args.runs)})")
     check_image_output(args.out, "--out")
     labels = args.labels or [None] * len(args.runs)
-    result = compare(args.runs, labels, Path(args.out), args.window, args.reps)
+    result = compare(args.runs, labels, Path(args.out), args.window, args.reps, args.eval)
     print(f"{'experiment':<20}{'run':<40}{'median':>8}{'IQR':>8}{'wall hits':>11}")
     for label, name, ev in result.rows:
         if ev is None:
-            print(f"{label:<20}{name:<40}{'(no eval.json: run harness eval)':>27}")
+            missing = f"(no {args.eval}.json: run harness eval)"
+            print(f"{label:<20}{name:<40}{missing:>27}")
         else:
             print(
                 f"{label:<20}{name:<40}{ev['coverage_median']:>8.1%}{ev['coverage_iqr']:>8.1%}"

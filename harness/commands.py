@@ -250,8 +250,9 @@ def format_summary(summary: dict[str, Any]) -> str:
 COMPARE_KEYS = ("coverage_median", "coverage_iqr", "coverage_mean", "wall_hits_mean")
 
 
-def read_eval_json(run: Path) -> dict[str, Any] | None:
-    """A run's ``eval.json``, or ``None`` if it was not evaluated.
+def read_eval_json(run: Path, name: str = "eval") -> dict[str, Any] | None:
+    """A run's ``eval.json`` (or the evaluation ``name``: see :meth:`RunDir.eval_file`), or
+    ``None`` if it was not evaluated so.
 
     Raises:
         TargetError: when the file is there but is not an evaluation (not JSON, not an object,
@@ -259,12 +260,12 @@ def read_eval_json(run: Path) -> dict[str, Any] | None:
     """
     files = RunDir(run)
     try:
-        data = files.read_eval()
+        data = files.read_eval(name)
+        path = files.eval_file(name)
     except RunDirError as exc:
         raise TargetError(str(exc)) from None
     if data is None:
         return None
-    path = files.eval_json
     for key in COMPARE_KEYS:
         value = data.get(key)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
@@ -579,10 +580,12 @@ def compare(
     out: Path,
     window: int,
     reps: int,
+    eval_name: str = "eval",
 ) -> Comparison:
     """``harness compare``'s work: learning curves of runs and seed groups, each run's test
-    numbers, and over the seeds of each group the mean and IQM with 95 % bootstrap intervals and
-    the probability of improvement (rliable, ``reps`` bootstrap resamples)."""
+    numbers (its ``eval.json``, or the evaluation ``eval_name``), and over the seeds of each
+    group the mean and IQM with 95 % bootstrap intervals and the probability of improvement
+    (rliable, ``reps`` bootstrap resamples)."""
     from harness.groups import group_runs, is_group
     from harness.plots import plot_learning_curves
 
@@ -598,7 +601,7 @@ def compare(
             curves.setdefault(label, []).append(episodes)
             if evals is not None:
                 evaluations.setdefault(label, []).append(evals)
-            rows.append((label, run.name, read_eval_json(run)))
+            rows.append((label, run.name, read_eval_json(run, eval_name)))
     title = "team coverage of the training episodes"
     saved = [plot_learning_curves(curves, out, title, window=window, evaluations=evaluations)]
     over_seeds, more = _over_seeds(rows, evaluations, Path(out), reps)

@@ -278,13 +278,28 @@ class RunDir:
         """Save a result JSON of this folder (:func:`result_filename`'s ``name``), atomically."""
         return write_json(self.result(name), data)
 
-    def read_eval(self) -> dict[str, Any] | None:
-        """The standard evaluation (``eval.json``) as a JSON object, or ``None`` if there is none.
+    def eval_file(self, name: str = "eval") -> Path:
+        """An evaluation by its file stem: ``eval`` (the standard ``eval.json``) or another of
+        :func:`result_filename`'s names, e.g. ``eval-env.map-random``.
+
+        Raises:
+            RunDirError: for a stem that is not an evaluation's name (no folders, no other file).
+        """
+        if name != "eval" and not (name.startswith("eval-") and "/" not in name):
+            raise RunDirError(
+                f"{name!r} is not an evaluation's name: 'eval' (eval.json) or 'eval-...' "
+                "(eval-env.map-random.json and the like, as harness eval names them)"
+            )
+        return self.path / f"{name}.json"
+
+    def read_eval(self, name: str = "eval") -> dict[str, Any] | None:
+        """An evaluation (by default the standard ``eval.json``; see :meth:`eval_file`) as a
+        JSON object, or ``None`` if there is none.
 
         Raises:
             RunDirError: when the file is there but is not a JSON object, naming it.
         """
-        path = self.eval_json
+        path = self.eval_file(name)
         if not path.is_file():
             return None
         try:

@@ -196,7 +196,7 @@ def test_blocked_moves_read_the_walls_next_to_the_agent_from_its_observation(obs
 class FixedQModel:
     """A stand-in for an SB3 model whose Q-values prefer ``up``, then ``stay``, whatever it sees."""
 
-    class policy:  # noqa: N801 (mirrors model.policy)
+    class policy:
         @staticmethod
         def obs_to_tensor(obs):
             import torch as th

@@ -175,6 +175,28 @@ def test_compare_of_hand_made_groups_reports_mean_iqm_intervals_and_improvement(
         assert (tmp_path / f"cmp{suffix}.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_compare_reads_another_evaluation_when_asked(tmp_path, capsys):
+    a = _fake_group(tmp_path / "a", [0.1, 0.2, 0.3], [{100: 0.1}] * 3)
+    for k, score in enumerate([0.5, 0.6, 0.7]):  # the same runs evaluated on other episodes
+        ev = {"coverage_median": score, "coverage_iqr": 0.0, "coverage_mean": score,
+              "wall_hits_mean": 0.0}  # fmt: skip
+        (a / f"run-seed{k}" / "eval-env.map-random.json").write_text(json.dumps(ev))
+    out = str(tmp_path / "cmp.png")
+    assert main(["compare", str(a), "--labels", "a", "--out", out, "--reps", "200"]) == 0
+    assert _interval(_row(capsys.readouterr().out, "a")[2])[0] == 20.0
+    args = ["compare", str(a), "--labels", "a", "--out", out, "--reps", "200"]
+    assert main([*args, "--eval", "eval-env.map-random"]) == 0
+    assert _interval(_row(capsys.readouterr().out, "a")[2])[0] == 60.0
+    # A run without that evaluation says so; a name that is not an evaluation is one line, 2.
+    assert main([*args, "--eval", "eval-seed7"]) == 0
+    assert "(no eval-seed7.json: run harness eval)" in capsys.readouterr().out
+    assert main([*args, "--eval", "../config"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["harness: error: '../config' is not an evaluation's name: 'eval' (eval.json) "
+                   "or 'eval-...' (eval-env.map-random.json and the like, as harness eval names "
+                   "them)"]  # fmt: skip
+
+
 def test_learning_curve_over_seeds_is_the_iqm_at_the_common_timesteps():
     curves = [
         (np.array([100, 200]), np.array([0.1, 0.4])),

@@ -604,7 +604,7 @@ def compare(
             rows.append((label, run.name, read_eval_json(run, eval_name)))
     title = "team coverage of the training episodes"
     saved = [plot_learning_curves(curves, out, title, window=window, evaluations=evaluations)]
-    over_seeds, more = _over_seeds(rows, evaluations, Path(out), reps)
+    over_seeds, more = _over_seeds(rows, evaluations, Path(out), reps, eval_name)
     return Comparison(rows, over_seeds, saved + more)
 
 
@@ -613,6 +613,7 @@ def _over_seeds(
     evaluations: dict[str, list[Any]],
     out: Path,
     reps: int,
+    eval_name: str = "eval",
 ) -> tuple[str, list[Path]]:
     """The over-seeds part of ``compare``: a Markdown table, P(X > Y) per pair, two PNGs."""
     from harness.stats import (
@@ -635,7 +636,7 @@ def _over_seeds(
         return "", []
     stats = seed_statistics(scores, reps)
     lines = [
-        "Over seeds: test coverage (each seed's mean over its eval.json episodes)",
+        f"Over seeds: test coverage (each seed's mean over its {eval_name}.json episodes)",
         "",
         markdown_table(stats, {k: sum(v) / len(v) for k, v in hits.items()}),
     ]

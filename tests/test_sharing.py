@@ -30,6 +30,7 @@ from harness.config import ConfigError, EnvConfig, load_config
 from harness.dqn import per_agent_loss
 from harness.policies import PerAgentQNetwork, without_agent_id
 from harness.registry import POLICIES
+from tests.test_resume import TINY as RESUME_TINY
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "smoke.yaml"
@@ -378,14 +379,9 @@ def test_double_q_target_per_agent_matches_hand_computation():
 
 
 # ------------------------------------------------------------------------------ end to end
-TINY = [
-    "phases.initial.timesteps=1200",
-    "phases.optimizing.timesteps=400",
-    "checkpoint.every=400",
-    "eval.every=600",
-    "eval.episodes=2",
-    "algo.threads=1",  # a tiny net: a second thread only waits (and slows a busy machine)
-]
+# The resume tests' tiny run, on one thread: a tiny net's second thread only waits (and slows
+# a busy machine).
+TINY = [*RESUME_TINY, "algo.threads=1"]
 
 
 @pytest.fixture(scope="module")

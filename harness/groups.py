@@ -94,9 +94,17 @@ class Job:
     returncode: int | None = None
 
 
+def available_cores() -> int:
+    """The cores this process may run on: its CPU affinity (``taskset``, Slurm, containers
+    restrict it), else the machine's count."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0)) or 1
+    return os.cpu_count() or 1
+
+
 def threads_per_job(jobs: int, cores: int | None = None) -> int:
     """Torch threads for each of ``jobs`` parallel trainings: an equal share of the cores."""
-    cores = cores or os.cpu_count() or 1
+    cores = cores or available_cores()
     return max(1, cores // max(1, jobs))
 
 

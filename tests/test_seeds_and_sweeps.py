@@ -16,7 +16,7 @@ import pytest
 
 from harness.cli import main
 from harness.config import load_config
-from harness.groups import GroupError, parse_seeds
+from harness.groups import GroupError, parse_seeds, threads_per_job
 from harness.stats import curve_with_ci, probability_of_improvement, seed_statistics
 from harness.sweep import SweepError, load_space
 
@@ -58,6 +58,18 @@ def test_bad_seed_lists_are_errors(text):
         parse_seeds(text, 100)
 
 
+def test_jobs_share_the_cores_this_process_may_use():
+    # A group started under `taskset -c 0` (or a Slurm job with one CPU) must not give each job
+    # the machine's full core count: the share follows the CPU affinity.
+    code = (
+        "import os; os.sched_setaffinity(0, {min(os.sched_getaffinity(0))}); "
+        "from harness.groups import threads_per_job; print(threads_per_job(1), threads_per_job(2))"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.split() == ["1", "1"]
+    assert threads_per_job(1, cores=4) == 4 and threads_per_job(3, cores=4) == 1
+
+
 @pytest.mark.slow
 def test_seed_group_trains_evaluates_and_compares(tiny, tmp_path, capsys):
     runs = tmp_path / "runs"
@@ -65,7 +77,8 @@ def test_seed_group_trains_evaluates_and_compares(tiny, tmp_path, capsys):
     assert main(args) == 0
     (group,) = runs.iterdir()
     data = json.loads((group / "group.json").read_text())
-    assert data["seeds"] == [0, 1] and data["threads_per_job"] == max(1, os.cpu_count() // 2)
+    assert data["seeds"] == [0, 1]
+    assert data["threads_per_job"] == max(1, len(os.sched_getaffinity(0)) // 2)
     members = [group / r["run"] for r in data["runs"]]
     for seed, run in zip((0, 1), members, strict=True):
         assert (run / "model.zip").is_file()

@@ -5,7 +5,7 @@ elsewhere:
 ========  ==========================================================================
 run       :func:`harness.train.train` (``--seeds``: :mod:`harness.groups`)
 eval      :func:`harness.commands.evaluate` (a seed group: ``evaluate_group``)
-tune      :func:`harness.commands.tune`
+tune      :func:`harness.commands.tune` (a seed group: every run)
 compare   :func:`harness.commands.compare`
 render    :func:`harness.commands.render`
 export    :func:`harness.commands.export_reference`
@@ -203,7 +203,12 @@ def _add_tune_parser(sub: Any) -> None:
     tune = sub.add_parser(
         "tune", help="choose the test temperature of a trained model on validation episodes"
     )
-    tune.add_argument("target", type=Path, metavar="RUN_DIR_OR_MODEL", help="run folder or zip")
+    tune.add_argument(
+        "target",
+        type=Path,
+        metavar="RUN_DIR_OR_MODEL",
+        help="run folder, zip, or a seed group (every run of it)",
+    )
     tune.add_argument(
         "--temperatures",
         type=temperature_arg,
@@ -510,6 +515,15 @@ def _eval_group(args: argparse.Namespace) -> int:
 
 
 def cmd_tune(args: argparse.Namespace) -> int:
+    from harness.groups import group_runs, is_group
+
+    if is_group(args.target):
+        # Each seed picks its own temperature on the same validation episodes, as each
+        # reference does; `harness eval GROUP` then tests every run at its choice.
+        for run in group_runs(args.target):
+            print(f"== {run.name}")
+            cmd_tune(argparse.Namespace(**{**vars(args), "target": run}))
+        return 0
     args.policy = args.config = None
     target = _target(args)
     if args.seed is None:

@@ -86,6 +86,13 @@ def test_seed_group_trains_evaluates_and_compares(tiny, tmp_path, capsys):
     # Different seeds, different training episodes.
     assert (members[0] / "episodes.csv").read_text() != (members[1] / "episodes.csv").read_text()
     capsys.readouterr()
+    tune = ["tune", str(group), "--temperatures", "0.5", "3", "--episodes", "2", "--write"]
+    assert main(tune) == 0
+    for run in members:  # every seed chose on the validation episodes and kept its choice
+        chosen = json.loads((run / "tune.json").read_text())["chosen"]
+        assert chosen in (0.5, 3.0)
+        assert load_config(run / "config.yaml").eval.temperature == chosen
+    capsys.readouterr()
     assert main(["eval", str(group), "--json"]) == 0
     result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     assert set(result["runs"]) == {m.name for m in members}
@@ -93,6 +100,8 @@ def test_seed_group_trains_evaluates_and_compares(tiny, tmp_path, capsys):
     # Both seeds were tested on the same episodes.
     evals = [json.loads((m / "eval.json").read_text()) for m in members]
     assert evals[0]["seed"] == evals[1]["seed"]
+    for run, ev in zip(members, evals, strict=True):  # at the temperature its tune chose
+        assert ev["temperature"] == json.loads((run / "tune.json").read_text())["chosen"]
     out = tmp_path / "cmp.png"
     assert (
         main(["compare", str(group), str(members[0]), "--labels", "g", "one", "--out", str(out)])

@@ -171,7 +171,10 @@ def test_missing_and_corrupt_models(smoke_run, tmp_path, capsys):
     assert "cannot load model" in capsys.readouterr().err
 
 
-def test_export_makes_a_compact_reference_that_evaluates_the_same(smoke_run, tmp_path, capsys):
+def test_export_makes_a_compact_reference_that_evaluates_the_same(
+    smoke_run, tmp_path, capsys, monkeypatch
+):
+    monkeypatch.chdir(tmp_path)  # a reference's results go to runs/evals/ under the cwd
     ref = tmp_path / "reference" / "smoke"
     assert main(["export", str(smoke_run), "--out", str(ref)]) == 0
     for f in ("config.yaml", "command.txt", "episodes.csv", "evaluations.csv"):
@@ -187,7 +190,8 @@ def test_export_makes_a_compact_reference_that_evaluates_the_same(smoke_run, tmp
     assert "already exists" in capsys.readouterr().err
 
 
-def test_export_of_best_model_keeps_its_own_tune_sweep(smoke_run, tmp_path, capsys):
+def test_export_of_best_model_keeps_its_own_tune_sweep(smoke_run, tmp_path, capsys, monkeypatch):
+    monkeypatch.chdir(tmp_path)  # a reference's results go to runs/evals/ under the cwd
     (smoke_run / "tune.json").write_text('{"policy": "model.zip"}')
     (smoke_run / "tune-best_model.json").write_text('{"policy": "best_model.zip"}')
     ref = tmp_path / "best"

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import zipfile
 from pathlib import Path
@@ -377,3 +378,16 @@ def test_config_tests_with_its_references_tuned_temperature(ref: Path) -> None:
     assert config.is_file(), f"no config for reference {ref.name}"
     tuned = json.loads((ref / "tune.json").read_text())["chosen"]
     assert load_config(config).eval.temperature == tuned
+
+
+@pytest.mark.parametrize("command", ["eval", "render"])
+def test_policy_help_names_every_baseline(command):
+    # The help text is written by hand (importing the baselines' SciPy would slow every
+    # command's start); this keeps it in step with the BASELINES table.
+    from harness.baselines import BASELINES
+    from harness.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    (policy,) = [a for a in sub.choices[command]._actions if "--policy" in a.option_strings]
+    named = set(policy.help.split(":")[1].replace(" or ", ", ").replace(" ", "").split(","))
+    assert named == set(BASELINES)

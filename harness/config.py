@@ -344,6 +344,12 @@ class AlgoConfig(_Section):
     """torch CPU threads (``torch.set_num_threads``); ``null`` keeps torch's default (one per
     core). On a 2-core machine 2 threads train the 3x512 net ~20 % faster than 1 (harness bench)."""
 
+    action_mask: bool = False
+    """Invalid-action masking: the moves the agent's observation shows to be blocked (a known
+    wall or the grid's edge next to it) are never chosen, neither greedily nor at random, and
+    never bootstrapped from (the TD target's max). The policy acts behind the mask at test time
+    too: it needs ``eval.shield: true``."""
+
     features_dim: PositiveInt = 256
     """TeamMap policies: width of the layer that joins the image branches and the vector."""
     cnn_channels: tuple[PositiveInt, PositiveInt] = (8, 16)
@@ -511,6 +517,17 @@ class ExperimentConfig(_Section):
     def _agent_indication(self) -> ExperimentConfig:
         # algo.sharing owns agent indication; the env only carries it out.
         self.env._agent_id = self.algo.sharing != "shared"
+        return self
+
+    @model_validator(mode="after")
+    def _mask_at_test_time(self) -> ExperimentConfig:
+        # A masked policy never learned what its blocked moves are worth: unmasked, its test
+        # policy would pick among untrained Q-values.
+        if self.algo.action_mask and not self.eval.shield:
+            raise ValueError(
+                "algo.action_mask: true needs eval.shield: true (a policy trained behind the "
+                "mask is tested behind it)"
+            )
         return self
 
     @model_validator(mode="after")

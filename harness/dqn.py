@@ -15,12 +15,26 @@ from stable_baselines3.dqn import DQN
 from stable_baselines3.dqn.policies import DQNPolicy
 from torch.nn import functional as F
 
+from envs.coverage.observations import blocked_moves
 from harness.buffers import PrioritizedReplayBuffer
 from harness.policies import PerAgentQNetwork
 from harness.registry import POLICIES
 from harness.targets import double_q_target, max_q_target
 
-__all__ = ["DoubleDQN", "per_agent_loss", "resolve_optimizer_class"]
+__all__ = ["DoubleDQN", "blocked_actions", "per_agent_loss", "resolve_optimizer_class"]
+
+
+def blocked_actions(obs: th.Tensor | dict[str, th.Tensor]) -> th.Tensor:
+    """The moves a batch of observation tensors shows to be blocked (a known wall or the grid's
+    edge next to the agent): :func:`envs.coverage.observations.blocked_moves`, as a
+    ``(batch, n_actions)`` bool tensor on the observations' device."""
+    if isinstance(obs, dict):
+        device = next(iter(obs.values())).device
+        blocked = blocked_moves({k: v.cpu().numpy() for k, v in obs.items()})
+    else:
+        device = obs.device
+        blocked = blocked_moves(obs.cpu().numpy())
+    return th.as_tensor(blocked, device=device)
 
 
 def resolve_optimizer_class(optimizer: str | type[th.optim.Optimizer]) -> type[th.optim.Optimizer]:
@@ -107,6 +121,11 @@ class DoubleDQN(DQN):
       ``torch.optim`` class, e.g. ``"Adam"``.
     * ``predict(deterministic=False)`` draws one exploration coin per observation (per VecEnv
       slot / agent), instead of SB3's single coin for the whole batch.
+    * ``action_mask=True`` leaves out the moves the observation shows to be blocked
+      (:func:`blocked_actions`) wherever an action is chosen: the greedy action and the
+      ε-random one (uniform over the free moves) in :meth:`predict`, and the next-state
+      max/argmax of the TD target (invalid-action masking, Huang & Ontañón 2022). The random
+      actions before ``learning_starts`` are SB3's, unmasked.
     * The names of :data:`harness.registry.POLICIES` select the harness's policies
       (``"DuelingMlpPolicy"``, ``"TeamMapPolicy"``, ``"DuelingTeamMapPolicy"``).
 
@@ -198,6 +217,7 @@ class DoubleDQN(DQN):
         seed: int | None = None,
         device: th.device | str = "auto",
         double_q: bool = True,
+        action_mask: bool = False,
         _init_setup_model: bool = True,
     ) -> None:
         # Copy: the caller's dict must not change, and the resolved class (not a string) is
@@ -235,6 +255,7 @@ class DoubleDQN(DQN):
             _init_setup_model=False,
         )
         self.double_q = double_q
+        self.action_mask = action_mask
         if _init_setup_model:
             self._setup_model()
 
@@ -364,6 +385,7 @@ class DoubleDQN(DQN):
             discounts = self.gamma
         with th.no_grad():
             next_q_target = self.q_net_target(replay_data.next_observations)
+            blocked = blocked_actions(replay_data.next_observations) if self.action_mask else None
             if self.double_q:
                 next_q_online = self.q_net(replay_data.next_observations)
                 target_q = double_q_target(
@@ -372,10 +394,11 @@ class DoubleDQN(DQN):
                     discounts,
                     next_q_online,
                     next_q_target,
+                    blocked,
                 )
             else:
                 target_q = max_q_target(
-                    replay_data.rewards, replay_data.dones, discounts, next_q_target
+                    replay_data.rewards, replay_data.dones, discounts, next_q_target, blocked
                 )
 
         current_q = th.gather(
@@ -430,7 +453,11 @@ class DoubleDQN(DQN):
             The actions (shape as SB3's: ``(n,)`` for a batch, ``()`` for one observation)
             and the state.
         """
-        action, state = self.policy.predict(observation, state, episode_start, deterministic)
+        blocked = None
+        if self.action_mask:
+            action, blocked = self._masked_greedy(observation)
+        else:
+            action, state = self.policy.predict(observation, state, episode_start, deterministic)
         if deterministic or self.exploration_rate <= 0.0:
             return action, state
         greedy = np.asarray(action)
@@ -440,6 +467,23 @@ class DoubleDQN(DQN):
         # stay reproducible with `seed=`. Random actions are in [0, n) like the greedy argmax
         # (SB3's Q-network ignores Discrete.start).
         explore = np.random.random_sample(flat.shape[0]) < self.exploration_rate  # noqa: NPY002
-        random_actions = np.random.randint(n_actions, size=flat.shape[0])  # noqa: NPY002
+        if blocked is None:
+            random_actions = np.random.randint(n_actions, size=flat.shape[0])  # noqa: NPY002
+        else:  # uniform over the free moves: the largest of iid keys, blocked keys below all
+            keys = np.random.random_sample((flat.shape[0], n_actions))  # noqa: NPY002
+            random_actions = np.where(blocked, -1.0, keys).argmax(axis=1)
         mixed = np.where(explore, random_actions, flat).astype(flat.dtype, copy=False)
         return mixed.reshape(greedy.shape), state
+
+    def _masked_greedy(
+        self, observation: np.ndarray | dict[str, np.ndarray]
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The greedy action among the moves the observation leaves free, shaped as SB3's
+        ``policy.predict`` shapes it, and the ``(batch, n_actions)`` blocked mask."""
+        self.policy.set_training_mode(False)
+        obs, vectorized = self.policy.obs_to_tensor(observation)
+        with th.no_grad():
+            blocked = blocked_actions(obs)
+            q = self.q_net(obs).masked_fill(blocked, float("-inf"))
+        action = q.argmax(dim=1).cpu().numpy()
+        return (action if vectorized else action.squeeze(axis=0)), blocked.cpu().numpy()

@@ -7,6 +7,10 @@ tensors (``(batch,)`` is accepted and reshaped), the next-state Q-values are
 
 They carry no autograd state of their own: call them under ``torch.no_grad()`` as the
 training loop does.
+
+Both take an optional ``blocked`` mask, ``(batch, n_actions)`` bool: moves the next observation
+shows to be impossible (``algo.action_mask``), left out of the max (or the online argmax). Every
+row must keep at least one allowed action (``stay`` is never blocked).
 """
 
 from __future__ import annotations
@@ -45,11 +49,23 @@ def _prepare(
     return rewards, dones, discounts
 
 
+def _allowed(q: th.Tensor, blocked: th.Tensor | None) -> th.Tensor:
+    """``q`` with the blocked actions at ``-inf``, so that max and argmax skip them."""
+    if blocked is None:
+        return q
+    if blocked.shape != q.shape:
+        raise ValueError(f"blocked must be {tuple(q.shape)}, got {tuple(blocked.shape)}")
+    if bool(blocked.all(dim=1).any()):
+        raise ValueError("every row of blocked must allow at least one action")
+    return q.masked_fill(blocked, float("-inf"))
+
+
 def max_q_target(
     rewards: th.Tensor,
     dones: th.Tensor,
     discounts: th.Tensor | float,
     next_q_target: th.Tensor,
+    blocked: th.Tensor | None = None,
 ) -> th.Tensor:
     """Plain DQN target, as in SB3: ``r + discount * (1 - done) * max_a Q_target(s', a)``.
 
@@ -58,12 +74,13 @@ def max_q_target(
         dones: Termination flags (timeouts already removed), ``(batch, 1)``.
         discounts: ``gamma`` or per-sample discounts ``(batch, 1)``.
         next_q_target: Target-network Q-values of the next observations, ``(batch, n_actions)``.
+        blocked: Actions the max leaves out, ``(batch, n_actions)`` bool, or ``None``.
 
     Returns:
         The TD target, ``(batch, 1)``.
     """
     rewards, dones, discounts = _prepare(rewards, dones, discounts, next_q_target)
-    next_q = next_q_target.max(dim=1, keepdim=True).values
+    next_q = _allowed(next_q_target, blocked).max(dim=1, keepdim=True).values
     return rewards + discounts * (1.0 - dones) * next_q
 
 
@@ -73,6 +90,7 @@ def double_q_target(
     discounts: th.Tensor | float,
     next_q_online: th.Tensor,
     next_q_target: th.Tensor,
+    blocked: th.Tensor | None = None,
 ) -> th.Tensor:
     """Double-DQN target (van Hasselt et al., 2016).
 
@@ -86,6 +104,7 @@ def double_q_target(
         discounts: ``gamma`` or per-sample discounts ``(batch, 1)``.
         next_q_online: Online-network Q-values of the next observations, ``(batch, n_actions)``.
         next_q_target: Target-network Q-values of the next observations, ``(batch, n_actions)``.
+        blocked: Actions the online argmax leaves out, ``(batch, n_actions)`` bool, or ``None``.
 
     Returns:
         The TD target, ``(batch, 1)``.
@@ -96,6 +115,6 @@ def double_q_target(
             f"{tuple(next_q_online.shape)} and {tuple(next_q_target.shape)}"
         )
     rewards, dones, discounts = _prepare(rewards, dones, discounts, next_q_target)
-    greedy_actions = next_q_online.argmax(dim=1, keepdim=True)
+    greedy_actions = _allowed(next_q_online, blocked).argmax(dim=1, keepdim=True)
     next_q = th.gather(next_q_target, dim=1, index=greedy_actions)
     return rewards + discounts * (1.0 - dones) * next_q

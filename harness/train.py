@@ -110,6 +110,7 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
         # ε, β and the learning rate's schedules are installed by apply_phase, in one place.
         max_grad_norm=algo.max_grad_norm,
         double_q=algo.double_q,
+        action_mask=algo.action_mask,
         # Enough finished episodes for the epochs table's median (one entry per slot).
         stats_window_size=max(
             100, max(p.epochs_window for p in config.phases) * config.env.n_agents

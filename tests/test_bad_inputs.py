@@ -67,6 +67,8 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], str]] = [
      "invalid YAML (Exceeds the limit (4300 digits)"),
     ("override-int-too-long", ["run", "{cfg}", "--set", f"seed={HUGE_INT}"], {},
      "Exceeds the limit (4300 digits)"),
+    ("mask-unshielded", ["run", "{cfg}", "--set", "algo.action_mask=true"], {},
+     "algo.action_mask: true needs eval.shield: true"),
     ("unknown-policy", ["run", "{cfg}", "--set", "algo.policy=CnnPolicy"], {},
      "algo.policy: unknown policy 'CnnPolicy'"),
     ("epochs-not-increasing", ["run", "{cfg}", "--set", "phases.only.epochs=[[0.5, 1], [0.1, 2]]"],

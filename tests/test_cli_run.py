@@ -114,6 +114,31 @@ def test_dueling_policy_trains_through_the_harness(tmp_path):
     assert path.name.startswith("duel-")
 
 
+@pytest.mark.parametrize("observation", ["thesis", "teammap"])
+def test_masked_training_never_hits_a_wall(tmp_path, observation):
+    # From the first step on (learning_starts 0: no unmasked warm-up), every action of training,
+    # greedy or random, and of the evaluations is chosen among the free moves.
+    policy = {"thesis": [], "teammap": ["--set", "algo.policy=TeamMapPolicy"]}[observation]
+    rc = main(
+        [
+            "run", str(SMOKE), "--runs-dir", str(tmp_path), "--no-progress",
+            "--set", "algo.action_mask=true", "--set", "eval.shield=true",
+            "--set", "algo.learning_starts=0",
+            "--set", f"env.observation={observation}", *policy,
+            "--set", "phases.initial.timesteps=600", "--set", "phases.optimizing.timesteps=200",
+            "--set", "eval.every=400", "--set", "eval.episodes=2", "--set", "checkpoint.every=0",
+        ]
+    )  # fmt: skip
+    assert rc == 0
+    (path,) = tmp_path.iterdir()
+    with (path / "episodes.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert rows and all(int(r["wall_hits"]) == 0 for r in rows)
+    with (path / "evaluations.csv").open() as f:
+        assert all(float(r["wall_hits_mean"]) == 0 for r in csv.DictReader(f))
+    assert DoubleDQN.load(path / "model.zip").action_mask is True
+
+
 def test_run_folders_are_never_reused():
     now = datetime(2026, 1, 2, 3, 4, 5, tzinfo=timezone.utc)
     root = Path(__import__("tempfile").mkdtemp())

@@ -72,3 +72,28 @@ def test_shape_errors() -> None:
         max_q_target(REWARDS, DONES, 0.9, th.zeros(2))
     with pytest.raises(ValueError, match="same shape"):
         double_q_target(REWARDS, DONES, 0.9, th.zeros(2, 3), NEXT_Q_TARGET)
+
+
+def test_blocked_actions_are_left_out_of_the_max_and_the_argmax() -> None:
+    # Row 0's best actions are blocked in both networks: the target falls back to the free ones.
+    blocked = th.tensor([[True, False], [False, False]])
+    plain = max_q_target(REWARDS, DONES, 0.9, NEXT_Q_TARGET, blocked)
+    # row 0: max over action 1 only = 3 -> 3.7 (unchanged: 3 was already the max)
+    assert th.allclose(plain, th.tensor([[3.7], [0.5]]))
+    blocked_1 = th.tensor([[False, True], [False, False]])
+    # row 0: max over action 0 only = 1 -> 1 + 0.9 * 1 = 1.9
+    assert th.allclose(
+        max_q_target(REWARDS, DONES, 0.9, NEXT_Q_TARGET, blocked_1), th.tensor([[1.9], [0.5]])
+    )
+    # Double-Q: the online argmax (action 0) is blocked -> action 1, valued by the target net:
+    # 1 + 0.9 * 3 = 3.7
+    double = double_q_target(REWARDS, DONES, 0.9, NEXT_Q_ONLINE, NEXT_Q_TARGET, blocked)
+    assert th.allclose(double, th.tensor([[3.7], [0.5]]))
+
+
+def test_a_row_with_every_action_blocked_is_an_error() -> None:
+    blocked = th.tensor([[True, True], [False, False]])
+    with pytest.raises(ValueError, match="at least one action"):
+        max_q_target(REWARDS, DONES, 0.9, NEXT_Q_TARGET, blocked)
+    with pytest.raises(ValueError, match="blocked must be"):
+        max_q_target(REWARDS, DONES, 0.9, NEXT_Q_TARGET, th.tensor([True, False]))

@@ -55,7 +55,9 @@ included); outside the grid is known wall. Binary channels are 0 or 255.
 
 * ``"local"`` ``Box(0, 255, (5, crop, crop), uint8)``: the ``crop`` x ``crop`` window centred on
   the agent; channels known wall (outside the grid too), visited, known free not yet visited,
-  unknown, teammates present (other agents).
+  unknown, teammates present (other agents); with ``trail=K > 0`` (shape ``(6, crop, crop)``) a
+  sixth channel, the agent's own trail: a cell it stood on ``a < K`` steps ago is
+  ``round(255 * (K - a) / K)`` (its current cell 255), older or never 0.
 * ``"global"`` ``Box(0, 255, (6, G, G), uint8)`` with ``G = global_size``: the map cut into a
   G x G grid of blocks (block ``i`` holds rows ``floor(i*H/G) .. floor((i+1)*H/G) - 1``, likewise
   columns, so any size or aspect fits; a block with no cell, on a map smaller than G, counts as
@@ -68,7 +70,8 @@ included); outside the grid is known wall. Binary channels are 0 or 255.
   means the same thing wherever the agent stands, unlike the absolute ``"global"`` view.
 * ``"vector"`` ``Box(0, 1, (3,), float32)``: own row/(H-1), own col/(W-1), steps/max_steps.
 
-``crop`` is odd and >= 5 (default 15), ``global_size`` >= 6 (default 13), ``ego_size`` 0 (no
+``crop`` is odd and >= 5 (>= 7 with the trail; default 15), ``trail`` >= 0 (default 0: none),
+``global_size`` >= 6 (default 13), ``ego_size`` 0 (no
 ego view, the default) or odd and >= 5, ``ego_block`` odd (default 5): Stable-Baselines3 reads a
 uint8 image as channel-first only when no side is smaller than its channel count. The local and
 global images are updated incrementally (only the agents' new 3x3 windows), so they cost
@@ -90,8 +93,8 @@ credited to this agent so far), ``wall_hits`` (this agent's count so far), ``ste
 ``wall_fraction=(0.15, 0.20)``, ``n_agents=4``, ``max_steps=1000``, ``observation="thesis"``,
 ``coords="normalized"``, ``rewards={"new_cell": 2.0, "wall_hit": -10.0, "step": -1.0}``,
 ``starts=None`` (fixed start cells, else distinct random free cells each reset),
-``render_mode=None | "rgb_array" | "ansi"``, ``crop=15``, ``global_size=13``, ``ego_size=0`` and
-``ego_block=5`` (``"teammap"`` only), ``agent_id=False``.
+``render_mode=None | "rgb_array" | "ansi"``, ``crop=15``, ``global_size=13``, ``ego_size=0``,
+``ego_block=5`` and ``trail=0`` (``"teammap"`` only), ``agent_id=False``.
 
 ``reset(seed=None, options=None)``: ``options={"grid": bool_array, "starts": [(r, c), ...]}`` fixes
 that episode's map and/or start cells. Bad input raises ``ValueError`` naming the problem.

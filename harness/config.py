@@ -78,6 +78,8 @@ MAX_CONFIG_BYTES = 1 << 20
 #: Largest side of a team-map image (``crop``, ``global_size``): the same cell count as the
 #: largest map; larger sides fail only when the env allocates its arrays.
 MAX_IMAGE_SIDE = 2_000
+#: Longest own trail of the team-map crop (steps); far beyond any episode here.
+MAX_TRAIL = 1_000_000
 
 #: Most replay-buffer transitions: more than any machine holds; the memory check says so with
 #: an estimate below this, above it the numbers stop being numbers.
@@ -129,6 +131,9 @@ class EnvConfig(_Section):
     """``teammap``: blocks per side of the coarse map centred on the agent (odd; 0 = none)."""
     ego_block: Annotated[int, Field(ge=1, le=MAX_IMAGE_SIDE)] = 5
     """``teammap``: cells per side of a block of the ego view (odd)."""
+    trail: Annotated[int, Field(ge=0, le=MAX_TRAIL)] = 0
+    """``teammap``: steps of the agent's own trail, a sixth channel of the local crop (0 = none;
+    the crop must then be >= 7)."""
     coords: Literal["normalized", "raw"] = "normalized"
     rewards: RewardsConfig = RewardsConfig()
     starts: list[tuple[int, int]] | None = None
@@ -178,6 +183,13 @@ class EnvConfig(_Section):
         if v < least or v % 2 == 0:
             raise ValueError(f"must be odd and >= {least} (the crop's channels), got {v}")
         return v
+
+    @model_validator(mode="after")
+    def _crop_holds_the_trail(self) -> EnvConfig:
+        least = TeamMapObservation.min_crop(self.trail)
+        if self.crop < least:
+            raise ValueError(f"crop must be >= {least} with a trail (the crop's channels)")
+        return self
 
     @field_validator("global_size")
     @classmethod

@@ -146,6 +146,43 @@ def test_known_cells_after_a_few_moves_on_a_hand_built_grid():
     check(env, obs, crop=5, g=7)
 
 
+def test_own_trail_fades_over_k_steps_on_a_hand_built_grid():
+    # Two agents, trail K = 3: a cell stood on a steps ago is round(255 * (3 - a) / 3).
+    env, obs = teammap_env(ROOM, [(1, 1), (3, 5)], crop=7, global_size=7, trail=3)
+    assert obs["agent_0"]["local"].shape == (6, 7, 7)
+    trail = obs["agent_0"]["local"][5]
+    assert trail[3, 3] == 255 and trail.sum() == 255  # only the start cell, this step
+    for _ in range(3):
+        obs, *_ = env.step({"agent_0": RIGHT, "agent_1": LEFT})
+    # agent 0 walked (1, 1) -> (1, 2) -> (1, 3) -> (1, 4); the crop centre is (1, 4).
+    trail = obs["agent_0"]["local"][5]
+    assert [trail[3, 3 - a] for a in range(4)] == [255, 170, 85, 0]  # (1, 4) .. (1, 1)
+    assert trail.sum() == 255 + 170 + 85  # nothing else: not the teammate's path
+    # agent 1 walked (3, 5) -> (3, 2) past agent 0's path; it sees only its own.
+    other = obs["agent_1"]["local"][5]
+    assert [other[3, 3 + a] for a in range(4)] == [255, 170, 85, 0]
+    assert other.sum() == 255 + 170 + 85
+    # Standing still keeps the cell fresh; bumping a wall is standing still.
+    obs, *_ = env.step({"agent_0": UP, "agent_1": STAY})  # (0, 4) is a wall
+    trail = obs["agent_0"]["local"][5]
+    assert trail[3, 3] == 255 and trail[3, 2] == 85 and trail[3, 1] == 0
+    # A new episode starts a new trail.
+    obs, _ = env.reset(seed=1, options={"grid": grid_from(ROOM), "starts": [(3, 1), (1, 5)]})
+    assert obs["agent_0"]["local"][5].sum() == 255
+
+
+def test_trail_off_keeps_five_channels_and_every_other_view_the_same():
+    plain, obs_plain = teammap_env(ROOM, [(1, 1), (3, 5)], crop=7, global_size=7)
+    trailed, obs_trail = teammap_env(ROOM, [(1, 1), (3, 5)], crop=7, global_size=7, trail=4)
+    for _ in range(4):
+        for a in obs_plain:
+            np.testing.assert_array_equal(obs_trail[a]["local"][:5], obs_plain[a]["local"])
+            np.testing.assert_array_equal(obs_trail[a]["global"], obs_plain[a]["global"])
+        obs_plain, *_ = plain.step({"agent_0": DOWN, "agent_1": LEFT})
+        obs_trail, *_ = trailed.step({"agent_0": DOWN, "agent_1": LEFT})
+    assert plain.observation_space("agent_0")["local"].shape == (5, 7, 7)
+
+
 def test_crop_is_padded_with_known_wall_at_the_border():
     env, obs = teammap_env(ROOM, [(3, 5)], crop=9, global_size=7)
     local = obs["agent_0"]["local"]
@@ -320,6 +357,7 @@ def test_incremental_arrays_equal_a_recomputation_after_many_steps(seed):
         (12, 40, {}),
         (4, 5, {"crop": 5, "global_size": 6}),
         (12, 40, {"ego_size": 9, "ego_block": 3}),
+        (12, 40, {"crop": 7, "trail": 20}),
     ],
 )
 def test_observations_lie_in_the_space(height, width, sizes):
@@ -346,6 +384,8 @@ def test_observations_lie_in_the_space(height, width, sizes):
         ({"ego_size": 4}, "ego_size must be 0 .off. or an odd integer >= 5, got 4"),
         ({"ego_size": 3}, "ego_size must be 0 .off. or an odd integer >= 5, got 3"),
         ({"ego_block": 2}, "ego_block must be an odd integer >= 1, got 2"),
+        ({"crop": 5, "trail": 10}, "crop must be an odd integer >= 7, got 5"),
+        ({"trail": -1}, "trail must be an integer >= 0"),
     ],
 )
 def test_bad_sizes_are_value_errors(kwargs, message):
@@ -365,6 +405,9 @@ def test_smallest_sizes_are_read_as_channel_first_images_by_sb3():
     ).observation_space("agent_0")
     for key in ("local", "global", "ego"):
         assert is_image_space(space[key]) and is_image_space_channels_first(space[key])
+    trailed = coverage_v0.parallel_env(observation="teammap", crop=7, trail=5)
+    local = trailed.observation_space("agent_0")["local"]
+    assert local.shape == (6, 7, 7) and is_image_space_channels_first(local)
     too_small = spaces.Box(0, 255, (5, 3, 3), np.uint8)  # what crop=3 would give
     with pytest.warns(UserWarning, match="channels-last"):
         assert not is_image_space_channels_first(too_small)
@@ -378,6 +421,8 @@ def test_smallest_sizes_are_read_as_channel_first_images_by_sb3():
         ("{global_size: 5}", r"env.global_size: must be >= 6"),
         ("{ego_size: 4}", r"env.ego_size: must be 0 \(no ego view\) or odd and >= 5"),
         ("{ego_block: 4}", r"env.ego_block: must be odd"),
+        ("{crop: 5, trail: 8}", r"env: crop must be >= 7 with a trail"),
+        ("{trail: -2}", r"env.trail: Input should be greater than or equal to 0"),
     ],
 )
 def test_config_refuses_bad_sizes(tmp_path, env_yaml, message):
@@ -390,12 +435,12 @@ def test_config_refuses_bad_sizes(tmp_path, env_yaml, message):
 def test_config_sizes_reach_the_env(tmp_path):
     path = tmp_path / "exp.yaml"
     path.write_text(
-        "name: tm\nenv: {observation: teammap, crop: 9, global_size: 8, ego_size: 11}\n"
+        "name: tm\nenv: {observation: teammap, crop: 9, global_size: 8, ego_size: 11, trail: 30}\n"
         "algo: {policy: TeamMapPolicy}\n"
     )
     env = coverage_v0.parallel_env(**load_config(path).env.kwargs())
     space = env.observation_space("agent_0")
-    assert space["local"].shape == (5, 9, 9) and space["global"].shape == (6, 8, 8)
+    assert space["local"].shape == (6, 9, 9) and space["global"].shape == (6, 8, 8)
     assert space["ego"].shape == (5, 11, 11)
 
 

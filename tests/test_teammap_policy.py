@@ -66,15 +66,20 @@ def test_extractor_gives_the_ego_view_its_own_branch():
 
 
 @pytest.mark.parametrize(
-    ("policy", "ego_size"),
-    [("TeamMapPolicy", 0), ("DuelingTeamMapPolicy", 0), ("TeamMapPolicy", 5)],
+    ("policy", "ego_size", "trail"),
+    [
+        ("TeamMapPolicy", 0, 0),
+        ("DuelingTeamMapPolicy", 0, 0),
+        ("TeamMapPolicy", 5, 0),
+        ("TeamMapPolicy", 0, 8),
+    ],
 )
-def test_policy_save_and_load_give_the_same_q_values(tmp_path, policy, ego_size):
+def test_policy_save_and_load_give_the_same_q_values(tmp_path, policy, ego_size, trail):
     from harness.adapters import make_vec_env
 
     venv = make_vec_env(
         {"height": 9, "width": 9, "n_agents": 2, "max_steps": 10, "observation": "teammap",
-         "crop": 5, "global_size": 7, "ego_size": ego_size, "ego_block": 3},
+         "crop": 7, "global_size": 7, "ego_size": ego_size, "ego_block": 3, "trail": trail},
     )  # fmt: skip
     model = DoubleDQN(
         policy,

@@ -55,6 +55,7 @@ class CoverageEnv(ParallelEnv):
         global_size: int = 13,
         ego_size: int = 0,
         ego_block: int = 5,
+        trail: int = 0,
         agent_id: bool = False,
     ) -> None:
         _check_int("n_agents", n_agents, 1)
@@ -119,6 +120,7 @@ class CoverageEnv(ParallelEnv):
             "global_size": global_size,
             "ego_size": ego_size,
             "ego_block": ego_block,
+            "trail": trail,
         }
         # One builder per map size: a mix may draw maps of several sizes. The space is the
         # largest size's (with raw coordinates its bounds hold every smaller map's positions).

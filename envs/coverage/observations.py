@@ -159,7 +159,11 @@ class TeamMapObservation(ObservationBuilder):
     visited; the others are unknown. Per agent:
 
     * ``"local"`` ``(5, crop, crop)``: the crop centred on the agent; channels known wall,
-      visited, known free not visited, unknown, teammates present (0 or 255).
+      visited, known free not visited, unknown, teammates present (0 or 255); with ``trail=K >
+      0`` a sixth channel, the agent's own trail: a cell it stood on ``a < K`` steps ago is
+      ``round(255 * (K - a) / K)`` (its own cell 255), older or never 0. Every visited cell
+      looks alike in the team's map; the trail tells the agent where it has just been (which
+      way it came, where it is going round in circles).
     * ``"global"`` ``(6, G, G)``: the whole map cut into a G x G grid of blocks (block ``i`` holds
       rows ``floor(i*H/G) .. floor((i+1)*H/G) - 1``, likewise columns, so any size or aspect
       fits); channels the share of the block visited, known free not visited, unknown and known
@@ -187,20 +191,23 @@ class TeamMapObservation(ObservationBuilder):
         ego_size: E, blocks per side of the ego view (0: no ego view; else odd and
             >= :attr:`MIN_EGO_SIZE`).
         ego_block: Cells per side of an ego block (odd, >= 1).
+        trail: K, steps of the agent's own trail in the crop (0: no trail channel).
 
     Raises:
         ValueError: For a crop or global size out of range.
     """
 
     name = "teammap"
-    options = ("crop", "global_size", "ego_size", "ego_block")
+    options = ("crop", "global_size", "ego_size", "ego_block", "trail")
     LOCAL_CHANNELS = 5
+    #: Index of the trail channel in ``"local"`` (with ``trail > 0``).
+    TRAIL = 5
     GLOBAL_CHANNELS = 6
     EGO_CHANNELS = 5
     # Stable-Baselines3 reads a uint8 image as channel-first only when its first axis is (one of)
     # the smallest (``is_image_space_channels_first``; otherwise it wraps the env in
     # ``VecTransposeImage`` and swaps the axes), so no spatial side may be below the channels.
-    #: Smallest crop: odd and at least the local view's 5 channels.
+    #: Smallest crop: odd and at least the local view's 5 channels (7 with the trail's sixth).
     MIN_CROP = 5
     #: Smallest global size: the global view's 6 channels.
     MIN_GLOBAL_SIZE = 6
@@ -219,10 +226,14 @@ class TeamMapObservation(ObservationBuilder):
         global_size: int = 13,
         ego_size: int = 0,
         ego_block: int = 5,
+        trail: int = 0,
     ) -> None:
         super().__init__(height, width, coords, max_steps)
-        if not (_is_int(crop) and crop >= self.MIN_CROP and crop % 2 == 1):
-            raise ValueError(f"crop must be an odd integer >= {self.MIN_CROP}, got {crop!r}")
+        if not (_is_int(trail) and trail >= 0):
+            raise ValueError(f"trail must be an integer >= 0 (0: off), got {trail!r}")
+        least = self.min_crop(int(trail))
+        if not (_is_int(crop) and crop >= least and crop % 2 == 1):
+            raise ValueError(f"crop must be an odd integer >= {least}, got {crop!r}")
         if not (_is_int(global_size) and global_size >= self.MIN_GLOBAL_SIZE):
             raise ValueError(
                 f"global_size must be an integer >= {self.MIN_GLOBAL_SIZE}, got {global_size!r}"
@@ -240,6 +251,8 @@ class TeamMapObservation(ObservationBuilder):
         crop, global_size = int(crop), int(global_size)
         self.crop, self.global_size = crop, global_size
         self.ego_size, self.ego_block = int(ego_size), int(ego_block)
+        self.trail = int(trail)
+        self.local_channels = self.LOCAL_CHANNELS + (self.trail > 0)
         # Ego block edges relative to the agent's cell: block k spans rows
         # offsets[k] .. offsets[k+1]-1, and block E//2 is centred on the agent.
         self._ego_edges = (np.arange(self.ego_size + 1) - self.ego_size // 2) * self.ego_block - (
@@ -265,10 +278,16 @@ class TeamMapObservation(ObservationBuilder):
             [1.0 / max(height - 1, 1), 1.0 / max(width - 1, 1)], dtype=np.float32
         )
 
+    @classmethod
+    def min_crop(cls, trail: int = 0) -> int:
+        """Smallest crop: odd and at least the local view's channel count."""
+        channels = cls.LOCAL_CHANNELS + (trail > 0)
+        return channels + 1 - channels % 2
+
     def space(self) -> spaces.Dict:
         c, g, e = self.crop, self.global_size, self.ego_size
         views = {
-            "local": spaces.Box(0, 255, (self.LOCAL_CHANNELS, c, c), np.uint8),
+            "local": spaces.Box(0, 255, (self.local_channels, c, c), np.uint8),
             "global": spaces.Box(0, 255, (self.GLOBAL_CHANNELS, g, g), np.uint8),
         }
         if e:
@@ -298,6 +317,9 @@ class TeamMapObservation(ObservationBuilder):
         self._update_shares(np.arange(self.global_size**2))
         self._wp = wp
         self._window = (np.arange(-1, 2)[:, None] * wp + np.arange(-1, 2)[None, :]).ravel()
+        # Step at which each agent last stood on each padded cell (the trail); made at the first
+        # build after the reset, which knows how many agents there are.
+        self._last_visit: np.ndarray | None = None
 
     def _update(self, state: GridState) -> None:
         """Make the agents' 3x3 windows known and bring changed cells up to date."""
@@ -335,11 +357,13 @@ class TeamMapObservation(ObservationBuilder):
         n = state.positions.shape[0]
         c, g, half = self.crop, self.global_size, self.crop // 2
         rows, cols = state.positions[:, 0], state.positions[:, 1]
-        local = np.empty((n, self.LOCAL_CHANNELS, c, c), dtype=np.uint8)
+        local = np.empty((n, self.local_channels, c, c), dtype=np.uint8)
         for i in range(n):  # the padded map's rows r .. r+crop are the crop centred on row r
             r, col = int(rows[i]), int(cols[i])
             local[i, :4] = self._planes_2d[:, r : r + c, col : col + c]
         local[:, 4] = 0
+        if self.trail:
+            local[:, self.TRAIL] = self._trail(state)
         if n > 1:
             dr = rows[None, :] - rows[:, None] + half  # (agent, teammate)
             dc = cols[None, :] - cols[:, None] + half
@@ -364,6 +388,20 @@ class TeamMapObservation(ObservationBuilder):
             views["ego"] = self._ego(rows, cols)
         views["vector"] = vector
         return views
+
+    def _trail(self, state: GridState) -> np.ndarray:
+        """Each agent's trail in its crop, ``(agents, crop, crop)``, after marking this step."""
+        n, c, k, wp = state.positions.shape[0], self.crop, self.trail, self._wp
+        if self._last_visit is None:
+            self._last_visit = np.full((n, self._cat.shape[0]), -k, dtype=np.int64)
+        p, rows, cols = state.pad, state.positions[:, 0], state.positions[:, 1]
+        self._last_visit[np.arange(n), (rows + p) * wp + (cols + p)] = state.steps
+        last = self._last_visit.reshape(n, -1, wp)
+        out = np.empty((n, c, c), dtype=np.uint8)
+        for i in range(n):  # padded rows r .. r+crop are the crop centred on grid row r
+            age = state.steps - last[i, rows[i] : rows[i] + c, cols[i] : cols[i] + c]
+            out[i] = np.where(age < k, np.rint(255.0 * (k - age) / k), 0)
+        return out
 
     def _ego(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """The ego views of all agents, pooled from a summed-area table of the categories."""

@@ -38,11 +38,22 @@ class SeedStats:
 
 
 @contextmanager
-def _quiet_arch() -> Iterator[None]:
-    """rliable hands ``random_state`` to ``arch``, which warns that the keyword will change."""
-    with warnings.catch_warnings():
-        warnings.filterwarnings("ignore", category=FutureWarning, module="arch")
-        yield
+def _bootstrap_rng(seed: int) -> Iterator[None]:
+    """Run rliable's bootstrap reproducibly from ``seed``, leaving ``np.random`` as it was.
+
+    rliable 1.2's ``StratifiedBootstrap.update_indices`` draws its resamples from the global
+    ``np.random``, not from the ``random_state`` it is given (which it only hands to ``arch``, and
+    ``arch`` warns that the keyword will change), so the same scores gave different intervals
+    from run to run. The global state is seeded for the call and restored after it.
+    """
+    state = np.random.get_state()  # noqa: NPY002
+    np.random.seed(seed)  # noqa: NPY002 (the generator rliable reads)
+    try:
+        with warnings.catch_warnings():
+            warnings.filterwarnings("ignore", category=FutureWarning, module="arch")
+            yield
+    finally:
+        np.random.set_state(state)  # noqa: NPY002
 
 
 def _scores(values: Sequence[float]) -> np.ndarray:
@@ -63,11 +74,14 @@ def seed_statistics(
     out: dict[str, SeedStats] = {}
     several = {name: _scores(v) for name, v in groups.items() if len(v) > 1}
     points, intervals = {}, {}
-    if several:
-        with _quiet_arch():
-            points, intervals = rly.get_interval_estimates(
-                several, aggregate, reps=reps, random_state=np.random.RandomState(seed)
+    # One resampling stream per group, each from `seed`: a group's interval does not depend on
+    # which other groups it is compared with (one shared stream would make it so).
+    for name, scores in several.items():
+        with _bootstrap_rng(seed):
+            point, interval = rly.get_interval_estimates(
+                {name: scores}, aggregate, reps=reps, random_state=np.random.RandomState(seed)
             )
+        points[name], intervals[name] = point[name], interval[name]
     for name, values in groups.items():
         if name in several:
             (mean, iqm), ci = points[name], intervals[name]
@@ -95,7 +109,7 @@ def probability_of_improvement(
     pair = (_scores(x), _scores(y))
     if len(x) < 2 or len(y) < 2:
         return float(metrics.probability_of_improvement(*pair)), None
-    with _quiet_arch():
+    with _bootstrap_rng(seed):
         points, intervals = rly.get_interval_estimates(
             {"x,y": pair},
             metrics.probability_of_improvement,
@@ -213,7 +227,7 @@ def curve_with_ci(
     def iqm_per_point(scores: np.ndarray) -> np.ndarray:
         return np.array([metrics.aggregate_iqm(scores[:, :, k]) for k in range(scores.shape[-1])])
 
-    with _quiet_arch():
+    with _bootstrap_rng(seed):
         points, intervals = rly.get_interval_estimates(
             {"g": matrix[:, None, :]},
             iqm_per_point,

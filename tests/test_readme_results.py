@@ -188,3 +188,34 @@ def test_teammap_row_quotes_the_stored_baselines_on_the_same_episodes(row: dict[
         assert stored["seed"] == 1_000_003 and stored["episodes"] == 100
         value = stored["coverage_mean"]
         assert row[policy] == percent(value)
+
+
+SEEDS_HEADER = "| comparison | seeds | test coverage: mean [95 % CI] |"
+
+
+def interval_cell(stats) -> str:
+    """How the seeds table writes a statistic: ``mean [low, high]``, one decimal."""
+    return f"{percent(stats[0])} [{percent(stats[1][0])}, {percent(stats[1][1])}]"
+
+
+@pytest.mark.parametrize("row", table_rows(SEEDS_HEADER), ids=lambda r: r["comparison"])
+def test_seeds_row_quotes_its_groups_evaluations(row: dict[str, str]) -> None:
+    from harness.groups import group_runs
+    from harness.stats import seed_statistics
+
+    group = ROOT / row["files"].strip("`")
+    runs = group_runs(group)
+    assert row["seeds"] == str(len(runs)) and len(runs) >= 3
+    tuned = [json.loads((run / "eval.json").read_text()) for run in runs]
+    greedy = [json.loads((run / "eval-eval.temperature-0.json").read_text()) for run in runs]
+    for run, ev in zip(runs, tuned, strict=True):  # at the temperature its own tune chose
+        assert ev["episodes"] == 100 and ev["seed"] == 1_000_003 and not ev["overrides"]
+        assert ev["temperature"] == json.loads((run / "tune.json").read_text())["chosen"]
+    assert all(g["temperature"] == 0 and g["seed"] == 1_000_003 for g in greedy)
+    means = {"tuned": tuned, "greedy": greedy}
+    stats = seed_statistics({k: [e["coverage_mean"] for e in v] for k, v in means.items()})
+    t, g = stats["tuned"], stats["greedy"]
+    assert row["test coverage: mean [95 % CI]"] == interval_cell((t.mean, t.mean_ci))
+    assert row["IQM [95 % CI]"] == interval_cell((t.iqm, t.iqm_ci))
+    assert row["greedy: mean [95 % CI]"] == interval_cell((g.mean, g.mean_ci))
+    assert row["walls"] == "0" and all(e["wall_hits_mean"] == 0 for e in tuned)

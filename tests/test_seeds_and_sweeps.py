@@ -115,6 +115,25 @@ def test_seed_group_trains_evaluates_and_compares(tiny, tmp_path, capsys):
         assert png.read_bytes()[:4] == b"\x89PNG"
 
 
+def test_intervals_repeat_and_leave_numpys_global_generator_alone():
+    # rliable resamples from the global np.random whatever random_state it is given.
+    scores = {"a": [0.1, 0.2, 0.3, 0.9, 0.45]}
+    np.random.seed(123)  # noqa: NPY002
+    before = np.random.get_state()[1].copy()  # noqa: NPY002
+    first = seed_statistics(scores, reps=300)["a"]
+    assert np.array_equal(np.random.get_state()[1], before)  # noqa: NPY002
+    np.random.random_sample(7)  # noqa: NPY002 (a different global state)
+    assert seed_statistics(scores, reps=300)["a"] == first
+    p = probability_of_improvement([0.5, 0.6, 0.4], [0.45, 0.55, 0.5], reps=300)
+    assert probability_of_improvement([0.5, 0.6, 0.4], [0.45, 0.55, 0.5], reps=300) == p
+
+
+def test_a_groups_interval_does_not_depend_on_the_other_groups():
+    alone = seed_statistics({"a": [0.1, 0.2, 0.3, 0.9]}, reps=300)["a"]
+    beside = seed_statistics({"b": [0.5, 0.7, 0.6], "a": [0.1, 0.2, 0.3, 0.9]}, reps=300)["a"]
+    assert alone == beside
+
+
 def test_statistics_over_seeds_hand_checked():
     # IQM of 4 values is the mean of the middle two; 1 seed: no interval.
     stats = seed_statistics({"a": [0.1, 0.2, 0.3, 0.9], "b": [0.5]}, reps=500)

@@ -53,6 +53,8 @@ KINDS = ("float", "int", "choice", "grid")
 PRUNERS = ("median", "halving", "hyperband", "none")
 #: The best trial of a study, in its folder: a config ``harness run`` trains, and its numbers.
 BEST_CONFIG, BEST_RESULT = "best.yaml", "best.json"
+#: Every trial of the study, one row each (Optuna's ``Study.trials_dataframe``).
+TRIALS_TABLE = "trials.csv"
 #: How often a trial that died (killed worker) is queued again before it stays failed.
 MAX_RETRY = 2
 #: Seconds between a trial's heartbeats in a database, and without one before it counts as dead.
@@ -432,8 +434,14 @@ def _objective(
 def write_best(
     study: Any, config_path: Path, overrides: Sequence[str], folder: Path
 ) -> dict[str, Any] | None:
-    """``best.yaml`` (a ready config) and ``best.json`` (parameters, value, trial) of a study."""
+    """``best.yaml`` (a ready config) and ``best.json`` (parameters, value, trial) of a study,
+    and ``trials.csv``, every trial: number, state, value, parameters, times, run folder."""
     import optuna
+
+    table = study.trials_dataframe(
+        attrs=("number", "state", "value", "params", "user_attrs", "duration")
+    )
+    atomic_write_text(folder / TRIALS_TABLE, table.to_csv(index=False))
 
     complete = study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
     if not complete:

@@ -3,6 +3,7 @@ real PostgreSQL server (from the ``pgserver`` wheel), end to end on tiny configs
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import shutil
@@ -331,6 +332,12 @@ def test_sweep_on_the_embedded_store_runs_the_trials_asked_and_writes_the_best(t
     assert main([*args[:5], "4", *args[6:], "--resume"]) == 0
     best = json.loads((folder / "best.json").read_text())
     assert best["trials"]["complete"] + best["trials"]["pruned"] == 4
+    with (folder / "trials.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert [int(r["number"]) for r in rows] == [0, 1, 2, 3]
+    assert {"value", "state", "params_algo.gamma", "user_attrs_run"} <= set(rows[0])
+    top = max((r for r in rows if r["state"] == "COMPLETE"), key=lambda r: float(r["value"]))
+    assert int(top["number"]) == best["trial"]
 
 
 def _journal(folder: Path):

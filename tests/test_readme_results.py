@@ -218,4 +218,8 @@ def test_seeds_row_quotes_its_groups_evaluations(row: dict[str, str]) -> None:
     assert row["test coverage: mean [95 % CI]"] == interval_cell((t.mean, t.mean_ci))
     assert row["IQM [95 % CI]"] == interval_cell((t.iqm, t.iqm_ci))
     assert row["greedy: mean [95 % CI]"] == interval_cell((g.mean, g.mean_ci))
-    assert row["walls"] == "0" and all(e["wall_hits_mean"] == 0 for e in tuned)
+    walls = sum(e["wall_hits_mean"] for e in tuned) / len(tuned)
+    assert row["walls"] == f"{walls:.2f}"
+    local = json.loads((ROOT / "docs" / "baselines" / f"{group.name}-local.json").read_text())
+    assert local["seed"] == 1_000_003 and local["episodes"] == 100
+    assert row["local rule"] == percent(local["coverage_mean"])

@@ -223,3 +223,20 @@ def test_seeds_row_quotes_its_groups_evaluations(row: dict[str, str]) -> None:
     local = json.loads((ROOT / "docs" / "baselines" / f"{group.name}-local.json").read_text())
     assert local["seed"] == 1_000_003 and local["episodes"] == 100
     assert row["local rule"] == percent(local["coverage_mean"])
+
+
+def test_sweep_paragraph_quotes_the_saved_study() -> None:
+    import csv
+
+    folder = ROOT / "docs" / "sweeps" / "ddqn_15x15"
+    with (folder / "trials.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    best = json.loads((folder / "best.json").read_text())
+    complete = [float(r["value"]) for r in rows if r["state"] == "COMPLETE"]
+    pruned = [r for r in rows if r["state"] == "PRUNED"]
+    text = (ROOT / "README.md").read_text()
+    assert f"{len(rows)} trials (TPE" in text
+    assert f"{len(complete)} complete, {len(pruned)} stopped by" in text
+    assert f"span {percent(min(complete), '')[:-1]}–{percent(max(complete))}" in text
+    assert f"the best, trial {best['trial']} " in text and max(complete) == best["value"]
+    assert best["trials"]["complete"] == len(complete)

@@ -116,25 +116,26 @@ def test_baseline_table_quotes_the_stored_baselines(row: dict[str, str]) -> None
 
 # ---------------------------------------------------------------------- the team-map table
 TEAMMAP_HEADER = "| test setting | agents | policy | coverage | greedy | unshielded |"
-#: The evaluation (file stem in the reference folder) of each test setting and team size.
-TEAMMAP_EVALS = {
-    ("50x50 random, 1000 steps", "1"): "eval-env.map-random_env.n_agents-1",
-    ("50x50 random, 1000 steps", "2"): "eval-env.map-random",
-    ("50x50 random, 1000 steps", "4"): "eval-env.map-random",
-    ("cave_100x50, 1000 steps", "2"): "eval-env.map-cave_100x50",
-    ("cave_100x50, 1000 steps", "4"): "eval-env.map-cave_100x50",
-    ("maze_100x50, 1000 steps", "2"): "eval-env.map-maze_100x50",
-    ("maze_100x50, 1000 steps", "4"): "eval-env.map-maze_100x50",
-    (
-        "15x15 random, 150 steps",
-        "2",
-    ): "eval-env.map-random_env.height-15_env.width-15_env.max_steps-150",
+#: Each test setting and team size: the evaluation a reference has of it (file stem in the
+#: reference folder) and the config whose stored baselines ran the same episodes.
+TEAMMAP_SETTINGS: dict[tuple[str, str], tuple[str, str]] = {
+    ("50x50 random, 1000 steps", "1"): ("eval-env.map-random_env.n_agents-1", "ddqn_1agent"),
+    ("50x50 random, 1000 steps", "2"): ("eval-env.map-random", "ddqn_2agents"),
+    ("50x50 random, 1000 steps", "4"): ("eval-env.map-random", "ddqn_4agents"),
+    ("cave_100x50, 1000 steps", "2"): ("eval-env.map-cave_100x50", "cave_2agents"),
+    ("cave_100x50, 1000 steps", "4"): ("eval-env.map-cave_100x50", "cave_4agents"),
+    ("maze_100x50, 1000 steps", "2"): ("eval-env.map-maze_100x50", "maze_2agents"),
+    ("maze_100x50, 1000 steps", "4"): ("eval-env.map-maze_100x50", "maze_4agents"),
+    ("15x15 random, 150 steps", "2"): (
+        "eval-env.map-random_env.height-15_env.width-15_env.max_steps-150",
+        "ddqn_15x15",
+    ),
 }
 TEAMMAP_ROWS = [r for r in table_rows(TEAMMAP_HEADER) if r["policy"].startswith("`")]
 
 
 def teammap_eval(reference: str, stem: str, variant: str = "") -> dict:
-    """An evaluation of a team-map reference: ``stem`` (see :data:`TEAMMAP_EVALS`) with an
+    """An evaluation of a team-map reference: ``stem`` (see :data:`TEAMMAP_SETTINGS`) with an
     optional ``variant`` (``eval.temperature-0``, ``eval.shield-false``). A reference trained on
     random 50x50 maps evaluates them as its own test, in ``eval.json``/``eval-<variant>.json``."""
     folder = ROOT / "runs" / "reference" / reference
@@ -147,7 +148,7 @@ def teammap_eval(reference: str, stem: str, variant: str = "") -> dict:
 @pytest.mark.parametrize("row", TEAMMAP_ROWS, ids=lambda r: f"{r['test setting']}-{r['agents']}")
 def test_teammap_row_quotes_its_reference_evaluations(row: dict[str, str]) -> None:
     reference = row["policy"].split("`")[1]
-    stem = TEAMMAP_EVALS[(row["test setting"], row["agents"])]
+    stem = TEAMMAP_SETTINGS[(row["test setting"], row["agents"])][0]
     tuned = teammap_eval(reference, stem)
     assert tuned["shield"] is True and tuned["wall_hits_mean"] == 0
     mean, median = percent(tuned["coverage_mean"]), percent(tuned["coverage_median"])
@@ -163,26 +164,14 @@ def test_teammap_row_quotes_its_reference_evaluations(row: dict[str, str]) -> No
 
 
 def test_teammap_table_has_every_setting_of_the_goals() -> None:
-    assert {(r["test setting"], r["agents"]) for r in TEAMMAP_ROWS} == set(TEAMMAP_EVALS)
-
-
-TEAMMAP_BASELINES = {
-    ("50x50 random, 1000 steps", "1"): "ddqn_1agent",
-    ("50x50 random, 1000 steps", "2"): "ddqn_2agents",
-    ("50x50 random, 1000 steps", "4"): "ddqn_4agents",
-    ("cave_100x50, 1000 steps", "2"): "cave_2agents",
-    ("cave_100x50, 1000 steps", "4"): "cave_4agents",
-    ("maze_100x50, 1000 steps", "2"): "maze_2agents",
-    ("maze_100x50, 1000 steps", "4"): "maze_4agents",
-    ("15x15 random, 150 steps", "2"): "ddqn_15x15",
-}
+    assert {(r["test setting"], r["agents"]) for r in TEAMMAP_ROWS} == set(TEAMMAP_SETTINGS)
 
 
 @pytest.mark.parametrize(
     "row", table_rows(TEAMMAP_HEADER), ids=lambda r: f"{r['test setting']}-{r['agents']}"
 )
 def test_teammap_row_quotes_the_stored_baselines_on_the_same_episodes(row: dict[str, str]) -> None:
-    config = TEAMMAP_BASELINES[(row["test setting"], row["agents"])]
+    config = TEAMMAP_SETTINGS[(row["test setting"], row["agents"])][1]
     for policy in ("local", "frontier"):
         stored = json.loads((ROOT / "docs" / "baselines" / f"{config}-{policy}.json").read_text())
         assert stored["seed"] == 1_000_003 and stored["episodes"] == 100

@@ -317,9 +317,10 @@ class TeamMapObservation(ObservationBuilder):
         self._update_shares(np.arange(self.global_size**2))
         self._wp = wp
         self._window = (np.arange(-1, 2)[:, None] * wp + np.arange(-1, 2)[None, :]).ravel()
-        # Step at which each agent last stood on each padded cell (the trail); made at the first
-        # build after the reset, which knows how many agents there are.
-        self._last_visit: np.ndarray | None = None
+        # Step at which each agent last stood on each padded cell (the trail); long ago at first.
+        if self.trail:
+            n = state.positions.shape[0]
+            self._last_visit = np.full((n, hp * wp), -self.trail, dtype=np.int64)
 
     def _update(self, state: GridState) -> None:
         """Make the agents' 3x3 windows known and bring changed cells up to date."""
@@ -392,8 +393,6 @@ class TeamMapObservation(ObservationBuilder):
     def _trail(self, state: GridState) -> np.ndarray:
         """Each agent's trail in its crop, ``(agents, crop, crop)``, after marking this step."""
         n, c, k, wp = state.positions.shape[0], self.crop, self.trail, self._wp
-        if self._last_visit is None:
-            self._last_visit = np.full((n, self._cat.shape[0]), -k, dtype=np.int64)
         p, rows, cols = state.pad, state.positions[:, 0], state.positions[:, 1]
         self._last_visit[np.arange(n), (rows + p) * wp + (cols + p)] = state.steps
         last = self._last_visit.reshape(n, -1, wp)

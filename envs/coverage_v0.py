@@ -57,7 +57,11 @@ included); outside the grid is known wall. Binary channels are 0 or 255.
   the agent; channels known wall (outside the grid too), visited, known free not yet visited,
   unknown, teammates present (other agents); with ``trail=K > 0`` (shape ``(6, crop, crop)``) a
   sixth channel, the agent's own trail: a cell it stood on ``a < K`` steps ago is
-  ``round(255 * (K - a) / K)`` (its current cell 255), older or never 0.
+  ``round(255 * (K - a) / K)`` (its current cell 255), older or never 0; with ``frontier=True``
+  one more channel (the last), the frontier field: with ``d`` the length of a shortest path
+  through known free cells to the nearest known free cell not yet visited, a reachable known
+  cell of the crop is ``clip(128 + 16 * (d(agent) - d(cell)), 1, 255)`` (brighter is nearer),
+  other cells 0.
 * ``"global"`` ``Box(0, 255, (6, G, G), uint8)`` with ``G = global_size``: the map cut into a
   G x G grid of blocks (block ``i`` holds rows ``floor(i*H/G) .. floor((i+1)*H/G) - 1``, likewise
   columns, so any size or aspect fits; a block with no cell, on a map smaller than G, counts as
@@ -69,8 +73,13 @@ included); outside the grid is known wall. Binary channels are 0 or 255.
   known wall (outside the grid counts as wall), and teammates present (255). The same pattern
   means the same thing wherever the agent stands, unlike the absolute ``"global"`` view.
 * ``"vector"`` ``Box(0, 1, (3,), float32)``: own row/(H-1), own col/(W-1), steps/max_steps.
+* ``"frontier"`` ``Box(0, 1, (5,), float32)``, only with ``frontier=True``: the frontier
+  compass, 1 for each move (up, down, left, right) that takes the agent one step nearer the
+  nearest known free unvisited cell, else 0, then ``d(agent) / (H + W)`` (at most 1; 1 when no
+  such cell is reachable).
 
-``crop`` is odd and >= 5 (>= 7 with the trail; default 15), ``trail`` >= 0 (default 0: none),
+``crop`` is odd and >= 5 (>= 7 with the trail, the frontier field or both; default
+15), ``trail`` >= 0 (default 0: none), ``frontier`` a bool (default ``False``),
 ``global_size`` >= 6 (default 13), ``ego_size`` 0 (no
 ego view, the default) or odd and >= 5, ``ego_block`` odd (default 5): Stable-Baselines3 reads a
 uint8 image as channel-first only when no side is smaller than its channel count. The local and
@@ -94,7 +103,7 @@ credited to this agent so far), ``wall_hits`` (this agent's count so far), ``ste
 ``coords="normalized"``, ``rewards={"new_cell": 2.0, "wall_hit": -10.0, "step": -1.0}``,
 ``starts=None`` (fixed start cells, else distinct random free cells each reset),
 ``render_mode=None | "rgb_array" | "ansi"``, ``crop=15``, ``global_size=13``, ``ego_size=0``,
-``ego_block=5`` and ``trail=0`` (``"teammap"`` only), ``agent_id=False``.
+``ego_block=5``, ``trail=0`` and ``frontier=False`` (``"teammap"`` only), ``agent_id=False``.
 
 ``reset(seed=None, options=None)``: ``options={"grid": bool_array, "starts": [(r, c), ...]}`` fixes
 that episode's map and/or start cells. Bad input raises ``ValueError`` naming the problem.

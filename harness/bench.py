@@ -94,6 +94,8 @@ def bench_env(episodes: int = 3) -> dict[str, Any]:
     out["env_bare_teammap_ego_agent_steps_per_s"] = bare_rate("teammap", ego_size=21, ego_block=5)
     # With the own-trail channel (env.trail) on top of the crop.
     out["env_bare_teammap_trail_agent_steps_per_s"] = bare_rate("teammap", trail=50)
+    # With the frontier field and compass (env.frontier): one compiled search a step.
+    out["env_bare_teammap_frontier_agent_steps_per_s"] = bare_rate("teammap", frontier=True)
 
     def vec_rate(copies: int, num_cpus: int = 0) -> float:
         venv = make_vec_env(THESIS_ENV, copies, num_cpus, seed=0)
@@ -359,6 +361,9 @@ def format_bench(r: dict[str, Any]) -> str:
         if "env_bare_teammap_trail_agent_steps_per_s" in r:
             trail = r["env_bare_teammap_trail_agent_steps_per_s"]
             lines.append(f"  teammap + trail (50 steps) {n(trail)}   {trail / bare:5.2f} x thesis")
+        if "env_bare_teammap_frontier_agent_steps_per_s" in r:
+            fr = r["env_bare_teammap_frontier_agent_steps_per_s"]
+            lines.append(f"  teammap + frontier field   {n(fr)}   {fr / bare:5.2f} x thesis")
         for c, v in r["env_vec_by_copies"].items():
             lines.append(f"  VecEnv, {c:>2} copies           {n(v)}   {v / bare:5.2f} x bare")
         lines.append(

@@ -134,6 +134,10 @@ class EnvConfig(_Section):
     trail: Annotated[int, Field(ge=0, le=MAX_TRAIL)] = 0
     """``teammap``: steps of the agent's own trail, a sixth channel of the local crop (0 = none;
     the crop must then be >= 7)."""
+    frontier: bool = False
+    """``teammap``: add the frontier field (a crop channel: how much nearer the nearest known
+    unvisited free cell each cell is than the agent) and the frontier compass (``"frontier"``:
+    the moves that start a shortest path there, and its distance)."""
     coords: Literal["normalized", "raw"] = "normalized"
     rewards: RewardsConfig = RewardsConfig()
     starts: list[tuple[int, int]] | None = None
@@ -186,9 +190,16 @@ class EnvConfig(_Section):
 
     @model_validator(mode="after")
     def _crop_holds_the_trail(self) -> EnvConfig:
-        least = TeamMapObservation.min_crop(self.trail)
+        least = TeamMapObservation.min_crop(self.trail, self.frontier)
         if self.crop < least:
-            raise ValueError(f"crop must be >= {least} with a trail (the crop's channels)")
+            extras = [
+                name
+                for name, on in (("a trail", self.trail), ("the frontier field", self.frontier))
+                if on
+            ]
+            raise ValueError(
+                f"crop must be >= {least} with {' and '.join(extras)} (the crop's channels)"
+            )
         return self
 
     @field_validator("global_size")

@@ -183,6 +183,104 @@ def test_trail_off_keeps_five_channels_and_every_other_view_the_same():
     assert plain.observation_space("agent_0")["local"].shape == (5, 7, 7)
 
 
+LOOP = """
+#########
+#.......#
+#.#####.#
+#.......#
+#########
+"""
+
+
+def test_frontier_field_and_compass_on_a_hand_built_grid():
+    env, obs = teammap_env(LOOP, [(1, 1)], crop=7, global_size=7, frontier=True)
+    o = obs["agent_0"]
+    assert o["local"].shape == (6, 7, 7) and o["frontier"].shape == (5,)
+    # Known after the start: the 3x3 window of (1, 1); unvisited known free: (1, 2) and (2, 1),
+    # one step away (d = 1): down and right lead there, up and left are walls.
+    np.testing.assert_allclose(o["frontier"], [0, 1, 0, 1, 1 / (5 + 9)])
+    field = o["local"][5]  # crop centre (3, 3) is the agent's cell (1, 1)
+    assert field[3, 3] == 128  # d(agent) - d(agent) = 0
+    assert field[3, 4] == field[4, 3] == 128 + 16  # d = 0: one step nearer
+    assert field.astype(int).sum() == 128 + 2 * 144  # walls and unknown cells are 0
+    for _ in range(3):
+        obs, *_ = env.step({"agent_0": RIGHT})
+    # At (1, 4): row 1 visited up to column 4, known up to column 5; the unvisited known free
+    # cells are (1, 5) (d = 1 from here, to the right) and (2, 1) (4 steps back).
+    o = obs["agent_0"]
+    np.testing.assert_allclose(o["frontier"], [0, 0, 0, 1, 1 / 14])
+    field = o["local"][5]
+    row = [int(v) for v in field[3, :]]  # columns 1 .. 7 of the map; (1, 6) still unknown
+    # d: (1,1)=1 via (2,1), (1,2)=2, (1,3)=2, (1,4)=1, (1,5)=0, (1,6) unknown, (1,7) unknown.
+    assert row == [128, 112, 112, 128, 144, 0, 0]
+    assert field[4, 0] == 144  # (2, 1): a frontier cell, d = 0
+    assert (field[4, 1:] == 0).all()  # row 2, columns 2..7: walls or unknown
+
+
+def frontier_distances(env) -> np.ndarray:
+    """Shortest path lengths through known free cells to the nearest known free unvisited cell
+    (a plain breadth-first search on the env's public state; inf where none is reachable)."""
+    passable = env.known & ~env.walls
+    frontier = passable & ~env.visited
+    dist = np.full(passable.shape, np.inf)
+    queue = [tuple(c) for c in np.argwhere(frontier)]
+    for c in queue:
+        dist[c] = 0
+    while queue:
+        nxt = []
+        for r, c in queue:
+            for rr, cc in ((r - 1, c), (r + 1, c), (r, c - 1), (r, c + 1)):
+                inside = 0 <= rr < dist.shape[0] and 0 <= cc < dist.shape[1]
+                if inside and passable[rr, cc] and dist[rr, cc] == np.inf:
+                    dist[rr, cc] = dist[r, c] + 1
+                    nxt.append((rr, cc))
+        queue = nxt
+    return dist
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_frontier_views_equal_a_search_through_known_cells_only(seed):
+    # The env searches all free cells (built once per episode); unknown ground must never make a
+    # path shorter than the one through known cells.
+    crop, height, width = 9, 23, 31
+    env = coverage_v0.parallel_env(
+        height=height,
+        width=width,
+        n_agents=3,
+        observation="teammap",
+        crop=crop,
+        frontier=True,
+        max_steps=400,
+    )
+    obs, _ = env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    half = crop // 2
+    for t in range(400):
+        if t % 50 == 0:
+            dist = frontier_distances(env)
+            for i, (r, c) in enumerate(env.positions):
+                o = obs[f"agent_{i}"]
+                own = dist[r, c]
+                for k, (dr, dc) in enumerate(((-1, 0), (1, 0), (0, -1), (0, 1))):
+                    rr, cc = r + dr, c + dc
+                    inside = 0 <= rr < height and 0 <= cc < width
+                    assert o["frontier"][k] == (inside and dist[rr, cc] == own - 1)
+                assert o["frontier"][4] == pytest.approx(min(own / (height + width), 1.0))
+                field = o["local"][5]
+                for dr in range(-half, half + 1):
+                    for dc in range(-half, half + 1):
+                        rr, cc = r + dr, c + dc
+                        inside = 0 <= rr < height and 0 <= cc < width
+                        d = dist[rr, cc] if inside else np.inf
+                        want = (
+                            0
+                            if d == np.inf or own == np.inf
+                            else min(max(128 + 16 * (own - d), 1), 255)
+                        )
+                        assert field[dr + half, dc + half] == want
+        obs, *_ = env.step({a: int(rng.integers(5)) for a in env.agents})
+
+
 def test_crop_is_padded_with_known_wall_at_the_border():
     env, obs = teammap_env(ROOM, [(3, 5)], crop=9, global_size=7)
     local = obs["agent_0"]["local"]
@@ -358,6 +456,7 @@ def test_incremental_arrays_equal_a_recomputation_after_many_steps(seed):
         (4, 5, {"crop": 5, "global_size": 6}),
         (12, 40, {"ego_size": 9, "ego_block": 3}),
         (12, 40, {"crop": 7, "trail": 20}),
+        (12, 40, {"crop": 7, "trail": 20, "frontier": True}),
     ],
 )
 def test_observations_lie_in_the_space(height, width, sizes):
@@ -386,6 +485,8 @@ def test_observations_lie_in_the_space(height, width, sizes):
         ({"ego_block": 2}, "ego_block must be an odd integer >= 1, got 2"),
         ({"crop": 5, "trail": 10}, "crop must be an odd integer >= 7, got 5"),
         ({"trail": -1}, "trail must be an integer >= 0"),
+        ({"crop": 5, "frontier": True}, "crop must be an odd integer >= 7, got 5"),
+        ({"frontier": 1}, "frontier must be True or False, got 1"),
     ],
 )
 def test_bad_sizes_are_value_errors(kwargs, message):
@@ -423,6 +524,9 @@ def test_smallest_sizes_are_read_as_channel_first_images_by_sb3():
         ("{ego_block: 4}", r"env.ego_block: must be odd"),
         ("{crop: 5, trail: 8}", r"env: crop must be >= 7 with a trail"),
         ("{trail: -2}", r"env.trail: Input should be greater than or equal to 0"),
+        ("{crop: 5, frontier: true}", r"env: crop must be >= 7 with the frontier field"),
+        ("{crop: 5, trail: 3, frontier: true}", r"crop must be >= 7 with a trail and the frontier"),
+        ("{frontier: 2}", r"env.frontier: Input should be a valid boolean"),
     ],
 )
 def test_config_refuses_bad_sizes(tmp_path, env_yaml, message):
@@ -435,19 +539,26 @@ def test_config_refuses_bad_sizes(tmp_path, env_yaml, message):
 def test_config_sizes_reach_the_env(tmp_path):
     path = tmp_path / "exp.yaml"
     path.write_text(
-        "name: tm\nenv: {observation: teammap, crop: 9, global_size: 8, ego_size: 11, trail: 30}\n"
-        "algo: {policy: TeamMapPolicy}\n"
+        "name: tm\nenv: {observation: teammap, crop: 9, global_size: 8, ego_size: 11, trail: 30,"
+        " frontier: true}\nalgo: {policy: TeamMapPolicy}\n"
     )
     env = coverage_v0.parallel_env(**load_config(path).env.kwargs())
     space = env.observation_space("agent_0")
-    assert space["local"].shape == (6, 9, 9) and space["global"].shape == (6, 8, 8)
+    assert space["local"].shape == (7, 9, 9) and space["global"].shape == (6, 8, 8)
+    assert space["frontier"].shape == (5,)
     assert space["ego"].shape == (5, 11, 11)
 
 
 def test_parallel_api_and_seed_tests_pass_with_the_team_map():
     parallel_api_test(
         coverage_v0.parallel_env(
-            height=14, width=17, n_agents=3, max_steps=60, observation="teammap", crop=7
+            height=14,
+            width=17,
+            n_agents=3,
+            max_steps=60,
+            observation="teammap",
+            crop=7,
+            frontier=True,
         ),
         num_cycles=100,
     )

@@ -66,20 +66,22 @@ def test_extractor_gives_the_ego_view_its_own_branch():
 
 
 @pytest.mark.parametrize(
-    ("policy", "ego_size", "trail"),
+    ("policy", "ego_size", "trail", "frontier"),
     [
-        ("TeamMapPolicy", 0, 0),
-        ("DuelingTeamMapPolicy", 0, 0),
-        ("TeamMapPolicy", 5, 0),
-        ("TeamMapPolicy", 0, 8),
+        ("TeamMapPolicy", 0, 0, False),
+        ("DuelingTeamMapPolicy", 0, 0, False),
+        ("TeamMapPolicy", 5, 0, False),
+        ("TeamMapPolicy", 0, 8, False),
+        ("DuelingTeamMapPolicy", 0, 0, True),
     ],
 )
-def test_policy_save_and_load_give_the_same_q_values(tmp_path, policy, ego_size, trail):
+def test_policy_save_and_load_give_the_same_q_values(tmp_path, policy, ego_size, trail, frontier):
     from harness.adapters import make_vec_env
 
     venv = make_vec_env(
         {"height": 9, "width": 9, "n_agents": 2, "max_steps": 10, "observation": "teammap",
-         "crop": 7, "global_size": 7, "ego_size": ego_size, "ego_block": 3, "trail": trail},
+         "crop": 7, "global_size": 7, "ego_size": ego_size, "ego_block": 3, "trail": trail,
+         "frontier": frontier},
     )  # fmt: skip
     model = DoubleDQN(
         policy,

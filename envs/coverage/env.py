@@ -56,6 +56,7 @@ class CoverageEnv(ParallelEnv):
         ego_size: int = 0,
         ego_block: int = 5,
         trail: int = 0,
+        frontier: bool = False,
         agent_id: bool = False,
     ) -> None:
         _check_int("n_agents", n_agents, 1)
@@ -121,6 +122,7 @@ class CoverageEnv(ParallelEnv):
             "ego_size": ego_size,
             "ego_block": ego_block,
             "trail": trail,
+            "frontier": frontier,
         }
         # One builder per map size: a mix may draw maps of several sizes. The space is the
         # largest size's (with raw coordinates its bounds hold every smaller map's positions).

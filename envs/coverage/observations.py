@@ -15,6 +15,8 @@ from typing import ClassVar
 
 import numpy as np
 from gymnasium import spaces
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import dijkstra
 
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL, GridState
 
@@ -163,7 +165,11 @@ class TeamMapObservation(ObservationBuilder):
       0`` a sixth channel, the agent's own trail: a cell it stood on ``a < K`` steps ago is
       ``round(255 * (K - a) / K)`` (its own cell 255), older or never 0. Every visited cell
       looks alike in the team's map; the trail tells the agent where it has just been (which
-      way it came, where it is going round in circles).
+      way it came, where it is going round in circles). With ``frontier=True`` one more
+      channel (the last), the *frontier field*: how much nearer each cell of the crop is to
+      the nearest known free cell not yet visited than the agent's own cell is, along a shortest
+      path through known free cells, ``clip(128 + 16 * (d(agent) - d(cell)), 1, 255)`` (brighter
+      is nearer; 0 on walls, unknown cells and cells from which no such cell can be reached).
     * ``"global"`` ``(6, G, G)``: the whole map cut into a G x G grid of blocks (block ``i`` holds
       rows ``floor(i*H/G) .. floor((i+1)*H/G) - 1``, likewise columns, so any size or aspect
       fits); channels the share of the block visited, known free not visited, unknown and known
@@ -177,6 +183,19 @@ class TeamMapObservation(ObservationBuilder):
       the agent is on the map, this one makes "which way is unexplored ground, which way are my
       teammates" the same pattern wherever the agent stands (translation-equivariant).
     * ``"vector"`` ``(3,)`` float32: own row / (H-1), own col / (W-1), steps / max_steps.
+    * ``"frontier"`` ``(5,)`` float32, only with ``frontier=True``: the frontier compass. For
+      each move (up, down, left, right) 1 if it takes the agent one step nearer the nearest
+      known free cell not yet visited (it starts a shortest path there), else 0; then the
+      distance to that cell over ``H + W`` (at most 1; 1 when none is reachable). A shortest
+      path to the nearest unvisited known cell is what the frontier planner walks; the
+      compass shows it beyond the crop, the field shows the other frontiers nearby.
+
+    The frontier distances ``d`` are one multi-source breadth-first search per step from every
+    known free unvisited cell (SciPy's compiled ``dijkstra`` with ``min_only``, unit weights) on
+    the graph of *all* free cells, built once per episode. Going through unknown cells never
+    shortens a path, so this equals the search through known cells only: a known free cell next
+    to an unknown one is never visited (a visited cell's 3x3 window is known), so a path that
+    crosses unknown ground reaches a source before it leaves it.
 
     Built incrementally: each step only the cells of the agents' new 3x3 windows are looked at,
     and only those whose category changed update the images and the per-block counts, so a step
@@ -192,13 +211,14 @@ class TeamMapObservation(ObservationBuilder):
             >= :attr:`MIN_EGO_SIZE`).
         ego_block: Cells per side of an ego block (odd, >= 1).
         trail: K, steps of the agent's own trail in the crop (0: no trail channel).
+        frontier: Add the frontier field (a crop channel) and the frontier compass.
 
     Raises:
         ValueError: For a crop or global size out of range.
     """
 
     name = "teammap"
-    options = ("crop", "global_size", "ego_size", "ego_block", "trail")
+    options = ("crop", "global_size", "ego_size", "ego_block", "trail", "frontier")
     LOCAL_CHANNELS = 5
     #: Index of the trail channel in ``"local"`` (with ``trail > 0``).
     TRAIL = 5
@@ -207,7 +227,8 @@ class TeamMapObservation(ObservationBuilder):
     # Stable-Baselines3 reads a uint8 image as channel-first only when its first axis is (one of)
     # the smallest (``is_image_space_channels_first``; otherwise it wraps the env in
     # ``VecTransposeImage`` and swaps the axes), so no spatial side may be below the channels.
-    #: Smallest crop: odd and at least the local view's 5 channels (7 with the trail's sixth).
+    #: Smallest crop: odd and at least the local view's 5 channels (7 with the trail or the
+    #: frontier field, :meth:`min_crop`).
     MIN_CROP = 5
     #: Smallest global size: the global view's 6 channels.
     MIN_GLOBAL_SIZE = 6
@@ -227,11 +248,14 @@ class TeamMapObservation(ObservationBuilder):
         ego_size: int = 0,
         ego_block: int = 5,
         trail: int = 0,
+        frontier: bool = False,
     ) -> None:
         super().__init__(height, width, coords, max_steps)
         if not (_is_int(trail) and trail >= 0):
             raise ValueError(f"trail must be an integer >= 0 (0: off), got {trail!r}")
-        least = self.min_crop(int(trail))
+        if not isinstance(frontier, (bool, np.bool_)):
+            raise ValueError(f"frontier must be True or False, got {frontier!r}")
+        least = self.min_crop(int(trail), bool(frontier))
         if not (_is_int(crop) and crop >= least and crop % 2 == 1):
             raise ValueError(f"crop must be an odd integer >= {least}, got {crop!r}")
         if not (_is_int(global_size) and global_size >= self.MIN_GLOBAL_SIZE):
@@ -251,8 +275,11 @@ class TeamMapObservation(ObservationBuilder):
         crop, global_size = int(crop), int(global_size)
         self.crop, self.global_size = crop, global_size
         self.ego_size, self.ego_block = int(ego_size), int(ego_block)
-        self.trail = int(trail)
-        self.local_channels = self.LOCAL_CHANNELS + (self.trail > 0)
+        self.trail, self.frontier = int(trail), bool(frontier)
+        self.local_channels = self.LOCAL_CHANNELS + (self.trail > 0) + self.frontier
+        #: Index of the frontier field in ``"local"`` (with ``frontier``): the last channel.
+        self.frontier_channel = self.local_channels - 1
+        self._frontier_scale = 1.0 / (height + width)
         # Ego block edges relative to the agent's cell: block k spans rows
         # offsets[k] .. offsets[k+1]-1, and block E//2 is centred on the agent.
         self._ego_edges = (np.arange(self.ego_size + 1) - self.ego_size // 2) * self.ego_block - (
@@ -279,9 +306,9 @@ class TeamMapObservation(ObservationBuilder):
         )
 
     @classmethod
-    def min_crop(cls, trail: int = 0) -> int:
+    def min_crop(cls, trail: int = 0, frontier: bool = False) -> int:
         """Smallest crop: odd and at least the local view's channel count."""
-        channels = cls.LOCAL_CHANNELS + (trail > 0)
+        channels = cls.LOCAL_CHANNELS + (trail > 0) + bool(frontier)
         return channels + 1 - channels % 2
 
     def space(self) -> spaces.Dict:
@@ -293,6 +320,8 @@ class TeamMapObservation(ObservationBuilder):
         if e:
             views["ego"] = spaces.Box(0, 255, (self.EGO_CHANNELS, e, e), np.uint8)
         views["vector"] = spaces.Box(0.0, 1.0, (3,), np.float32)
+        if self.frontier:
+            views["frontier"] = spaces.Box(0.0, 1.0, (5,), np.float32)
         return spaces.Dict(views)
 
     # ------------------------------------------------------------------ per-episode arrays
@@ -317,10 +346,13 @@ class TeamMapObservation(ObservationBuilder):
         self._update_shares(np.arange(self.global_size**2))
         self._wp = wp
         self._window = (np.arange(-1, 2)[:, None] * wp + np.arange(-1, 2)[None, :]).ravel()
+        self._moves = np.array([-wp, wp, -1, 1])  # up, down, left, right on the flat grid
         # Step at which each agent last stood on each padded cell (the trail); long ago at first.
         if self.trail:
             n = state.positions.shape[0]
             self._last_visit = np.full((n, hp * wp), -self.trail, dtype=np.int64)
+        if self.frontier:
+            self._free_graph = _free_cell_graph(state.cells != CELL_WALL)
 
     def _update(self, state: GridState) -> None:
         """Make the agents' 3x3 windows known and bring changed cells up to date."""
@@ -365,6 +397,9 @@ class TeamMapObservation(ObservationBuilder):
         local[:, 4] = 0
         if self.trail:
             local[:, self.TRAIL] = self._trail(state)
+        if self.frontier:
+            field, compass = self._frontier_views(state)
+            local[:, self.frontier_channel] = field
         if n > 1:
             dr = rows[None, :] - rows[:, None] + half  # (agent, teammate)
             dc = cols[None, :] - cols[:, None] + half
@@ -388,7 +423,36 @@ class TeamMapObservation(ObservationBuilder):
         if self.ego_size:
             views["ego"] = self._ego(rows, cols)
         views["vector"] = vector
+        if self.frontier:
+            views["frontier"] = compass
         return views
+
+    def _frontier_views(self, state: GridState) -> tuple[np.ndarray, np.ndarray]:
+        """The frontier field of every agent's crop ``(agents, crop, crop)`` uint8 and the
+        frontier compass ``(agents, 5)`` float32 (see the class docstring)."""
+        n, c, wp = state.positions.shape[0], self.crop, self._wp
+        p, rows, cols = state.pad, state.positions[:, 0], state.positions[:, 1]
+        field = np.zeros((n, c, c), dtype=np.uint8)
+        compass = np.zeros((n, 5), dtype=np.float32)
+        compass[:, 4] = 1.0
+        sources = np.flatnonzero(self._cat == KNOWN_FREE)
+        if sources.size == 0:  # every known free cell is visited: no frontier left
+            return field, compass
+        dist = dijkstra(self._free_graph, indices=sources, min_only=True)  # unit weights
+        dist[self._cat == UNKNOWN] = np.inf  # unknown cells show nothing
+        dist_2d = dist.reshape(-1, wp)
+        centres = (rows + p) * wp + (cols + p)
+        own = dist[centres]  # (agents,)
+        near = (own[:, None] - dist[centres[:, None] + self._moves]) == 1  # (agents, 4)
+        compass[:, :4] = near
+        compass[:, 4] = np.minimum(own * self._frontier_scale, 1.0)  # inf (none) -> 1
+        # Padded rows r .. r+crop are the crop centred on grid row r (all agents at once).
+        span = np.arange(c)
+        crops = dist_2d[(rows[:, None] + span)[:, :, None], (cols[:, None] + span)[:, None, :]]
+        with np.errstate(invalid="ignore"):  # inf - inf where neither reaches one: masked below
+            value = np.clip(128.0 + 16.0 * (own[:, None, None] - crops), 1.0, 255.0)
+        field[...] = np.where(np.isfinite(crops) & np.isfinite(own)[:, None, None], value, 0.0)
+        return field, compass
 
     def _trail(self, state: GridState) -> np.ndarray:
         """Each agent's trail in its crop, ``(agents, crop, crop)``, after marking this step."""
@@ -431,6 +495,22 @@ class TeamMapObservation(ObservationBuilder):
             i, j = np.nonzero(seen)
             ego[i, 4, br[i, j], bc[i, j]] = 255
         return ego
+
+
+def _free_cell_graph(free: np.ndarray) -> csr_matrix:
+    """The 4-connected graph of the ``True`` cells of ``free`` (2-D, with a ``False`` border, as
+    the padded grid has, so no edge wraps from one row's end to the next row), nodes numbered
+    row-major; walls are nodes without edges."""
+    width, flat = free.shape[1], free.ravel()
+    heads, tails = [], []
+    for step in (1, width):  # right and down neighbours; edges both ways
+        cells = np.flatnonzero(flat[:-step] & flat[step:])
+        heads += [cells, cells + step]
+        tails += [cells + step, cells]
+    head, tail = np.concatenate(heads), np.concatenate(tails)
+    # float64 weights: the dtype SciPy's searches work in, so no call converts the graph again
+    # (twice as fast as int8 weights on a 50x50 map).
+    return csr_matrix((np.ones(head.size), (head, tail)), shape=(flat.size,) * 2)
 
 
 #: Key of the agent's one-hot index in a ``Dict`` observation (``agent_id=True``).

@@ -12,6 +12,7 @@
 #    maps, never drawn in training) and 15x15 random maps (150 steps).
 # The eval files land in the run folder (for a reference: runs/evals/<name>/, see harness eval).
 # N_AGENTS=1 plays the same network with another team size (parameter sharing).
+# A run trained with algo.action_mask is tested behind the mask only (no unshielded row).
 set -euo pipefail
 run=${1:?usage: scripts/teammap_results.sh RUN_DIR}
 temps=${TEMPERATURES:-0.1 0.2 0.3 0.5}
@@ -34,6 +35,8 @@ for name in ${SETTINGS:-random cave maze 15x15}; do
     harness eval "$run" "${args[@]}" "${team[@]}"
     if [[ $name == random ]]; then
         harness eval "$run" "${args[@]}" "${team[@]}" --set eval.temperature=0
-        harness eval "$run" "${args[@]}" "${team[@]}" --set eval.shield=false
+        if ! grep -Eq '^\s*action_mask:\s*true' "$run/config.yaml"; then
+            harness eval "$run" "${args[@]}" "${team[@]}" --set eval.shield=false
+        fi
     fi
 done

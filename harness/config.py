@@ -138,6 +138,9 @@ class EnvConfig(_Section):
     """``teammap``: add the frontier field (a crop channel: how much nearer the nearest known
     unvisited free cell each cell is than the agent) and the frontier compass (``"frontier"``:
     the moves that start a shortest path there, and its distance)."""
+    frontier_action: bool = False
+    """``teammap`` with ``frontier``: a sixth action, one step along the frontier compass (a
+    shortest way to the nearest known unvisited cell; stay when there is none)."""
     coords: Literal["normalized", "raw"] = "normalized"
     rewards: RewardsConfig = RewardsConfig()
     starts: list[tuple[int, int]] | None = None
@@ -199,6 +202,15 @@ class EnvConfig(_Section):
             ]
             raise ValueError(
                 f"crop must be >= {least} with {' and '.join(extras)} (the crop's channels)"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _frontier_action_follows_the_compass(self) -> EnvConfig:
+        if self.frontier_action and not (self.observation == "teammap" and self.frontier):
+            raise ValueError(
+                "frontier_action needs observation: teammap and frontier: true "
+                "(the step follows the frontier compass)"
             )
         return self
 

@@ -24,16 +24,16 @@ from harness.targets import double_q_target, max_q_target
 __all__ = ["DoubleDQN", "blocked_actions", "per_agent_loss", "resolve_optimizer_class"]
 
 
-def blocked_actions(obs: th.Tensor | dict[str, th.Tensor]) -> th.Tensor:
+def blocked_actions(obs: th.Tensor | dict[str, th.Tensor], n_actions: int = 5) -> th.Tensor:
     """The moves a batch of observation tensors shows to be blocked (a known wall or the grid's
     edge next to the agent): :func:`envs.coverage.observations.blocked_moves`, as a
     ``(batch, n_actions)`` bool tensor on the observations' device."""
     if isinstance(obs, dict):
         device = next(iter(obs.values())).device
-        blocked = blocked_moves({k: v.cpu().numpy() for k, v in obs.items()})
+        blocked = blocked_moves({k: v.cpu().numpy() for k, v in obs.items()}, n_actions)
     else:
         device = obs.device
-        blocked = blocked_moves(obs.cpu().numpy())
+        blocked = blocked_moves(obs.cpu().numpy(), n_actions)
     return th.as_tensor(blocked, device=device)
 
 
@@ -385,7 +385,11 @@ class DoubleDQN(DQN):
             discounts = self.gamma
         with th.no_grad():
             next_q_target = self.q_net_target(replay_data.next_observations)
-            blocked = blocked_actions(replay_data.next_observations) if self.action_mask else None
+            blocked = (
+                blocked_actions(replay_data.next_observations, self.action_space.n)  # type: ignore[attr-defined]
+                if self.action_mask
+                else None
+            )
             if self.double_q:
                 next_q_online = self.q_net(replay_data.next_observations)
                 target_q = double_q_target(
@@ -483,7 +487,8 @@ class DoubleDQN(DQN):
         self.policy.set_training_mode(False)
         obs, vectorized = self.policy.obs_to_tensor(observation)
         with th.no_grad():
-            blocked = blocked_actions(obs)
-            q = self.q_net(obs).masked_fill(blocked, float("-inf"))
+            q = self.q_net(obs)
+            blocked = blocked_actions(obs, q.shape[1])
+            q = q.masked_fill(blocked, float("-inf"))
         action = q.argmax(dim=1).cpu().numpy()
         return (action if vectorized else action.squeeze(axis=0)), blocked.cpu().numpy()

@@ -83,7 +83,8 @@ def model_policy(model: Any, temperature: float = 0.0, shield: bool = False) -> 
         with th.no_grad():
             q = model.q_net(model.policy.obs_to_tensor(obs)[0]).cpu().numpy().astype(np.float64)
         if shield:
-            q[blocked_moves(obs)] = -np.inf  # stay is never blocked: a row keeps a finite value
+            # stay is never blocked: a row keeps a finite value
+            q[blocked_moves(obs, q.shape[1])] = -np.inf
         return q
 
     def greedy(obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:

@@ -21,7 +21,14 @@ from envs.coverage.observations import (
     agent_id_space,
 )
 from envs.coverage.step import credit_new_cells, resolve_moves, thesis_reward
-from envs.coverage.types import CELL_UNVISITED, CELL_VISITED, CELL_WALL, GridState
+from envs.coverage.types import (
+    CELL_UNVISITED,
+    CELL_VISITED,
+    CELL_WALL,
+    FRONTIER_STEP,
+    STAY,
+    GridState,
+)
 
 DEFAULT_REWARDS: dict[str, float] = {"new_cell": 2.0, "wall_hit": -10.0, "step": -1.0}
 #: Attempts at drawing a random map with at least ``n_agents`` free cells before giving up.
@@ -57,9 +64,17 @@ class CoverageEnv(ParallelEnv):
         ego_block: int = 5,
         trail: int = 0,
         frontier: bool = False,
+        frontier_action: bool = False,
         agent_id: bool = False,
     ) -> None:
         _check_int("n_agents", n_agents, 1)
+        if not isinstance(frontier_action, (bool, np.bool_)):
+            raise ValueError(f"frontier_action must be True or False, got {frontier_action!r}")
+        if frontier_action and not (observation == "teammap" and frontier):
+            raise ValueError(
+                "frontier_action needs observation='teammap' with frontier=True (the step "
+                "follows the frontier compass)"
+            )
         if not isinstance(agent_id, (bool, np.bool_)):
             raise ValueError(f"agent_id must be True or False, got {agent_id!r}")
         _check_int("max_steps", max_steps, 1)
@@ -142,7 +157,10 @@ class CoverageEnv(ParallelEnv):
         self.agent_id = bool(agent_id)
         space = self._observer.space()
         self._obs_space = agent_id_space(space, self.n_agents) if self.agent_id else space
-        self._act_space = spaces.Discrete(5)
+        # Actions 0..4 move (up, down, left, right, stay); with the frontier action, 5 steps
+        # towards the nearest unvisited known cell.
+        self.frontier_action = bool(frontier_action)
+        self._act_space = spaces.Discrete(6 if self.frontier_action else 5)
         self._np_random: np.random.Generator | None = None
         self._state: GridState | None = None
         self._walls = np.zeros((self.height, self.width), dtype=bool)
@@ -275,8 +293,11 @@ class CoverageEnv(ParallelEnv):
             acts = [actions[a] for a in self.agents]
         except KeyError as exc:
             raise ValueError(f"no action given for {exc.args[0]}") from exc
-        if not all(0 <= a <= 4 for a in acts):
-            raise ValueError(f"actions must be in 0..4, got {[int(a) for a in acts]}")
+        last = int(self._act_space.n) - 1
+        if not all(0 <= a <= last for a in acts):
+            raise ValueError(f"actions must be in 0..{last}, got {[int(a) for a in acts]}")
+        if self.frontier_action:
+            acts = self._frontier_steps(acts)
 
         positions, hit = resolve_moves(state.cells, state.pad, self._positions, acts)
         credited = credit_new_cells(state.cells, state.pad, positions, state.credited_by)
@@ -325,6 +346,23 @@ class CoverageEnv(ParallelEnv):
         pass
 
     # ------------------------------------------------------------------ helpers
+    def _frontier_steps(self, acts: list[int]) -> list[int]:
+        """``acts`` with every frontier step replaced by its move: one of the moves the agent's
+        current frontier compass marks (drawn from the episode's generator when several tie,
+        so teammates at one spot may part), or stay when no unvisited known cell is reachable."""
+        compass = self._observer.compass  # type: ignore[attr-defined]  # built for this state
+        out = list(acts)
+        for i, a in enumerate(acts):
+            if a == FRONTIER_STEP:
+                moves = np.flatnonzero(compass[i, :4])
+                if moves.size == 0:
+                    out[i] = STAY
+                elif moves.size == 1:
+                    out[i] = int(moves[0])
+                else:
+                    out[i] = int(moves[self.np_random.integers(moves.size)])
+        return out
+
     def _observe(self, state: GridState) -> np.ndarray | dict[str, np.ndarray]:
         obs = self._observer.build(state)
         return add_agent_id(obs, self.n_agents) if self.agent_id else obs

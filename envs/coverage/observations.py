@@ -425,6 +425,7 @@ class TeamMapObservation(ObservationBuilder):
         views["vector"] = vector
         if self.frontier:
             views["frontier"] = compass
+            self.compass = compass  # what the frontier step of the next env step follows
         return views
 
     def _frontier_views(self, state: GridState) -> tuple[np.ndarray, np.ndarray]:
@@ -547,10 +548,11 @@ def add_agent_id(
     return np.concatenate([obs, np.eye(n_agents, dtype=obs.dtype)], axis=1)
 
 
-def blocked_moves(obs: np.ndarray | dict[str, np.ndarray]) -> np.ndarray:
-    """Which moves each observation shows to be blocked: ``(batch, 5)`` bool in action order
-    (up, down, left, right, stay), True where the neighbouring cell in that direction is a
-    wall or outside the grid. ``stay`` is never blocked.
+def blocked_moves(obs: np.ndarray | dict[str, np.ndarray], n_actions: int = 5) -> np.ndarray:
+    """Which moves each observation shows to be blocked: ``(batch, n_actions)`` bool in action
+    order (up, down, left, right, stay, then the frontier step when the env has it), True where
+    the neighbouring cell in that direction is a wall or outside the grid. ``stay`` and the
+    frontier step (which only walks through free cells) are never blocked.
 
     Read from the observation alone (what the agent itself sees), for any observation kind:
     the thesis window's elements 1, 7, 3 and 5 (value 1: wall or outside), or the team map
@@ -559,6 +561,7 @@ def blocked_moves(obs: np.ndarray | dict[str, np.ndarray]) -> np.ndarray:
     Args:
         obs: A batch of observations: ``(batch, 13 + ...)`` thesis vectors, or a dict of stacked
             team-map arrays (``"local"`` of shape ``(batch, 5, crop, crop)``).
+        n_actions: Columns of the result (5, or 6 with the frontier step).
     """
     if isinstance(obs, dict):
         local = np.asarray(obs["local"])
@@ -574,7 +577,7 @@ def blocked_moves(obs: np.ndarray | dict[str, np.ndarray]) -> np.ndarray:
         window = np.asarray(obs)[:, :9]
         neighbours = [window[:, 1] == CELL_WALL, window[:, 7] == CELL_WALL]
         neighbours += [window[:, 3] == CELL_WALL, window[:, 5] == CELL_WALL]
-    blocked = np.zeros((len(neighbours[0]), 5), dtype=bool)
+    blocked = np.zeros((len(neighbours[0]), n_actions), dtype=bool)
     blocked[:, :4] = np.stack(neighbours, axis=1)
     return blocked
 

@@ -14,6 +14,11 @@ CELL_WALL = 1.0
 
 #: Action index -> (d_row, d_col): 0 up, 1 down, 2 left, 3 right, 4 stay.
 MOVES = np.array([[-1, 0], [1, 0], [0, -1], [0, 1], [0, 0]], dtype=np.int64)
+#: The stay action.
+STAY = 4
+#: With ``frontier_action=True``: one step along a shortest path to the nearest known free cell
+#: not yet visited (the frontier compass's move), stay when there is none.
+FRONTIER_STEP = 5
 
 
 @dataclass

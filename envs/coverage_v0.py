@@ -16,7 +16,8 @@ PettingZoo ``ParallelEnv``.
 
 ========================  ==========================================================
 Import                    ``from envs import coverage_v0``
-Actions                   Discrete(5): 0 up, 1 down, 2 left, 3 right, 4 stay
+Actions                   Discrete(5): 0 up, 1 down, 2 left, 3 right, 4 stay; Discrete(6)
+                          with ``frontier_action=True`` (5: the frontier step)
 Parallel API              yes (``parallel_env``); AEC through ``env()``
 Agents                    ``agent_0 ... agent_{n-1}``
 Observation shape         (13,) float32 (``observation="thesis"``); a ``Dict`` for
@@ -103,7 +104,15 @@ credited to this agent so far), ``wall_hits`` (this agent's count so far), ``ste
 ``coords="normalized"``, ``rewards={"new_cell": 2.0, "wall_hit": -10.0, "step": -1.0}``,
 ``starts=None`` (fixed start cells, else distinct random free cells each reset),
 ``render_mode=None | "rgb_array" | "ansi"``, ``crop=15``, ``global_size=13``, ``ego_size=0``,
-``ego_block=5``, ``trail=0`` and ``frontier=False`` (``"teammap"`` only), ``agent_id=False``.
+``ego_block=5``, ``trail=0``, ``frontier=False`` and ``frontier_action=False`` (``"teammap"``
+only), ``agent_id=False``.
+
+**Frontier step** (``frontier_action=True``, needs ``observation="teammap"`` and
+``frontier=True``): a sixth action, 5, one step along the frontier compass, i.e. the first move
+of a shortest path through known free cells to the nearest known free cell not yet visited
+(drawn from the episode's generator when several moves tie; stay when no such cell is
+reachable). It never hits a wall. A learned policy then chooses, each step, between the five
+primitive moves and "walk on towards the nearest unexplored ground".
 
 ``reset(seed=None, options=None)``: ``options={"grid": bool_array, "starts": [(r, c), ...]}`` fixes
 that episode's map and/or start cells. Bad input raises ``ValueError`` naming the problem.

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import subprocess
 import sys
 from datetime import datetime, timezone
@@ -114,17 +115,30 @@ def test_dueling_policy_trains_through_the_harness(tmp_path):
     assert path.name.startswith("duel-")
 
 
-@pytest.mark.parametrize("observation", ["thesis", "teammap"])
+@pytest.mark.parametrize("observation", ["thesis", "teammap", "teammap+frontier_step"])
 def test_masked_training_never_hits_a_wall(tmp_path, observation):
     # From the first step on (learning_starts 0: no unmasked warm-up), every action of training,
-    # greedy or random, and of the evaluations is chosen among the free moves.
-    policy = {"thesis": [], "teammap": ["--set", "algo.policy=TeamMapPolicy"]}[observation]
+    # greedy or random, and of the evaluations is chosen among the free moves (with the frontier
+    # step, a sixth action that is never blocked).
+    teammap = ["--set", "env.observation=teammap", "--set", "algo.policy=TeamMapPolicy"]
+    extra = {
+        "thesis": [],
+        "teammap": teammap,
+        "teammap+frontier_step": [
+            *teammap,
+            "--set",
+            "env.frontier=true",
+            "--set",
+            "env.frontier_action=true",
+            "--set",
+            "env.crop=7",
+        ],
+    }[observation]
     rc = main(
         [
             "run", str(SMOKE), "--runs-dir", str(tmp_path), "--no-progress",
             "--set", "algo.action_mask=true", "--set", "eval.shield=true",
-            "--set", "algo.learning_starts=0",
-            "--set", f"env.observation={observation}", *policy,
+            "--set", "algo.learning_starts=0", *extra,
             "--set", "phases.initial.timesteps=600", "--set", "phases.optimizing.timesteps=200",
             "--set", "eval.every=400", "--set", "eval.episodes=2", "--set", "checkpoint.every=0",
         ]
@@ -136,7 +150,11 @@ def test_masked_training_never_hits_a_wall(tmp_path, observation):
     assert rows and all(int(r["wall_hits"]) == 0 for r in rows)
     with (path / "evaluations.csv").open() as f:
         assert all(float(r["wall_hits_mean"]) == 0 for r in csv.DictReader(f))
-    assert DoubleDQN.load(path / "model.zip").action_mask is True
+    model = DoubleDQN.load(path / "model.zip")
+    assert model.action_mask is True
+    assert model.action_space.n == (6 if observation == "teammap+frontier_step" else 5)
+    assert main(["eval", str(path), "--episodes", "2"]) == 0  # shielded test policy
+    assert json.loads((path / "eval-2ep.json").read_text())["wall_hits_mean"] == 0
 
 
 def test_run_folders_are_never_reused():

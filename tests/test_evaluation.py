@@ -191,6 +191,9 @@ def test_blocked_moves_read_the_walls_next_to_the_agent_from_its_observation(obs
     # (1, 2): wall above and below (2, 2), (1, 1) and (1, 3) free. Stay is never blocked.
     up, down, left, right, stay = True, False, True, False, False
     assert blocked.tolist() == [[up, down, left, right, stay], [True, True, False, False, False]]
+    # With the frontier step (a sixth action, only ever through free cells): never blocked.
+    six = blocked_moves(stack_observations([obs]), 6)
+    assert six[:, :5].tolist() == blocked.tolist() and not six[:, 5].any()
 
 
 class FixedQModel:

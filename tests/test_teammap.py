@@ -217,6 +217,52 @@ def test_frontier_field_and_compass_on_a_hand_built_grid():
     assert (field[4, 1:] == 0).all()  # row 2, columns 2..7: walls or unknown
 
 
+FRONTIER_STEP = 5
+
+
+def test_frontier_step_follows_the_compass_and_stays_when_none_is_left():
+    env, obs = teammap_env(
+        LOOP, [(1, 1)], crop=7, global_size=7, frontier=True, frontier_action=True
+    )
+    assert env.action_space("agent_0").n == 6
+    # At (1, 1) the compass marks down and right (both one step from a frontier cell): a tie,
+    # drawn from the episode's generator.
+    obs, *_ = env.step({"agent_0": FRONTIER_STEP})
+    assert tuple(env.positions[0]) in {(2, 1), (1, 2)}
+    for _ in range(40):  # the compass walks the whole loop: every free cell is visited
+        obs, *_ = env.step({"agent_0": FRONTIER_STEP})
+    assert env.coverage == 1.0 and env.visited.sum() == env.free_cells
+    assert obs["agent_0"]["frontier"][:4].sum() == 0 and obs["agent_0"]["frontier"][4] == 1
+    held = tuple(env.positions[0])
+    env.step({"agent_0": FRONTIER_STEP})  # nothing left: the frontier step stays
+    assert tuple(env.positions[0]) == held
+    _, rewards, *_ = env.step({"agent_0": FRONTIER_STEP})
+    assert rewards["agent_0"] == -1.0  # a step's cost, never a wall hit
+
+
+def test_frontier_step_ties_repeat_with_the_episode_seed():
+    def walk(seed: int) -> list[tuple[int, int]]:
+        env = coverage_v0.parallel_env(
+            height=20,
+            width=20,
+            n_agents=3,
+            observation="teammap",
+            crop=7,
+            frontier=True,
+            frontier_action=True,
+            max_steps=60,
+        )
+        env.reset(seed=seed)
+        path = []
+        while env.agents:
+            env.step(dict.fromkeys(env.agents, FRONTIER_STEP))
+            path += [tuple(p) for p in env.positions.tolist()]
+        return path
+
+    assert walk(3) == walk(3)
+    assert walk(3) != walk(4)
+
+
 def frontier_distances(env) -> np.ndarray:
     """Shortest path lengths through known free cells to the nearest known free unvisited cell
     (a plain breadth-first search on the env's public state; inf where none is reachable)."""
@@ -487,6 +533,8 @@ def test_observations_lie_in_the_space(height, width, sizes):
         ({"trail": -1}, "trail must be an integer >= 0"),
         ({"crop": 5, "frontier": True}, "crop must be an odd integer >= 7, got 5"),
         ({"frontier": 1}, "frontier must be True or False, got 1"),
+        ({"frontier_action": True}, "frontier_action needs observation='teammap' with frontier"),
+        ({"frontier_action": "yes", "frontier": True}, "frontier_action must be True or False"),
     ],
 )
 def test_bad_sizes_are_value_errors(kwargs, message):
@@ -527,6 +575,7 @@ def test_smallest_sizes_are_read_as_channel_first_images_by_sb3():
         ("{crop: 5, frontier: true}", r"env: crop must be >= 7 with the frontier field"),
         ("{crop: 5, trail: 3, frontier: true}", r"crop must be >= 7 with a trail and the frontier"),
         ("{frontier: 2}", r"env.frontier: Input should be a valid boolean"),
+        ("{frontier_action: true}", r"env: frontier_action needs observation: teammap and front"),
     ],
 )
 def test_config_refuses_bad_sizes(tmp_path, env_yaml, message):
@@ -546,6 +595,12 @@ def test_config_sizes_reach_the_env(tmp_path):
     space = env.observation_space("agent_0")
     assert space["local"].shape == (7, 9, 9) and space["global"].shape == (6, 8, 8)
     assert space["frontier"].shape == (5,)
+    path.write_text(
+        "name: tm\nenv: {observation: teammap, frontier: true, frontier_action: true}\n"
+        "algo: {policy: TeamMapPolicy}\n"
+    )
+    env = coverage_v0.parallel_env(**load_config(path).env.kwargs())
+    assert env.action_space("agent_0").n == 6
     assert space["ego"].shape == (5, 11, 11)
 
 

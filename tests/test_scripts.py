@@ -11,10 +11,12 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def run_baselines(tmp_path: Path, *configs: str) -> subprocess.CompletedProcess[str]:
+def run_baselines(
+    tmp_path: Path, *configs: str, **variables: str
+) -> subprocess.CompletedProcess[str]:
     # `harness` from this interpreter's environment, whether or not it is activated
     path = f"{Path(sys.executable).parent}{os.pathsep}{os.environ.get('PATH', '')}"
-    env = {**os.environ, "PATH": path, "OUT": str(tmp_path), "EPISODES": "2"}
+    env = {**os.environ, "PATH": path, "OUT": str(tmp_path), "EPISODES": "2", **variables}
     return subprocess.run(
         ["bash", str(ROOT / "scripts" / "baselines.sh"), *configs],
         capture_output=True,
@@ -31,13 +33,19 @@ def test_baselines_script_writes_one_file_per_policy_and_setting(tmp_path):
     assert names == sorted(
         f"{stem}-{policy}.json"
         for stem in ("ddqn_15x15", "ddqn_1agent-env.max_steps-500")
-        for policy in ("random", "local", "frontier")
+        for policy in ("random", "local", "frontier", "nearest")
     )
     short = json.loads((tmp_path / "ddqn_1agent-env.max_steps-500-local.json").read_text())
     assert short["policy"] == "local" and short["episodes"] == 2
     assert short["overrides"] == ["env.max_steps=500"] and short["env"]["max_steps"] == 500
     small = json.loads((tmp_path / "ddqn_15x15-frontier.json").read_text())
     assert small["env"]["height"] == 15 and small["overrides"] == []
+
+
+def test_baselines_script_runs_only_the_policies_asked_for(tmp_path):
+    done = run_baselines(tmp_path, "ddqn_15x15", POLICIES="nearest")
+    assert done.returncode == 0, done.stderr
+    assert [p.name for p in tmp_path.iterdir()] == ["ddqn_15x15-nearest.json"]
 
 
 def test_baselines_script_stops_on_an_unknown_config_without_leaving_a_file(tmp_path):

@@ -55,7 +55,6 @@ BASELINES: dict[str, Callable[[int], BatchPolicy]] = {
     "random": lambda seed: RandomPolicy(seed),
     "local": lambda seed: LocalPolicy(),
     "frontier": lambda seed: FrontierPolicy(),
-    "nearest": lambda seed: FrontierPolicy(claims=False),
 }
 
 _STAY = 4
@@ -150,17 +149,9 @@ class LocalPolicy:
 
 
 class FrontierPolicy:
-    """Nearest-unclaimed-frontier explorer on the team's known map (see the module docstring).
+    """Nearest-unclaimed-frontier explorer on the team's known map (see the module docstring)."""
 
-    Args:
-        claims: Whether an agent skips the targets lower-index teammates chose this step
-            (``frontier``). Without (``nearest``) every agent walks to its own nearest target,
-            as a team that always takes the env's frontier step (``frontier_action``) does
-            (ties aside): the bar for a learned policy that has that action.
-    """
-
-    def __init__(self, claims: bool = True) -> None:
-        self.claims = claims
+    def __init__(self) -> None:
         # One team map per env copy; weak keys so finished envs do not pile up.
         self._maps: weakref.WeakKeyDictionary[CoverageEnv, _TeamMap] = weakref.WeakKeyDictionary()
 
@@ -172,7 +163,7 @@ class FrontierPolicy:
             if team is None or team.shape != (env.height, env.width):
                 team = self._maps[env] = _TeamMap(env.height, env.width)
             team.sync(env)
-            actions.extend(team.act(self.claims))
+            actions.extend(team.act())
         return np.asarray(actions, dtype=np.int64)
 
 
@@ -257,8 +248,8 @@ class _TeamMap:
                         self.n_targets += 1
 
     # ------------------------------------------------------------------ acting
-    def act(self, claims: bool = True) -> list[int]:
-        """One action per agent; with ``claims``, targets are claimed in agent index order."""
+    def act(self) -> list[int]:
+        """One action per agent; targets are claimed in agent index order."""
         if self.n_targets == 0:  # everything seen is visited: nothing left to walk to
             return [_STAY] * len(self.positions)
         claimed: set[int] = set()
@@ -272,8 +263,7 @@ class _TeamMap:
                 actions.append(_STAY)
                 continue
             goal, step = found
-            if claims:
-                claimed.add(goal)
+            claimed.add(goal)
             actions.append(self.action_of[step - start])
         return actions
 

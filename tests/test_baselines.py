@@ -29,7 +29,7 @@ def small_maps(n_agents: int, max_steps: int, size: int = 8) -> EnvConfig:
 
 # ---------------------------------------------------------------------- factory
 def test_names_and_unknown_name() -> None:
-    assert tuple(BASELINES) == ("random", "local", "frontier", "nearest")
+    assert tuple(BASELINES) == ("random", "local", "frontier")
     for name in BASELINES:
         assert callable(make_baseline(name, 0))
     with pytest.raises(ValueError, match="greedy"):
@@ -154,36 +154,6 @@ def test_frontier_claims_keep_teammates_off_the_same_target(make_env) -> None:
     assert actions.tolist() == [3, 4]
 
 
-def test_nearest_has_no_claims_so_teammates_chase_the_same_target(make_env) -> None:
-    # The dead end of the test above: without claims, agent 1 follows agent 0 to (0, 3).
-    env, obs = make_env("#.......", starts=[(0, 2), (0, 1)])
-    actions = make_baseline("nearest", 0)(np.stack(list(obs.values())), [env])
-    assert actions.tolist() == [3, 3]
-
-
-def test_nearest_moves_are_the_frontier_steps_of_the_env() -> None:
-    # Two implementations of "one step towards the nearest unvisited known cell": the baseline's
-    # search on the thesis agents' seen map and the team-map observation's frontier compass.
-    env = coverage_v0.parallel_env(
-        height=18,
-        width=22,
-        n_agents=3,
-        max_steps=200,
-        observation="teammap",
-        crop=7,
-        frontier=True,
-    )
-    for seed in (0, 1):
-        obs, _ = env.reset(seed=seed)
-        policy = make_baseline("nearest", 0)
-        while env.agents:
-            actions = policy(obs, [env]).tolist()
-            for i, a in enumerate(actions):
-                compass = obs[f"agent_{i}"]["frontier"][:4]
-                assert compass[a] == 1 if compass.any() else a == 4, (seed, env.steps, i)
-            obs, *_ = env.step(dict(zip(env.possible_agents, actions)))
-
-
 def test_frontier_agents_split_up_in_a_corridor(make_env) -> None:
     # Both agents start at the left end of a corridor that branches up and down at column 3:
     # 11 free cells. One agent needs more than 12 steps to walk all three branches; two that
@@ -220,7 +190,7 @@ def test_frontier_team_beats_lone_agent() -> None:
 
 
 # ---------------------------------------------------------------------- exactness
-def reference_actions(env, claims: bool = True) -> list[int]:
+def reference_actions(env) -> list[int]:
     """The frontier rule computed from scratch (no caches), one plain BFS per agent."""
     walls, visited = env.walls, env.visited
     h, w = walls.shape
@@ -244,8 +214,7 @@ def reference_actions(env, claims: bool = True) -> list[int]:
                 if 0 <= n[0] < h and 0 <= n[1] < w and passable[n] and n not in first:
                     first[n] = a if cell == start else first[cell]
                     if target[n] and n not in claimed:
-                        if claims:
-                            claimed.add(n)
+                        claimed.add(n)
                         action = first[n]
                         break
                     queue.append(n)
@@ -253,21 +222,19 @@ def reference_actions(env, claims: bool = True) -> list[int]:
     return actions
 
 
-@pytest.mark.parametrize("name", ["frontier", "nearest"])
 @pytest.mark.parametrize("budget", [baselines._PY_SEARCH_BUDGET, 3])
-def test_frontier_matches_reference_rule(monkeypatch, budget: int, name: str) -> None:
+def test_frontier_matches_reference_rule(monkeypatch, budget: int) -> None:
     # A tiny budget sends nearly every search to the compiled (SciPy) path.
     monkeypatch.setattr(baselines, "_PY_SEARCH_BUDGET", budget)
     env = coverage_v0.parallel_env(height=16, width=20, n_agents=4, max_steps=250)
     for seed in (0, 1):
         obs, _ = env.reset(seed=seed)
-        policy = make_baseline(name, 0)
+        policy = make_baseline("frontier", 0)
         while env.agents:
             if env.steps == 120:
-                policy = make_baseline(name, 0)  # a fresh policy mid-episode rebuilds
+                policy = make_baseline("frontier", 0)  # a fresh policy mid-episode rebuilds
             actions = policy(np.stack(list(obs.values())), [env]).tolist()
-            expected = reference_actions(env, claims=name == "frontier")
-            assert actions == expected, f"seed {seed}, step {env.steps}"
+            assert actions == reference_actions(env), f"seed {seed}, step {env.steps}"
             obs, *_ = env.step(dict(zip(env.possible_agents, actions)))
         assert env.coverage == 1.0
 

@@ -13,6 +13,10 @@ the frontier explorer is the bar for any policy. Its random draws come from each
 ``np_random`` (seeded by the episode's reset), like the Boltzmann test policy, so an episode
 repeats whatever the number of copies.
 
+``frontier_step`` (only on an env with ``frontier_action``) always takes the env's frontier
+step: the frontier explorer without claims, each agent heading for its own nearest unvisited
+known cell.
+
 ``frontier`` is the classical frontier-based explorer (Yamauchi 1997) on the team's shared map:
 every agent walks, by a shortest 4-connected path through free cells the team has *seen*, to the
 nearest *target*: a seen free cell nobody has visited yet. Targets are claimed in agent index
@@ -39,13 +43,14 @@ from __future__ import annotations
 import weakref
 from collections import deque
 from collections.abc import Callable, Sequence
+from typing import Any
 
 import numpy as np
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import breadth_first_order
 
 from envs.coverage import CoverageEnv
-from envs.coverage.types import CELL_UNVISITED, CELL_WALL
+from envs.coverage.types import CELL_UNVISITED, CELL_WALL, FRONTIER_STEP
 from harness.evaluation import BatchPolicy, batch_len, episode_draws, sample_categorical
 
 #: The baselines by the name ``--policy`` takes (the one list of them), each made from the
@@ -55,6 +60,7 @@ BASELINES: dict[str, Callable[[int], BatchPolicy]] = {
     "random": lambda seed: RandomPolicy(seed),
     "local": lambda seed: LocalPolicy(),
     "frontier": lambda seed: FrontierPolicy(),
+    "frontier_step": lambda seed: FrontierStepPolicy(),
 }
 
 _STAY = 4
@@ -82,6 +88,19 @@ def make_baseline(name: str, seed: int) -> BatchPolicy:
     if name not in BASELINES:
         raise ValueError(f"unknown baseline {name!r}; known: {', '.join(BASELINES)}")
     return BASELINES[name](seed)
+
+
+class FrontierStepPolicy:
+    """Every agent always takes the env's frontier step (``env.frontier_action``): one step along
+    a shortest way to its nearest unvisited known cell, ties drawn from the episode's generator,
+    no coordination. The bar a learned policy with that action must beat to show it learned
+    more than "always take it" (to split up, say)."""
+
+    def __call__(self, obs: Any, envs: Sequence[CoverageEnv]) -> np.ndarray:
+        """The frontier step for every agent of every env copy."""
+        if not all(env.frontier_action for env in envs):
+            raise ValueError("the frontier_step baseline needs env.frontier_action: true")
+        return np.full(batch_len(obs), FRONTIER_STEP, dtype=np.int64)
 
 
 class RandomPolicy:

@@ -329,7 +329,10 @@ def _add_target(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "target", type=Path, nargs="?", metavar="RUN_DIR_OR_MODEL", help="run folder or model zip"
     )
-    parser.add_argument("--policy", help="a baseline instead of a model: random, local or frontier")
+    parser.add_argument(
+        "--policy",
+        help="a baseline instead of a model: random, local, frontier or frontier_step",
+    )
     parser.add_argument("--config", type=Path, help="the experiment config of a --policy")
     parser.add_argument(
         "--seed", type=seed_arg, help="seed of the episodes (default: config eval.seed)"

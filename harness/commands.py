@@ -202,11 +202,17 @@ def resolve_target(
         if policy not in BASELINES:
             raise TargetError(f"unknown policy {policy!r}; known: {', '.join(BASELINES)}")
         config = load_config(config_path, overrides)
+        if policy == "frontier_step" and not config.env.frontier_action:
+            raise TargetError(
+                "--policy frontier_step needs env.frontier_action: true (with env.observation: "
+                "teammap and env.frontier: true)"
+            )
         seed = config.eval.seed if seed is None else seed
         return Target(make_baseline(policy, seed), config, policy, None, seed)
     if target is None:
         raise TargetError(
-            "give a run folder or model zip, or --policy random|local|frontier --config FILE"
+            "give a run folder or model zip, or --policy random|local|frontier|frontier_step "
+            "--config FILE"
         )
     if config_path is not None:
         raise TargetError("--config goes with --policy; a model uses its run's config.yaml")

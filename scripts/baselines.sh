@@ -6,7 +6,7 @@
 #   scripts/baselines.sh cave_2agents cave_4agents  # only these configs (their own max_steps)
 #
 # EPISODES (default 100) and OUT (default docs/baselines) override the episode count and folder;
-# POLICIES (default "random local frontier nearest") the baselines, e.g. POLICIES=nearest.
+# POLICIES (default "random local frontier") the baselines, e.g. POLICIES=frontier.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 episodes=${EPISODES:-100}
@@ -26,7 +26,7 @@ for target in "${targets[@]}"; do
         args+=(--set "env.max_steps=${target#*:}")
         name+="-env.max_steps-${target#*:}"
     fi
-    for policy in ${POLICIES:-random local frontier nearest}; do
+    for policy in ${POLICIES:-random local frontier}; do
         # write to a temporary file first, so a failed evaluation never leaves half a file
         tmp="$out/$name-$policy.json.tmp"
         if ! harness eval --policy "$policy" "${args[@]}" > "$tmp"; then

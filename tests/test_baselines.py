@@ -29,11 +29,28 @@ def small_maps(n_agents: int, max_steps: int, size: int = 8) -> EnvConfig:
 
 # ---------------------------------------------------------------------- factory
 def test_names_and_unknown_name() -> None:
-    assert tuple(BASELINES) == ("random", "local", "frontier")
+    assert tuple(BASELINES) == ("random", "local", "frontier", "frontier_step")
     for name in BASELINES:
         assert callable(make_baseline(name, 0))
     with pytest.raises(ValueError, match="greedy"):
         make_baseline("greedy", 0)
+
+
+# ---------------------------------------------------------------------- frontier_step
+def test_frontier_step_baseline_walks_the_compass_and_needs_the_action() -> None:
+    step_env = EnvConfig(
+        height=12, width=12, n_agents=2, max_steps=40, observation="teammap", crop=7,
+        frontier=True, frontier_action=True,
+    )  # fmt: skip
+    results = run_episodes(make_baseline("frontier_step", 0), step_env, episodes=3, seed=4)
+    # Every step heads for unexplored ground through known free cells: never a wall, and a lone
+    # agent's path is short of new ground only where it walks back through visited cells.
+    assert all(r.wall_hits == [0, 0] for r in results)
+    assert all(r.coverage > 0.5 for r in results)
+    again = run_episodes(make_baseline("frontier_step", 0), step_env, episodes=3, seed=4)
+    assert [r.coverage for r in again] == [r.coverage for r in results]  # ties: episode seed
+    with pytest.raises(ValueError, match=r"needs env\.frontier_action: true"):
+        run_episodes(make_baseline("frontier_step", 0), small_maps(2, 10), episodes=1, seed=0)
 
 
 # ---------------------------------------------------------------------- random

@@ -144,6 +144,10 @@ def test_compare_writes_a_plot_and_a_table(smoke_run, tmp_path, capsys):
         (["eval", "no/such/run"], "no such run folder or model file"),
         (["eval", "--policy", "greedy", "--config", str(SMOKE)], "unknown policy 'greedy'"),
         (["eval", "--policy", "random"], "needs --config"),
+        (
+            ["eval", "--policy", "frontier_step", "--config", str(SMOKE)],
+            "--policy frontier_step needs env.frontier_action: true",
+        ),
         (["eval"], "give a run folder or model zip"),
         (["eval", "--policy", "random", "--config", str(SMOKE), "--episodes", "0"], "--episodes"),
         (["compare", "no/such/run"], "not a run folder with episodes.csv"),

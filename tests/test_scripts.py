@@ -33,7 +33,7 @@ def test_baselines_script_writes_one_file_per_policy_and_setting(tmp_path):
     assert names == sorted(
         f"{stem}-{policy}.json"
         for stem in ("ddqn_15x15", "ddqn_1agent-env.max_steps-500")
-        for policy in ("random", "local", "frontier", "nearest")
+        for policy in ("random", "local", "frontier")
     )
     short = json.loads((tmp_path / "ddqn_1agent-env.max_steps-500-local.json").read_text())
     assert short["policy"] == "local" and short["episodes"] == 2
@@ -43,9 +43,9 @@ def test_baselines_script_writes_one_file_per_policy_and_setting(tmp_path):
 
 
 def test_baselines_script_runs_only_the_policies_asked_for(tmp_path):
-    done = run_baselines(tmp_path, "ddqn_15x15", POLICIES="nearest")
+    done = run_baselines(tmp_path, "ddqn_15x15", POLICIES="frontier")
     assert done.returncode == 0, done.stderr
-    assert [p.name for p in tmp_path.iterdir()] == ["ddqn_15x15-nearest.json"]
+    assert [p.name for p in tmp_path.iterdir()] == ["ddqn_15x15-frontier.json"]
 
 
 def test_baselines_script_stops_on_an_unknown_config_without_leaving_a_file(tmp_path):

@@ -131,6 +131,19 @@ TEAMMAP_SETTINGS: dict[tuple[str, str], tuple[str, str]] = {
         "ddqn_15x15",
     ),
 }
+#: The frontier_step baseline of each setting (every agent always takes the env's frontier step),
+#: run on `configs/teammap_2agents.yaml --set env.frontier=true --set env.frontier_action=true`
+#: with the setting's overrides: docs/baselines/teammap-<stem>-frontier_step.json.
+TEAMMAP_STEP_BASELINES: dict[tuple[str, str], str] = {
+    ("50x50 random, 1000 steps", "1"): "random-1agent",
+    ("50x50 random, 1000 steps", "2"): "random-2agents",
+    ("50x50 random, 1000 steps", "4"): "random-4agents",
+    ("cave_100x50, 1000 steps", "2"): "cave-2agents",
+    ("cave_100x50, 1000 steps", "4"): "cave-4agents",
+    ("maze_100x50, 1000 steps", "2"): "maze-2agents",
+    ("maze_100x50, 1000 steps", "4"): "maze-4agents",
+    ("15x15 random, 150 steps", "2"): "15x15-2agents",
+}
 TEAMMAP_ROWS = [r for r in table_rows(TEAMMAP_HEADER) if r["policy"].startswith("`")]
 
 
@@ -177,6 +190,15 @@ def test_teammap_row_quotes_the_stored_baselines_on_the_same_episodes(row: dict[
         assert stored["seed"] == 1_000_003 and stored["episodes"] == 100
         value = stored["coverage_mean"]
         assert row[policy] == percent(value)
+    step_file = f"teammap-{TEAMMAP_STEP_BASELINES[(row['test setting'], row['agents'])]}"
+    step = json.loads((ROOT / "docs" / "baselines" / f"{step_file}-frontier_step.json").read_text())
+    local = json.loads((ROOT / "docs" / "baselines" / f"{config}-local.json").read_text())
+    # The same episodes as the config's stored baselines: same seed, team and map size.
+    assert step["seed"] == local["seed"] and step["episodes"] == local["episodes"]
+    assert step["env"]["n_agents"] == local["env"]["n_agents"]
+    assert step["env"]["max_steps"] == local["env"]["max_steps"]
+    assert step["env"]["frontier_action"] is True and step["wall_hits_mean"] == 0
+    assert row["frontier step"] == percent(step["coverage_mean"])
 
 
 SEEDS_HEADER = "| comparison | seeds | test coverage: mean [95 % CI] |"

@@ -119,7 +119,7 @@ TEAMMAP_HEADER = "| test setting | agents | policy | coverage | greedy | unshiel
 #: Each test setting and team size: the evaluation a reference has of it (file stem in the
 #: reference folder) and the config whose stored baselines ran the same episodes.
 TEAMMAP_SETTINGS: dict[tuple[str, str], tuple[str, str]] = {
-    ("50x50 random, 1000 steps", "1"): ("eval-env.map-random_env.n_agents-1", "ddqn_1agent"),
+    ("50x50 random, 1000 steps", "1"): ("eval-env.map-random", "ddqn_1agent"),
     ("50x50 random, 1000 steps", "2"): ("eval-env.map-random", "ddqn_2agents"),
     ("50x50 random, 1000 steps", "4"): ("eval-env.map-random", "ddqn_4agents"),
     ("cave_100x50, 1000 steps", "2"): ("eval-env.map-cave_100x50", "cave_2agents"),
@@ -147,11 +147,16 @@ TEAMMAP_STEP_BASELINES: dict[tuple[str, str], str] = {
 TEAMMAP_ROWS = [r for r in table_rows(TEAMMAP_HEADER) if r["policy"].startswith("`")]
 
 
-def teammap_eval(reference: str, stem: str, variant: str = "") -> dict:
-    """An evaluation of a team-map reference: ``stem`` (see :data:`TEAMMAP_SETTINGS`) with an
-    optional ``variant`` (``eval.temperature-0``, ``eval.shield-false``). A reference trained on
-    random 50x50 maps evaluates them as its own test, in ``eval.json``/``eval-<variant>.json``."""
+def teammap_eval(reference: str, stem: str, agents: str, variant: str = "") -> dict:
+    """An evaluation of a team-map reference: ``stem`` (see :data:`TEAMMAP_SETTINGS`), played by
+    ``agents`` agents (a team size other than the reference's own adds ``_env.n_agents-K``, as
+    ``harness eval --set env.n_agents=K`` names it), with an optional ``variant``
+    (``eval.temperature-0``, ``eval.shield-false``). A reference trained on random 50x50 maps
+    evaluates them as its own test, in ``eval.json``/``eval-<variant>.json``."""
     folder = ROOT / "runs" / "reference" / reference
+    own = re.search(r"n_agents: (\d+)", (folder / "config.yaml").read_text()).group(1)
+    if agents != own:
+        stem += f"_env.n_agents-{agents}"
     path = folder / (f"{stem}_{variant}.json" if variant else f"{stem}.json")
     if not path.is_file() and stem == "eval-env.map-random":
         path = folder / (f"eval-{variant}.json" if variant else "eval.json")
@@ -162,15 +167,16 @@ def teammap_eval(reference: str, stem: str, variant: str = "") -> dict:
 def test_teammap_row_quotes_its_reference_evaluations(row: dict[str, str]) -> None:
     reference = row["policy"].split("`")[1]
     stem = TEAMMAP_SETTINGS[(row["test setting"], row["agents"])][0]
-    tuned = teammap_eval(reference, stem)
+    agents = row["agents"]
+    tuned = teammap_eval(reference, stem, agents)
     assert tuned["shield"] is True and tuned["wall_hits_mean"] == 0
     mean, median = percent(tuned["coverage_mean"]), percent(tuned["coverage_median"])
     assert row["coverage"] == f"{mean} ({median})"
     if row["greedy"] != "–":
-        greedy = teammap_eval(reference, stem, "eval.temperature-0")
+        greedy = teammap_eval(reference, stem, agents, "eval.temperature-0")
         assert greedy["temperature"] == 0 and row["greedy"] == percent(greedy["coverage_mean"])
     if row["unshielded"] != "–":
-        plain = teammap_eval(reference, stem, "eval.shield-false")
+        plain = teammap_eval(reference, stem, agents, "eval.shield-false")
         assert plain["shield"] is False
         expected = f"{percent(plain['coverage_mean'])}, {plain['wall_hits_mean']:.1f}"
         assert row["unshielded"] == expected

@@ -353,6 +353,9 @@ class TeamMapObservation(ObservationBuilder):
             self._last_visit = np.full((n, hp * wp), -self.trail, dtype=np.int64)
         if self.frontier:
             self._free_graph = _free_cell_graph(state.cells != CELL_WALL)
+            #: The frontier compass of the last :meth:`build` (agents, 5): the env's frontier
+            #: step follows it. Set again by the build that ends every reset and step.
+            self.compass = np.zeros((state.positions.shape[0], 5), dtype=np.float32)
 
     def _update(self, state: GridState) -> None:
         """Make the agents' 3x3 windows known and bring changed cells up to date."""

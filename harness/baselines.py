@@ -50,7 +50,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import breadth_first_order
 
 from envs.coverage import CoverageEnv
-from envs.coverage.types import CELL_UNVISITED, CELL_WALL, FRONTIER_STEP
+from envs.coverage.types import CELL_UNVISITED, CELL_WALL, FRONTIER_STEP, STAY
 from harness.evaluation import BatchPolicy, batch_len, episode_draws, sample_categorical
 
 #: The baselines by the name ``--policy`` takes (the one list of them), each made from the
@@ -63,7 +63,6 @@ BASELINES: dict[str, Callable[[int], BatchPolicy]] = {
     "frontier_step": lambda seed: FrontierStepPolicy(),
 }
 
-_STAY = 4
 #: Cells a Python search may reach before the compiled search takes over. Below it the Python
 #: search wins (no graph to build); above it SciPy's search is cheaper even with a fresh graph.
 _PY_SEARCH_BUDGET = 128
@@ -270,7 +269,7 @@ class _TeamMap:
     def act(self) -> list[int]:
         """One action per agent; targets are claimed in agent index order."""
         if self.n_targets == 0:  # everything seen is visited: nothing left to walk to
-            return [_STAY] * len(self.positions)
+            return [STAY] * len(self.positions)
         claimed: set[int] = set()
         actions = []
         for i, start in enumerate(self.positions):
@@ -279,7 +278,7 @@ class _TeamMap:
             else:
                 found = self._search(start, claimed, i)
             if found is None:
-                actions.append(_STAY)
+                actions.append(STAY)
                 continue
             goal, step = found
             claimed.add(goal)

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 
+from harness.config import load_config
+
 ROOT = Path(__file__).resolve().parents[1]
 TABLE_HEADER = "| experiment | thesis | this project | T | walls | greedy |"
 
@@ -154,8 +156,8 @@ def teammap_eval(reference: str, stem: str, agents: str, variant: str = "") -> d
     (``eval.temperature-0``, ``eval.shield-false``). A reference trained on random 50x50 maps
     evaluates them as its own test, in ``eval.json``/``eval-<variant>.json``."""
     folder = ROOT / "runs" / "reference" / reference
-    own = re.search(r"n_agents: (\d+)", (folder / "config.yaml").read_text()).group(1)
-    if agents != own:
+    own = load_config(folder / "config.yaml").env.n_agents
+    if int(agents) != own:
         stem += f"_env.n_agents-{agents}"
     path = folder / (f"{stem}_{variant}.json" if variant else f"{stem}.json")
     if not path.is_file() and stem == "eval-env.map-random":

@@ -77,7 +77,9 @@ included); outside the grid is known wall. Binary channels are 0 or 255.
 * ``"frontier"`` ``Box(0, 1, (5,), float32)``, only with ``frontier=True``: the frontier
   compass, 1 for each move (up, down, left, right) that takes the agent one step nearer the
   nearest known free unvisited cell, else 0, then ``d(agent) / (H + W)`` (at most 1; 1 when no
-  such cell is reachable).
+  such cell is reachable). With ``frontier_claims=True`` the four moves mark instead the one
+  move of the frontier explorer with claims (``envs/coverage/frontier.py``: towards the nearest
+  such cell that no lower-index teammate claimed this step; none when it would stay).
 
 ``crop`` is odd and >= 5 (>= 7 with the trail, the frontier field or both; default
 15), ``trail`` >= 0 (default 0: none), ``frontier`` a bool (default ``False``),
@@ -104,15 +106,18 @@ credited to this agent so far), ``wall_hits`` (this agent's count so far), ``ste
 ``coords="normalized"``, ``rewards={"new_cell": 2.0, "wall_hit": -10.0, "step": -1.0}``,
 ``starts=None`` (fixed start cells, else distinct random free cells each reset),
 ``render_mode=None | "rgb_array" | "ansi"``, ``crop=15``, ``global_size=13``, ``ego_size=0``,
-``ego_block=5``, ``trail=0``, ``frontier=False`` and ``frontier_action=False`` (``"teammap"``
-only), ``agent_id=False``.
+``ego_block=5``, ``trail=0``, ``frontier=False``, ``frontier_action=False`` and
+``frontier_claims=False`` (``"teammap"`` only), ``agent_id=False``.
 
 **Frontier step** (``frontier_action=True``, needs ``observation="teammap"`` and
 ``frontier=True``): a sixth action, 5, one step along the frontier compass, i.e. the first move
 of a shortest path through known free cells to the nearest known free cell not yet visited
 (drawn from the episode's generator when several moves tie; stay when no such cell is
 reachable). It never hits a wall. A learned policy then chooses, each step, between the five
-primitive moves and "walk on towards the nearest unexplored ground".
+primitive moves and "walk on towards the nearest unexplored ground". With
+``frontier_claims=True`` (needs ``frontier=True``) the step is the frontier explorer's move for
+the agent (the compass marks one move): a team that always steps is the frontier explorer, and
+a learned policy chooses when to leave it.
 
 ``reset(seed=None, options=None)``: ``options={"grid": bool_array, "starts": [(r, c), ...]}`` fixes
 that episode's map and/or start cells. Bad input raises ``ValueError`` naming the problem.

@@ -70,7 +70,7 @@ def bench_env(episodes: int = 3) -> dict[str, Any]:
     rng = np.random.default_rng(0)
     moves = rng.integers(0, 5, (steps, n)).tolist()
 
-    def bare_rate(observation: str, **options: int) -> float:
+    def bare_rate(observation: str, **options: int | bool) -> float:
         kwargs = {**THESIS_ENV.kwargs(), "observation": observation, **options}
         env = coverage_v0.parallel_env(**kwargs)
         env.reset(seed=0)
@@ -96,6 +96,11 @@ def bench_env(episodes: int = 3) -> dict[str, Any]:
     out["env_bare_teammap_trail_agent_steps_per_s"] = bare_rate("teammap", trail=50)
     # With the frontier field and compass (env.frontier): one compiled search a step.
     out["env_bare_teammap_frontier_agent_steps_per_s"] = bare_rate("teammap", frontier=True)
+    # With the frontier explorer's claimed moves in the compass (env.frontier_claims): its
+    # incremental team map and one search per agent a step, on top of the frontier field.
+    out["env_bare_teammap_claims_agent_steps_per_s"] = bare_rate(
+        "teammap", frontier=True, frontier_claims=True
+    )
 
     def vec_rate(copies: int, num_cpus: int = 0) -> float:
         venv = make_vec_env(THESIS_ENV, copies, num_cpus, seed=0)
@@ -364,6 +369,9 @@ def format_bench(r: dict[str, Any]) -> str:
         if "env_bare_teammap_frontier_agent_steps_per_s" in r:
             fr = r["env_bare_teammap_frontier_agent_steps_per_s"]
             lines.append(f"  teammap + frontier field   {n(fr)}   {fr / bare:5.2f} x thesis")
+        if "env_bare_teammap_claims_agent_steps_per_s" in r:
+            cl = r["env_bare_teammap_claims_agent_steps_per_s"]
+            lines.append(f"  ... + frontier claims      {n(cl)}   {cl / bare:5.2f} x thesis")
         for c, v in r["env_vec_by_copies"].items():
             lines.append(f"  VecEnv, {c:>2} copies           {n(v)}   {v / bare:5.2f} x bare")
         lines.append(

@@ -141,6 +141,9 @@ class EnvConfig(_Section):
     frontier_action: bool = False
     """``teammap`` with ``frontier``: a sixth action, one step along the frontier compass (a
     shortest way to the nearest known unvisited cell; stay when there is none)."""
+    frontier_claims: bool = False
+    """``teammap`` with ``frontier``: the compass, so the frontier step, follows the frontier
+    explorer with claims (the nearest unvisited known cell no lower-index teammate claimed)."""
     coords: Literal["normalized", "raw"] = "normalized"
     rewards: RewardsConfig = RewardsConfig()
     starts: list[tuple[int, int]] | None = None
@@ -211,6 +214,11 @@ class EnvConfig(_Section):
             raise ValueError(
                 "frontier_action needs observation: teammap and frontier: true "
                 "(the step follows the frontier compass)"
+            )
+        if self.frontier_claims and not (self.observation == "teammap" and self.frontier):
+            raise ValueError(
+                "frontier_claims needs observation: teammap and frontier: true "
+                "(it changes the frontier compass)"
             )
         return self
 

@@ -467,10 +467,15 @@ class PerAgentQNetwork(BasePolicy):
         grads = [p.grad for p in self.params.values() if p.grad is not None]
         if not grads:
             return
-        squares = th.stack([g.pow(2).reshape(self.n_agents, -1).sum(1) for g in grads]).sum(0)
-        scale = (max_norm / (squares.sqrt() + 1e-6)).clamp(max=1.0)
-        for g in grads:
-            g.mul_(scale.reshape(-1, *([1] * (g.dim() - 1))))
+        # Per-agent norms without a squared copy of each gradient: these tensors are N times a
+        # network's size, and passes over them are what a per-agent step spends its time on.
+        norms = th.stack(
+            [th.linalg.vector_norm(g.reshape(self.n_agents, -1), dim=1) for g in grads]
+        )
+        scale = (max_norm / (th.linalg.vector_norm(norms, dim=0) + 1e-6)).clamp(max=1.0)
+        if bool((scale < 1.0).any()):  # most steps clip nothing: skip a pass over every gradient
+            for g in grads:
+                g.mul_(scale.reshape(-1, *([1] * (g.dim() - 1))))
 
 
 def _key(name: str) -> str:

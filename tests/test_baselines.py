@@ -17,6 +17,7 @@ import numpy as np
 import pytest
 
 from envs import coverage_v0
+from envs.coverage import frontier
 from harness import baselines
 from harness.baselines import BASELINES, make_baseline
 from harness.config import EnvConfig
@@ -239,10 +240,10 @@ def reference_actions(env) -> list[int]:
     return actions
 
 
-@pytest.mark.parametrize("budget", [baselines._PY_SEARCH_BUDGET, 3])
+@pytest.mark.parametrize("budget", [frontier.SEARCH_BUDGET, 3])
 def test_frontier_matches_reference_rule(monkeypatch, budget: int) -> None:
     # A tiny budget sends nearly every search to the compiled (SciPy) path.
-    monkeypatch.setattr(baselines, "_PY_SEARCH_BUDGET", budget)
+    monkeypatch.setattr(frontier, "SEARCH_BUDGET", budget)
     env = coverage_v0.parallel_env(height=16, width=20, n_agents=4, max_steps=250)
     for seed in (0, 1):
         obs, _ = env.reset(seed=seed)

@@ -18,6 +18,7 @@ def test_bench_env_json_has_the_documented_keys(capsys):
         "env_bare_teammap_ego_agent_steps_per_s",
         "env_bare_teammap_trail_agent_steps_per_s",
         "env_bare_teammap_frontier_agent_steps_per_s",
+        "env_bare_teammap_claims_agent_steps_per_s",
         "env_vec_agent_steps_per_s",
         "env_vec_over_bare",
     ):
@@ -34,6 +35,7 @@ def test_bench_report_shows_every_section_with_targets():
         "env_bare_teammap_ego_agent_steps_per_s": 24_000.0,
         "env_bare_teammap_trail_agent_steps_per_s": 30_000.0,
         "env_bare_teammap_frontier_agent_steps_per_s": 6_000.0,
+        "env_bare_teammap_claims_agent_steps_per_s": 4_800.0,
         "env_vec_by_copies": {1: 40_000.0, 4: 50_000.0, 16: 52_000.0},
         "env_vec_agent_steps_per_s": 50_000.0,
         "env_vec_over_bare": 50_000 / 120_000,
@@ -70,6 +72,8 @@ def test_bench_report_shows_every_section_with_targets():
     assert "teammap + trail (50 steps)       30,000" in text
     (line,) = [line for line in text.splitlines() if "teammap + frontier field" in line]
     assert "6,000" in line and "0.05 x thesis" in line
+    (line,) = [line for line in text.splitlines() if "frontier claims" in line]
+    assert "4,800" in line and "0.04 x thesis" in line
 
 
 def test_bench_sharing_reports_gradient_steps_per_mode():

@@ -263,6 +263,66 @@ def test_frontier_step_ties_repeat_with_the_episode_seed():
     assert walk(3) != walk(4)
 
 
+CORRIDOR = """
+#########
+#.......#
+#########
+"""
+
+
+def test_frontier_claims_keep_a_teammate_from_following_into_a_dead_end():
+    # Agent 1 at (1, 1) is behind agent 0 at (1, 2) in a corridor closed on the left: the one
+    # unvisited known cell is (1, 3), one step from agent 0, two from agent 1.
+    starts = [(1, 2), (1, 1)]
+    plain, obs_plain = teammap_env(CORRIDOR, starts, crop=7, global_size=7, frontier=True)
+    for a, d in (("agent_0", 1), ("agent_1", 2)):  # without claims both head right
+        np.testing.assert_allclose(obs_plain[a]["frontier"], [0, 0, 0, 1, d / 12])
+    env, obs = teammap_env(
+        CORRIDOR, starts, crop=7, global_size=7, frontier=True, frontier_action=True,
+        frontier_claims=True,
+    )  # fmt: skip
+    # With claims agent 0 takes (1, 3); nothing is left for agent 1, so no move is marked (its
+    # step stays), and the distance is still the nearest cell's.
+    np.testing.assert_allclose(obs["agent_0"]["frontier"], [0, 0, 0, 1, 1 / 12])
+    np.testing.assert_allclose(obs["agent_1"]["frontier"], [0, 0, 0, 0, 2 / 12])
+    np.testing.assert_array_equal(obs["agent_1"]["local"], obs_plain["agent_1"]["local"])
+    while env.coverage < 1.0:
+        env.step({"agent_0": FRONTIER_STEP, "agent_1": FRONTIER_STEP})
+        assert tuple(env.positions[1]) == (1, 1)  # it waits rather than follow
+    assert env.steps == 5 and tuple(env.positions[0]) == (1, 7)
+    obs, *_ = env.step({"agent_0": FRONTIER_STEP, "agent_1": FRONTIER_STEP})
+    assert obs["agent_0"]["frontier"][:4].sum() == 0  # nothing left: no move marked, stay
+
+
+@pytest.mark.parametrize("n_agents", [1, 3])
+def test_always_stepping_with_claims_is_the_frontier_explorer(n_agents):
+    from harness.baselines import make_baseline
+    from harness.config import EnvConfig
+    from harness.evaluation import run_episodes
+
+    size = {"height": 18, "width": 22, "n_agents": n_agents, "max_steps": 120}
+    steps = EnvConfig(
+        **size, observation="teammap", crop=7, frontier=True, frontier_action=True,
+        frontier_claims=True,
+    )  # fmt: skip
+    stepped = run_episodes(make_baseline("frontier_step", 0), steps, episodes=3, seed=5)
+    planned = run_episodes(make_baseline("frontier", 0), EnvConfig(**size), episodes=3, seed=5)
+    assert [r.coverage for r in stepped] == [r.coverage for r in planned]
+    assert [r.new_cells for r in stepped] == [r.new_cells for r in planned]
+    assert all(sum(r.wall_hits) == 0 for r in stepped)
+
+
+def test_frontier_claims_need_the_frontier_compass():
+    with pytest.raises(ValueError, match="frontier_claims needs observation='teammap'"):
+        coverage_v0.parallel_env(observation="teammap", frontier_claims=True)
+    with pytest.raises(ValueError, match="frontier_claims must be True or False"):
+        coverage_v0.parallel_env(observation="teammap", frontier=True, frontier_claims="yes")
+    from harness.config import EnvConfig
+
+    with pytest.raises(ValueError, match="frontier_claims needs observation: teammap"):
+        EnvConfig(observation="teammap", crop=7, frontier_claims=True)
+
+
 def frontier_distances(env) -> np.ndarray:
     """Shortest path lengths through known free cells to the nearest known free unvisited cell
     (a plain breadth-first search on the env's public state; inf where none is reachable)."""

@@ -65,6 +65,7 @@ class CoverageEnv(ParallelEnv):
         trail: int = 0,
         frontier: bool = False,
         frontier_action: bool = False,
+        frontier_claims: bool = False,
         agent_id: bool = False,
     ) -> None:
         _check_int("n_agents", n_agents, 1)
@@ -74,6 +75,13 @@ class CoverageEnv(ParallelEnv):
             raise ValueError(
                 "frontier_action needs observation='teammap' with frontier=True (the step "
                 "follows the frontier compass)"
+            )
+        if not isinstance(frontier_claims, (bool, np.bool_)):
+            raise ValueError(f"frontier_claims must be True or False, got {frontier_claims!r}")
+        if frontier_claims and not (observation == "teammap" and frontier):
+            raise ValueError(
+                "frontier_claims needs observation='teammap' with frontier=True (it changes "
+                "the frontier compass)"
             )
         if not isinstance(agent_id, (bool, np.bool_)):
             raise ValueError(f"agent_id must be True or False, got {agent_id!r}")
@@ -138,6 +146,7 @@ class CoverageEnv(ParallelEnv):
             "ego_block": ego_block,
             "trail": trail,
             "frontier": frontier,
+            "frontier_claims": frontier_claims,
         }
         # One builder per map size: a mix may draw maps of several sizes. The space is the
         # largest size's (with raw coordinates its bounds hold every smaller map's positions).

@@ -18,7 +18,8 @@ from gymnasium import spaces
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from envs.coverage.types import CELL_UNVISITED, CELL_WALL, GridState
+from envs.coverage.frontier import FrontierPlanner
+from envs.coverage.types import CELL_UNVISITED, CELL_VISITED, CELL_WALL, GridState
 
 COORD_MODES = ("normalized", "raw")
 
@@ -188,7 +189,12 @@ class TeamMapObservation(ObservationBuilder):
       known free cell not yet visited (it starts a shortest path there), else 0; then the
       distance to that cell over ``H + W`` (at most 1; 1 when none is reachable). A shortest
       path to the nearest unvisited known cell is what the frontier planner walks; the
-      compass shows it beyond the crop, the field shows the other frontiers nearby.
+      compass shows it beyond the crop, the field shows the other frontiers nearby. With
+      ``frontier_claims=True`` the four moves mark instead the one move of the frontier
+      explorer with claims (:class:`envs.coverage.frontier.FrontierPlanner`: the first step
+      towards the nearest such cell that no lower-index teammate claimed this step), none when
+      it would stay; the distance stays the nearest cell's. The env's frontier step follows the
+      compass, so with claims a team that always steps is the frontier explorer.
 
     The frontier distances ``d`` are one multi-source breadth-first search per step from every
     known free unvisited cell (SciPy's compiled ``dijkstra`` with ``min_only``, unit weights) on
@@ -212,13 +218,24 @@ class TeamMapObservation(ObservationBuilder):
         ego_block: Cells per side of an ego block (odd, >= 1).
         trail: K, steps of the agent's own trail in the crop (0: no trail channel).
         frontier: Add the frontier field (a crop channel) and the frontier compass.
+        frontier_claims: With ``frontier``: the compass marks the frontier explorer's move
+            (targets claimed in agent index order) rather than every move towards the nearest
+            unvisited known cell.
 
     Raises:
         ValueError: For a crop or global size out of range.
     """
 
     name = "teammap"
-    options = ("crop", "global_size", "ego_size", "ego_block", "trail", "frontier")
+    options = (
+        "crop",
+        "global_size",
+        "ego_size",
+        "ego_block",
+        "trail",
+        "frontier",
+        "frontier_claims",
+    )
     LOCAL_CHANNELS = 5
     #: Index of the trail channel in ``"local"`` (with ``trail > 0``).
     TRAIL = 5
@@ -249,12 +266,17 @@ class TeamMapObservation(ObservationBuilder):
         ego_block: int = 5,
         trail: int = 0,
         frontier: bool = False,
+        frontier_claims: bool = False,
     ) -> None:
         super().__init__(height, width, coords, max_steps)
         if not (_is_int(trail) and trail >= 0):
             raise ValueError(f"trail must be an integer >= 0 (0: off), got {trail!r}")
         if not isinstance(frontier, (bool, np.bool_)):
             raise ValueError(f"frontier must be True or False, got {frontier!r}")
+        if not isinstance(frontier_claims, (bool, np.bool_)):
+            raise ValueError(f"frontier_claims must be True or False, got {frontier_claims!r}")
+        if frontier_claims and not frontier:
+            raise ValueError("frontier_claims needs frontier=True (it changes the compass)")
         least = self.min_crop(int(trail), bool(frontier))
         if not (_is_int(crop) and crop >= least and crop % 2 == 1):
             raise ValueError(f"crop must be an odd integer >= {least}, got {crop!r}")
@@ -276,6 +298,7 @@ class TeamMapObservation(ObservationBuilder):
         self.crop, self.global_size = crop, global_size
         self.ego_size, self.ego_block = int(ego_size), int(ego_block)
         self.trail, self.frontier = int(trail), bool(frontier)
+        self.frontier_claims = bool(frontier_claims)
         self.local_channels = self.LOCAL_CHANNELS + (self.trail > 0) + self.frontier
         #: Index of the frontier field in ``"local"`` (with ``frontier``): the last channel.
         self.frontier_channel = self.local_channels - 1
@@ -356,6 +379,8 @@ class TeamMapObservation(ObservationBuilder):
             #: The frontier compass of the last :meth:`build` (agents, 5): the env's frontier
             #: step follows it. Set again by the build that ends every reset and step.
             self.compass = np.zeros((state.positions.shape[0], 5), dtype=np.float32)
+        if self.frontier_claims:
+            self._planner = FrontierPlanner(self.height, self.width)
 
     def _update(self, state: GridState) -> None:
         """Make the agents' 3x3 windows known and bring changed cells up to date."""
@@ -403,6 +428,8 @@ class TeamMapObservation(ObservationBuilder):
         if self.frontier:
             field, compass = self._frontier_views(state)
             local[:, self.frontier_channel] = field
+            if self.frontier_claims:
+                compass[:, :4] = self._claimed_moves(state)
         if n > 1:
             dr = rows[None, :] - rows[:, None] + half  # (agent, teammate)
             dc = cols[None, :] - cols[:, None] + half
@@ -457,6 +484,16 @@ class TeamMapObservation(ObservationBuilder):
             value = np.clip(128.0 + 16.0 * (own[:, None, None] - crops), 1.0, 255.0)
         field[...] = np.where(np.isfinite(crops) & np.isfinite(own)[:, None, None], value, 0.0)
         return field, compass
+
+    def _claimed_moves(self, state: GridState) -> np.ndarray:
+        """``(agents, 4)``: one-hot of each agent's move by the frontier explorer with claims
+        (all zero where it stays)."""
+        interior = state.interior
+        self._planner.sync(
+            state.steps, state.positions, interior == CELL_WALL, interior == CELL_VISITED
+        )
+        moves = np.asarray(self._planner.act())
+        return moves[:, None] == np.arange(4)[None, :]  # STAY (4) marks no move
 
     def _trail(self, state: GridState) -> np.ndarray:
         """Each agent's trail in its crop, ``(agents, crop, crop)``, after marking this step."""

@@ -1,0 +1,231 @@
+"""The classical frontier explorer (Yamauchi 1997) on the team's shared map, for one episode.
+
+Every agent walks, by a shortest 4-connected path through free cells the team has *seen*, to the
+nearest *target*: a seen free cell nobody has visited yet. Targets are claimed in agent index
+order (agent 0 first), and an agent skips targets a lower-index teammate already claimed this
+step, so a team spreads out instead of chasing one cell. "Seen" is the env's *known*: the visited
+cells and the 3x3 window around each of them (start windows included, start cells being visited).
+
+Two users: the ``frontier`` baseline (``harness.baselines.FrontierPolicy``) plays these moves,
+and the team-map observation with ``frontier_claims`` shows them in its frontier compass, so the
+env's frontier step (``frontier_action``) is this planner's move for the agent that takes it.
+
+Speed: the team's map only grows, so the planner keeps it incrementally (updated from the
+agents' positions each step, rebuilt when an episode starts). The search is a breadth-first search
+in Python that stops at the first unclaimed target; most of the time that target is a step or two
+away. When a search grows past ``SEARCH_BUDGET`` cells (late in an episode, when the remaining
+ground is far away) it is redone by SciPy's compiled breadth-first search on a graph of the seen
+free cells, rebuilt only when a cell became passable since the last such search; an agent whose
+target was far goes straight to SciPy on the next step. Both searches visit neighbours in the same
+order, so the choice of target does not depend on which one ran.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+
+import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import breadth_first_order
+
+from envs.coverage.types import STAY
+
+__all__ = ["FrontierPlanner"]
+
+#: Cells a Python search may reach before the compiled search takes over. Below it the Python
+#: search wins (no graph to build); above it SciPy's search is cheaper even with a fresh graph.
+SEARCH_BUDGET = 128
+#: Path length above which an agent's next search skips the Python search.
+FAR = 8
+
+
+class FrontierPlanner:
+    """The frontier explorer's team map of one episode, on a flat grid padded with one ring of
+    wall, and its moves (see the module docstring).
+
+    Call :meth:`sync` with the episode's state after every reset and step, then :meth:`act`.
+
+    Padding lets neighbour lookups skip bounds checks; the per-cell state is kept in Python lists
+    because the search reads single cells, which lists do several times faster than numpy.
+    """
+
+    def __init__(self, height: int, width: int) -> None:
+        self.shape = (height, width)
+        self.stride = width + 2
+        # Neighbour offsets in ascending index order (up, left, right, down); the compiled search
+        # visits neighbours in the same order, so both break ties between equally near targets
+        # the same way.
+        s = self.stride
+        self.offsets = (-s, -1, 1, s)
+        self.action_of = {-s: 0, s: 1, -1: 2, 1: 3}
+        self.window = tuple(dr * s + dc for dr in (-1, 0, 1) for dc in (-1, 0, 1))
+        self.steps = -1
+        self.positions: list[int] = []
+        #: Per agent: its last target was far, so its next search goes straight to SciPy (the
+        #: distance shrinks by one a step, and the Python search would only hit its budget).
+        self.far: list[bool] = []
+        self._neighbours: np.ndarray | None = None
+
+    # ------------------------------------------------------------------ map upkeep
+    def sync(
+        self, steps: int, positions: np.ndarray, walls: np.ndarray, visited: np.ndarray
+    ) -> None:
+        """Bring the map up to date: incrementally when the planner saw the previous step (only
+        the agents' current cells can be new), from scratch otherwise.
+
+        Args:
+            steps: Steps taken in the episode (0 right after a reset).
+            positions: ``(n_agents, 2)`` (row, col) of each agent.
+            walls: ``bool (H, W)``, True = wall (read only when the map is rebuilt).
+            visited: ``bool (H, W)``: cells the team has visited (likewise).
+        """
+        self.positions = ((positions[:, 0] + 1) * self.stride + positions[:, 1] + 1).tolist()
+        if steps == 0 or not (self.steps <= steps <= self.steps + 1):
+            self._rebuild(walls, visited)
+        else:
+            for p in self.positions:
+                if not self.visited[p]:
+                    self._visit(p)
+        self.steps = steps
+
+    def _rebuild(self, walls: np.ndarray, visited_map: np.ndarray) -> None:
+        free = np.pad(~walls, 1, constant_values=False)
+        visited = np.pad(visited_map, 1, constant_values=False)
+        seen = visited.copy()
+        # 3x3 dilation of the visited cells: what the agents' observation windows revealed.
+        seen[1:, :] |= visited[:-1, :]
+        seen[:-1, :] |= visited[1:, :]
+        rows = seen.copy()
+        seen[:, 1:] |= rows[:, :-1]
+        seen[:, :-1] |= rows[:, 1:]
+        passable = (seen & free).ravel()
+        target = passable & ~visited.ravel()
+        self.free = free.ravel().tolist()
+        self.visited = visited.ravel().tolist()
+        self.seen = seen.ravel().tolist()
+        self.passable = passable.tolist()
+        self.target = target.tolist()
+        # numpy mirrors of the two lists the compiled search needs whole.
+        self.passable_np = passable
+        self.target_np = target
+        self.n_targets = int(target.sum())
+        self.graph_version = 0  # bumped whenever a cell becomes passable
+        self.far = [False] * len(self.positions)
+        self._graph: tuple[int, csr_matrix] | None = None
+
+    def _visit(self, p: int) -> None:
+        self.visited[p] = True
+        if self.target[p]:
+            self.target[p] = self.target_np[p] = False
+            self.n_targets -= 1
+        for d in self.window:
+            q = p + d
+            if not self.seen[q]:
+                self.seen[q] = True
+                if self.free[q]:
+                    self.passable[q] = self.passable_np[q] = True
+                    self.graph_version += 1
+                    if not self.visited[q]:
+                        self.target[q] = self.target_np[q] = True
+                        self.n_targets += 1
+
+    # ------------------------------------------------------------------ acting
+    def act(self) -> list[int]:
+        """One action per agent; targets are claimed in agent index order."""
+        if self.n_targets == 0:  # everything seen is visited: nothing left to walk to
+            return [STAY] * len(self.positions)
+        claimed: set[int] = set()
+        actions = []
+        for i, start in enumerate(self.positions):
+            if self.far[i]:
+                found = self._search_compiled(start, claimed, i)
+            else:
+                found = self._search(start, claimed, i)
+            if found is None:
+                actions.append(STAY)
+                continue
+            goal, step = found
+            claimed.add(goal)
+            actions.append(self.action_of[step - start])
+        return actions
+
+    def _search(self, start: int, claimed: set[int], agent: int) -> tuple[int, int] | None:
+        """Nearest unclaimed target from ``start`` and the first cell of a shortest path to it,
+        or ``None`` when no unclaimed target is reachable through seen free cells."""
+        passable, target, offsets = self.passable, self.target, self.offsets
+        # Each reached cell remembers the first step of its path, so no back-tracking is needed.
+        first = {start: start}
+        queue = deque()
+        for d in offsets:
+            n = start + d
+            if passable[n]:
+                first[n] = n
+                # Checked on discovery: BFS discovers cells in order of distance, so the first
+                # unclaimed target discovered is a nearest one.
+                if target[n] and n not in claimed:
+                    return n, n
+                queue.append(n)
+        while queue:
+            c = queue.popleft()
+            f = first[c]
+            for d in offsets:
+                n = c + d
+                if passable[n] and n not in first:
+                    first[n] = f
+                    if target[n] and n not in claimed:
+                        return n, f
+                    queue.append(n)
+            if len(first) > SEARCH_BUDGET:
+                return self._search_compiled(start, claimed, agent)
+        return None
+
+    def _search_compiled(self, start: int, claimed: set[int], agent: int) -> tuple[int, int] | None:
+        """:meth:`_search` by SciPy's breadth-first search (for far targets). It visits
+        neighbours in the same order, so both searches pick the same target."""
+        order, pred = breadth_first_order(
+            self._graph_now(), start, directed=True, return_predecessors=True
+        )
+        for goal in order[self.target_np[order]].tolist():
+            if goal not in claimed:
+                step, distance = goal, 1
+                while pred[step] != start:
+                    step = int(pred[step])
+                    distance += 1
+                self.far[agent] = distance > FAR
+                return goal, step
+        # Nothing left for this agent (teammates claimed the last targets): that search saw the
+        # whole reachable map, so the next one goes straight to SciPy too.
+        self.far[agent] = True
+        return None
+
+    def _graph_now(self) -> csr_matrix:
+        """Adjacency (CSR) of the seen free cells, cached until a cell becomes passable.
+
+        Built straight in CSR form: each cell's neighbours in ascending index order (up, left,
+        right, down), as :meth:`_search` visits them. The padding ring has no edges, so only the
+        rows of the inner cells are computed.
+        """
+        if self._graph is not None and self._graph[0] == self.graph_version:
+            return self._graph[1]
+        p, s = self.passable_np, self.stride
+        n = p.size
+        inner = p[s:-s]
+        mask = np.empty((n - 2 * s, 4), dtype=bool)
+        np.logical_and(inner, p[: -2 * s], out=mask[:, 0])
+        np.logical_and(inner, p[s - 1 : -s - 1], out=mask[:, 1])
+        np.logical_and(inner, p[s + 1 : n - s + 1], out=mask[:, 2])
+        np.logical_and(inner, p[2 * s :], out=mask[:, 3])
+        if self._neighbours is None or len(self._neighbours) != n - 2 * s:
+            cells = np.arange(s, n - s, dtype=np.int32)
+            self._neighbours = cells[:, None] + np.array(self.offsets, dtype=np.int32)
+        indices = self._neighbours[mask]
+        counts = mask.view(np.uint8)
+        degree = counts[:, 0] + counts[:, 1]  # summing columns beats count_nonzero(axis=1)
+        degree += counts[:, 2]
+        degree += counts[:, 3]
+        indptr = np.zeros(n + 1, dtype=np.int32)
+        np.cumsum(degree, out=indptr[s + 1 : n - s + 1])
+        indptr[n - s + 1 :] = indptr[n - s]
+        graph = csr_matrix((np.ones(indices.size), indices, indptr), shape=(n, n), copy=False)
+        self._graph = (self.graph_version, graph)
+        return graph

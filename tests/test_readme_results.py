@@ -217,6 +217,29 @@ def interval_cell(stats) -> str:
     return f"{percent(stats[0])} [{percent(stats[1][0])}, {percent(stats[1][1])}]"
 
 
+def test_teammap_step_seeds_row_quotes_the_three_seeds() -> None:
+    from harness.stats import seed_statistics
+
+    (row,) = [r for r in table_rows(TEAMMAP_HEADER) if r["policy"].startswith("the step config")]
+    folders = [ROOT / "runs" / "reference" / "teammap_2agents_step"] + [
+        ROOT / "docs" / "seeds" / "teammap_2agents_step" / f"teammap_2agents_step-seed{k}"
+        for k in (1, 2)
+    ]
+    evals = {
+        variant: [
+            json.loads((f / f"eval-env.map-random{variant}.json").read_text()) for f in folders
+        ]
+        for variant in ("", "_eval.temperature-0")
+    }
+    for e in evals[""] + evals["_eval.temperature-0"]:  # the standard 2-agent random episodes
+        assert e["seed"] == 1_000_003 and e["episodes"] == 100 and e["shield"] is True
+        assert e["wall_hits_mean"] == 0
+    stats = seed_statistics({k: [e["coverage_mean"] for e in v] for k, v in evals.items()})
+    tuned, greedy = stats[""], stats["_eval.temperature-0"]
+    assert row["coverage"] == interval_cell((tuned.mean, tuned.mean_ci))
+    assert row["greedy"] == interval_cell((greedy.mean, greedy.mean_ci))
+
+
 @pytest.mark.parametrize("row", table_rows(SEEDS_HEADER), ids=lambda r: r["comparison"])
 def test_seeds_row_quotes_its_groups_evaluations(row: dict[str, str]) -> None:
     from harness.groups import group_runs

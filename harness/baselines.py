@@ -165,6 +165,6 @@ class FrontierPolicy:
             team = self._maps.get(env)
             if team is None or team.shape != (env.height, env.width):
                 team = self._maps[env] = FrontierPlanner(env.height, env.width)
-            team.sync(env.steps, env.positions, env.walls, env.visited)
+            team.sync(env.steps, env.positions, lambda env=env: (env.walls, env.visited))
             actions.extend(team.act())
         return np.asarray(actions, dtype=np.int64)

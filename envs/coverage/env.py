@@ -69,22 +69,19 @@ class CoverageEnv(ParallelEnv):
         agent_id: bool = False,
     ) -> None:
         _check_int("n_agents", n_agents, 1)
-        if not isinstance(frontier_action, (bool, np.bool_)):
-            raise ValueError(f"frontier_action must be True or False, got {frontier_action!r}")
+        _check_bool("frontier_action", frontier_action)
         if frontier_action and not (observation == "teammap" and frontier):
             raise ValueError(
                 "frontier_action needs observation='teammap' with frontier=True (the step "
                 "follows the frontier compass)"
             )
-        if not isinstance(frontier_claims, (bool, np.bool_)):
-            raise ValueError(f"frontier_claims must be True or False, got {frontier_claims!r}")
+        _check_bool("frontier_claims", frontier_claims)
         if frontier_claims and not (observation == "teammap" and frontier):
             raise ValueError(
                 "frontier_claims needs observation='teammap' with frontier=True (it changes "
                 "the frontier compass)"
             )
-        if not isinstance(agent_id, (bool, np.bool_)):
-            raise ValueError(f"agent_id must be True or False, got {agent_id!r}")
+        _check_bool("agent_id", agent_id)
         _check_int("max_steps", max_steps, 1)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
@@ -467,6 +464,11 @@ class CoverageEnv(ParallelEnv):
 def _check_int(name: str, value: Any, minimum: int) -> None:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+
+
+def _check_bool(name: str, value: Any) -> None:
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False, got {value!r}")
 
 
 def _check_rewards(rewards: Mapping[str, float] | None) -> dict[str, float]:

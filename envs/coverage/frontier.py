@@ -23,6 +23,7 @@ order, so the choice of target does not depend on which one ran.
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Callable
 
 import numpy as np
 from scipy.sparse import csr_matrix
@@ -68,7 +69,10 @@ class FrontierPlanner:
 
     # ------------------------------------------------------------------ map upkeep
     def sync(
-        self, steps: int, positions: np.ndarray, walls: np.ndarray, visited: np.ndarray
+        self,
+        steps: int,
+        positions: np.ndarray,
+        read_map: Callable[[], tuple[np.ndarray, np.ndarray]],
     ) -> None:
         """Bring the map up to date: incrementally when the planner saw the previous step (only
         the agents' current cells can be new), from scratch otherwise.
@@ -76,12 +80,13 @@ class FrontierPlanner:
         Args:
             steps: Steps taken in the episode (0 right after a reset).
             positions: ``(n_agents, 2)`` (row, col) of each agent.
-            walls: ``bool (H, W)``, True = wall (read only when the map is rebuilt).
-            visited: ``bool (H, W)``: cells the team has visited (likewise).
+            read_map: Returns ``(walls, visited)``, both ``bool (H, W)``; called only when the
+                map is rebuilt (an episode's start, or a step the planner did not see), so the
+                per-step path never builds whole-map arrays.
         """
         self.positions = ((positions[:, 0] + 1) * self.stride + positions[:, 1] + 1).tolist()
         if steps == 0 or not (self.steps <= steps <= self.steps + 1):
-            self._rebuild(walls, visited)
+            self._rebuild(*read_map())
         else:
             for p in self.positions:
                 if not self.visited[p]:

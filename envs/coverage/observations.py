@@ -490,7 +490,9 @@ class TeamMapObservation(ObservationBuilder):
         (all zero where it stays)."""
         interior = state.interior
         self._planner.sync(
-            state.steps, state.positions, interior == CELL_WALL, interior == CELL_VISITED
+            state.steps,
+            state.positions,
+            lambda: (interior == CELL_WALL, interior == CELL_VISITED),
         )
         moves = np.asarray(self._planner.act())
         return moves[:, None] == np.arange(4)[None, :]  # STAY (4) marks no move

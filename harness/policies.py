@@ -406,8 +406,18 @@ class PerAgentQNetwork(BasePolicy):
         super().__init__(observation_space, action_space)
         self.n_agents = len(nets)
         params, buffers = th.func.stack_module_state(nets)  # type: ignore[arg-type]
+        linear_weights = {
+            f"{name}.weight" if name else "weight"
+            for name, module in nets[0].named_modules()
+            if isinstance(module, nn.Linear)
+        }
         # ParameterDict keys may not contain ".": one parameter per template parameter.
-        self.params = nn.ParameterDict({_key(k): nn.Parameter(v) for k, v in params.items()})
+        self.params = nn.ParameterDict(
+            {
+                _key(k): nn.Parameter(_input_major(v) if k in linear_weights else v)
+                for k, v in params.items()
+            }
+        )
         for name, value in buffers.items():
             self.register_buffer("stacked_" + _key(name), value)
         self._buffer_names = list(buffers)
@@ -469,9 +479,9 @@ class PerAgentQNetwork(BasePolicy):
             return
         # Per-agent norms without a squared copy of each gradient: these tensors are N times a
         # network's size, and passes over them are what a per-agent step spends its time on.
-        norms = th.stack(
-            [th.linalg.vector_norm(g.reshape(self.n_agents, -1), dim=1) for g in grads]
-        )
+        # (Reduced over the trailing dimensions, not reshaped: the linear weights' gradients are
+        # not contiguous, see _input_major, and a reshape would copy them.)
+        norms = th.stack([th.linalg.vector_norm(g, dim=tuple(range(1, g.dim()))) for g in grads])
         scale = (max_norm / (th.linalg.vector_norm(norms, dim=0) + 1e-6)).clamp(max=1.0)
         if bool((scale < 1.0).any()):  # most steps clip nothing: skip a pass over every gradient
             for g in grads:
@@ -480,6 +490,19 @@ class PerAgentQNetwork(BasePolicy):
 
 def _key(name: str) -> str:
     return name.replace(".", "__")
+
+
+def _input_major(weight: th.Tensor) -> th.Tensor:
+    """The stacked linear weights ``(N, out, in)`` with the memory layout of ``(N, in, out)``.
+
+    Under ``vmap`` a linear layer computes ``x @ W^T`` and its weight gradient comes out as the
+    transpose of a contiguous ``(N, in, out)`` product. Autograd hands a leaf a gradient without
+    a copy only when the strides match the parameter's, so a parameter stored this way gets its
+    gradient as computed, where a contiguous one got a transposed copy of it every step (the
+    largest single cost of a per-agent step on a CPU). The optimizer's state takes the same
+    layout (``zeros_like`` preserves strides), and shape, values and state dict are unchanged.
+    """
+    return weight.transpose(-1, -2).contiguous().transpose(-1, -2)
 
 
 class _PerAgent:

@@ -155,6 +155,27 @@ def test_every_policy_trains_predicts_and_reloads_with_agent_indication(policy, 
     model.env.close()
 
 
+def test_per_agent_linear_weights_are_input_major_and_stay_so_through_training_and_loading(
+    tmp_path,
+):
+    # Stored (N, out, in) with the (N, in, out) layout, their vmap gradients need no transposed
+    # copy (PerAgentQNetwork's _input_major); saving, loading and the target sync must keep that.
+    model = _model(SMALL, "MlpPolicy", "per_agent", target_update_interval=4)
+    model.learn(48)
+    model.save(tmp_path / "m.zip")
+    loaded = DoubleDQN.load(tmp_path / "m.zip", device="cpu")
+    for net in (model.q_net, model.q_net_target, loaded.q_net, loaded.q_net_target):
+        weights = [p for k, p in net.params.items() if k.endswith("weight")]
+        assert len(weights) == 2  # the hidden layer and the output layer
+        for w in weights:
+            assert w.transpose(-1, -2).is_contiguous() and not w.is_contiguous()
+    for w in model.q_net.params.values():  # the optimizer's running averages: same layout
+        assert model.policy.optimizer.state[w]["square_avg"].stride() == w.stride()
+    for name, w in model.q_net.params.items():
+        th.testing.assert_close(w, loaded.q_net.params[name], rtol=0, atol=0)
+    model.env.close()
+
+
 # ---------------------------------------------------------------------------------- routing
 def test_each_sample_uses_its_own_agents_network_in_any_order():
     th.manual_seed(0)

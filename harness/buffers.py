@@ -22,6 +22,7 @@ __all__ = [
     "PrioritizedReplayBufferSamples",
     "SumTree",
     "importance_weights",
+    "n_step_returns",
     "replay_memory_bytes",
 ]
 
@@ -205,6 +206,57 @@ def importance_weights(
     return (min_probability / probabilities) ** beta
 
 
+def n_step_returns(
+    rewards: np.ndarray,
+    dones: np.ndarray,
+    timeouts: np.ndarray,
+    rows: np.ndarray,
+    envs: np.ndarray,
+    n_steps: int,
+    gamma: float,
+    newest_row: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """n-step returns of the transitions at ``(rows, envs)`` of SB3's ``[rows, n_envs]`` storage.
+
+    The arithmetic of SB3's ``NStepReplayBuffer`` (Sutton and Barto 2018, §7.1), for given env
+    columns: a transition's sequence runs over the next ``n_steps`` rows of its column and stops
+    at the first episode end (done or timeout, inclusive) or at ``newest_row``, whose successor
+    is not stored yet (on a full buffer, the next row is the oldest transition, of another
+    episode). With ``k`` the sequence's length and ``last`` its final row:
+
+    ``R = sum_{i<k} gamma**i * r_i``, target ``R + gamma**k * (1 - terminal) * max Q(s_last')``,
+    where ``terminal`` is the final row's done unless it was a timeout (a timeout bootstraps).
+
+    Args:
+        rewards, dones, timeouts: The buffer's ``(rows, n_envs)`` arrays.
+        rows, envs: The sampled transitions, ``(batch,)`` each.
+        n_steps: Longest sequence (1 gives the one-step transition).
+        gamma: Discount factor.
+        newest_row: The row written last (``(pos - 1) % rows``).
+
+    Returns:
+        float32 returns ``R``, float32 discounts ``gamma**k``, the final rows ``last`` (their
+        next observations are the bootstrap states) and float32 ``terminal``, each ``(batch,)``.
+    """
+    steps = np.arange(n_steps)
+    seq_rows = (rows[:, None] + steps) % rewards.shape[0]  # (batch, n_steps)
+    column = envs[:, None]
+    ends = (dones[seq_rows, column] > 0) | (timeouts[seq_rows, column] > 0)
+    ends |= seq_rows == newest_row
+    first_end = np.where(ends.any(axis=1), ends.argmax(axis=1), n_steps - 1)
+    inside = steps[None, :] <= first_end[:, None]
+    returns = (rewards[seq_rows, column] * gamma**steps * inside).sum(axis=1)
+    last = seq_rows[np.arange(len(rows)), first_end]
+    terminal = dones[last, envs] * (1 - timeouts[last, envs])
+    discounts = gamma ** (first_end + 1)
+    return (
+        returns.astype(np.float32),
+        discounts.astype(np.float32),
+        last,
+        terminal.astype(np.float32),
+    )
+
+
 class PrioritizedReplayBufferSamples(NamedTuple):
     """``ReplayBufferSamples`` (same fields, same order) plus the PER fields.
 
@@ -251,6 +303,12 @@ class PrioritizedReplayBuffer(ReplayBuffer):
     invalid, and that slot would need a zero priority tracked across wrap-arounds): a
     ``ValueError`` is raised. Dict observation spaces take :class:`PrioritizedDictReplayBuffer`.
 
+    ``n_steps > 1`` gives n-step returns as SB3's ``NStepReplayBuffer`` computes them (the
+    keyword arguments SB3 asks custom buffers to take: ``replay_buffer_kwargs={"n_steps": n,
+    "gamma": gamma}``), see :func:`n_step_returns`: a sample's ``rewards`` are the discounted sum,
+    ``next_observations`` and ``dones`` those of the sequence's last transition and ``discounts``
+    its ``gamma**k``. The priority stays the sampled transition's (its n-step TD error).
+
     Args:
         buffer_size: Max number of transitions, over all envs (as in SB3).
         observation_space: Observation space.
@@ -262,7 +320,14 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         alpha: Priority exponent; 0 is uniform sampling, 1 fully proportional.
         beta: Importance-sampling exponent; 1 fully corrects the sampling bias.
         eps: Added to ``|delta|`` so that no transition gets a zero probability.
+        n_steps: Length of the n-step returns (1: one-step transitions, ``discounts`` None).
+        gamma: Discount factor of the n-step returns (the algorithm's; unused when
+            ``n_steps`` is 1).
     """
+
+    # Class defaults: a buffer pickled before n-step returns existed loads as one-step.
+    n_steps: int = 1
+    gamma: float = 0.99
 
     def __init__(
         self,
@@ -276,6 +341,8 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         alpha: float = 0.6,
         beta: float = 0.4,
         eps: float = 1e-6,
+        n_steps: int = 1,
+        gamma: float = 0.99,
     ) -> None:
         if optimize_memory_usage:
             raise ValueError("PrioritizedReplayBuffer does not support optimize_memory_usage=True")
@@ -286,6 +353,10 @@ class PrioritizedReplayBuffer(ReplayBuffer):
             )
         if eps <= 0:
             raise ValueError(f"eps must be > 0, got {eps}")
+        if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
+            raise ValueError(f"n_steps must be an integer >= 1, got {n_steps!r}")
+        if not 0.0 < gamma <= 1.0:
+            raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
         super().__init__(
             buffer_size,
             observation_space,
@@ -296,6 +367,8 @@ class PrioritizedReplayBuffer(ReplayBuffer):
             handle_timeout_termination=handle_timeout_termination,
         )
         self.eps = float(eps)
+        self.n_steps = n_steps
+        self.gamma = float(gamma)
         self._alpha = self._check_exponent("alpha", alpha)
         self.beta = beta
         # ReplayBuffer has already divided buffer_size by n_envs: one leaf per (pos, env) slot.
@@ -452,17 +525,43 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         SB3 2.9's ``_get_samples(batch_inds, env)`` draws ``env_indices`` uniformly inside,
         which would break the mapping flat index -> transition, hence this small twin.
         """
-        next_obs = self.next_observations[batch_inds, env_indices, :]
-        # As SB3: only dones that are not timeouts are terminal.
-        dones = self.dones[batch_inds, env_indices] * (1 - self.timeouts[batch_inds, env_indices])
+        next_rows, dones, rewards, discounts = self._targets_at(batch_inds, env_indices, env)
         data = (
             self._normalize_obs(self.observations[batch_inds, env_indices, :], env),
             self.actions[batch_inds, env_indices, :],
-            self._normalize_obs(next_obs, env),
-            dones.reshape(-1, 1),
-            self._normalize_reward(self.rewards[batch_inds, env_indices].reshape(-1, 1), env),
+            self._normalize_obs(self.next_observations[next_rows, env_indices, :], env),
+            dones,
+            rewards,
         )
-        return ReplayBufferSamples(*tuple(map(self.to_torch, data)))  # type: ignore[arg-type]
+        return ReplayBufferSamples(
+            *tuple(map(self.to_torch, data)),  # type: ignore[arg-type]
+            discounts=None if discounts is None else self.to_torch(discounts),
+        )
+
+    def _targets_at(
+        self, batch_inds: np.ndarray, env_indices: np.ndarray, env: VecNormalize | None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray | None]:
+        """What the TD target needs of the transitions at ``(batch_inds, env_indices)``: the rows
+        of their bootstrap observations, ``dones`` and ``rewards`` ``(batch, 1)`` and the
+        discounts ``(batch, 1)`` (``None``: one step, ``gamma``)."""
+        if self.n_steps == 1:
+            # As SB3: only dones that are not timeouts are terminal.
+            done = self.dones[batch_inds, env_indices] * (
+                1 - self.timeouts[batch_inds, env_indices]
+            )
+            reward = self._normalize_reward(self.rewards[batch_inds, env_indices], env)
+            return batch_inds, done.reshape(-1, 1), reward.reshape(-1, 1), None
+        returns, discounts, last, terminal = n_step_returns(
+            self._normalize_reward(self.rewards, env),
+            self.dones,
+            self.timeouts,
+            batch_inds,
+            env_indices,
+            self.n_steps,
+            self.gamma,
+            newest_row=(self.pos - 1) % self.buffer_size,
+        )
+        return last, terminal.reshape(-1, 1), returns.reshape(-1, 1), discounts.reshape(-1, 1)
 
     def reset(self) -> None:
         """Empty the buffer, its priorities and the max-priority tracker."""
@@ -489,20 +588,19 @@ class PrioritizedDictReplayBuffer(PrioritizedReplayBuffer, DictReplayBuffer):
         env: VecNormalize | None = None,
     ) -> DictReplayBufferSamples:
         """SB3's ``DictReplayBuffer._get_samples`` with the env column given instead of drawn."""
+        next_rows, dones, rewards, discounts = self._targets_at(batch_inds, env_indices, env)
         obs = self._normalize_obs(
             {key: o[batch_inds, env_indices, :] for key, o in self.observations.items()}, env
         )
         next_obs = self._normalize_obs(
-            {key: o[batch_inds, env_indices, :] for key, o in self.next_observations.items()}, env
+            {key: o[next_rows, env_indices, :] for key, o in self.next_observations.items()}, env
         )
         assert isinstance(obs, dict) and isinstance(next_obs, dict)
-        dones = self.dones[batch_inds, env_indices] * (1 - self.timeouts[batch_inds, env_indices])
         return DictReplayBufferSamples(
             observations={key: self.to_torch(o) for key, o in obs.items()},
             actions=self.to_torch(self.actions[batch_inds, env_indices]),
             next_observations={key: self.to_torch(o) for key, o in next_obs.items()},
-            dones=self.to_torch(dones).reshape(-1, 1),
-            rewards=self.to_torch(
-                self._normalize_reward(self.rewards[batch_inds, env_indices].reshape(-1, 1), env)
-            ),
+            dones=self.to_torch(dones),
+            rewards=self.to_torch(rewards),
+            discounts=None if discounts is None else self.to_torch(discounts),
         )

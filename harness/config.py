@@ -382,6 +382,11 @@ class AlgoConfig(_Section):
     max_grad_norm: PositiveFloat = 10.0
     prioritized: bool = True
     per_eps: PositiveFloat = 1e-6
+    n_steps: Annotated[int, Field(ge=1, le=100)] = 1
+    """n-step returns (Sutton and Barto 2018, §7.1): the TD target sums ``n_steps`` discounted
+    rewards before it bootstraps, cut at an episode's end. 1: the one-step target (the thesis).
+    In the prioritized buffers (any observation), or SB3's ``NStepReplayBuffer`` (thesis
+    observation only) when ``prioritized`` is false."""
     device: str = "auto"
     threads: Annotated[int, Field(ge=1, le=MAX_THREADS)] | None = None
     """torch CPU threads (``torch.set_num_threads``); ``null`` keeps torch's default (one per
@@ -570,6 +575,16 @@ class ExperimentConfig(_Section):
             raise ValueError(
                 "algo.action_mask: true needs eval.shield: true (a policy trained behind the "
                 "mask is tested behind it)"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _n_step_buffer_exists(self) -> ExperimentConfig:
+        # SB3's own Dict buffer has no n-step variant; the prioritized ones do.
+        if self.algo.n_steps > 1 and not self.algo.prioritized and self.env.observation != "thesis":
+            raise ValueError(
+                f"algo.n_steps: {self.algo.n_steps} needs algo.prioritized: true with "
+                f"env.observation {self.env.observation!r} (SB3 has no n-step Dict buffer)"
             )
         return self
 

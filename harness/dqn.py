@@ -159,7 +159,8 @@ class DoubleDQN(DQN):
         replay_buffer_class: Replay buffer class, e.g. :class:`PrioritizedReplayBuffer`.
         replay_buffer_kwargs: Its keyword arguments, e.g. ``dict(alpha=0.6, beta=0.4)``.
         optimize_memory_usage: As SB3 (not supported by the prioritized buffer).
-        n_steps: n-step returns with SB3's buffer (only when ``replay_buffer_class`` is None).
+        n_steps: n-step returns with SB3's buffer (only when ``replay_buffer_class`` is None;
+            the prioritized buffers take ``n_steps`` and ``gamma`` in ``replay_buffer_kwargs``).
         target_update_interval: Env steps between target network updates.
         exploration_fraction: Fraction of training over which epsilon decays.
         exploration_initial_eps: Initial epsilon.

@@ -91,7 +91,14 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
     buffer_kwargs: dict[str, Any] | None = None
     buffer_class: type[PrioritizedReplayBuffer] | None = None
     if algo.prioritized:
-        buffer_kwargs = {"alpha": first.alpha, "beta": first.beta.start, "eps": algo.per_eps}
+        buffer_kwargs = {
+            "alpha": first.alpha,
+            "beta": first.beta.start,
+            "eps": algo.per_eps,
+            # As SB3 asks of a custom buffer with n-step returns.
+            "n_steps": algo.n_steps,
+            "gamma": algo.gamma,
+        }
         dict_obs = isinstance(venv.observation_space, spaces.Dict)
         buffer_class = PrioritizedDictReplayBuffer if dict_obs else PrioritizedReplayBuffer
     return DoubleDQN(
@@ -106,6 +113,8 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
         gradient_steps=first.epochs[0][1],
         replay_buffer_class=buffer_class,
         replay_buffer_kwargs=buffer_kwargs,
+        # SB3 builds its NStepReplayBuffer from this when no buffer class is given.
+        n_steps=1 if algo.prioritized else algo.n_steps,
         target_update_interval=algo.target_update_interval,
         # ε, β and the learning rate's schedules are installed by apply_phase, in one place.
         max_grad_norm=algo.max_grad_norm,

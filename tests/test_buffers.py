@@ -12,6 +12,7 @@ import torch as th
 from gymnasium import spaces
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from stable_baselines3.common.buffers import NStepReplayBuffer
 from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.common.utils import set_random_seed
 
@@ -21,6 +22,7 @@ from harness.buffers import (
     PrioritizedReplayBufferSamples,
     SumTree,
     importance_weights,
+    n_step_returns,
 )
 
 OBS_SPACE = spaces.Box(-1e6, 1e6, shape=(2,), dtype=np.float32)
@@ -423,3 +425,107 @@ def test_pickle_round_trip_keeps_priorities(
     np.testing.assert_array_equal(restored.priorities, buffer.priorities)
     np.testing.assert_array_equal(restored._tree.nodes, buffer._tree.nodes)
     assert (restored.alpha, restored.beta, restored.max_priority) == (0.5, 0.4, buffer.max_priority)
+
+
+# ---------------------------------------------------------------------------- n-step returns
+def test_n_step_returns_hand_computed() -> None:
+    # One env column of 6 rows, gamma 0.5, n 3; row 2 ends an episode (done), row 4 is a
+    # timeout, row 5 the newest row (its successor is not stored).
+    rewards = np.array([[1.0], [2.0], [4.0], [8.0], [16.0], [32.0]], dtype=np.float32)
+    dones = np.array([[0], [0], [1], [0], [1], [0]], dtype=np.float32)
+    timeouts = np.array([[0], [0], [0], [0], [1], [0]], dtype=np.float32)
+    rows = np.array([0, 1, 2, 3, 5])
+    returns, discounts, last, terminal = n_step_returns(
+        rewards, dones, timeouts, rows, np.zeros(5, dtype=np.int64), 3, 0.5, newest_row=5
+    )
+    # row 0: 1 + 0.5*2 + 0.25*4, stops at the done of row 2 (terminal: no bootstrap)
+    # row 1: 2 + 0.5*4, done at row 2; row 2: 4, its own done
+    # row 3: 8 + 0.5*16, a timeout at row 4: bootstraps from row 4's next obs with 0.25
+    # row 5: 32, the newest row: bootstraps from its own next obs with 0.5
+    np.testing.assert_allclose(returns, [3.0, 4.0, 4.0, 16.0, 32.0])
+    np.testing.assert_allclose(discounts, [0.125, 0.25, 0.5, 0.25, 0.5])
+    np.testing.assert_array_equal(last, [2, 2, 2, 4, 5])
+    np.testing.assert_array_equal(terminal, [1, 1, 1, 0, 0])
+
+
+def test_n_step_returns_wrap_around_a_full_buffer_but_not_past_the_newest_row() -> None:
+    # 4 rows, full, pos = 2: the newest row is 1, the oldest 2. Two env columns differ.
+    rewards = np.array([[1.0, 10.0], [2.0, 20.0], [3.0, 30.0], [4.0, 40.0]], dtype=np.float32)
+    zeros = np.zeros((4, 2), dtype=np.float32)
+    returns, discounts, last, terminal = n_step_returns(
+        rewards, zeros, zeros, np.array([3, 3, 0, 2]), np.array([0, 1, 1, 0]), 3, 0.5, 1
+    )
+    # (3, env 0): rows 3, 0, 1 -> 4 + 0.5*1 + 0.25*2 (row 1 is the newest: the sequence ends)
+    # (3, env 1): 40 + 0.5*10 + 0.25*20; (0, env 1): rows 0, 1 -> 10 + 0.5*20
+    # (2, env 0): rows 2, 3, 0 -> 3 + 0.5*4 + 0.25*1, full length
+    np.testing.assert_allclose(returns, [5.0, 50.0, 20.0, 5.25])
+    np.testing.assert_allclose(discounts, [0.125, 0.125, 0.25, 0.125])
+    np.testing.assert_array_equal(last, [1, 1, 1, 0])
+    np.testing.assert_array_equal(terminal, [0, 0, 0, 0])
+
+
+def test_n_step_samples_match_sb3s_n_step_buffer(
+    make_buffer: Callable[..., PrioritizedReplayBuffer],
+) -> None:
+    # Same transitions in SB3's NStepReplayBuffer (one env: its env draw is always 0) and in
+    # ours: every row gives the same return, discount, bootstrap state and terminal flag.
+    ours = make_buffer(8, n_steps=3, gamma=0.9)
+    sb3 = NStepReplayBuffer(8, OBS_SPACE, ACTION_SPACE, device="cpu", n_steps=3, gamma=0.9)
+    ends = {2: (True, False), 6: (True, True), 9: (True, False)}  # step: (done, truncated)
+    for step in range(11):  # wraps around: rows hold steps 3..10, pos = 3
+        done, truncated = ends.get(step, (False, False))
+        add_step(ours, step, done, truncated)
+        add_step(sb3, step, done, truncated)
+    rows = np.arange(8)
+    expected = sb3._get_samples(rows)
+    got = ours._get_samples_at(rows, np.zeros(8, dtype=np.int64))
+    th.testing.assert_close(got.rewards, expected.rewards)
+    th.testing.assert_close(got.discounts, expected.discounts)
+    th.testing.assert_close(got.dones, expected.dones)
+    np.testing.assert_array_equal(
+        first_values(got.next_observations), first_values(expected.next_observations)
+    )
+    assert got.rewards.shape == got.discounts.shape == got.dones.shape == (8, 1)
+    assert (got.discounts < 0.9).any() and (got.discounts == 0.9).any()  # mixed lengths
+
+
+def test_prioritized_n_step_sample_carries_discounts_and_one_step_none(
+    make_buffer: Callable[..., PrioritizedReplayBuffer],
+) -> None:
+    one, three = make_buffer(16, n_envs=2), make_buffer(16, n_envs=2, n_steps=3, gamma=0.5)
+    for step in range(5):
+        add_step(one, step)
+        add_step(three, step)
+    np.random.seed(0)  # noqa: NPY002
+    assert one.sample(6).discounts is None
+    batch = three.sample(6)
+    # The transition of (step, env) holds reward 100*step + env: recompute its 3-step return.
+    step, env = np.divmod(batch.indices, 2)
+    k = np.minimum(3, 5 - step)  # step 4 is the newest row
+    expected = [
+        sum(0.5**i * (100.0 * (s + i) + e) for i in range(n))
+        for s, e, n in zip(step, env, k, strict=True)
+    ]
+    np.testing.assert_allclose(batch.rewards.numpy()[:, 0], expected)
+    np.testing.assert_allclose(batch.discounts.numpy()[:, 0], 0.5**k)
+    np.testing.assert_allclose(
+        first_values(batch.next_observations), 10.0 * (step + k - 1) + env + 0.5
+    )
+
+
+@pytest.mark.parametrize("n_steps", [0, 1.5, True])
+def test_n_steps_must_be_a_positive_integer(n_steps: Any) -> None:
+    with pytest.raises(ValueError, match="n_steps must be an integer >= 1"):
+        PrioritizedReplayBuffer(8, OBS_SPACE, ACTION_SPACE, device="cpu", n_steps=n_steps)
+
+
+def test_a_buffer_pickled_before_n_step_loads_as_one_step() -> None:
+    buffer = PrioritizedReplayBuffer(8, OBS_SPACE, ACTION_SPACE, device="cpu")
+    add_step(buffer, 0)
+    state = buffer.__dict__.copy()
+    del state["n_steps"], state["gamma"]  # what an older pickle holds
+    old = PrioritizedReplayBuffer.__new__(PrioritizedReplayBuffer)
+    old.__dict__.update(state)
+    restored = pickle.loads(pickle.dumps(old))
+    assert restored.n_steps == 1
+    assert restored.sample(2).discounts is None

@@ -4,15 +4,19 @@ from __future__ import annotations
 
 import csv
 import json
+import pickle
 import subprocess
 import sys
 from datetime import datetime, timezone
 from pathlib import Path
 
+import numpy as np
 import pytest
+from stable_baselines3.common.buffers import NStepReplayBuffer
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from harness import DoubleDQN, DuelingDQNPolicy
+from harness.buffers import PrioritizedDictReplayBuffer, PrioritizedReplayBuffer
 from harness.checkpoints import complete_checkpoints, latest_checkpoint
 from harness.cli import main
 from harness.config import load_config
@@ -155,6 +159,38 @@ def test_masked_training_never_hits_a_wall(tmp_path, observation):
     assert model.action_space.n == (6 if observation == "teammap+frontier_step" else 5)
     assert main(["eval", str(path), "--episodes", "2"]) == 0  # shielded test policy
     assert json.loads((path / "eval-2ep.json").read_text())["wall_hits_mean"] == 0
+
+
+@pytest.mark.parametrize(
+    ("observation", "prioritized", "buffer_class"),
+    [
+        ("thesis", True, PrioritizedReplayBuffer),
+        ("teammap", True, PrioritizedDictReplayBuffer),
+        ("thesis", False, NStepReplayBuffer),
+    ],
+)
+def test_n_step_returns_reach_the_buffer_from_the_config(
+    tmp_path, observation, prioritized, buffer_class
+):
+    teammap = ["--set", "env.observation=teammap", "--set", "algo.policy=TeamMapPolicy"]
+    rc = main(
+        [
+            "run", str(SMOKE), "--runs-dir", str(tmp_path), "--no-progress",
+            "--set", "algo.n_steps=3", "--set", "algo.gamma=0.5",
+            "--set", f"algo.prioritized={str(prioritized).lower()}",
+            *(teammap if observation == "teammap" else []),
+            "--set", "phases.initial.timesteps=600", "--set", "phases.optimizing.timesteps=200",
+            "--set", "eval.every=0", "--set", "checkpoint.every=400",
+        ]
+    )  # fmt: skip
+    assert rc == 0
+    (path,) = tmp_path.iterdir()
+    with (latest_checkpoint(path / "checkpoints") / "replay_buffer.pkl").open("rb") as f:
+        buffer = pickle.load(f)
+    assert type(buffer) is buffer_class
+    assert (buffer.n_steps, buffer.gamma) == (3, 0.5)
+    discounts = buffer.sample(64).discounts.numpy()
+    assert set(np.unique(discounts)) <= {0.5, 0.25, 0.125} and 0.125 in discounts
 
 
 def test_run_folders_are_never_reused():

@@ -552,6 +552,8 @@ class PrioritizedReplayBuffer(ReplayBuffer):
             reward = self._normalize_reward(self.rewards[batch_inds, env_indices], env)
             return batch_inds, done.reshape(-1, 1), reward.reshape(-1, 1), None
         returns, discounts, last, terminal = n_step_returns(
+            # With a VecNormalize (the harness has none) this normalises the whole reward array
+            # per sample: correct, if wasteful; the scale is elementwise, as in SB3.
             self._normalize_reward(self.rewards, env),
             self.dones,
             self.timeouts,

@@ -584,7 +584,8 @@ class ExperimentConfig(_Section):
         if self.algo.n_steps > 1 and not self.algo.prioritized and self.env.observation != "thesis":
             raise ValueError(
                 f"algo.n_steps: {self.algo.n_steps} needs algo.prioritized: true with "
-                f"env.observation {self.env.observation!r} (SB3 has no n-step Dict buffer)"
+                f"env.observation {self.env.observation!r} (SB3 has no n-step Dict buffer; "
+                "the prioritized one samples uniformly with alpha 0)"
             )
         return self
 

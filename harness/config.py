@@ -356,6 +356,22 @@ class VecConfig(_Section):
     """Processes that step the copies; 0 steps them in the training process."""
 
 
+class ImitationConfig(_Section):
+    """DQfD's large-margin loss towards the frontier step (Hester et al. 2018, eq. 2).
+
+    Every sampled transition adds ``weight * (max_a [Q(s, a) + margin * (a != step)] -
+    Q(s, step))`` to its TD loss: the network's greedy policy is the step (with
+    ``env.frontier_claims``, the frontier planner's move) until the TD targets show another move
+    to be worth more than about ``margin``. The step is computed by the env in every state, so
+    the "demonstrations" are every transition the agents collect."""
+
+    margin: Annotated[float, Field(ge=0.0)] = 0.8
+    """The lead the step's Q-value must have over every other action's (reward units: a new
+    cell is +2, a move -1)."""
+    weight: Annotated[float, Field(ge=0.0)] = 1.0
+    """The loss's weight beside the TD (Huber) loss: DQfD's lambda_2."""
+
+
 class AlgoConfig(_Section):
     """The learner: ``DoubleDQN`` with its policy, buffer and optimizer (thesis §2.9-2.11, §3.4)."""
 
@@ -397,6 +413,10 @@ class AlgoConfig(_Section):
     wall or the grid's edge next to it) are never chosen, neither greedily nor at random, and
     never bootstrapped from (the TD target's max). The policy acts behind the mask at test time
     too: it needs ``eval.shield: true``."""
+
+    imitation: ImitationConfig | None = None
+    """DQfD's large-margin loss towards the frontier step (needs ``env.frontier_action: true``);
+    ``null``: none."""
 
     features_dim: PositiveInt = 256
     """TeamMap policies: width of the layer that joins the image branches and the vector."""
@@ -575,6 +595,16 @@ class ExperimentConfig(_Section):
             raise ValueError(
                 "algo.action_mask: true needs eval.shield: true (a policy trained behind the "
                 "mask is tested behind it)"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _imitation_has_an_expert(self) -> ExperimentConfig:
+        # The expert's action is the env's frontier step: without it there is nothing to copy.
+        if self.algo.imitation is not None and not self.env.frontier_action:
+            raise ValueError(
+                "algo.imitation needs env.frontier_action: true (the loss favours the frontier "
+                "step, the expert's move)"
             )
         return self
 

@@ -19,7 +19,7 @@ from envs.coverage.observations import blocked_moves
 from harness.buffers import PrioritizedReplayBuffer
 from harness.policies import PerAgentQNetwork
 from harness.registry import POLICIES
-from harness.targets import double_q_target, max_q_target
+from harness.targets import double_q_target, large_margin_loss, max_q_target
 
 __all__ = ["DoubleDQN", "blocked_actions", "per_agent_loss", "resolve_optimizer_class"]
 
@@ -126,6 +126,12 @@ class DoubleDQN(DQN):
       ε-random one (uniform over the free moves) in :meth:`predict`, and the next-state
       max/argmax of the TD target (invalid-action masking, Huang & Ontañón 2022). The random
       actions before ``learning_starts`` are SB3's, unmasked.
+    * ``expert_action=a`` adds DQfD's large-margin loss (Hester et al. 2018;
+      :func:`harness.targets.large_margin_loss`) towards action ``a`` to every sample's TD loss,
+      ``margin_weight * max_a [Q(s, a) + margin * (a != a_E)] - Q(s, a_E)``: the greedy policy
+      follows the expert's action (the env's frontier step, whose move is the frontier planner's
+      with ``frontier_claims``) unless the TD targets show another action to be worth more than
+      about ``margin``. The priorities stay ``|TD error|``.
     * The names of :data:`harness.registry.POLICIES` select the harness's policies
       (``"DuelingMlpPolicy"``, ``"TeamMapPolicy"``, ``"DuelingTeamMapPolicy"``).
 
@@ -174,6 +180,10 @@ class DoubleDQN(DQN):
         seed: Random seed.
         device: Torch device.
         double_q: Use the Double-DQN target.
+        action_mask: Leave out the moves the observation shows to be blocked.
+        expert_action: The action DQfD's large-margin loss favours; ``None``: no such loss.
+        margin: The lead over every other action's value the loss asks of ``expert_action``.
+        margin_weight: The loss's weight beside the TD loss (DQfD's lambda_2).
         _init_setup_model: Build the networks now (``False`` is used by ``load``).
     """
 
@@ -189,6 +199,10 @@ class DoubleDQN(DQN):
     phase_start: int = 0
     #: Transitions in the current phase; ``None``: SB3's own progress (no phases).
     phase_timesteps: int | None = None
+    # Class defaults, so that models saved before the imitation loss existed load without it.
+    expert_action: int | None = None
+    margin: float = 0.8
+    margin_weight: float = 1.0
 
     def __init__(
         self,
@@ -219,6 +233,9 @@ class DoubleDQN(DQN):
         device: th.device | str = "auto",
         double_q: bool = True,
         action_mask: bool = False,
+        expert_action: int | None = None,
+        margin: float = 0.8,
+        margin_weight: float = 1.0,
         _init_setup_model: bool = True,
     ) -> None:
         # Copy: the caller's dict must not change, and the resolved class (not a string) is
@@ -257,6 +274,19 @@ class DoubleDQN(DQN):
         )
         self.double_q = double_q
         self.action_mask = action_mask
+        if expert_action is not None and not 0 <= expert_action < self.action_space.n:  # type: ignore[attr-defined]
+            raise ValueError(
+                f"expert_action {expert_action} is not an action of {self.action_space}"
+            )
+        if margin < 0 or margin_weight < 0:
+            raise ValueError(
+                f"margin and margin_weight must be >= 0, got {margin} and {margin_weight}"
+            )
+        self.expert_action = expert_action
+        self.margin = float(margin)
+        self.margin_weight = float(margin_weight)
+        # (margin loss, expert agreement) of each gradient step since the last log.
+        self._imitation_stats: list[tuple[float, float]] = []
         if _init_setup_model:
             self._setup_model()
 
@@ -334,7 +364,12 @@ class DoubleDQN(DQN):
     def _excluded_save_params(self) -> list[str]:
         # Both schedules are rebuilt by _setup_model on load; saving them would only pickle
         # whatever closure a callback installed (possibly holding the callback or the model).
-        return [*super()._excluded_save_params(), "exploration_schedule", "beta_schedule"]
+        return [
+            *super()._excluded_save_params(),
+            "exploration_schedule",
+            "beta_schedule",
+            "_imitation_stats",
+        ]
 
     @property
     def agent_sets(self) -> int:
@@ -369,6 +404,11 @@ class DoubleDQN(DQN):
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/loss", np.mean(losses))
         self.logger.record("train/mean_td_error", np.mean(td_errors))
+        if self._imitation_stats:
+            margin_loss, agreement = np.mean(self._imitation_stats, axis=0)
+            self.logger.record("train/margin_loss", margin_loss)
+            self.logger.record("train/expert_agreement", agreement)
+            self._imitation_stats.clear()
         if prioritized:
             self.logger.record("train/beta", buffer.beta)  # type: ignore[union-attr]
             self.logger.record("train/alpha", buffer.alpha)  # type: ignore[union-attr]
@@ -406,11 +446,15 @@ class DoubleDQN(DQN):
                     replay_data.rewards, replay_data.dones, discounts, next_q_target, blocked
                 )
 
-        current_q = th.gather(
-            self.q_net(replay_data.observations), dim=1, index=replay_data.actions.long()
-        )
+        q_values = self.q_net(replay_data.observations)
+        current_q = th.gather(q_values, dim=1, index=replay_data.actions.long())
         # Per-sample Huber loss so that the IS weights can scale each term.
         per_sample_loss = F.smooth_l1_loss(current_q, target_q, reduction="none")
+        if self.expert_action is not None:
+            margin_loss = large_margin_loss(q_values, self.expert_action, self.margin)
+            per_sample_loss = per_sample_loss + self.margin_weight * margin_loss
+            agreement = (q_values.argmax(dim=1) == self.expert_action).float().mean()
+            self._imitation_stats.append((margin_loss.mean().item(), agreement.item()))
         weights = getattr(replay_data, "weights", None)
         sets = self.agent_sets
         if sets > 1:

@@ -1,4 +1,4 @@
-"""TD targets for Q-learning, as small pure torch functions.
+"""TD targets for Q-learning, and the imitation margin beside them, as small pure torch functions.
 
 Both functions follow SB3's conventions: ``rewards`` and ``dones`` are ``(batch, 1)`` float
 tensors (``(batch,)`` is accepted and reshaped), the next-state Q-values are
@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import torch as th
 
-__all__ = ["double_q_target", "max_q_target"]
+__all__ = ["double_q_target", "large_margin_loss", "max_q_target"]
 
 
 def _as_column(x: th.Tensor, name: str, batch_size: int) -> th.Tensor:
@@ -118,3 +118,36 @@ def double_q_target(
     greedy_actions = _allowed(next_q_online, blocked).argmax(dim=1, keepdim=True)
     next_q = th.gather(next_q_target, dim=1, index=greedy_actions)
     return rewards + discounts * (1.0 - dones) * next_q
+
+
+def large_margin_loss(q: th.Tensor, expert_actions: th.Tensor | int, margin: float) -> th.Tensor:
+    """DQfD's supervised large-margin loss (Hester et al., 2018, eq. 2), per sample.
+
+    ``max_a [Q(s, a) + l(a_E, a)] - Q(s, a_E)`` with ``l(a_E, a) = margin`` for ``a != a_E``
+    and 0 for the expert's action ``a_E``. It is 0 once the expert's action leads every other
+    action by at least ``margin``, and otherwise pulls the expert's value up and the best rival's
+    down: the greedy policy then copies the expert wherever the TD loss has no evidence that
+    another action is worth more than ``margin`` more.
+
+    Args:
+        q: Online Q-values of the observations, ``(batch, n_actions)``.
+        expert_actions: The expert's action per sample, ``(batch,)`` or ``(batch, 1)`` integers,
+            or one action index for every sample.
+        margin: ``l``, the lead asked of the expert's action (>= 0).
+
+    Returns:
+        The loss per sample, ``(batch, 1)``, >= 0.
+    """
+    if q.dim() != 2:
+        raise ValueError(f"Q-values must be (batch, n_actions), got {tuple(q.shape)}")
+    if margin < 0:
+        raise ValueError(f"margin must be >= 0, got {margin}")
+    batch_size, n_actions = q.shape
+    if isinstance(expert_actions, int):
+        expert = th.full((batch_size, 1), expert_actions, dtype=th.long, device=q.device)
+    else:
+        expert = _as_column(expert_actions, "expert_actions", batch_size).long()
+    if bool(((expert < 0) | (expert >= n_actions)).any()):
+        raise ValueError(f"expert actions must lie in [0, {n_actions})")
+    bonus = th.full_like(q, float(margin)).scatter(1, expert, 0.0)
+    return (q + bonus).max(dim=1, keepdim=True).values - th.gather(q, 1, expert)

@@ -33,6 +33,7 @@ from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 from stable_baselines3.common.utils import set_random_seed
 from stable_baselines3.common.vec_env import VecEnv
 
+from envs.coverage.types import FRONTIER_STEP
 from harness.adapters import make_vec_env
 from harness.buffers import PrioritizedDictReplayBuffer, PrioritizedReplayBuffer
 from harness.callbacks import (
@@ -120,6 +121,10 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
         max_grad_norm=algo.max_grad_norm,
         double_q=algo.double_q,
         action_mask=algo.action_mask,
+        # DQfD's margin loss: the env's frontier step is the expert's action.
+        expert_action=None if algo.imitation is None else FRONTIER_STEP,
+        margin=0.8 if algo.imitation is None else algo.imitation.margin,
+        margin_weight=1.0 if algo.imitation is None else algo.imitation.weight,
         # Enough finished episodes for the epochs table's median (one entry per slot).
         stats_window_size=max(
             100, max(p.epochs_window for p in config.phases) * config.env.n_agents

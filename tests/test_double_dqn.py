@@ -331,6 +331,81 @@ def test_action_mask_is_saved_with_the_model(tmp_path: Path) -> None:
     assert make_linear_model().action_mask is False
 
 
+def test_margin_loss_is_added_to_the_td_loss_hand_computed() -> None:
+    model = make_linear_model(expert_action=1, margin=0.8, margin_weight=0.5)
+    add_transition(model, reward=1.0)
+    model.train(gradient_steps=1, batch_size=4)
+    # TD: Huber(0 - 1) = 0.5 (as in test_double_q_update_hand_computed).
+    # Margin: Q(s) = [0, 0], expert 1: max(0 + 0.8, 0) - 0 = 0.8, weighted 0.5 -> 0.4.
+    assert logged(model, "train/loss") == pytest.approx(0.5 + 0.4)
+    assert logged(model, "train/margin_loss") == pytest.approx(0.8)
+    # argmax of the tie [0, 0] is action 0, not the expert's
+    assert logged(model, "train/expert_agreement") == 0.0
+    assert logged(model, "train/mean_td_error") == pytest.approx(1.0)  # the priorities' error
+
+
+def _trained_greedy_actions(**kwargs: Any) -> np.ndarray:
+    """Greedy actions on fresh observations after training on uniformly random actions in a
+    3-action TinyEnv (reward 1 for action 0)."""
+    set_random_seed(0)
+    env = DummyVecEnv([lambda: TinyEnv(n_actions=3)])
+    model = DoubleDQN(
+        "MlpPolicy", env, policy_kwargs=dict(net_arch=[16]), learning_rate=1e-2, gamma=0.5,
+        buffer_size=500, batch_size=32, device="cpu", seed=0, **kwargs,
+    )
+    model.set_logger(configure(folder=None, format_strings=[]))
+    assert model.replay_buffer is not None
+    rng = np.random.default_rng(0)
+    for _ in range(300):
+        obs = rng.uniform(-1, 1, size=(1, 2)).astype(np.float32)
+        action = int(rng.integers(3))
+        model.replay_buffer.add(
+            obs, obs, np.array([[action]]), np.array([float(action == 0)]), np.array([False]), [{}]
+        )
+    model.train(gradient_steps=300, batch_size=32)
+    test_obs = rng.uniform(-1, 1, size=(50, 2)).astype(np.float32)
+    actions, _ = model.predict(test_obs, deterministic=True)
+    return actions
+
+
+def test_margin_loss_makes_the_greedy_policy_follow_the_expert() -> None:
+    # Without the loss the greedy policy takes the rewarded action 0; with a margin larger than
+    # the TD evidence for action 0 (worth 1 more) it takes the expert's action 2.
+    assert (_trained_greedy_actions() == 0).mean() > 0.9
+    assert (_trained_greedy_actions(expert_action=2, margin=3.0) == 2).mean() > 0.9
+
+
+def test_full_weight_margin_outweighs_any_evidence() -> None:
+    # Action 0 is worth 1 more than the others, more than the margin of 0.2, yet at weight 1 the
+    # margin term (gradient 1 on every sample) beats the Huber TD term (gradient <= 1 on the
+    # third of the samples that took action 0): the expert's action stays greedy.
+    assert (_trained_greedy_actions(expert_action=2, margin=0.2) == 2).mean() > 0.9
+
+
+def test_small_weight_margin_gives_way_to_evidence() -> None:
+    # The margin term pulls with a constant force (its weight) on every sample; the TD term
+    # holds each action's value with at most (share of samples that took it) x (Huber slope).
+    # Weight 0.05 against a third of the samples: the values move by about 0.15, less than the
+    # evidence (1), so the rewarded action stays greedy.
+    actions = _trained_greedy_actions(expert_action=2, margin=0.2, margin_weight=0.05)
+    assert (actions == 0).mean() > 0.9
+    # Weight 0.5 is above what the TD term can hold (1/3): the expert's action wins.
+    actions = _trained_greedy_actions(expert_action=2, margin=0.2, margin_weight=0.5)
+    assert (actions == 2).mean() > 0.9
+
+
+def test_imitation_settings_are_saved_with_the_model(tmp_path: Path) -> None:
+    make_linear_model(expert_action=1, margin=0.3, margin_weight=2.0).save(tmp_path / "m.zip")
+    loaded = DoubleDQN.load(tmp_path / "m.zip", device="cpu")
+    assert (loaded.expert_action, loaded.margin, loaded.margin_weight) == (1, 0.3, 2.0)
+    assert make_linear_model().expert_action is None
+
+
+def test_expert_action_must_be_an_action() -> None:
+    with pytest.raises(ValueError, match="expert_action 2 is not an action of Discrete"):
+        make_linear_model(expert_action=2)
+
+
 # ------------------------------------------------------------------- schedules and options
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch as th
 
-from harness.targets import double_q_target, max_q_target
+from harness.targets import double_q_target, large_margin_loss, max_q_target
 
 # Two transitions; the second one is terminal.
 REWARDS = th.tensor([[1.0], [0.5]])
@@ -97,3 +97,41 @@ def test_a_row_with_every_action_blocked_is_an_error() -> None:
         max_q_target(REWARDS, DONES, 0.9, NEXT_Q_TARGET, blocked)
     with pytest.raises(ValueError, match="blocked must be"):
         max_q_target(REWARDS, DONES, 0.9, NEXT_Q_TARGET, th.tensor([True, False]))
+
+
+# ------------------------------------------------------------------ DQfD's large-margin loss
+
+
+def test_large_margin_loss_hand_computed() -> None:
+    q = th.tensor([[1.5, 2.0, 0.5], [3.0, 1.0, 2.5], [0.0, 5.0, 1.0]])
+    loss = large_margin_loss(q, th.tensor([1, 0, 1]), margin=0.8)
+    # row 0, expert 1: max(1.5 + .8, 2.0, 0.5 + .8) - 2.0 = 0.3
+    # row 1, expert 0: max(3.0, 1.0 + .8, 2.5 + .8) - 3.0 = 0.3
+    # row 2, expert 1: leads by 4 >= 0.8 -> 0
+    assert loss.shape == (3, 1)
+    assert loss.flatten().tolist() == pytest.approx([0.3, 0.3, 0.0])
+
+
+def test_large_margin_loss_one_expert_action_for_the_batch() -> None:
+    q = th.tensor([[0.0, 0.0], [1.0, 0.0]])
+    # expert 1 everywhere: row 0 max(0.5, 0) - 0 = 0.5; row 1 max(1.5, 0) - 0 = 1.5
+    assert large_margin_loss(q, 1, margin=0.5).flatten().tolist() == pytest.approx([0.5, 1.5])
+    # margin 0: the loss is how far the expert's action is below the best one
+    assert large_margin_loss(q, 1, margin=0.0).flatten().tolist() == pytest.approx([0.0, 1.0])
+
+
+def test_large_margin_gradient_raises_the_expert_and_lowers_the_best_rival() -> None:
+    q = th.tensor([[1.0, 2.0, 0.0]], requires_grad=True)
+    large_margin_loss(q, 2, margin=1.0).sum().backward()
+    assert q.grad is not None
+    assert q.grad.flatten().tolist() == [0.0, 1.0, -1.0]
+
+
+@pytest.mark.parametrize(
+    ("expert", "margin", "message"),
+    [(3, 1.0, "expert actions must lie in"), (-1, 1.0, "expert actions must lie in"),
+     (0, -0.5, "margin must be >= 0")],
+)
+def test_large_margin_loss_rejects_bad_arguments(expert: int, margin: float, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        large_margin_loss(th.zeros(2, 3), expert, margin)

@@ -350,8 +350,16 @@ def _trained_greedy_actions(**kwargs: Any) -> np.ndarray:
     set_random_seed(0)
     env = DummyVecEnv([lambda: TinyEnv(n_actions=3)])
     model = DoubleDQN(
-        "MlpPolicy", env, policy_kwargs=dict(net_arch=[16]), learning_rate=1e-2, gamma=0.5,
-        buffer_size=500, batch_size=32, device="cpu", seed=0, **kwargs,
+        "MlpPolicy",
+        env,
+        policy_kwargs=dict(net_arch=[16]),
+        learning_rate=1e-2,
+        gamma=0.5,
+        buffer_size=500,
+        batch_size=32,
+        device="cpu",
+        seed=0,
+        **kwargs,
     )
     model.set_logger(configure(folder=None, format_strings=[]))
     assert model.replay_buffer is not None

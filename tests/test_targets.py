@@ -129,8 +129,11 @@ def test_large_margin_gradient_raises_the_expert_and_lowers_the_best_rival() -> 
 
 @pytest.mark.parametrize(
     ("expert", "margin", "message"),
-    [(3, 1.0, "expert actions must lie in"), (-1, 1.0, "expert actions must lie in"),
-     (0, -0.5, "margin must be >= 0")],
+    [
+        (3, 1.0, "expert actions must lie in"),
+        (-1, 1.0, "expert actions must lie in"),
+        (0, -0.5, "margin must be >= 0"),
+    ],
 )
 def test_large_margin_loss_rejects_bad_arguments(expert: int, margin: float, message: str) -> None:
     with pytest.raises(ValueError, match=message):

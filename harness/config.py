@@ -370,6 +370,9 @@ class ImitationConfig(_Section):
     cell is +2, a move -1)."""
     weight: Annotated[float, Field(ge=0.0)] = 1.0
     """The loss's weight beside the TD (Huber) loss: DQfD's lambda_2."""
+    same_moves: bool = False
+    """Count the primitive move that the step takes (the compass's mark) as the step: the
+    margin then separates different behaviour only, not two names of the same move."""
 
 
 class AlgoConfig(_Section):

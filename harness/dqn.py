@@ -15,7 +15,7 @@ from stable_baselines3.dqn import DQN
 from stable_baselines3.dqn.policies import DQNPolicy
 from torch.nn import functional as F
 
-from envs.coverage.observations import blocked_moves
+from envs.coverage.observations import blocked_moves, step_equivalents
 from harness.buffers import PrioritizedReplayBuffer
 from harness.policies import PerAgentQNetwork
 from harness.registry import POLICIES
@@ -130,8 +130,11 @@ class DoubleDQN(DQN):
       :func:`harness.targets.large_margin_loss`) towards action ``a`` to every sample's TD loss,
       ``margin_weight * max_a [Q(s, a) + margin * (a != a_E)] - Q(s, a_E)``: the greedy policy
       follows the expert's action (the env's frontier step, whose move is the frontier planner's
-      with ``frontier_claims``) unless the TD targets show another action to be worth more than
-      about ``margin``. The priorities stay ``|TD error|``.
+      with ``frontier_claims``) unless the TD targets hold another action's value higher (how
+      strongly depends on ``margin_weight``: README "Imitating the planner"). With
+      ``same_moves=True`` the primitive move that the step takes (read from the team-map
+      observation's compass, :func:`envs.coverage.observations.step_equivalents`) counts as the
+      expert's action too. The priorities stay ``|TD error|``.
     * The names of :data:`harness.registry.POLICIES` select the harness's policies
       (``"DuelingMlpPolicy"``, ``"TeamMapPolicy"``, ``"DuelingTeamMapPolicy"``).
 
@@ -184,6 +187,7 @@ class DoubleDQN(DQN):
         expert_action: The action DQfD's large-margin loss favours; ``None``: no such loss.
         margin: The lead over every other action's value the loss asks of ``expert_action``.
         margin_weight: The loss's weight beside the TD loss (DQfD's lambda_2).
+        same_moves: Count the moves that do what the frontier step does as the expert's action.
         _init_setup_model: Build the networks now (``False`` is used by ``load``).
     """
 
@@ -203,6 +207,7 @@ class DoubleDQN(DQN):
     expert_action: int | None = None
     margin: float = 0.8
     margin_weight: float = 1.0
+    same_moves: bool = False
 
     def __init__(
         self,
@@ -236,6 +241,7 @@ class DoubleDQN(DQN):
         expert_action: int | None = None,
         margin: float = 0.8,
         margin_weight: float = 1.0,
+        same_moves: bool = False,
         _init_setup_model: bool = True,
     ) -> None:
         # Copy: the caller's dict must not change, and the resolved class (not a string) is
@@ -285,6 +291,7 @@ class DoubleDQN(DQN):
         self.expert_action = expert_action
         self.margin = float(margin)
         self.margin_weight = float(margin_weight)
+        self.same_moves = bool(same_moves)
         # (margin loss, expert agreement) of each gradient step since the last log.
         self._imitation_stats: list[tuple[float, float]] = []
         if _init_setup_model:
@@ -451,9 +458,14 @@ class DoubleDQN(DQN):
         # Per-sample Huber loss so that the IS weights can scale each term.
         per_sample_loss = F.smooth_l1_loss(current_q, target_q, reduction="none")
         if self.expert_action is not None:
-            margin_loss = large_margin_loss(q_values, self.expert_action, self.margin)
+            expert_set = self._step_equivalents(replay_data.observations, q_values)
+            margin_loss = large_margin_loss(q_values, self.expert_action, self.margin, expert_set)
             per_sample_loss = per_sample_loss + self.margin_weight * margin_loss
-            agreement = (q_values.argmax(dim=1) == self.expert_action).float().mean()
+            greedy = q_values.argmax(dim=1, keepdim=True)
+            if expert_set is None:
+                agreement = (greedy == self.expert_action).float().mean()
+            else:
+                agreement = expert_set.gather(1, greedy).float().mean()
             self._imitation_stats.append((margin_loss.mean().item(), agreement.item()))
         weights = getattr(replay_data, "weights", None)
         sets = self.agent_sets
@@ -478,6 +490,16 @@ class DoubleDQN(DQN):
             th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
         self.policy.optimizer.step()
         return loss_value, (current_q.detach() - target_q).abs().reshape(-1)
+
+    def _step_equivalents(self, obs: Any, q_values: th.Tensor) -> th.Tensor | None:
+        """With ``same_moves``: the ``(batch, n_actions)`` actions that do what the frontier
+        step does (:func:`envs.coverage.observations.step_equivalents`), else ``None``."""
+        if not self.same_moves:
+            return None
+        if not isinstance(obs, dict) or "frontier" not in obs:
+            raise ValueError("same_moves needs team-map observations with the frontier compass")
+        same = step_equivalents({"frontier": obs["frontier"].cpu().numpy()})
+        return th.as_tensor(same[:, : q_values.shape[1]], device=q_values.device)
 
     def predict(
         self,

@@ -120,20 +120,31 @@ def double_q_target(
     return rewards + discounts * (1.0 - dones) * next_q
 
 
-def large_margin_loss(q: th.Tensor, expert_actions: th.Tensor | int, margin: float) -> th.Tensor:
+def large_margin_loss(
+    q: th.Tensor,
+    expert_actions: th.Tensor | int,
+    margin: float,
+    expert_set: th.Tensor | None = None,
+) -> th.Tensor:
     """DQfD's supervised large-margin loss (Hester et al., 2018, eq. 2), per sample.
 
     ``max_a [Q(s, a) + l(a_E, a)] - Q(s, a_E)`` with ``l(a_E, a) = margin`` for ``a != a_E``
     and 0 for the expert's action ``a_E``. It is 0 once the expert's action leads every other
     action by at least ``margin``, and otherwise pulls the expert's value up and the best rival's
-    down: the greedy policy then copies the expert wherever the TD loss has no evidence that
-    another action is worth more than ``margin`` more.
+    down: the greedy policy then copies the expert unless the TD loss holds another action's
+    value higher (how strongly depends on the loss's weight, see README "Imitating the planner").
+
+    With ``expert_set`` (actions that do what the expert's action does), ``l`` is 0 on the whole
+    set and the expert's value is the set's best: ``max_a [Q(s, a) + margin * (a not in E)] -
+    max_{a in E} Q(s, a)``, so the margin separates different behaviour only.
 
     Args:
         q: Online Q-values of the observations, ``(batch, n_actions)``.
         expert_actions: The expert's action per sample, ``(batch,)`` or ``(batch, 1)`` integers,
             or one action index for every sample.
         margin: ``l``, the lead asked of the expert's action (>= 0).
+        expert_set: ``(batch, n_actions)`` bool, True for the actions equivalent to the expert's
+            (the expert's own action is always counted), or ``None``.
 
     Returns:
         The loss per sample, ``(batch, 1)``, >= 0.
@@ -149,5 +160,11 @@ def large_margin_loss(q: th.Tensor, expert_actions: th.Tensor | int, margin: flo
         expert = _as_column(expert_actions, "expert_actions", batch_size).long()
     if bool(((expert < 0) | (expert >= n_actions)).any()):
         raise ValueError(f"expert actions must lie in [0, {n_actions})")
-    bonus = th.full_like(q, float(margin)).scatter(1, expert, 0.0)
-    return (q + bonus).max(dim=1, keepdim=True).values - th.gather(q, 1, expert)
+    in_set = th.zeros_like(q, dtype=th.bool).scatter(1, expert, True)
+    if expert_set is not None:
+        if expert_set.shape != q.shape:
+            raise ValueError(f"expert_set must be {tuple(q.shape)}, got {tuple(expert_set.shape)}")
+        in_set = in_set | expert_set.bool()
+    bonus = (~in_set).to(q.dtype) * float(margin)
+    best_expert = q.masked_fill(~in_set, float("-inf")).max(dim=1, keepdim=True).values
+    return (q + bonus).max(dim=1, keepdim=True).values - best_expert

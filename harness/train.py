@@ -125,6 +125,7 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
         expert_action=None if algo.imitation is None else FRONTIER_STEP,
         margin=0.8 if algo.imitation is None else algo.imitation.margin,
         margin_weight=1.0 if algo.imitation is None else algo.imitation.weight,
+        same_moves=algo.imitation is not None and algo.imitation.same_moves,
         # Enough finished episodes for the epochs table's median (one entry per slot).
         stats_window_size=max(
             100, max(p.epochs_window for p in config.phases) * config.env.n_agents

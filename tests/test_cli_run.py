@@ -161,16 +161,18 @@ def test_masked_training_never_hits_a_wall(tmp_path, observation):
     assert json.loads((path / "eval-2ep.json").read_text())["wall_hits_mean"] == 0
 
 
-def test_imitation_config_trains_towards_the_frontier_step(tmp_path):
+@pytest.mark.parametrize("same_moves", [False, True])
+def test_imitation_config_trains_towards_the_frontier_step(tmp_path, same_moves):
     # algo.imitation reaches the model (expert = the frontier step, action 5), its loss is
-    # logged, and a weight that the TD term cannot hold makes the greedy policy the step's.
+    # logged, and a weight that the TD term cannot hold makes the greedy policy the step's
+    # (with same_moves: the step or the move it takes).
     rc = main(
         [
             "run", str(SMOKE), "--runs-dir", str(tmp_path), "--no-progress",
             "--set", "env.observation=teammap", "--set", "algo.policy=TeamMapPolicy",
             "--set", "env.frontier=true", "--set", "env.frontier_action=true",
             "--set", "env.crop=7", "--set", "algo.learning_starts=100",
-            "--set", "algo.imitation={margin: 0.5, weight: 2.0}",
+            "--set", f"algo.imitation={{margin: 0.5, weight: 2.0, same_moves: {same_moves}}}",
             "--set", "phases.initial.timesteps=1200", "--set", "phases.optimizing.timesteps=200",
             "--set", "eval.every=0", "--set", "checkpoint.every=0",
         ]
@@ -179,6 +181,7 @@ def test_imitation_config_trains_towards_the_frontier_step(tmp_path):
     (path,) = tmp_path.iterdir()
     model = DoubleDQN.load(path / "model.zip")
     assert (model.expert_action, model.margin, model.margin_weight) == (5, 0.5, 2.0)
+    assert model.same_moves is same_moves
     events = EventAccumulator(str(path / "tb"))
     events.Reload()
     agreement = [e.value for e in events.Scalars("train/expert_agreement")]

@@ -217,13 +217,20 @@ def interval_cell(stats) -> str:
     return f"{percent(stats[0])} [{percent(stats[1][0])}, {percent(stats[1][1])}]"
 
 
-def test_teammap_step_seeds_row_quotes_the_three_seeds() -> None:
+@pytest.mark.parametrize(
+    ("row_start", "name"),
+    [
+        ("the step config", "teammap_2agents_step"),
+        ("the imitation config", "teammap_2agents_imitation"),
+    ],
+)
+def test_teammap_seeds_row_quotes_the_three_seeds(row_start: str, name: str) -> None:
+    # Seed 0 is the reference; seeds 1 and 2 are in docs/seeds/<name>/<name>-seed<k>.
     from harness.stats import seed_statistics
 
-    (row,) = [r for r in table_rows(TEAMMAP_HEADER) if r["policy"].startswith("the step config")]
-    folders = [ROOT / "runs" / "reference" / "teammap_2agents_step"] + [
-        ROOT / "docs" / "seeds" / "teammap_2agents_step" / f"teammap_2agents_step-seed{k}"
-        for k in (1, 2)
+    (row,) = [r for r in table_rows(TEAMMAP_HEADER) if r["policy"].startswith(row_start)]
+    folders = [ROOT / "runs" / "reference" / name] + [
+        ROOT / "docs" / "seeds" / name / f"{name}-seed{k}" for k in (1, 2)
     ]
     evals = {
         variant: [
@@ -233,7 +240,7 @@ def test_teammap_step_seeds_row_quotes_the_three_seeds() -> None:
     }
     for e in evals[""] + evals["_eval.temperature-0"]:  # the standard 2-agent random episodes
         assert e["seed"] == 1_000_003 and e["episodes"] == 100 and e["shield"] is True
-        assert e["wall_hits_mean"] == 0
+        assert e["wall_hits_mean"] == 0 and e["env"]["n_agents"] == 2
     stats = seed_statistics({k: [e["coverage_mean"] for e in v] for k, v in evals.items()})
     tuned, greedy = stats[""], stats["_eval.temperature-0"]
     assert row["coverage"] == interval_cell((tuned.mean, tuned.mean_ci))

@@ -138,3 +138,14 @@ def test_large_margin_gradient_raises_the_expert_and_lowers_the_best_rival() -> 
 def test_large_margin_loss_rejects_bad_arguments(expert: int, margin: float, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         large_margin_loss(th.zeros(2, 3), expert, margin)
+
+
+def test_large_margin_loss_with_an_expert_set_separates_different_actions_only() -> None:
+    q = th.tensor([[1.0, 2.0, 0.5], [3.0, 1.0, 0.5]])
+    same = th.tensor([[True, False, True], [True, False, True]])  # action 0 does what 2 does
+    loss = large_margin_loss(q, 2, margin=0.8, expert_set=same)
+    # row 0: max(1 + 0, 2 + .8, .5 + 0) - max(1, .5) = 1.8 (action 1 is the different one)
+    # row 1: max(3, 1 + .8, .5) - max(3, .5) = 0: the set's best leads action 1 by 2 >= .8
+    assert loss.flatten().tolist() == pytest.approx([1.8, 0.0])
+    # Without the set, action 0 is a rival like any other: row 1 is max(3 + .8, ...) - .5
+    assert large_margin_loss(q, 2, margin=0.8)[1].item() == pytest.approx(3.3)

@@ -682,3 +682,22 @@ def test_parallel_api_and_seed_tests_pass_with_the_team_map():
             height=10, width=10, n_agents=2, max_steps=40, observation="teammap", crop=5
         )
     )
+
+
+def test_step_equivalents_read_the_compass_marks():
+    from envs.coverage.observations import step_equivalents
+
+    compass = np.array(
+        [
+            [0, 0, 1, 0, 0.2],  # the step goes left
+            [1, 0, 0, 1, 0.1],  # two shortest ways (no claims): up or right
+            [0, 0, 0, 0, 1.0],  # no frontier reachable: the step stays
+        ],
+        dtype=np.float32,
+    )
+    same = step_equivalents({"frontier": compass})
+    assert same.tolist() == [
+        [False, False, True, False, False, True],
+        [True, False, False, True, False, True],
+        [False, False, False, False, True, True],
+    ]

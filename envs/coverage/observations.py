@@ -624,6 +624,26 @@ def blocked_moves(obs: np.ndarray | dict[str, np.ndarray], n_actions: int = 5) -
     return blocked
 
 
+def step_equivalents(obs: dict[str, np.ndarray]) -> np.ndarray:
+    """Which actions do what the frontier step does, per team-map observation: ``(batch, 6)``
+    bool in action order (up, down, left, right, stay, frontier step).
+
+    The step itself, the moves the frontier compass marks (``obs["frontier"][:, :4]``: with
+    ``frontier_claims`` the step's own move; without, every move on a shortest way, among which
+    the step draws), and ``stay`` when none is marked (the step stays when no frontier is
+    reachable). Used by DQfD's margin loss so that it separates different behaviour only.
+
+    Args:
+        obs: A dict of stacked team-map arrays with the ``"frontier"`` compass ``(batch, 5)``.
+    """
+    marks = np.asarray(obs["frontier"])[:, :4] > 0
+    same = np.zeros((marks.shape[0], 6), dtype=bool)
+    same[:, :4] = marks
+    same[:, 4] = ~marks.any(axis=1)
+    same[:, 5] = True
+    return same
+
+
 #: Observation kinds by name (the env's ``observation=`` argument).
 OBSERVATIONS: dict[str, type[ObservationBuilder]] = {
     ThesisObservation.name: ThesisObservation,

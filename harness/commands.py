@@ -112,7 +112,8 @@ def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) ->
     # The model's place in its run folder names the eval file ("best_model", ...): taken from the
     # path as given, so that a symlink to a model elsewhere is named like the link.
     name = Path(os.path.relpath(model_path.absolute(), run_dir.absolute())).with_suffix("")
-    policy = model_policy(model, config.eval.temperature, config.eval.shield)
+    ev = config.eval
+    policy = model_policy(model, ev.temperature, ev.shield, ev.step_bonus)
     return Target(policy, config, str(model_path), run_dir, seed, name.as_posix(), model)
 
 
@@ -341,7 +342,8 @@ def tune_temperature(
         raise TargetError("harness tune needs a trained model, not a baseline")
     rows = []
     for temperature in temperatures:
-        policy = model_policy(target.model, temperature, target.config.eval.shield)
+        ev = target.config.eval
+        policy = model_policy(target.model, temperature, ev.shield, ev.step_bonus)
         summary = summarize(run_episodes(policy, target.config.env, episodes, target.seed))
         rows.append({"temperature": temperature, **{k: summary[k] for k in TUNE_KEYS}})
     return {
@@ -349,6 +351,7 @@ def tune_temperature(
         "seed": target.seed,
         "episodes": episodes,
         "shield": target.config.eval.shield,
+        "step_bonus": target.config.eval.step_bonus,
         "rows": rows,
         "chosen": choose_temperature(rows)["temperature"],
     }
@@ -483,6 +486,7 @@ def evaluate(target: Target, episodes: int, overrides: Sequence[str]) -> tuple[d
         # Only a learned policy has a test temperature (eval.temperature); baselines ignore it.
         "temperature": target.config.eval.temperature if target.run_dir is not None else None,
         "shield": target.config.eval.shield if target.run_dir is not None else None,
+        "step_bonus": target.config.eval.step_bonus if target.run_dir is not None else None,
         "overrides": list(overrides),
         "env": target.config.env.model_dump(mode="json"),
         **summarize(results),

@@ -539,6 +539,10 @@ class EvalConfig(_Section):
     (a wall or the edge next to it) before the choice, so the test policy never hits a wall.
     Applies to ``harness eval``/``tune``, the in-training evaluations and sweeps; training's
     own (ε-greedy) actions are unchanged."""
+    step_bonus: NonNegativeFloat | None = None
+    """Test-time bonus on the frontier step's Q-value (needs ``env.frontier_action``): the
+    greedy test policy leaves the step only for a move the network values more than
+    ``step_bonus`` above it. ``null``: none. Like the temperature, chosen on validation episodes."""
 
     @model_validator(mode="after")
     def _separate_seeds(self) -> EvalConfig:
@@ -598,6 +602,15 @@ class ExperimentConfig(_Section):
             raise ValueError(
                 "algo.action_mask: true needs eval.shield: true (a policy trained behind the "
                 "mask is tested behind it)"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _step_bonus_has_a_step(self) -> ExperimentConfig:
+        if self.eval.step_bonus is not None and not self.env.frontier_action:
+            raise ValueError(
+                "eval.step_bonus needs env.frontier_action: true (the bonus is on the frontier "
+                "step's value)"
             )
         return self
 

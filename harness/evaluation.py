@@ -18,6 +18,7 @@ import numpy as np
 from envs import coverage_v0
 from envs.coverage import CoverageEnv
 from envs.coverage.observations import blocked_moves
+from envs.coverage.types import FRONTIER_STEP
 from harness.config import EnvConfig
 
 #: A batched policy: ``policy(obs, envs)`` maps the observations ``(len(envs) * n_agents, ...)``
@@ -58,7 +59,9 @@ class EpisodeResult:
     and the last step, when asked for."""
 
 
-def model_policy(model: Any, temperature: float = 0.0, shield: bool = False) -> BatchPolicy:
+def model_policy(
+    model: Any, temperature: float = 0.0, shield: bool = False, step_bonus: float | None = None
+) -> BatchPolicy:
     """A batched policy from an SB3 model: greedy (ε = 0) when ``temperature`` is 0, else
     Boltzmann, each agent sampling its action from ``softmax(Q / temperature)``.
 
@@ -68,6 +71,11 @@ def model_policy(model: Any, temperature: float = 0.0, shield: bool = False) -> 
     Reinforcement Learning via Shielding"), so the test policy never hits a wall, and an agent
     whose best Q-value is a blocked move takes its best free one instead of pushing forever.
 
+    With ``step_bonus`` (a model with the frontier step) ``step_bonus`` is added to the step's
+    Q-value before the choice: greedily, the agent leaves the step only for a move the network
+    values more than ``step_bonus`` above it (a conservative, SPIBB-like deviation rule;
+    ``step_bonus`` large is the step's policy, 0 the network's own).
+
     A memoryless greedy policy on a partial observation repeats itself once its surroundings are
     visited (a loop it cannot leave); sampling near-tied actions breaks such loops, while actions
     far below the best (a wall: -10) keep a vanishing probability. The noise of each env copy is
@@ -76,6 +84,8 @@ def model_policy(model: Any, temperature: float = 0.0, shield: bool = False) -> 
     """
     if temperature < 0:
         raise ValueError(f"temperature must be >= 0, got {temperature}")
+    if step_bonus is not None and model.action_space.n <= FRONTIER_STEP:
+        raise ValueError("step_bonus needs a model with the frontier step (env.frontier_action)")
 
     def q_values(obs: np.ndarray) -> np.ndarray:
         import torch as th
@@ -85,10 +95,12 @@ def model_policy(model: Any, temperature: float = 0.0, shield: bool = False) -> 
         if shield:
             # stay is never blocked: a row keeps a finite value
             q[blocked_moves(obs, q.shape[1])] = -np.inf
+        if step_bonus is not None:
+            q[:, FRONTIER_STEP] += step_bonus
         return q
 
     def greedy(obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
-        if shield:
+        if shield or step_bonus is not None:
             return q_values(obs).argmax(axis=1)
         actions, _ = model.policy.predict(obs, deterministic=True)
         return np.asarray(actions)

@@ -426,7 +426,10 @@ def _objective(
         return last["value"]
     ev = config.eval
     results = run_episodes(
-        model_policy(model, ev.temperature, ev.shield), config.env, ev.episodes, ev.validation_seed
+        model_policy(model, ev.temperature, ev.shield, ev.step_bonus),
+        config.env,
+        ev.episodes,
+        ev.validation_seed,
     )
     return float(summarize(results)["coverage_median"])
 

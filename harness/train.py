@@ -215,7 +215,7 @@ class Evaluator:
 
     def __call__(self, model: DoubleDQN) -> None:
         cfg = self.config.eval
-        policy = model_policy(model, cfg.temperature, cfg.shield)
+        policy = model_policy(model, cfg.temperature, cfg.shield, cfg.step_bonus)
         results = run_episodes(policy, self.config.env, cfg.episodes, cfg.validation_seed)
         summary = summarize(results)
         model.logger.record("eval/coverage_median", summary["coverage_median"])

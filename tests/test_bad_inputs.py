@@ -76,6 +76,8 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], str]] = [
      "algo.n_steps: Input should be greater than or equal to 1"),
     ("imitation-without-step", ["run", "{cfg}", "--set", "algo.imitation={{margin: 0.8}}"], {},
      "algo.imitation needs env.frontier_action: true"),
+    ("step-bonus-without-step", ["run", "{cfg}", "--set", "eval.step_bonus=1"], {},
+     "eval.step_bonus needs env.frontier_action: true"),
     ("imitation-negative-margin", ["run", "{cfg}", "--set", "algo.imitation={{margin: -1}}"], {},
      "algo.imitation.margin: Input should be greater than or equal to 0"),
     ("unknown-policy", ["run", "{cfg}", "--set", "algo.policy=CnnPolicy"], {},

@@ -187,6 +187,11 @@ def test_imitation_config_trains_towards_the_frontier_step(tmp_path, same_moves)
     agreement = [e.value for e in events.Scalars("train/expert_agreement")]
     assert "train/margin_loss" in events.Tags()["scalars"]
     assert agreement[-1] > 0.9
+    # The test-time step bonus reaches the evaluation and its file.
+    args = ["eval", str(path), "--episodes", "1", "--set", "eval.step_bonus=1.5"]
+    assert main(args) == 0
+    (saved,) = path.glob("eval-*step_bonus*.json")
+    assert json.loads(saved.read_text())["step_bonus"] == 1.5
 
 
 @pytest.mark.parametrize(

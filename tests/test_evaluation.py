@@ -248,3 +248,37 @@ def test_shield_masks_blocked_actions_in_the_boltzmann_draw():
     assert (actions != 0).all() and len(actions) == 3
     # Greedy and shielded: the best free move is stay (1.0 > -2.0 > -3.0 > -4.0).
     assert model_policy(FixedQModel, 0.0, shield=True)(obs, [Env()]).tolist() == [4, 4, 4]
+
+
+class StepQModel(FixedQModel):
+    """Six actions: Q = [5, -3, -2, -4, 1, 3.5]; the frontier step (5) is 1.5 below ``up``."""
+
+    class action_space:
+        n = 6
+
+    @staticmethod
+    def q_net(x):
+        import torch as th
+
+        return th.tensor([[5.0, -3.0, -2.0, -4.0, 1.0, 3.5]]).repeat(len(x), 1)
+
+
+@pytest.mark.parametrize(("bonus", "expected"), [(None, 0), (0.0, 0), (1.0, 0), (2.0, 5)])
+def test_step_bonus_keeps_the_step_unless_another_move_leads_by_more(bonus, expected):
+    from harness.evaluation import model_policy
+
+    obs = np.zeros((2, 13), dtype=np.float32)
+    # greedy: up (5.0) leads the step (3.5) by 1.5, so a bonus of 2 makes the step greedy
+    actions = model_policy(StepQModel, 0.0, step_bonus=bonus)(obs, [])
+    assert actions.tolist() == [expected, expected]
+
+
+def test_step_bonus_needs_the_frontier_step():
+    from harness.evaluation import model_policy
+
+    class FiveActions(FixedQModel):
+        class action_space:
+            n = 5
+
+    with pytest.raises(ValueError, match="step_bonus needs a model with the frontier step"):
+        model_policy(FiveActions, 0.0, step_bonus=1.0)

@@ -606,22 +606,17 @@ class ExperimentConfig(_Section):
         return self
 
     @model_validator(mode="after")
-    def _step_bonus_has_a_step(self) -> ExperimentConfig:
-        if self.eval.step_bonus is not None and not self.env.frontier_action:
-            raise ValueError(
-                "eval.step_bonus needs env.frontier_action: true (the bonus is on the frontier "
-                "step's value)"
-            )
-        return self
-
-    @model_validator(mode="after")
-    def _imitation_has_an_expert(self) -> ExperimentConfig:
-        # The expert's action is the env's frontier step: without it there is nothing to copy.
-        if self.algo.imitation is not None and not self.env.frontier_action:
-            raise ValueError(
-                "algo.imitation needs env.frontier_action: true (the loss favours the frontier "
-                "step, the expert's move)"
-            )
+    def _options_of_the_frontier_step(self) -> ExperimentConfig:
+        # Both act on the env's frontier step: without it there is nothing to copy or favour.
+        if not self.env.frontier_action:
+            for key, used, what in (
+                ("algo.imitation", self.algo.imitation is not None, "the expert's move"),
+                ("eval.step_bonus", self.eval.step_bonus is not None, "the move it favours"),
+            ):
+                if used:
+                    raise ValueError(
+                        f"{key} needs env.frontier_action: true (the frontier step is {what})"
+                    )
         return self
 
     @model_validator(mode="after")

@@ -48,6 +48,16 @@ def smoke_run(tmp_path_factory):
     return RunDir(path)
 
 
+def run_smoke(runs_dir: Path, *overrides: str) -> Path:
+    """Train the smoke config with ``--set`` ``overrides`` into ``runs_dir``; the run folder."""
+    args = ["run", str(SMOKE), "--runs-dir", str(runs_dir), "--no-progress"]
+    for override in overrides:
+        args += ["--set", override]
+    assert main(args) == 0
+    (path,) = runs_dir.iterdir()
+    return path
+
+
 def test_run_directory_layout(smoke_run):
     assert smoke_run.path.name.startswith("smoke-")
     for f in ("config.yaml", "command.txt", "model.zip", "episodes.csv", "best_model.zip"):
@@ -166,19 +176,14 @@ def test_imitation_config_trains_towards_the_frontier_step(tmp_path, same_moves)
     # algo.imitation reaches the model (expert = the frontier step, action 5), its loss is
     # logged, and a weight that the TD term cannot hold makes the greedy policy the step's
     # (with same_moves: the step or the move it takes).
-    rc = main(
-        [
-            "run", str(SMOKE), "--runs-dir", str(tmp_path), "--no-progress",
-            "--set", "env.observation=teammap", "--set", "algo.policy=TeamMapPolicy",
-            "--set", "env.frontier=true", "--set", "env.frontier_action=true",
-            "--set", "env.crop=7", "--set", "algo.learning_starts=100",
-            "--set", f"algo.imitation={{margin: 0.5, weight: 2.0, same_moves: {same_moves}}}",
-            "--set", "phases.initial.timesteps=1200", "--set", "phases.optimizing.timesteps=200",
-            "--set", "eval.every=0", "--set", "checkpoint.every=0",
-        ]
+    path = run_smoke(
+        tmp_path,
+        "env.observation=teammap", "algo.policy=TeamMapPolicy",
+        "env.frontier=true", "env.frontier_action=true", "env.crop=7", "algo.learning_starts=100",
+        f"algo.imitation={{margin: 0.5, weight: 2.0, same_moves: {same_moves}}}",
+        "phases.initial.timesteps=1200", "phases.optimizing.timesteps=200",
+        "eval.every=0", "checkpoint.every=0",
     )  # fmt: skip
-    assert rc == 0
-    (path,) = tmp_path.iterdir()
     model = DoubleDQN.load(path / "model.zip")
     assert (model.expert_action, model.margin, model.margin_weight) == (5, 0.5, 2.0)
     assert model.same_moves is same_moves
@@ -205,19 +210,14 @@ def test_imitation_config_trains_towards_the_frontier_step(tmp_path, same_moves)
 def test_n_step_returns_reach_the_buffer_from_the_config(
     tmp_path, observation, prioritized, buffer_class
 ):
-    teammap = ["--set", "env.observation=teammap", "--set", "algo.policy=TeamMapPolicy"]
-    rc = main(
-        [
-            "run", str(SMOKE), "--runs-dir", str(tmp_path), "--no-progress",
-            "--set", "algo.n_steps=3", "--set", "algo.gamma=0.5",
-            "--set", f"algo.prioritized={str(prioritized).lower()}",
-            *(teammap if observation == "teammap" else []),
-            "--set", "phases.initial.timesteps=600", "--set", "phases.optimizing.timesteps=200",
-            "--set", "eval.every=0", "--set", "checkpoint.every=400",
-        ]
+    teammap = ["env.observation=teammap", "algo.policy=TeamMapPolicy"]
+    path = run_smoke(
+        tmp_path,
+        "algo.n_steps=3", "algo.gamma=0.5", f"algo.prioritized={str(prioritized).lower()}",
+        *(teammap if observation == "teammap" else []),
+        "phases.initial.timesteps=600", "phases.optimizing.timesteps=200",
+        "eval.every=0", "checkpoint.every=400",
     )  # fmt: skip
-    assert rc == 0
-    (path,) = tmp_path.iterdir()
     with (latest_checkpoint(path / "checkpoints") / "replay_buffer.pkl").open("rb") as f:
         buffer = pickle.load(f)
     assert type(buffer) is buffer_class

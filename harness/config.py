@@ -361,9 +361,11 @@ class ImitationConfig(_Section):
 
     Every sampled transition adds ``weight * (max_a [Q(s, a) + margin * (a != step)] -
     Q(s, step))`` to its TD loss: the network's greedy policy is the step (with
-    ``env.frontier_claims``, the frontier planner's move) until the TD targets show another move
-    to be worth more than about ``margin``. The step is computed by the env in every state, so
-    the "demonstrations" are every transition the agents collect."""
+    ``env.frontier_claims``, the frontier planner's move) unless the TD term holds another
+    move's value higher. The weight decides how hard that is: a move becomes greedy only when
+    its advantage exceeds about ``weight / (its share of the samples)``, never when the weight
+    is above that share (README "Imitating the planner"). The step is computed by the env in
+    every state, so the "demonstrations" are every transition the agents collect."""
 
     margin: Annotated[float, Field(ge=0.0)] = 0.8
     """The lead the step's Q-value must have over every other action's (reward units: a new

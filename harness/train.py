@@ -58,7 +58,7 @@ from harness.checks import (
     optimizer_kwargs_with_foreach,
     policy_class_name,
 )
-from harness.config import ExperimentConfig, PhaseConfig
+from harness.config import AlgoConfig, ExperimentConfig, PhaseConfig
 from harness.dqn import DoubleDQN, NonFiniteLossError, resolve_optimizer_class
 from harness.evaluation import model_policy, run_episodes, selection_score, summarize
 from harness.rundir import (
@@ -121,11 +121,7 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
         max_grad_norm=algo.max_grad_norm,
         double_q=algo.double_q,
         action_mask=algo.action_mask,
-        # DQfD's margin loss: the env's frontier step is the expert's action.
-        expert_action=None if algo.imitation is None else FRONTIER_STEP,
-        margin=0.8 if algo.imitation is None else algo.imitation.margin,
-        margin_weight=1.0 if algo.imitation is None else algo.imitation.weight,
-        same_moves=algo.imitation is not None and algo.imitation.same_moves,
+        **_imitation_kwargs(algo),
         # Enough finished episodes for the epochs table's median (one entry per slot).
         stats_window_size=max(
             100, max(p.epochs_window for p in config.phases) * config.env.n_agents
@@ -135,6 +131,19 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
         seed=None,  # SuperSuit's VecEnv has no seed(); train() seeds torch/numpy and the env copies
         verbose=0,
     )
+
+
+def _imitation_kwargs(algo: AlgoConfig) -> dict[str, Any]:
+    """DoubleDQN's arguments for ``algo.imitation``: DQfD's margin loss with the env's frontier
+    step as the expert's action; none (DoubleDQN's defaults) without it."""
+    if algo.imitation is None:
+        return {}
+    return {
+        "expert_action": FRONTIER_STEP,
+        "margin": algo.imitation.margin,
+        "margin_weight": algo.imitation.weight,
+        "same_moves": algo.imitation.same_moves,
+    }
 
 
 def _lr_start(phase: PhaseConfig) -> float:

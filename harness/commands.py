@@ -220,9 +220,12 @@ def resolve_target(
     return load_model_target(target, overrides, seed)
 
 
-def sampling_note(temperature: float | None) -> str:
-    """How a test policy picks actions: ``"Boltzmann, temperature T"``, or ``""`` when greedy."""
-    return f"Boltzmann, temperature {temperature:g}" if temperature else ""
+def sampling_note(temperature: float | None, step_bonus: float | None = None) -> str:
+    """How a test policy picks actions: ``"Boltzmann, temperature T"`` (``""`` when greedy),
+    and ``"step bonus B"`` when ``eval.step_bonus`` is set."""
+    notes = [f"Boltzmann, temperature {temperature:g}"] if temperature else []
+    notes += [f"step bonus {step_bonus:g}"] if step_bonus is not None else []
+    return ", ".join(notes)
 
 
 def format_summary(summary: dict[str, Any]) -> str:
@@ -231,7 +234,7 @@ def format_summary(summary: dict[str, Any]) -> str:
     env = summary["env"]
     where = env["map"] if env["map"] != "random" else f"random {env['height']}x{env['width']}"
     at = summary["coverage_at_median"]
-    how = sampling_note(summary.get("temperature"))
+    how = sampling_note(summary.get("temperature"), summary.get("step_bonus"))
     lines = [
         f"policy    {summary['policy']}{f' ({how})' if how else ''}",
         f"episodes  {summary['episodes']} (seed {summary['seed']}), {where}, "
@@ -567,7 +570,8 @@ def render(target: Target, out: Path | None, gif: Path | None, every: int) -> li
     rec = play_episode(target.config.env, target.policy, target.seed, every, gif is not None)
     out = out or RunDir(target.results_dir or Path()).paths_png
     title = f"{target.label}: coverage {rec.coverage:.1%}, seed {target.seed}"
-    note = sampling_note(target.config.eval.temperature) if target.run_dir else ""
+    ev = target.config.eval
+    note = sampling_note(ev.temperature, ev.step_bonus) if target.run_dir else ""
     title += f", {note}" if note else ""
     saved = [plot_paths(rec.walls, rec.paths, out, title)]
     if gif is not None:

@@ -172,7 +172,7 @@ def test_masked_training_never_hits_a_wall(tmp_path, observation):
 
 
 @pytest.mark.parametrize("same_moves", [False, True])
-def test_imitation_config_trains_towards_the_frontier_step(tmp_path, same_moves):
+def test_imitation_config_trains_towards_the_frontier_step(tmp_path, capsys, same_moves):
     # algo.imitation reaches the model (expert = the frontier step, action 5), its loss is
     # logged, and a weight that the TD term cannot hold makes the greedy policy the step's
     # (with same_moves: the step or the move it takes).
@@ -194,7 +194,9 @@ def test_imitation_config_trains_towards_the_frontier_step(tmp_path, same_moves)
     assert agreement[-1] > 0.9
     # The test-time step bonus reaches the evaluation and its file.
     args = ["eval", str(path), "--episodes", "1", "--set", "eval.step_bonus=1.5"]
+    capsys.readouterr()
     assert main(args) == 0
+    assert "step bonus 1.5" in capsys.readouterr().out  # the table says which policy it is
     (saved,) = path.glob("eval-*step_bonus*.json")
     assert json.loads(saved.read_text())["step_bonus"] == 1.5
 

@@ -458,14 +458,11 @@ class DoubleDQN(DQN):
         # Per-sample Huber loss so that the IS weights can scale each term.
         per_sample_loss = F.smooth_l1_loss(current_q, target_q, reduction="none")
         if self.expert_action is not None:
-            expert_set = self._step_equivalents(replay_data.observations, q_values)
+            expert_set = self._expert_set(replay_data.observations, q_values)
             margin_loss = large_margin_loss(q_values, self.expert_action, self.margin, expert_set)
             per_sample_loss = per_sample_loss + self.margin_weight * margin_loss
             greedy = q_values.argmax(dim=1, keepdim=True)
-            if expert_set is None:
-                agreement = (greedy == self.expert_action).float().mean()
-            else:
-                agreement = expert_set.gather(1, greedy).float().mean()
+            agreement = expert_set.gather(1, greedy).float().mean()
             self._imitation_stats.append((margin_loss.mean().item(), agreement.item()))
         weights = getattr(replay_data, "weights", None)
         sets = self.agent_sets
@@ -491,15 +488,18 @@ class DoubleDQN(DQN):
         self.policy.optimizer.step()
         return loss_value, (current_q.detach() - target_q).abs().reshape(-1)
 
-    def _step_equivalents(self, obs: Any, q_values: th.Tensor) -> th.Tensor | None:
-        """With ``same_moves``: the ``(batch, n_actions)`` actions that do what the frontier
-        step does (:func:`envs.coverage.observations.step_equivalents`), else ``None``."""
+    def _expert_set(self, obs: Any, q_values: th.Tensor) -> th.Tensor:
+        """The ``(batch, n_actions)`` actions that count as the expert's: ``expert_action``, and
+        with ``same_moves`` the moves that do what the frontier step does
+        (:func:`envs.coverage.observations.step_equivalents`)."""
+        expert = th.zeros_like(q_values, dtype=th.bool)
+        expert[:, self.expert_action] = True
         if not self.same_moves:
-            return None
+            return expert
         if not isinstance(obs, dict) or "frontier" not in obs:
             raise ValueError("same_moves needs team-map observations with the frontier compass")
         same = step_equivalents({"frontier": obs["frontier"].cpu().numpy()})
-        return th.as_tensor(same[:, : q_values.shape[1]], device=q_values.device)
+        return expert | th.as_tensor(same[:, : q_values.shape[1]], device=q_values.device)
 
     def predict(
         self,

@@ -331,7 +331,10 @@ def _add_target(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument(
         "--policy",
-        help="a baseline instead of a model: random, local, frontier or frontier_step",
+        help=(
+            "a baseline instead of a model: random, local, frontier, frontier_pocket, "
+            "frontier_random or frontier_step"
+        ),
     )
     parser.add_argument("--config", type=Path, help="the experiment config of a --policy")
     parser.add_argument(

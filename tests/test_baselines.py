@@ -11,6 +11,7 @@ print(100 / (time.perf_counter() - t), 'episodes/s')"
 
 from __future__ import annotations
 
+import copy
 from collections import deque
 
 import numpy as np
@@ -30,7 +31,14 @@ def small_maps(n_agents: int, max_steps: int, size: int = 8) -> EnvConfig:
 
 # ---------------------------------------------------------------------- factory
 def test_names_and_unknown_name() -> None:
-    assert tuple(BASELINES) == ("random", "local", "frontier", "frontier_step")
+    assert tuple(BASELINES) == (
+        "random",
+        "local",
+        "frontier",
+        "frontier_pocket",
+        "frontier_random",
+        "frontier_step",
+    )
     for name in BASELINES:
         assert callable(make_baseline(name, 0))
     with pytest.raises(ValueError, match="greedy"):
@@ -207,9 +215,35 @@ def test_frontier_team_beats_lone_agent() -> None:
     assert all(min(r.new_cells) > 10 for r in two)
 
 
+def test_frontier_tie_breaks_choose_between_equally_near_targets(make_env) -> None:
+    # Left and right of the start are equally near targets. The fixed order (up, left, right,
+    # down) takes the left one; the right one has one open neighbour (the left one two), so
+    # "pocket" finishes it first; "random" takes either.
+    text = """
+        .#.
+        ...
+        .##
+    """
+    env, obs = make_env(text, starts=[(1, 1)])
+    batch = np.stack(list(obs.values()))
+    assert make_baseline("frontier", 0)(batch, [env]).tolist() == [2]
+    assert make_baseline("frontier_pocket", 0)(batch, [env]).tolist() == [3]
+    planner = frontier.FrontierPlanner(3, 3, tie_break="random")
+    planner.sync(0, env.positions, lambda: (env.walls, env.visited))
+    moves = [planner.act(np.random.default_rng(seed))[0] for seed in range(40)]
+    assert set(moves) == {2, 3}
+    with pytest.raises(ValueError, match="needs a generator"):
+        planner.act()
+    with pytest.raises(ValueError, match="unknown tie_break"):
+        frontier.FrontierPlanner(3, 3, tie_break="nearest")
+
+
 # ---------------------------------------------------------------------- exactness
-def reference_actions(env) -> list[int]:
-    """The frontier rule computed from scratch (no caches), one plain BFS per agent."""
+def reference_actions(
+    env, tie_break: str = "order", rng: np.random.Generator | None = None
+) -> list[int]:
+    """The frontier rule computed from scratch (no caches), one plain BFS per agent over the
+    whole reachable map, then the tie-break among the nearest unclaimed targets."""
     walls, visited = env.walls, env.visited
     h, w = walls.shape
     seen = np.zeros_like(visited)
@@ -217,42 +251,63 @@ def reference_actions(env) -> list[int]:
         seen[max(r - 1, 0) : r + 2, max(c - 1, 0) : c + 2] = True
     passable = seen & ~walls
     target = passable & ~visited
+
+    def inside(cell: tuple[int, int]) -> bool:
+        return 0 <= cell[0] < h and 0 <= cell[1] < w
+
+    def open_neighbours(cell: tuple[int, int]) -> int:  # unseen, or a target; outside is wall
+        near = [(cell[0] + dr, cell[1] + dc) for dr, dc, _ in order]
+        return sum(inside(n) and (not seen[n] or target[n]) for n in near)
+
     claimed: set[tuple[int, int]] = set()
     actions = []
-    # Same neighbour order as the policy (up, left, right, down) so ties break alike.
+    # Same neighbour order as the policy (up, left, right, down) so the search finds alike.
     order = [(-1, 0, 0), (0, -1, 2), (0, 1, 3), (1, 0, 1)]
     for start in map(tuple, env.positions.tolist()):
-        first = {start: None}
+        first, distance, found = {start: None}, {start: 0}, []
         queue = deque([start])
-        action = 4
-        while queue and action == 4:
+        while queue:
             cell = queue.popleft()
             for dr, dc, a in order:
                 n = (cell[0] + dr, cell[1] + dc)
-                if 0 <= n[0] < h and 0 <= n[1] < w and passable[n] and n not in first:
+                if inside(n) and passable[n] and n not in first:
                     first[n] = a if cell == start else first[cell]
+                    distance[n] = distance[cell] + 1
                     if target[n] and n not in claimed:
-                        claimed.add(n)
-                        action = first[n]
-                        break
+                        found.append(n)
                     queue.append(n)
-        actions.append(action)
+        if not found:
+            actions.append(4)
+            continue
+        ties = [n for n in found if distance[n] == distance[found[0]]]
+        if tie_break == "pocket":
+            goal = min(ties, key=open_neighbours)
+        elif tie_break == "random":
+            goal = ties[int(rng.integers(len(ties)))]
+        else:
+            goal = ties[0]
+        claimed.add(goal)
+        actions.append(first[goal])
     return actions
 
 
+@pytest.mark.parametrize("tie_break", ["order", "pocket", "random"])
 @pytest.mark.parametrize("budget", [frontier.SEARCH_BUDGET, 3])
-def test_frontier_matches_reference_rule(monkeypatch, budget: int) -> None:
+def test_frontier_matches_reference_rule(monkeypatch, budget: int, tie_break: str) -> None:
     # A tiny budget sends nearly every search to the compiled (SciPy) path.
     monkeypatch.setattr(frontier, "SEARCH_BUDGET", budget)
+    name = {"order": "frontier"}.get(tie_break, f"frontier_{tie_break}")
     env = coverage_v0.parallel_env(height=16, width=20, n_agents=4, max_steps=250)
     for seed in (0, 1):
         obs, _ = env.reset(seed=seed)
-        policy = make_baseline("frontier", 0)
+        policy = make_baseline(name, 0)
         while env.agents:
             if env.steps == 120:
-                policy = make_baseline("frontier", 0)  # a fresh policy mid-episode rebuilds
+                policy = make_baseline(name, 0)  # a fresh policy mid-episode rebuilds
+            # The random tie-break draws from the episode's generator: the reference from a copy.
+            rng = copy.deepcopy(env.np_random)
             actions = policy(np.stack(list(obs.values())), [env]).tolist()
-            assert actions == reference_actions(env), f"seed {seed}, step {env.steps}"
+            assert actions == reference_actions(env, tie_break, rng), f"seed {seed}, {env.steps}"
             obs, *_ = env.step(dict(zip(env.possible_agents, actions)))
         assert env.coverage == 1.0
 

@@ -6,6 +6,16 @@ order (agent 0 first), and an agent skips targets a lower-index teammate already
 step, so a team spreads out instead of chasing one cell. "Seen" is the env's *known*: the visited
 cells and the 3x3 window around each of them (start windows included, start cells being visited).
 
+Ties between equally near targets (``tie_break``) are frequent, and how they break matters:
+
+- ``"order"`` (the classical explorer, the default): the first target the search discovers,
+  neighbours visited up, left, right, down, so the team keeps sweeping in one consistent way;
+- ``"pocket"``: the target with the fewest *open* neighbours (unseen, or seen free and not yet
+  visited), then ``"order"``: finish a pocket before leaving it, so less ground is left behind to
+  walk back to;
+- ``"random"``: uniformly among them, from a generator the caller passes (the episode's): what a
+  policy that is right about *how far* but noisy about *which* looks like.
+
 Two users: the ``frontier`` baseline (``harness.baselines.FrontierPolicy``) plays these moves,
 and the team-map observation with ``frontier_claims`` shows them in its frontier compass, so the
 env's frontier step (``frontier_action``) is this planner's move for the agent that takes it.
@@ -38,6 +48,8 @@ __all__ = ["FrontierPlanner"]
 SEARCH_BUDGET = 128
 #: Path length above which an agent's next search skips the Python search.
 FAR = 8
+#: How a planner chooses among equally near unclaimed targets (see the module docstring).
+TIE_BREAKS = ("order", "pocket", "random")
 
 
 class FrontierPlanner:
@@ -45,12 +57,17 @@ class FrontierPlanner:
     wall, and its moves (see the module docstring).
 
     Call :meth:`sync` with the episode's state after every reset and step, then :meth:`act`.
+    ``tie_break`` is one of :data:`TIE_BREAKS`.
 
     Padding lets neighbour lookups skip bounds checks; the per-cell state is kept in Python lists
     because the search reads single cells, which lists do several times faster than numpy.
     """
 
-    def __init__(self, height: int, width: int) -> None:
+    def __init__(self, height: int, width: int, tie_break: str = "order") -> None:
+        if tie_break not in TIE_BREAKS:
+            raise ValueError(f"unknown tie_break {tie_break!r}; known: {', '.join(TIE_BREAKS)}")
+        self.tie_break = tie_break
+        self.rng: np.random.Generator | None = None  # act()'s generator, for "random" ties
         self.shape = (height, width)
         self.stride = width + 2
         # Neighbour offsets in ascending index order (up, left, right, down); the compiled search
@@ -103,6 +120,8 @@ class FrontierPlanner:
         rows = seen.copy()
         seen[:, 1:] |= rows[:, :-1]
         seen[:, :-1] |= rows[:, 1:]
+        # Outside the grid is known wall (as in the env's team map), never open ground.
+        seen[[0, -1], :] = seen[:, [0, -1]] = True
         passable = (seen & free).ravel()
         target = passable & ~visited.ravel()
         self.free = free.ravel().tolist()
@@ -135,8 +154,15 @@ class FrontierPlanner:
                         self.n_targets += 1
 
     # ------------------------------------------------------------------ acting
-    def act(self) -> list[int]:
-        """One action per agent; targets are claimed in agent index order."""
+    def act(self, rng: np.random.Generator | None = None) -> list[int]:
+        """One action per agent; targets are claimed in agent index order.
+
+        Args:
+            rng: Draws the ``"random"`` tie-break (required then, unused otherwise).
+        """
+        if self.tie_break == "random" and rng is None:
+            raise ValueError('tie_break="random" needs a generator: act(rng=...)')
+        self.rng = rng
         if self.n_targets == 0:  # everything seen is visited: nothing left to walk to
             return [STAY] * len(self.positions)
         claimed: set[int] = set()
@@ -144,8 +170,10 @@ class FrontierPlanner:
         for i, start in enumerate(self.positions):
             if self.far[i]:
                 found = self._search_compiled(start, claimed, i)
-            else:
+            elif self.tie_break == "order":
                 found = self._search(start, claimed, i)
+            else:
+                found = self._search_ties(start, claimed, i)
             if found is None:
                 actions.append(STAY)
                 continue
@@ -184,24 +212,77 @@ class FrontierPlanner:
                 return self._search_compiled(start, claimed, agent)
         return None
 
+    def _search_ties(self, start: int, claimed: set[int], agent: int) -> tuple[int, int] | None:
+        """:meth:`_search` for the tie-breaks other than ``"order"``: the same search, one
+        distance layer at a time, so that every target of the nearest layer is a candidate."""
+        passable, target, offsets = self.passable, self.target, self.offsets
+        first = {start: start}
+        layer = [start]
+        while layer:
+            ties: list[int] = []
+            next_layer = []
+            for c in layer:
+                f = first[c]
+                for d in offsets:
+                    n = c + d
+                    if passable[n] and n not in first:
+                        first[n] = n if c == start else f
+                        if target[n] and n not in claimed:
+                            ties.append(n)
+                        next_layer.append(n)
+            if ties:
+                goal = self._choose(ties)
+                return goal, first[goal]
+            if len(first) > SEARCH_BUDGET:
+                return self._search_compiled(start, claimed, agent)
+            layer = next_layer
+        return None
+
     def _search_compiled(self, start: int, claimed: set[int], agent: int) -> tuple[int, int] | None:
         """:meth:`_search` by SciPy's breadth-first search (for far targets). It visits
         neighbours in the same order, so both searches pick the same target."""
         order, pred = breadth_first_order(
             self._graph_now(), start, directed=True, return_predecessors=True
         )
-        for goal in order[self.target_np[order]].tolist():
-            if goal not in claimed:
-                step, distance = goal, 1
-                while pred[step] != start:
-                    step = int(pred[step])
-                    distance += 1
-                self.far[agent] = distance > FAR
-                return goal, step
-        # Nothing left for this agent (teammates claimed the last targets): that search saw the
-        # whole reachable map, so the next one goes straight to SciPy too.
-        self.far[agent] = True
-        return None
+
+        def first_step(goal: int) -> tuple[int, int]:
+            step, distance = goal, 1
+            while pred[step] != start:
+                step = int(pred[step])
+                distance += 1
+            return step, distance
+
+        candidates = [g for g in order[self.target_np[order]].tolist() if g not in claimed]
+        if not candidates:
+            # Nothing left for this agent (teammates claimed the last targets): that search saw
+            # the whole reachable map, so the next one goes straight to SciPy too.
+            self.far[agent] = True
+            return None
+        goal = candidates[0]
+        step, distance = first_step(goal)
+        if self.tie_break != "order":
+            # BFS order lists targets by distance: the nearest layer is a prefix of it.
+            steps = {goal: step}
+            for g in candidates[1:]:
+                s, d = first_step(g)
+                if d > distance:
+                    break
+                steps[g] = s
+            goal = self._choose(list(steps))
+            step = steps[goal]
+        self.far[agent] = distance > FAR
+        return goal, step
+
+    def _choose(self, ties: list[int]) -> int:
+        """The tie-break among equally near targets, listed in the order the search found them."""
+        if self.tie_break == "random":
+            return ties[int(self.rng.integers(len(ties)))]
+        if self.tie_break == "pocket":
+            seen, target, offsets = self.seen, self.target, self.offsets
+            return min(
+                ties, key=lambda g: sum(not seen[g + d] or target[g + d] for d in offsets)
+            )  # min keeps the first of equals: "order" breaks the remaining ties
+        return ties[0]
 
     def _graph_now(self) -> csr_matrix:
         """Adjacency (CSR) of the seen free cells, cached until a cell becomes passable.

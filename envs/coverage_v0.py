@@ -79,7 +79,9 @@ included); outside the grid is known wall. Binary channels are 0 or 255.
   nearest known free unvisited cell, else 0, then ``d(agent) / (H + W)`` (at most 1; 1 when no
   such cell is reachable). With ``frontier_claims=True`` the four moves mark instead the one
   move of the frontier explorer with claims (``envs/coverage/frontier.py``: towards the nearest
-  such cell that no lower-index teammate claimed this step; none when it would stay).
+  such cell that no lower-index teammate claimed this step; none when it would stay), whose
+  choice among equally near cells is ``frontier_tie_break``: ``"order"`` (default, the classical
+  explorer's fixed neighbour order) or ``"pocket"`` (the cell with the fewest open neighbours).
 
 ``crop`` is odd and >= 5 (>= 7 with the trail, the frontier field or both; default
 15), ``trail`` >= 0 (default 0: none), ``frontier`` a bool (default ``False``),
@@ -106,8 +108,9 @@ credited to this agent so far), ``wall_hits`` (this agent's count so far), ``ste
 ``coords="normalized"``, ``rewards={"new_cell": 2.0, "wall_hit": -10.0, "step": -1.0}``,
 ``starts=None`` (fixed start cells, else distinct random free cells each reset),
 ``render_mode=None | "rgb_array" | "ansi"``, ``crop=15``, ``global_size=13``, ``ego_size=0``,
-``ego_block=5``, ``trail=0``, ``frontier=False``, ``frontier_action=False`` and
-``frontier_claims=False`` (``"teammap"`` only), ``agent_id=False``.
+``ego_block=5``, ``trail=0``, ``frontier=False``, ``frontier_action=False``,
+``frontier_claims=False`` and ``frontier_tie_break="order"`` (``"teammap"`` only),
+``agent_id=False``.
 
 **Frontier step** (``frontier_action=True``, needs ``observation="teammap"`` and
 ``frontier=True``): a sixth action, 5, one step along the frontier compass, i.e. the first move
@@ -116,8 +119,9 @@ of a shortest path through known free cells to the nearest known free cell not y
 reachable). It never hits a wall. A learned policy then chooses, each step, between the five
 primitive moves and "walk on towards the nearest unexplored ground". With
 ``frontier_claims=True`` (needs ``frontier=True``) the step is the frontier explorer's move for
-the agent (the compass marks one move): a team that always steps is the frontier explorer, and
-a learned policy chooses when to leave it.
+the agent (the compass marks one move): a team that always steps is the frontier explorer (with
+``frontier_tie_break="pocket"``, the ``frontier_pocket`` baseline), and a learned policy chooses
+when to leave it.
 
 ``reset(seed=None, options=None)``: ``options={"grid": bool_array, "starts": [(r, c), ...]}`` fixes
 that episode's map and/or start cells. Bad input raises ``ValueError`` naming the problem.

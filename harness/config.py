@@ -144,6 +144,10 @@ class EnvConfig(_Section):
     frontier_claims: bool = False
     """``teammap`` with ``frontier``: the compass, so the frontier step, follows the frontier
     explorer with claims (the nearest unvisited known cell no lower-index teammate claimed)."""
+    frontier_tie_break: Literal["order", "pocket"] = "order"
+    """With ``frontier_claims``: how that explorer chooses among equally near cells: ``order``
+    (the classical explorer, the ``frontier`` baseline) or ``pocket`` (the one with the fewest
+    open neighbours first: the ``frontier_pocket`` baseline)."""
     coords: Literal["normalized", "raw"] = "normalized"
     rewards: RewardsConfig = RewardsConfig()
     starts: list[tuple[int, int]] | None = None
@@ -219,6 +223,11 @@ class EnvConfig(_Section):
             raise ValueError(
                 "frontier_claims needs observation: teammap and frontier: true "
                 "(it changes the frontier compass)"
+            )
+        if self.frontier_tie_break != "order" and not self.frontier_claims:
+            raise ValueError(
+                "frontier_tie_break needs frontier_claims: true (it is the tie-break of the "
+                "frontier explorer that the compass follows)"
             )
         return self
 

@@ -116,6 +116,23 @@ def test_baseline_table_quotes_the_stored_baselines(row: dict[str, str]) -> None
             assert stored["wall_hits_mean"] == 0  # "local and frontier never hit a wall"
 
 
+TIE_BREAK_HEADER = "| map | agents | frontier | frontier_pocket | frontier_random |"
+
+
+@pytest.mark.parametrize("row", table_rows(TIE_BREAK_HEADER), ids=lambda r: r["config"])
+def test_tie_break_table_quotes_the_stored_baselines(row: dict[str, str]) -> None:
+    config = row["config"].strip("`")
+    steps = []
+    for policy in ("frontier", "frontier_pocket", "frontier_random"):
+        stored = baseline_file(config, policy, None)
+        assert stored["env"]["n_agents"] == int(row["agents"]) and stored["episodes"] == 100
+        assert stored["wall_hits_mean"] == 0 and stored["policy"] == policy
+        assert row[policy] == percent(stored["coverage_mean"])
+        reached = [stored[k] for k in ("steps_to_90", "steps_to_99")]
+        steps.append(" / ".join("–" if s is None else f"{s:g}" for s in reached))
+    assert row["steps to 90 % / 99 %: frontier, pocket, random"] == ", ".join(steps)
+
+
 # ---------------------------------------------------------------------- the team-map table
 TEAMMAP_HEADER = "| test setting | agents | policy | coverage | greedy | unshielded |"
 #: Each test setting and team size: the evaluation a reference has of it (file stem in the
@@ -193,11 +210,14 @@ def test_teammap_table_has_every_setting_of_the_goals() -> None:
 )
 def test_teammap_row_quotes_the_stored_baselines_on_the_same_episodes(row: dict[str, str]) -> None:
     config = TEAMMAP_SETTINGS[(row["test setting"], row["agents"])][1]
-    for policy in ("local", "frontier"):
+    for policy, column in (
+        ("local", "local"),
+        ("frontier", "frontier"),
+        ("frontier_pocket", "frontier pocket"),
+    ):
         stored = json.loads((ROOT / "docs" / "baselines" / f"{config}-{policy}.json").read_text())
         assert stored["seed"] == 1_000_003 and stored["episodes"] == 100
-        value = stored["coverage_mean"]
-        assert row[policy] == percent(value)
+        assert row[column] == percent(stored["coverage_mean"]), policy
     step_file = f"teammap-{TEAMMAP_STEP_BASELINES[(row['test setting'], row['agents'])]}"
     step = json.loads((ROOT / "docs" / "baselines" / f"{step_file}-frontier_step.json").read_text())
     local = json.loads((ROOT / "docs" / "baselines" / f"{config}-local.json").read_text())

@@ -294,8 +294,8 @@ def test_frontier_claims_keep_a_teammate_from_following_into_a_dead_end():
     assert obs["agent_0"]["frontier"][:4].sum() == 0  # nothing left: no move marked, stay
 
 
-@pytest.mark.parametrize("n_agents", [1, 3])
-def test_always_stepping_with_claims_is_the_frontier_explorer(n_agents):
+@pytest.mark.parametrize(("n_agents", "tie_break"), [(1, "order"), (3, "order"), (3, "pocket")])
+def test_always_stepping_with_claims_is_the_frontier_explorer(n_agents, tie_break):
     from harness.baselines import make_baseline
     from harness.config import EnvConfig
     from harness.evaluation import run_episodes
@@ -303,10 +303,11 @@ def test_always_stepping_with_claims_is_the_frontier_explorer(n_agents):
     size = {"height": 18, "width": 22, "n_agents": n_agents, "max_steps": 120}
     steps = EnvConfig(
         **size, observation="teammap", crop=7, frontier=True, frontier_action=True,
-        frontier_claims=True,
+        frontier_claims=True, frontier_tie_break=tie_break,
     )  # fmt: skip
     stepped = run_episodes(make_baseline("frontier_step", 0), steps, episodes=3, seed=5)
-    planned = run_episodes(make_baseline("frontier", 0), EnvConfig(**size), episodes=3, seed=5)
+    planner = {"order": "frontier", "pocket": "frontier_pocket"}[tie_break]
+    planned = run_episodes(make_baseline(planner, 0), EnvConfig(**size), episodes=3, seed=5)
     assert [r.coverage for r in stepped] == [r.coverage for r in planned]
     assert [r.new_cells for r in stepped] == [r.new_cells for r in planned]
     assert all(sum(r.wall_hits) == 0 for r in stepped)
@@ -321,6 +322,21 @@ def test_frontier_claims_need_the_frontier_compass():
 
     with pytest.raises(ValueError, match="frontier_claims needs observation: teammap"):
         EnvConfig(observation="teammap", crop=7, frontier_claims=True)
+
+
+def test_the_compass_tie_break_needs_claims_and_a_known_name():
+    from harness.config import EnvConfig
+
+    with pytest.raises(ValueError, match="frontier_tie_break needs frontier_claims=True"):
+        coverage_v0.parallel_env(observation="teammap", frontier=True, frontier_tie_break="pocket")
+    with pytest.raises(ValueError, match="frontier_tie_break must be 'order' or 'pocket'"):
+        coverage_v0.parallel_env(
+            observation="teammap", frontier=True, frontier_claims=True, frontier_tie_break="random"
+        )
+    with pytest.raises(ValueError, match="frontier_tie_break needs frontier_claims: true"):
+        EnvConfig(observation="teammap", crop=7, frontier=True, frontier_tie_break="pocket")
+    with pytest.raises(ValueError, match="frontier_tie_break"):
+        EnvConfig(frontier_tie_break="random")  # not a choice
 
 
 def frontier_distances(env) -> np.ndarray:

@@ -153,7 +153,7 @@ def test_double_dqn_on_dict_batches_learns_and_sets_priorities_to_double_q_td_er
         y_max_q = batch.rewards + 0.9 * (1 - batch.dones) * next_target.max(dim=1, keepdim=True)[0]
         q = online(batch.observations).gather(1, batch.actions.long())
     assert not th.allclose(y, y_max_q)
-    td = (q - y).abs().ravel().numpy()
+    td = (q - y).abs().ravel().cpu().numpy()  # .cpu(): the batch is on the GPU where there is one
     np.testing.assert_allclose(buffer.raw_priorities[batch.indices], td + 1e-3, rtol=1e-5)
     loss = (batch.weights * th.nn.functional.smooth_l1_loss(q, y, reduction="none")).mean()
     assert model.logger.name_to_value["train/loss"] == pytest.approx(loss.item(), rel=1e-5)

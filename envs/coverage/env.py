@@ -66,6 +66,7 @@ class CoverageEnv(ParallelEnv):
         frontier: bool = False,
         frontier_action: bool = False,
         frontier_claims: bool = False,
+        frontier_tie_break: str = "order",
         agent_id: bool = False,
     ) -> None:
         _check_int("n_agents", n_agents, 1)
@@ -80,6 +81,11 @@ class CoverageEnv(ParallelEnv):
             raise ValueError(
                 "frontier_claims needs observation='teammap' with frontier=True (it changes "
                 "the frontier compass)"
+            )
+        if frontier_tie_break != "order" and not frontier_claims:
+            raise ValueError(
+                "frontier_tie_break needs frontier_claims=True (it is the tie-break of the "
+                "frontier explorer that the compass follows)"
             )
         _check_bool("agent_id", agent_id)
         _check_int("max_steps", max_steps, 1)
@@ -144,6 +150,7 @@ class CoverageEnv(ParallelEnv):
             "trail": trail,
             "frontier": frontier,
             "frontier_claims": frontier_claims,
+            "frontier_tie_break": frontier_tie_break,
         }
         # One builder per map size: a mix may draw maps of several sizes. The space is the
         # largest size's (with raw coordinates its bounds hold every smaller map's positions).

@@ -194,7 +194,8 @@ class TeamMapObservation(ObservationBuilder):
       explorer with claims (:class:`envs.coverage.frontier.FrontierPlanner`: the first step
       towards the nearest such cell that no lower-index teammate claimed this step), none when
       it would stay; the distance stays the nearest cell's. The env's frontier step follows the
-      compass, so with claims a team that always steps is the frontier explorer.
+      compass, so with claims a team that always steps is the frontier explorer
+      (``frontier_tie_break="pocket"``: the explorer that finishes pockets first).
 
     The frontier distances ``d`` are one multi-source breadth-first search per step from every
     known free unvisited cell (SciPy's compiled ``dijkstra`` with ``min_only``, unit weights) on
@@ -221,6 +222,8 @@ class TeamMapObservation(ObservationBuilder):
         frontier_claims: With ``frontier``: the compass marks the frontier explorer's move
             (targets claimed in agent index order) rather than every move towards the nearest
             unvisited known cell.
+        frontier_tie_break: With ``frontier_claims``: that explorer's choice among equally near
+            cells, ``"order"`` or ``"pocket"`` (:data:`envs.coverage.frontier.TIE_BREAKS`).
 
     Raises:
         ValueError: For a crop or global size out of range.
@@ -235,6 +238,7 @@ class TeamMapObservation(ObservationBuilder):
         "trail",
         "frontier",
         "frontier_claims",
+        "frontier_tie_break",
     )
     LOCAL_CHANNELS = 5
     #: Index of the trail channel in ``"local"`` (with ``trail > 0``).
@@ -267,6 +271,7 @@ class TeamMapObservation(ObservationBuilder):
         trail: int = 0,
         frontier: bool = False,
         frontier_claims: bool = False,
+        frontier_tie_break: str = "order",
     ) -> None:
         super().__init__(height, width, coords, max_steps)
         if not (_is_int(trail) and trail >= 0):
@@ -277,6 +282,12 @@ class TeamMapObservation(ObservationBuilder):
             raise ValueError(f"frontier_claims must be True or False, got {frontier_claims!r}")
         if frontier_claims and not frontier:
             raise ValueError("frontier_claims needs frontier=True (it changes the compass)")
+        if frontier_tie_break not in ("order", "pocket"):
+            raise ValueError(
+                f"frontier_tie_break must be 'order' or 'pocket', got {frontier_tie_break!r}"
+            )
+        if frontier_tie_break != "order" and not frontier_claims:
+            raise ValueError("frontier_tie_break needs frontier_claims=True (it is the planner's)")
         least = self.min_crop(int(trail), bool(frontier))
         if not (_is_int(crop) and crop >= least and crop % 2 == 1):
             raise ValueError(f"crop must be an odd integer >= {least}, got {crop!r}")
@@ -299,6 +310,7 @@ class TeamMapObservation(ObservationBuilder):
         self.ego_size, self.ego_block = int(ego_size), int(ego_block)
         self.trail, self.frontier = int(trail), bool(frontier)
         self.frontier_claims = bool(frontier_claims)
+        self.frontier_tie_break = frontier_tie_break
         self.local_channels = self.LOCAL_CHANNELS + (self.trail > 0) + self.frontier
         #: Index of the frontier field in ``"local"`` (with ``frontier``): the last channel.
         self.frontier_channel = self.local_channels - 1
@@ -380,7 +392,7 @@ class TeamMapObservation(ObservationBuilder):
             #: step follows it. Set again by the build that ends every reset and step.
             self.compass = np.zeros((state.positions.shape[0], 5), dtype=np.float32)
         if self.frontier_claims:
-            self._planner = FrontierPlanner(self.height, self.width)
+            self._planner = FrontierPlanner(self.height, self.width, self.frontier_tie_break)
 
     def _update(self, state: GridState) -> None:
         """Make the agents' 3x3 windows known and bring changed cells up to date."""

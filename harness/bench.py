@@ -11,7 +11,7 @@ busy machine shifts all of them together. Nothing here asserts a time.
   gradient steps per second over batch sizes, network widths and torch thread counts;
 * ``sharing``: gradient steps per second of each ``algo.sharing`` mode (one network, one with
   the agent's index, one parameter set per agent), same network and batch;
-* ``eval``: episodes per second of ``harness eval`` for an MLP policy and for the frontier baseline;
+* ``eval``: episodes per second of ``harness eval`` for an MLP policy and the frontier baselines;
 * ``memory``: peak resident memory of a training process with a full 100,000-transition buffer.
 """
 
@@ -100,6 +100,11 @@ def bench_env(episodes: int = 3) -> dict[str, Any]:
     # incremental team map and one search per agent a step, on top of the frontier field.
     out["env_bare_teammap_claims_agent_steps_per_s"] = bare_rate(
         "teammap", frontier=True, frontier_claims=True
+    )
+    # The same with the pocket tie-break (env.frontier_tie_break): a search finishes the nearest
+    # distance layer to see every tied cell instead of stopping at the first.
+    out["env_bare_teammap_pocket_agent_steps_per_s"] = bare_rate(
+        "teammap", frontier=True, frontier_claims=True, frontier_tie_break="pocket"
     )
 
     def vec_rate(copies: int, num_cpus: int = 0) -> float:
@@ -264,7 +269,8 @@ def bench_sharing(
 
 # ---------------------------------------------------------------------- eval
 def bench_eval(episodes: int = 8) -> dict[str, Any]:
-    """Episodes per second of greedy evaluation (MLP 3x512) and of the frontier baseline."""
+    """Episodes per second of greedy evaluation (MLP 3x512) and of the frontier baselines
+    (the classical tie-break and ``frontier_pocket``)."""
     import torch
 
     from harness import DoubleDQN
@@ -278,13 +284,18 @@ def bench_eval(episodes: int = 8) -> dict[str, Any]:
     model = DoubleDQN("MlpPolicy", venv, policy_kwargs={"net_arch": THESIS_NET}, device="cpu")
     venv.close()
     mlp = _rate(episodes, lambda: run_episodes(model_policy(model), THESIS_ENV, episodes, 0))
-    frontier = _rate(
-        episodes, lambda: run_episodes(make_baseline("frontier", 0), THESIS_ENV, episodes, 0)
-    )
+
+    def planner_rate(name: str) -> float:
+        return _rate(
+            episodes, lambda: run_episodes(make_baseline(name, 0), THESIS_ENV, episodes, 0)
+        )
+
+    planners = {name: planner_rate(name) for name in ("frontier", "frontier_pocket")}
     return {
         "eval_episodes_per_s": mlp,
         "eval_100_episodes_s": 100 / mlp,
-        "eval_frontier_episodes_per_s": frontier,
+        "eval_frontier_episodes_per_s": planners["frontier"],
+        "eval_frontier_pocket_episodes_per_s": planners["frontier_pocket"],
     }
 
 
@@ -372,6 +383,9 @@ def format_bench(r: dict[str, Any]) -> str:
         if "env_bare_teammap_claims_agent_steps_per_s" in r:
             cl = r["env_bare_teammap_claims_agent_steps_per_s"]
             lines.append(f"  ... + frontier claims      {n(cl)}   {cl / bare:5.2f} x thesis")
+        if "env_bare_teammap_pocket_agent_steps_per_s" in r:
+            po = r["env_bare_teammap_pocket_agent_steps_per_s"]
+            lines.append(f"  ... + pocket tie-break     {n(po)}   {po / bare:5.2f} x thesis")
         for c, v in r["env_vec_by_copies"].items():
             lines.append(f"  VecEnv, {c:>2} copies           {n(v)}   {v / bare:5.2f} x bare")
         lines.append(
@@ -411,6 +425,9 @@ def format_bench(r: dict[str, Any]) -> str:
             f"100 episodes in {r['eval_100_episodes_s']:.0f} s (target < 60 s)",
             f"  frontier episodes/s        {r['eval_frontier_episodes_per_s']:>12.2f}",
         ]
+        if "eval_frontier_pocket_episodes_per_s" in r:
+            pocket = r["eval_frontier_pocket_episodes_per_s"]
+            lines.append(f"  frontier_pocket episodes/s {pocket:>12.2f}")
     if "train_peak_memory_mib" in r:
         lines += [
             "",

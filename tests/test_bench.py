@@ -19,6 +19,7 @@ def test_bench_env_json_has_the_documented_keys(capsys):
         "env_bare_teammap_trail_agent_steps_per_s",
         "env_bare_teammap_frontier_agent_steps_per_s",
         "env_bare_teammap_claims_agent_steps_per_s",
+        "env_bare_teammap_pocket_agent_steps_per_s",
         "env_vec_agent_steps_per_s",
         "env_vec_over_bare",
     ):
@@ -36,6 +37,7 @@ def test_bench_report_shows_every_section_with_targets():
         "env_bare_teammap_trail_agent_steps_per_s": 30_000.0,
         "env_bare_teammap_frontier_agent_steps_per_s": 6_000.0,
         "env_bare_teammap_claims_agent_steps_per_s": 4_800.0,
+        "env_bare_teammap_pocket_agent_steps_per_s": 3_600.0,
         "env_vec_by_copies": {1: 40_000.0, 4: 50_000.0, 16: 52_000.0},
         "env_vec_agent_steps_per_s": 50_000.0,
         "env_vec_over_bare": 50_000 / 120_000,
@@ -53,6 +55,7 @@ def test_bench_report_shows_every_section_with_targets():
         "eval_episodes_per_s": 8.0,
         "eval_100_episodes_s": 12.5,
         "eval_frontier_episodes_per_s": 11.0,
+        "eval_frontier_pocket_episodes_per_s": 7.5,
         "train_peak_memory_mib": 370.0,
     }
     text = format_bench(figures)
@@ -74,6 +77,10 @@ def test_bench_report_shows_every_section_with_targets():
     assert "6,000" in line and "0.05 x thesis" in line
     (line,) = [line for line in text.splitlines() if "frontier claims" in line]
     assert "4,800" in line and "0.04 x thesis" in line
+    (line,) = [line for line in text.splitlines() if "pocket tie-break" in line]
+    assert "3,600" in line and "0.03 x thesis" in line
+    (line,) = [line for line in text.splitlines() if "frontier_pocket episodes/s" in line]
+    assert "7.50" in line
 
 
 def test_bench_sharing_reports_gradient_steps_per_mode():

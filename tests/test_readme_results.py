@@ -242,6 +242,7 @@ def interval_cell(stats) -> str:
     [
         ("the step config", "teammap_2agents_step"),
         ("the imitation config", "teammap_2agents_imitation"),
+        ("the pocket config", "teammap_2agents_pocket"),
     ],
 )
 def test_teammap_seeds_row_quotes_the_three_seeds(row_start: str, name: str) -> None:

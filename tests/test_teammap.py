@@ -10,6 +10,7 @@ from gymnasium import spaces
 from pettingzoo.test import parallel_api_test, parallel_seed_test
 
 from envs import coverage_v0
+from envs.coverage.frontier import COMPASS_TIE_BREAKS
 from harness.config import ConfigError, load_config
 from tests.conftest import grid_from
 
@@ -329,7 +330,9 @@ def test_the_compass_tie_break_needs_claims_and_a_known_name():
 
     with pytest.raises(ValueError, match="frontier_tie_break needs frontier_claims=True"):
         coverage_v0.parallel_env(observation="teammap", frontier=True, frontier_tie_break="pocket")
-    with pytest.raises(ValueError, match="frontier_tie_break must be 'order' or 'pocket'"):
+    with pytest.raises(
+        ValueError, match=r"frontier_tie_break must be one of \('order', 'pocket'\)"
+    ):
         coverage_v0.parallel_env(
             observation="teammap", frontier=True, frontier_claims=True, frontier_tie_break="random"
         )
@@ -337,6 +340,9 @@ def test_the_compass_tie_break_needs_claims_and_a_known_name():
         EnvConfig(observation="teammap", crop=7, frontier=True, frontier_tie_break="pocket")
     with pytest.raises(ValueError, match="frontier_tie_break"):
         EnvConfig(frontier_tie_break="random")  # not a choice
+    # The config offers exactly the env's choices.
+    choices = EnvConfig.model_fields["frontier_tie_break"].annotation.__args__
+    assert choices == COMPASS_TIE_BREAKS
 
 
 def frontier_distances(env) -> np.ndarray:

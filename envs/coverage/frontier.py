@@ -41,7 +41,7 @@ from scipy.sparse.csgraph import breadth_first_order
 
 from envs.coverage.types import STAY
 
-__all__ = ["FrontierPlanner"]
+__all__ = ["COMPASS_TIE_BREAKS", "TIE_BREAKS", "FrontierPlanner"]
 
 #: Cells a Python search may reach before the compiled search takes over. Below it the Python
 #: search wins (no graph to build); above it SciPy's search is cheaper even with a fresh graph.
@@ -50,6 +50,9 @@ SEARCH_BUDGET = 128
 FAR = 8
 #: How a planner chooses among equally near unclaimed targets (see the module docstring).
 TIE_BREAKS = ("order", "pocket", "random")
+#: The tie-breaks the env's frontier compass can follow (``env.frontier_tie_break``): the
+#: deterministic ones (``"random"`` would need the episode's generator inside the observation).
+COMPASS_TIE_BREAKS = ("order", "pocket")
 
 
 class FrontierPlanner:

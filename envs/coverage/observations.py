@@ -18,7 +18,7 @@ from gymnasium import spaces
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from envs.coverage.frontier import FrontierPlanner
+from envs.coverage.frontier import COMPASS_TIE_BREAKS, FrontierPlanner
 from envs.coverage.types import CELL_UNVISITED, CELL_VISITED, CELL_WALL, GridState
 
 COORD_MODES = ("normalized", "raw")
@@ -223,7 +223,7 @@ class TeamMapObservation(ObservationBuilder):
             (targets claimed in agent index order) rather than every move towards the nearest
             unvisited known cell.
         frontier_tie_break: With ``frontier_claims``: that explorer's choice among equally near
-            cells, ``"order"`` or ``"pocket"`` (:data:`envs.coverage.frontier.TIE_BREAKS`).
+            cells, ``"order"`` or ``"pocket"`` (:data:`envs.coverage.frontier.COMPASS_TIE_BREAKS`).
 
     Raises:
         ValueError: For a crop or global size out of range.
@@ -282,9 +282,10 @@ class TeamMapObservation(ObservationBuilder):
             raise ValueError(f"frontier_claims must be True or False, got {frontier_claims!r}")
         if frontier_claims and not frontier:
             raise ValueError("frontier_claims needs frontier=True (it changes the compass)")
-        if frontier_tie_break not in ("order", "pocket"):
+        if frontier_tie_break not in COMPASS_TIE_BREAKS:
             raise ValueError(
-                f"frontier_tie_break must be 'order' or 'pocket', got {frontier_tie_break!r}"
+                f"frontier_tie_break must be one of {COMPASS_TIE_BREAKS}, "
+                f"got {frontier_tie_break!r}"
             )
         if frontier_tie_break != "order" and not frontier_claims:
             raise ValueError("frontier_tie_break needs frontier_claims=True (it is the planner's)")

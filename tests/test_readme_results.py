@@ -238,34 +238,43 @@ def interval_cell(stats) -> str:
 
 
 @pytest.mark.parametrize(
-    ("row_start", "name"),
+    ("row_start", "name", "agents"),
     [
-        ("the step config", "teammap_2agents_step"),
-        ("the imitation config", "teammap_2agents_imitation"),
-        ("the pocket config", "teammap_2agents_pocket"),
+        ("the step config", "teammap_2agents_step", 2),
+        ("the imitation config", "teammap_2agents_imitation", 2),
+        ("the pocket config", "teammap_2agents_pocket", 2),
+        ("the pocket config", "teammap_2agents_pocket", 1),
+        ("the pocket config", "teammap_2agents_pocket", 4),
     ],
 )
-def test_teammap_seeds_row_quotes_the_three_seeds(row_start: str, name: str) -> None:
-    # Seed 0 is the reference; seeds 1 and 2 are in docs/seeds/<name>/<name>-seed<k>.
+def test_teammap_seeds_row_quotes_the_three_seeds(row_start: str, name: str, agents: int) -> None:
+    # Seed 0 is the reference; seeds 1 and 2 are in docs/seeds/<name>/<name>-seed<k>. The
+    # 2-agent networks played by another team size have `_env.n_agents-K` in their file names.
     from harness.stats import seed_statistics
 
-    (row,) = [r for r in table_rows(TEAMMAP_HEADER) if r["policy"].startswith(row_start)]
+    (row,) = [
+        r
+        for r in table_rows(TEAMMAP_HEADER)
+        if r["policy"].startswith(row_start) and r["agents"] == str(agents)
+    ]
     folders = [ROOT / "runs" / "reference" / name] + [
         ROOT / "docs" / "seeds" / name / f"{name}-seed{k}" for k in (1, 2)
     ]
+    stem = "eval-env.map-random" + ("" if agents == 2 else f"_env.n_agents-{agents}")
+    variants = ["", "_eval.temperature-0"] if row["greedy"] != "–" else [""]
     evals = {
-        variant: [
-            json.loads((f / f"eval-env.map-random{variant}.json").read_text()) for f in folders
-        ]
-        for variant in ("", "_eval.temperature-0")
+        variant: [json.loads((f / f"{stem}{variant}.json").read_text()) for f in folders]
+        for variant in variants
     }
-    for e in evals[""] + evals["_eval.temperature-0"]:  # the standard 2-agent random episodes
+    for e in (e for v in evals.values() for e in v):  # the standard random test episodes
         assert e["seed"] == 1_000_003 and e["episodes"] == 100 and e["shield"] is True
-        assert e["wall_hits_mean"] == 0 and e["env"]["n_agents"] == 2
+        assert e["wall_hits_mean"] == 0 and e["env"]["n_agents"] == agents
     stats = seed_statistics({k: [e["coverage_mean"] for e in v] for k, v in evals.items()})
-    tuned, greedy = stats[""], stats["_eval.temperature-0"]
+    tuned = stats[""]
     assert row["coverage"] == interval_cell((tuned.mean, tuned.mean_ci))
-    assert row["greedy"] == interval_cell((greedy.mean, greedy.mean_ci))
+    if "_eval.temperature-0" in stats:
+        greedy = stats["_eval.temperature-0"]
+        assert row["greedy"] == interval_cell((greedy.mean, greedy.mean_ci))
 
 
 @pytest.mark.parametrize("row", table_rows(SEEDS_HEADER), ids=lambda r: r["comparison"])

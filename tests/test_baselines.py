@@ -238,6 +238,20 @@ def test_frontier_tie_breaks_choose_between_equally_near_targets(make_env) -> No
         frontier.FrontierPlanner(3, 3, tie_break="nearest")
 
 
+def test_frontier_random_repeats_an_episode_whatever_the_copies() -> None:
+    # Its ties come from each episode's generator, so the episodes of a seed are the same
+    # whether they run one at a time or side by side; and they do change the play (the same
+    # episodes with the fixed order go otherwise).
+    env = small_maps(n_agents=2, max_steps=60, size=14)
+    runs = [
+        run_episodes(make_baseline(name, 0), env, 4, seed=3, copies=copies)
+        for name, copies in (("frontier_random", 1), ("frontier_random", 4), ("frontier", 1))
+    ]
+    alone, side_by_side, order = ([r.new_cells for r in rs] for rs in runs)
+    assert alone == side_by_side
+    assert alone != order
+
+
 # ---------------------------------------------------------------------- exactness
 def reference_actions(
     env, tie_break: str = "order", rng: np.random.Generator | None = None

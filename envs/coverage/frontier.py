@@ -32,6 +32,7 @@ order, so the choice of target does not depend on which one ran.
 
 from __future__ import annotations
 
+from collections import deque
 from collections.abc import Callable
 
 import numpy as np
@@ -172,8 +173,10 @@ class FrontierPlanner:
         for i, start in enumerate(self.positions):
             if self.far[i]:
                 found = self._search_compiled(start, claimed, i)
-            else:
+            elif self.tie_break == "order":
                 found = self._search(start, claimed, i)
+            else:
+                found = self._search_ties(start, claimed, i)
             if found is None:
                 actions.append(STAY)
                 continue
@@ -184,15 +187,38 @@ class FrontierPlanner:
 
     def _search(self, start: int, claimed: set[int], agent: int) -> tuple[int, int] | None:
         """Nearest unclaimed target from ``start`` and the first cell of a shortest path to it,
-        or ``None`` when no unclaimed target is reachable through seen free cells.
-
-        A breadth-first search, one distance layer at a time. With ``"order"`` the first
-        unclaimed target discovered wins at once (BFS discovers cells in order of distance, so it
-        is a nearest one); the other tie-breaks finish its layer and choose among all of them.
-        """
+        or ``None`` when no unclaimed target is reachable through seen free cells."""
         passable, target, offsets = self.passable, self.target, self.offsets
-        first_found = self.tie_break == "order"
         # Each reached cell remembers the first step of its path, so no back-tracking is needed.
+        first = {start: start}
+        queue = deque()
+        for d in offsets:
+            n = start + d
+            if passable[n]:
+                first[n] = n
+                # Checked on discovery: BFS discovers cells in order of distance, so the first
+                # unclaimed target discovered is a nearest one.
+                if target[n] and n not in claimed:
+                    return n, n
+                queue.append(n)
+        while queue:
+            c = queue.popleft()
+            f = first[c]
+            for d in offsets:
+                n = c + d
+                if passable[n] and n not in first:
+                    first[n] = f
+                    if target[n] and n not in claimed:
+                        return n, f
+                    queue.append(n)
+            if len(first) > SEARCH_BUDGET:
+                return self._search_compiled(start, claimed, agent)
+        return None
+
+    def _search_ties(self, start: int, claimed: set[int], agent: int) -> tuple[int, int] | None:
+        """:meth:`_search` for the tie-breaks other than ``"order"``: the same search, one
+        distance layer at a time, so that every target of the nearest layer is a candidate."""
+        passable, target, offsets = self.passable, self.target, self.offsets
         first = {start: start}
         layer = [start]
         while layer:
@@ -205,8 +231,6 @@ class FrontierPlanner:
                     if passable[n] and n not in first:
                         first[n] = n if c == start else f
                         if target[n] and n not in claimed:
-                            if first_found:
-                                return n, first[n]
                             ties.append(n)
                         next_layer.append(n)
             if ties:

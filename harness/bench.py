@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from harness.config import EnvConfig
+from harness.config.schema import EnvConfig
 
 #: The thesis's setting: 50x50 random maps, 4 agents, 1000 steps.
 THESIS_ENV = EnvConfig(n_agents=4, max_steps=1000)
@@ -64,7 +64,7 @@ def machine_info() -> dict[str, Any]:
 def bench_env(episodes: int = 3) -> dict[str, Any]:
     """Agent-steps per second of the bare env and of the training VecEnv."""
     from envs import coverage_v0
-    from harness.adapters import make_vec_env
+    from harness.training.adapters import make_vec_env
 
     n, steps = THESIS_ENV.n_agents, THESIS_ENV.max_steps
     rng = np.random.default_rng(0)
@@ -137,7 +137,7 @@ def _models(net: list[int], batch: int, threads: int) -> tuple[Any, Any, Any]:
     from stable_baselines3.common.logger import configure
 
     from harness import DoubleDQN, PrioritizedReplayBuffer
-    from harness.adapters import make_vec_env
+    from harness.training.adapters import make_vec_env
 
     torch.set_num_threads(threads)
     venv = make_vec_env(THESIS_ENV, copies=4, seed=0)
@@ -230,8 +230,8 @@ def bench_sharing(
     import torch
 
     from harness import DoubleDQN, PrioritizedReplayBuffer
-    from harness.adapters import make_vec_env
-    from harness.registry import POLICIES
+    from harness.sb3.registry import POLICIES
+    from harness.training.adapters import make_vec_env
 
     torch.set_num_threads(1)
     net = THESIS_NET if net is None else net
@@ -274,9 +274,9 @@ def bench_eval(episodes: int = 8) -> dict[str, Any]:
     import torch
 
     from harness import DoubleDQN
-    from harness.adapters import make_vec_env
-    from harness.baselines import make_baseline
-    from harness.evaluation import model_policy, run_episodes
+    from harness.evaluation.baselines import make_baseline
+    from harness.evaluation.episodes import model_policy, run_episodes
+    from harness.training.adapters import make_vec_env
 
     torch.set_num_threads(1)
     venv = make_vec_env(THESIS_ENV, copies=1, seed=0)
@@ -303,7 +303,7 @@ def bench_eval(episodes: int = 8) -> dict[str, Any]:
 _MEMORY_SCRIPT = """
 import resource, torch
 from harness import DoubleDQN, PrioritizedReplayBuffer
-from harness.adapters import make_vec_env
+from harness.training.adapters import make_vec_env
 from harness.bench import THESIS_ENV, THESIS_NET
 torch.set_num_threads(1)
 venv = make_vec_env(THESIS_ENV, copies=4, seed=0)

@@ -3,13 +3,13 @@ the sections after it). This module parses arguments and prints; the work of eac
 elsewhere:
 
 ========  ==========================================================================
-run       :func:`harness.train.train` (``--seeds``: :mod:`harness.groups`)
-eval      :func:`harness.commands.evaluate` (a seed group: ``evaluate_group``)
-tune      :func:`harness.commands.tune` (a seed group: every run)
-compare   :func:`harness.commands.compare`
-render    :func:`harness.commands.render`
-export    :func:`harness.commands.export_reference`
-sweep     :func:`harness.sweep.run_sweep`
+run       :func:`harness.training.train.train` (``--seeds``: :mod:`harness.results.groups`)
+eval      :func:`harness.evaluation.commands.evaluate` (a seed group: ``evaluate_group``)
+tune      :func:`harness.evaluation.commands.tune` (a seed group: every run)
+compare   :func:`harness.evaluation.commands.compare`
+render    :func:`harness.evaluation.commands.render`
+export    :func:`harness.evaluation.commands.export_reference`
+sweep     :func:`harness.training.sweep.run_sweep`
 bench     :func:`harness.bench.run_bench`
 ========  ==========================================================================
 
@@ -29,8 +29,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from harness.checkpoints import CheckpointError, complete_checkpoints, read_state
-from harness.commands import (
+from harness.config.loading import load_config
+from harness.config.schema import MAX_SEED, ConfigError, ExperimentConfig
+from harness.evaluation.commands import (
     DEFAULT_EPISODES,
     DEFAULT_TEMPERATURES,
     DEFAULT_TUNE_EPISODES,
@@ -46,16 +47,16 @@ from harness.commands import (
     resolve_target,
     tune,
 )
-from harness.config import MAX_SEED, ConfigError, ExperimentConfig, load_config
-from harness.groups import GroupError
-from harness.rundir import (
+from harness.results.groups import GroupError
+from harness.results.rundir import (
     RunDir,
     RunDirError,
     atomic_write_text,
     check_output_file,
 )
-from harness.stats import REPS
-from harness.sweep import BEST_CONFIG, PRUNERS, SweepError
+from harness.results.stats import REPS
+from harness.training.checkpoints import CheckpointError, complete_checkpoints, read_state
+from harness.training.sweep import BEST_CONFIG, PRUNERS, SweepError
 
 EXIT_USAGE = 2
 
@@ -379,7 +380,7 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def _run_group(args: argparse.Namespace, config: ExperimentConfig) -> int:
     """``harness run CONFIG --seeds ...``: one run per seed in a group folder."""
-    from harness.groups import parse_seeds, run_group
+    from harness.results.groups import parse_seeds, run_group
 
     if args.seed is not None or args.into is not None:
         raise HarnessError("--seeds makes its own seeds and folders; drop --seed and --into")
@@ -436,7 +437,11 @@ def _resume(args: argparse.Namespace) -> int:
 
 def _train(config: ExperimentConfig, run: RunDir, args: argparse.Namespace, mode: str) -> int:
     """Train ``config`` into ``run``: ``mode`` is ``new``, ``resume`` or ``restart``."""
-    from harness.train import TrainingFailed, TrainingInterrupted, train  # torch, SB3: only here
+    from harness.training.train import (  # torch, SB3: only here
+        TrainingFailed,
+        TrainingInterrupted,
+        train,
+    )
 
     try:
         train(
@@ -471,7 +476,7 @@ def _train(config: ExperimentConfig, run: RunDir, args: argparse.Namespace, mode
 
 def _target(args: argparse.Namespace) -> Target:
     target = resolve_target(args.target, args.policy, args.config, args.overrides, args.seed)
-    from harness.train import configure_torch
+    from harness.training.train import configure_torch
 
     # One torch thread, whatever algo.threads says (that is for training): the test policy runs
     # the network on a few dozen observations per step, where a second thread only adds
@@ -481,7 +486,7 @@ def _target(args: argparse.Namespace) -> Target:
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
-    from harness.groups import is_group
+    from harness.results.groups import is_group
 
     if args.target is not None and is_group(args.target):
         return _eval_group(args)
@@ -492,7 +497,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if summary["saved"] is not None:
         print(f"saved {summary['saved']}", file=sys.stderr)
     if args.plot is not None:
-        from harness.plots import plot_eval_episodes
+        from harness.results.plots import plot_eval_episodes
 
         plot_eval_episodes(results, None, args.plot, f"{target.label}: {len(results)} episodes")
         print(f"saved {args.plot}", file=sys.stderr)
@@ -521,7 +526,7 @@ def _eval_group(args: argparse.Namespace) -> int:
 
 
 def cmd_tune(args: argparse.Namespace) -> int:
-    from harness.groups import group_runs, is_group
+    from harness.results.groups import group_runs, is_group
 
     if is_group(args.target):
         # Each seed picks its own temperature on the same validation episodes, as each
@@ -587,8 +592,8 @@ def cmd_export(args: argparse.Namespace) -> int:
 
 
 def cmd_sweep(args: argparse.Namespace) -> int:
-    from harness.sweep import format_best, run_sweep  # Optuna: only here
-    from harness.train import TrainingInterrupted
+    from harness.training.sweep import format_best, run_sweep  # Optuna: only here
+    from harness.training.train import TrainingInterrupted
 
     study = args.study or load_config(args.config, args.overrides).name
     try:

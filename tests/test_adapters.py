@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from harness.adapters import make_vec_env
-from harness.config import EnvConfig
+from harness.config.schema import EnvConfig
+from harness.training.adapters import make_vec_env
 
 SMALL = EnvConfig(height=8, width=9, n_agents=2, max_steps=6, coords="raw")
 

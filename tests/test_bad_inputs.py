@@ -311,10 +311,10 @@ def models(tmp_path_factory: pytest.TempPathFactory) -> Path:
     import gymnasium as gym
     from stable_baselines3 import PPO
 
-    from harness.adapters import make_vec_env
-    from harness.config import config_from_dict
-    from harness.dqn import DoubleDQN
-    from harness.train import build_model
+    from harness.config.loading import config_from_dict
+    from harness.sb3.dqn import DoubleDQN
+    from harness.training.adapters import make_vec_env
+    from harness.training.train import build_model
 
     folder = tmp_path_factory.mktemp("models")
     import yaml
@@ -427,8 +427,8 @@ def test_the_console_script_shows_no_traceback(scratch, args, message):
 def test_the_memory_check_counts_the_networks_weights(policy, weights):
     import yaml
 
-    from harness.checks import check_network_memory, network_parameters
-    from harness.config import config_from_dict
+    from harness.config.loading import config_from_dict
+    from harness.training.checks import check_network_memory, network_parameters
 
     config = config_from_dict(yaml.safe_load(GOOD), overrides=[f"algo.policy={policy}"])
     assert network_parameters(config) == weights

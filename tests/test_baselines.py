@@ -3,8 +3,8 @@ frontier explorer.
 
 Speed of the frontier policy (50x50 random maps, 4 agents, 1000 steps, 100 episodes)::
 
-    python -c "import time; from harness.config import EnvConfig; \
-from harness.evaluation import run_episodes; from harness.baselines import make_baseline; \
+    python -c "import time; from harness.config.schema import EnvConfig; \
+from harness.evaluation.episodes import run_episodes; from harness.evaluation.baselines import make_baseline; \
 t = time.perf_counter(); run_episodes(make_baseline('frontier', 0), EnvConfig(), 100, 0); \
 print(100 / (time.perf_counter() - t), 'episodes/s')"
 """
@@ -19,10 +19,10 @@ import pytest
 
 from envs import coverage_v0
 from envs.coverage import frontier
-from harness import baselines
-from harness.baselines import BASELINES, make_baseline
-from harness.config import EnvConfig
-from harness.evaluation import run_episodes
+from harness.config.schema import EnvConfig
+from harness.evaluation import baselines
+from harness.evaluation.baselines import BASELINES, make_baseline
+from harness.evaluation.episodes import run_episodes
 
 
 def small_maps(n_agents: int, max_steps: int, size: int = 8) -> EnvConfig:

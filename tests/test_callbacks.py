@@ -10,14 +10,14 @@ import pytest
 from stable_baselines3.common.logger import Logger
 
 from harness import DoubleDQN, PrioritizedReplayBuffer
-from harness.adapters import make_vec_env
-from harness.callbacks import (
+from harness.config.schema import EnvConfig
+from harness.sb3.schedules import PhaseLinearSchedule
+from harness.training.adapters import make_vec_env
+from harness.training.callbacks import (
     EpochsByCoverageCallback,
     PeriodicCallback,
     recent_coverages,
 )
-from harness.config import EnvConfig
-from harness.schedules import PhaseLinearSchedule
 
 
 class StubModel(SimpleNamespace):

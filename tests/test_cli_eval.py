@@ -11,8 +11,8 @@ import pytest
 from PIL import Image
 
 from harness.cli import main
-from harness.commands import choose_temperature
-from harness.config import load_config
+from harness.config.loading import load_config
+from harness.evaluation.commands import choose_temperature
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "smoke.yaml"
@@ -287,7 +287,7 @@ def test_best_model_is_chosen_on_validation_episodes(smoke_run, capsys):
 
 
 def test_selection_score_puts_zero_wall_hits_before_coverage():
-    from harness.evaluation import selection_score
+    from harness.evaluation.episodes import selection_score
 
     clean = selection_score({"coverage_median": 0.30, "wall_hits_mean": 0.0})
     one_hit = selection_score({"coverage_median": 0.95, "wall_hits_mean": 1 / 999})
@@ -388,8 +388,8 @@ def test_config_tests_with_its_references_tuned_temperature(ref: Path) -> None:
 def test_policy_help_names_every_baseline(command):
     # The help text is written by hand (importing the baselines' SciPy would slow every
     # command's start); this keeps it in step with the BASELINES table.
-    from harness.baselines import BASELINES
     from harness.cli import build_parser
+    from harness.evaluation.baselines import BASELINES
 
     sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
     (policy,) = [a for a in sub.choices[command]._actions if "--policy" in a.option_strings]

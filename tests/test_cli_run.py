@@ -16,11 +16,11 @@ from stable_baselines3.common.buffers import NStepReplayBuffer
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from harness import DoubleDQN, DuelingDQNPolicy
-from harness.buffers import PrioritizedDictReplayBuffer, PrioritizedReplayBuffer
-from harness.checkpoints import complete_checkpoints, latest_checkpoint
 from harness.cli import main
-from harness.config import load_config
-from harness.rundir import RunDir
+from harness.config.loading import load_config
+from harness.results.rundir import RunDir
+from harness.sb3.buffers import PrioritizedDictReplayBuffer, PrioritizedReplayBuffer
+from harness.training.checkpoints import complete_checkpoints, latest_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "smoke.yaml"

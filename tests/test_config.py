@@ -7,7 +7,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from harness.config import ConfigError, ExperimentConfig, load_config, parse_override
+from harness.config.loading import load_config, parse_override
+from harness.config.schema import ConfigError, ExperimentConfig
 
 CONFIGS = sorted(Path(__file__).resolve().parents[1].joinpath("configs").glob("*.yaml"))
 

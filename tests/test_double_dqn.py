@@ -18,8 +18,8 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.utils import ConstantSchedule, LinearSchedule, set_random_seed
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-import harness.dqn
-import harness.targets
+import harness.sb3.dqn
+import harness.sb3.targets
 from envs.coverage.types import CELL_WALL
 from harness import DoubleDQN, DuelingDQNPolicy, PrioritizedReplayBuffer
 
@@ -134,9 +134,9 @@ def test_n_step_discounts_are_passed_through(monkeypatch: pytest.MonkeyPatch) ->
 
     def spy(*args: Any) -> th.Tensor:
         seen.append(args[2])
-        return harness.targets.double_q_target(*args)
+        return harness.sb3.targets.double_q_target(*args)
 
-    monkeypatch.setattr(harness.dqn, "double_q_target", spy)
+    monkeypatch.setattr(harness.sb3.dqn, "double_q_target", spy)
     model = make_linear_model(n_steps=2, buffer_size=8)
     assert type(model.replay_buffer).__name__ == "NStepReplayBuffer"
     for _ in range(3):

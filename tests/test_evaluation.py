@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from harness.config import EnvConfig
-from harness.evaluation import run_episodes, summarize
+from harness.config.schema import EnvConfig
+from harness.evaluation.episodes import run_episodes, summarize
 
 ENV = EnvConfig(height=8, width=8, n_agents=2, max_steps=30)
 
@@ -45,7 +45,7 @@ def test_summary_keys_and_ranges():
 
 
 def test_softmax_sample_follows_the_hand_computed_cdf():
-    from harness.evaluation import softmax_sample
+    from harness.evaluation.episodes import softmax_sample
 
     # softmax([0, ln 3]) = [0.25, 0.75]: draws below 0.25 pick action 0, the rest action 1.
     q = np.array([[0.0, np.log(3.0)]] * 4)
@@ -63,7 +63,7 @@ def test_softmax_sample_follows_the_hand_computed_cdf():
 
 
 def test_softmax_sample_matches_the_distribution():
-    from harness.evaluation import softmax_sample
+    from harness.evaluation.episodes import softmax_sample
 
     rng = np.random.default_rng(0)
     q = np.tile([1.0, 0.0, -1.0, 0.5, -3.0], (200_000, 1))
@@ -95,7 +95,7 @@ class _FixedQ:
 
 
 def test_boltzmann_evaluation_depends_on_the_seed_not_the_batching():
-    from harness.evaluation import model_policy
+    from harness.evaluation.episodes import model_policy
 
     policy = model_policy(_FixedQ(), temperature=1.0)
     a = run_episodes(policy, ENV, episodes=5, seed=3, copies=2, record_paths=True)
@@ -111,14 +111,14 @@ def test_boltzmann_evaluation_depends_on_the_seed_not_the_batching():
 
 
 def test_negative_temperature_is_rejected():
-    from harness.evaluation import model_policy
+    from harness.evaluation.episodes import model_policy
 
     with pytest.raises(ValueError, match="temperature"):
         model_policy(_FixedQ(), temperature=-1.0)
 
 
 def test_stack_observations_is_copy_major_for_arrays_and_dicts() -> None:
-    from harness.evaluation import stack_observations
+    from harness.evaluation.episodes import stack_observations
 
     flat = [{"agent_0": np.array([0.0]), "agent_1": np.array([1.0])}, {"agent_0": np.array([2.0])}]
     np.testing.assert_array_equal(stack_observations(flat), [[0.0], [1.0], [2.0]])
@@ -133,7 +133,7 @@ def test_stack_observations_is_copy_major_for_arrays_and_dicts() -> None:
 
 
 def test_steps_to_90_and_99_percent_are_medians_with_none_for_not_reached() -> None:
-    from harness.evaluation import EpisodeResult, median_steps_to, summarize
+    from harness.evaluation.episodes import EpisodeResult, median_steps_to, summarize
 
     def episode(s90, s99):
         return EpisodeResult(
@@ -156,7 +156,7 @@ def test_steps_to_90_and_99_percent_are_medians_with_none_for_not_reached() -> N
 
 
 def test_frontier_reaches_full_coverage_of_a_small_map_and_reports_its_speed() -> None:
-    from harness.baselines import make_baseline
+    from harness.evaluation.baselines import make_baseline
 
     env = EnvConfig(height=8, width=8, n_agents=2, max_steps=200)
     results = run_episodes(make_baseline("frontier", 0), env, episodes=3, seed=1)
@@ -178,7 +178,7 @@ SHIELD_ROOM = """
 def test_blocked_moves_read_the_walls_next_to_the_agent_from_its_observation(observation):
     from envs import coverage_v0
     from envs.coverage.observations import blocked_moves
-    from harness.evaluation import stack_observations
+    from harness.evaluation.episodes import stack_observations
     from tests.conftest import grid_from
 
     grid = grid_from(SHIELD_ROOM)
@@ -220,7 +220,7 @@ class FixedQModel:
 
 @pytest.mark.parametrize("temperature", [0.0, 0.5])
 def test_shielded_test_policy_never_hits_a_wall_where_the_plain_one_pushes_into_it(temperature):
-    from harness.evaluation import model_policy
+    from harness.evaluation.episodes import model_policy
 
     env = EnvConfig(height=8, width=8, n_agents=2, max_steps=40)
     plain = run_episodes(model_policy(FixedQModel, temperature), env, episodes=4, seed=3)
@@ -234,7 +234,7 @@ def test_shielded_test_policy_never_hits_a_wall_where_the_plain_one_pushes_into_
 
 
 def test_shield_masks_blocked_actions_in_the_boltzmann_draw():
-    from harness.evaluation import model_policy
+    from harness.evaluation.episodes import model_policy
 
     obs = np.zeros((3, 13), dtype=np.float32)
     obs[:, 1] = 1.0  # a wall above every agent: `up`, the best Q-value, is blocked
@@ -265,7 +265,7 @@ class StepQModel(FixedQModel):
 
 @pytest.mark.parametrize(("bonus", "expected"), [(None, 0), (0.0, 0), (1.0, 0), (2.0, 5)])
 def test_step_bonus_keeps_the_step_unless_another_move_leads_by_more(bonus, expected):
-    from harness.evaluation import model_policy
+    from harness.evaluation.episodes import model_policy
 
     obs = np.zeros((2, 13), dtype=np.float32)
     # greedy: up (5.0) leads the step (3.5) by 1.5, so a bonus of 2 makes the step greedy
@@ -274,7 +274,7 @@ def test_step_bonus_keeps_the_step_unless_another_move_leads_by_more(bonus, expe
 
 
 def test_step_bonus_needs_the_frontier_step():
-    from harness.evaluation import model_policy
+    from harness.evaluation.episodes import model_policy
 
     class FiveActions(FixedQModel):
         class action_space:

@@ -1,4 +1,4 @@
-"""Map sources (``envs/coverage/generators.py``) and their config form (``harness/mapconfig.py``):
+"""Map sources (``envs/coverage/generators.py``) and their config form (``harness/config/maps.py``):
 seeded, sized as asked, connected, mixed in the asked proportions, never the shipped test maps,
 and ``map="random"`` draws exactly the maps it drew before map sources existed."""
 
@@ -24,7 +24,8 @@ from envs.coverage.generators import (
     WithoutMaps,
     from_name,
 )
-from harness.config import ConfigError, config_from_dict, load_config
+from harness.config.loading import config_from_dict, load_config
+from harness.config.schema import ConfigError
 
 SOURCES = {
     "random": lambda: RandomMaps(20, 30, (0.15, 0.2)),

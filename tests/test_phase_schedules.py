@@ -14,11 +14,11 @@ from pathlib import Path
 
 import pytest
 
-from harness.config import load_config
-from harness.dqn import DoubleDQN
-from harness.rundir import RunDir
-from harness.schedules import linear
-from harness.train import TrainingInterrupted, train
+from harness.config.loading import load_config
+from harness.results.rundir import RunDir
+from harness.sb3.dqn import DoubleDQN
+from harness.sb3.schedules import linear
+from harness.training.train import TrainingInterrupted, train
 
 SMOKE = Path(__file__).resolve().parents[1] / "configs" / "smoke.yaml"
 PHASE1, PHASE2 = 800, 600

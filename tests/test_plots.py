@@ -10,11 +10,11 @@ import pytest
 from PIL import Image
 
 from envs import coverage_v0
-from harness import plots, rundir
-from harness.baselines import make_baseline
-from harness.config import EnvConfig
-from harness.evaluation import EpisodeResult, run_episodes
-from harness.rundir import EPISODE_COLUMNS
+from harness.config.schema import EnvConfig
+from harness.evaluation.baselines import make_baseline
+from harness.evaluation.episodes import EpisodeResult, run_episodes
+from harness.results import plots, rundir
+from harness.results.rundir import EPISODE_COLUMNS
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

@@ -13,7 +13,7 @@ from stable_baselines3.common.utils import ConstantSchedule
 from torch import nn
 
 from harness import DoubleDQN, DuelingDQNPolicy
-from harness.policies import DuelingHead, DuelingQNetwork
+from harness.sb3.policies import DuelingHead, DuelingQNetwork
 
 OBS_SPACE = spaces.Box(-1.0, 1.0, shape=(3, 2), dtype=np.float32)  # flattened to 6 features
 N_ACTIONS = 5

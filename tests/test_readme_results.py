@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from harness.config import load_config
+from harness.config.loading import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 TABLE_HEADER = "| experiment | thesis | this project | T | walls | greedy |"
@@ -250,7 +250,7 @@ def interval_cell(stats) -> str:
 def test_teammap_seeds_row_quotes_the_three_seeds(row_start: str, name: str, agents: int) -> None:
     # Seed 0 is the reference; seeds 1 and 2 are in docs/seeds/<name>/<name>-seed<k>. The
     # 2-agent networks played by another team size have `_env.n_agents-K` in their file names.
-    from harness.stats import seed_statistics
+    from harness.results.stats import seed_statistics
 
     (row,) = [
         r
@@ -279,8 +279,8 @@ def test_teammap_seeds_row_quotes_the_three_seeds(row_start: str, name: str, age
 
 @pytest.mark.parametrize("row", table_rows(SEEDS_HEADER), ids=lambda r: r["comparison"])
 def test_seeds_row_quotes_its_groups_evaluations(row: dict[str, str]) -> None:
-    from harness.groups import group_runs
-    from harness.stats import seed_statistics
+    from harness.results.groups import group_runs
+    from harness.results.stats import seed_statistics
 
     group = ROOT / row["files"].strip("`")
     runs = group_runs(group)

@@ -15,14 +15,14 @@ import pytest
 from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
 
 from harness import DoubleDQN
-from harness.checkpoints import (
+from harness.cli import main
+from harness.config.loading import load_config
+from harness.training.checkpoints import (
     CheckpointError,
     TrainingState,
     complete_checkpoints,
     latest_checkpoint,
 )
-from harness.cli import main
-from harness.config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "smoke.yaml"

@@ -15,12 +15,12 @@ from pathlib import Path
 
 import pytest
 
-from harness.checkpoints import TrainingState, complete_checkpoints, save_checkpoint
 from harness.cli import main
-from harness.config import load_config
-from harness.dqn import DoubleDQN
-from harness.rundir import RunDir
-from harness.train import StopOnSignal, stop_on_signals
+from harness.config.loading import load_config
+from harness.results.rundir import RunDir
+from harness.sb3.dqn import DoubleDQN
+from harness.training.checkpoints import TrainingState, complete_checkpoints, save_checkpoint
+from harness.training.train import StopOnSignal, stop_on_signals
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "smoke.yaml"
@@ -220,7 +220,7 @@ def test_second_ctrl_c_while_saving_waits_for_the_save(capsys):
 
 
 def test_rng_file_round_trip_checks_its_content(run_copy):
-    from harness.checkpoints import CheckpointError, read_rng
+    from harness.training.checkpoints import CheckpointError, read_rng
 
     latest = newest(run_copy)
     read_rng(latest)  # intact: fine

@@ -6,7 +6,7 @@ import pickle
 
 import pytest
 
-from harness.schedules import PhaseLinearSchedule, epochs_for, linear
+from harness.sb3.schedules import PhaseLinearSchedule, epochs_for, linear
 
 THESIS_INITIAL = [(0.0, 1), (0.40, 5), (0.60, 7)]
 

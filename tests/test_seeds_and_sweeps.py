@@ -16,10 +16,10 @@ import numpy as np
 import pytest
 
 from harness.cli import main
-from harness.config import load_config
-from harness.groups import GroupError, parse_seeds, threads_per_job
-from harness.stats import curve_with_ci, probability_of_improvement, seed_statistics
-from harness.sweep import SweepError, load_space
+from harness.config.loading import load_config
+from harness.results.groups import GroupError, parse_seeds, threads_per_job
+from harness.results.stats import curve_with_ci, probability_of_improvement, seed_statistics
+from harness.training.sweep import SweepError, load_space
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = (
@@ -64,7 +64,7 @@ def test_jobs_share_the_cores_this_process_may_use():
     # the machine's full core count: the share follows the CPU affinity.
     code = (
         "import os; os.sched_setaffinity(0, {min(os.sched_getaffinity(0))}); "
-        "from harness.groups import threads_per_job; print(threads_per_job(1), threads_per_job(2))"
+        "from harness.results.groups import threads_per_job; print(threads_per_job(1), threads_per_job(2))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["1", "1"]
@@ -389,8 +389,8 @@ def test_a_dead_trial_of_a_seed_grid_is_trained_again_not_lost(tiny, tmp_path):
 def test_a_pruned_trial_ends_cleanly_with_its_run_folder(tiny, tmp_path, monkeypatch, capsys):
     import optuna
 
-    from harness import sweep
-    from harness.rundir import RunDir
+    from harness.results.rundir import RunDir
+    from harness.training import sweep
 
     # A pruner that stops every trial at its first report (no coverage reaches 101 %).
     monkeypatch.setattr(sweep, "make_pruner", lambda name: optuna.pruners.ThresholdPruner(1.01))

@@ -22,14 +22,15 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 from envs import coverage_v0
 from harness import DoubleDQN, PrioritizedReplayBuffer
-from harness.adapters import make_vec_env
-from harness.checkpoints import complete_checkpoints
-from harness.checks import network_parameters
 from harness.cli import main
-from harness.config import ConfigError, EnvConfig, load_config
-from harness.dqn import per_agent_loss
-from harness.policies import PerAgentQNetwork, without_agent_id
-from harness.registry import POLICIES
+from harness.config.loading import load_config
+from harness.config.schema import ConfigError, EnvConfig
+from harness.sb3.dqn import per_agent_loss
+from harness.sb3.policies import PerAgentQNetwork, without_agent_id
+from harness.sb3.registry import POLICIES
+from harness.training.adapters import make_vec_env
+from harness.training.checkpoints import complete_checkpoints
+from harness.training.checks import network_parameters
 from tests.test_resume import TINY as RESUME_TINY
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -280,7 +281,7 @@ def test_each_agents_gradient_comes_from_its_own_samples_as_a_separate_learner()
 
 def _loss(model: DoubleDQN, batch: Any, weights: th.Tensor) -> th.Tensor:
     """The training loss of ``batch`` as ``DoubleDQN._gradient_step`` builds it."""
-    from harness.targets import double_q_target
+    from harness.sb3.targets import double_q_target
 
     with th.no_grad():
         target = double_q_target(

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 import torch as th
 
-from harness.targets import double_q_target, large_margin_loss, max_q_target
+from harness.sb3.targets import double_q_target, large_margin_loss, max_q_target
 
 # Two transitions; the second one is terminal.
 REWARDS = th.tensor([[1.0], [0.5]])

@@ -11,7 +11,8 @@ from pettingzoo.test import parallel_api_test, parallel_seed_test
 
 from envs import coverage_v0
 from envs.coverage.frontier import COMPASS_TIE_BREAKS
-from harness.config import ConfigError, load_config
+from harness.config.loading import load_config
+from harness.config.schema import ConfigError
 from tests.conftest import grid_from
 
 UP, DOWN, LEFT, RIGHT, STAY = range(5)
@@ -297,9 +298,9 @@ def test_frontier_claims_keep_a_teammate_from_following_into_a_dead_end():
 
 @pytest.mark.parametrize(("n_agents", "tie_break"), [(1, "order"), (3, "order"), (3, "pocket")])
 def test_always_stepping_with_claims_is_the_frontier_explorer(n_agents, tie_break):
-    from harness.baselines import make_baseline
-    from harness.config import EnvConfig
-    from harness.evaluation import run_episodes
+    from harness.config.schema import EnvConfig
+    from harness.evaluation.baselines import make_baseline
+    from harness.evaluation.episodes import run_episodes
 
     size = {"height": 18, "width": 22, "n_agents": n_agents, "max_steps": 120}
     steps = EnvConfig(
@@ -319,14 +320,14 @@ def test_frontier_claims_need_the_frontier_compass():
         coverage_v0.parallel_env(observation="teammap", frontier_claims=True)
     with pytest.raises(ValueError, match="frontier_claims must be True or False"):
         coverage_v0.parallel_env(observation="teammap", frontier=True, frontier_claims="yes")
-    from harness.config import EnvConfig
+    from harness.config.schema import EnvConfig
 
     with pytest.raises(ValueError, match="frontier_claims needs observation: teammap"):
         EnvConfig(observation="teammap", crop=7, frontier_claims=True)
 
 
 def test_the_compass_tie_break_needs_claims_and_a_known_name():
-    from harness.config import EnvConfig
+    from harness.config.schema import EnvConfig
 
     with pytest.raises(ValueError, match="frontier_tie_break needs frontier_claims=True"):
         coverage_v0.parallel_env(observation="teammap", frontier=True, frontier_tie_break="pocket")

@@ -16,11 +16,11 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.utils import set_random_seed
 
-from harness.buffers import PrioritizedDictReplayBuffer, replay_memory_bytes
-from harness.checks import format_bytes
 from harness.cli import main
-from harness.dqn import DoubleDQN
-from harness.policies import DuelingTeamMapPolicy, TeamMapExtractor, TeamMapPolicy
+from harness.sb3.buffers import PrioritizedDictReplayBuffer, replay_memory_bytes
+from harness.sb3.dqn import DoubleDQN
+from harness.sb3.policies import DuelingTeamMapPolicy, TeamMapExtractor, TeamMapPolicy
+from harness.training.checks import format_bytes
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -76,7 +76,7 @@ def test_extractor_gives_the_ego_view_its_own_branch():
     ],
 )
 def test_policy_save_and_load_give_the_same_q_values(tmp_path, policy, ego_size, trail, frontier):
-    from harness.adapters import make_vec_env
+    from harness.training.adapters import make_vec_env
 
     venv = make_vec_env(
         {"height": 9, "width": 9, "n_agents": 2, "max_steps": 10, "observation": "teammap",
@@ -103,7 +103,7 @@ def test_policy_save_and_load_give_the_same_q_values(tmp_path, policy, ego_size,
 
 
 def test_double_dqn_on_dict_batches_learns_and_sets_priorities_to_double_q_td_errors(monkeypatch):
-    from harness.adapters import make_vec_env
+    from harness.training.adapters import make_vec_env
 
     set_random_seed(0)
     venv = make_vec_env(
@@ -191,8 +191,8 @@ def test_replay_memory_estimate_is_what_the_buffer_allocates():
 
 
 def test_a_buffer_larger_than_the_available_memory_is_refused():
-    from harness.checks import check_replay_memory
-    from harness.config import ExperimentConfig
+    from harness.config.schema import ExperimentConfig
+    from harness.training.checks import check_replay_memory
 
     def config(observation: str, policy: str) -> ExperimentConfig:
         return ExperimentConfig.model_validate(
@@ -227,9 +227,9 @@ def test_policy_and_observation_must_fit(tmp_path, capsys, observation, policy, 
 
 
 def test_teammap_policy_defaults_from_a_config():
-    from harness.adapters import make_vec_env
-    from harness.config import ExperimentConfig
-    from harness.train import build_model
+    from harness.config.schema import ExperimentConfig
+    from harness.training.adapters import make_vec_env
+    from harness.training.train import build_model
 
     config = ExperimentConfig.model_validate(
         {"env": {"height": 9, "width": 9, "n_agents": 2, "observation": "teammap"},

@@ -19,7 +19,7 @@ from envs import coverage_v0
 from envs.coverage import CoverageEnv
 from envs.coverage.observations import blocked_moves
 from envs.coverage.types import FRONTIER_STEP
-from harness.config import EnvConfig
+from harness.config.schema import EnvConfig
 
 #: A batched policy: ``policy(obs, envs)`` maps the observations ``(len(envs) * n_agents, ...)``
 #: of every agent of every env copy in play (copy-major: copy 0's agents first; a dict of such

@@ -2,7 +2,13 @@
 
 from __future__ import annotations
 
+import base64
+import io
+import json
 import math
+import pickle
+import zipfile
+from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
@@ -16,10 +22,42 @@ from stable_baselines3.dqn.policies import DQNPolicy
 from torch.nn import functional as F
 
 from envs.coverage.observations import blocked_moves, step_equivalents
-from harness.buffers import PrioritizedReplayBuffer
-from harness.policies import PerAgentQNetwork
-from harness.registry import POLICIES
-from harness.targets import double_q_target, large_margin_loss, max_q_target
+from harness.sb3.buffers import PrioritizedReplayBuffer
+from harness.sb3.policies import PerAgentQNetwork
+from harness.sb3.registry import POLICIES
+from harness.sb3.targets import double_q_target, large_margin_loss, max_q_target
+
+#: Modules of the harness's SB3 classes before they moved into ``harness.sb3`` (models saved
+#: then name them; :meth:`DoubleDQN.load` finds them under their new names).
+MOVED_MODULES = {
+    "harness.policies": "harness.sb3.policies",
+    "harness.buffers": "harness.sb3.buffers",
+    "harness.dqn": "harness.sb3.dqn",
+    "harness.schedules": "harness.sb3.schedules",
+}
+
+
+class _RenamingUnpickler(pickle.Unpickler):
+    def find_class(self, module: str, name: str) -> Any:
+        return super().find_class(MOVED_MODULES.get(module, module), name)
+
+
+def moved_classes(path: str | Path | io.BufferedIOBase) -> dict[str, Any]:
+    """The classes a saved model's ``data`` names by a module of :data:`MOVED_MODULES`, loaded
+    from their new module, by key (``policy_class``, ``replay_buffer_class``, ...): SB3's
+    ``custom_objects`` for such a model. Empty for anything else (a file SB3 reports on)."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            data = json.loads(archive.read("data"))
+    except (OSError, KeyError, ValueError, zipfile.BadZipFile):
+        return {}
+    out = {}
+    for key, item in data.items():
+        if isinstance(item, dict) and item.get("__module__") in MOVED_MODULES:
+            raw = base64.b64decode(item[":serialized:"])
+            out[key] = _RenamingUnpickler(io.BytesIO(raw)).load()
+    return out
+
 
 __all__ = ["DoubleDQN", "blocked_actions", "per_agent_loss", "resolve_optimizer_class"]
 
@@ -127,7 +165,7 @@ class DoubleDQN(DQN):
       max/argmax of the TD target (invalid-action masking, Huang & Ontañón 2022). The random
       actions before ``learning_starts`` are SB3's, unmasked.
     * ``expert_action=a`` adds DQfD's large-margin loss (Hester et al. 2018;
-      :func:`harness.targets.large_margin_loss`) towards action ``a`` to every sample's TD loss,
+      :func:`harness.sb3.targets.large_margin_loss`) towards action ``a`` to every sample's TD loss,
       ``margin_weight * max_a [Q(s, a) + margin * (a != a_E)] - Q(s, a_E)``: the greedy policy
       follows the expert's action (the env's frontier step, whose move is the frontier planner's
       with ``frontier_claims``) unless the TD targets hold another action's value higher (how
@@ -135,7 +173,7 @@ class DoubleDQN(DQN):
       ``same_moves=True`` the primitive move that the step takes (read from the team-map
       observation's compass, :func:`envs.coverage.observations.step_equivalents`) counts as the
       expert's action too. The priorities stay ``|TD error|``.
-    * The names of :data:`harness.registry.POLICIES` select the harness's policies
+    * The names of :data:`harness.sb3.registry.POLICIES` select the harness's policies
       (``"DuelingMlpPolicy"``, ``"TeamMapPolicy"``, ``"DuelingTeamMapPolicy"``).
 
     Schedules. SB3 overwrites ``exploration_rate`` in ``_on_step`` from
@@ -344,6 +382,23 @@ class DoubleDQN(DQN):
         super()._on_step()
         if self.prioritized:
             self.replay_buffer.beta = self.beta_schedule(self._current_progress_remaining)  # type: ignore[union-attr]
+
+    @classmethod
+    def load(  # type: ignore[override]
+        cls,
+        path: str | Path | io.BufferedIOBase,
+        env: GymEnv | None = None,
+        device: th.device | str = "auto",
+        custom_objects: dict[str, Any] | None = None,
+        **kwargs: Any,
+    ) -> DoubleDQN:
+        """SB3's ``load``; a model saved before the classes moved into ``harness.sb3`` loads
+        too (:func:`moved_classes`)."""
+        found = moved_classes(path)
+        if isinstance(path, io.BufferedIOBase):
+            path.seek(0)
+        custom = {**found, **(custom_objects or {})}
+        return super().load(path, env=env, device=device, custom_objects=custom, **kwargs)
 
     def set_parameters(
         self,

@@ -170,7 +170,7 @@ class DuelingQNetwork(QNetwork):
 class DuelingDQNPolicy(DQNPolicy):
     """DQN policy (online and target networks) with dueling Q-networks.
 
-    Registered on :class:`harness.dqn.DoubleDQN` as ``"DuelingMlpPolicy"``. ``net_arch``
+    Registered on :class:`harness.sb3.dqn.DoubleDQN` as ``"DuelingMlpPolicy"``. ``net_arch``
     applies to both streams (a list) or per stream (``{"value": [...], "advantage": [...]}``);
     the thesis setup is ``[512, 512, 512]``. ``aggregator`` is part of the constructor
     parameters, so it survives ``policy.save``/``load`` and ``DoubleDQN.save``/``load``.

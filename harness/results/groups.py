@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from harness.rundir import RunDir, RunDirError, atomic_write_text, unique_folder
+from harness.results.rundir import RunDir, RunDirError, atomic_write_text, unique_folder
 
 #: The file that marks a folder as a seed group.
 GROUP_FILE = "group.json"

@@ -21,15 +21,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from harness.config import ConfigError, ExperimentConfig, load_config
-from harness.evaluation import (
+from harness.config.loading import load_config
+from harness.config.schema import ConfigError, ExperimentConfig
+from harness.evaluation.episodes import (
     BatchPolicy,
     model_policy,
     run_episodes,
     selection_score,
     summarize,
 )
-from harness.rundir import (
+from harness.results.rundir import (
     REFERENCE_FILES,
     STANDARD_EPISODES,
     RunDir,
@@ -97,7 +98,7 @@ def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) ->
     else:
         raise TargetError(f"{path}: no such run folder or model file")
     config = load_config(config_path, overrides)
-    from harness.dqn import DoubleDQN  # torch and SB3 only when a model is used
+    from harness.sb3.dqn import DoubleDQN  # torch and SB3 only when a model is used
 
     try:
         # SB3 zips hold pickled objects: load only files you trust (see README).
@@ -146,7 +147,7 @@ def trained_team_size(model: Any, env_space: Any, n_agents: int) -> int | None:
         n_agents: That env's team size.
     """
     from envs.coverage.observations import AGENT_ID_KEY
-    from harness.policies import PerAgentQNetwork
+    from harness.sb3.policies import PerAgentQNetwork
 
     if isinstance(model.q_net, PerAgentQNetwork):
         return model.q_net.n_agents
@@ -198,7 +199,7 @@ def resolve_target(
             raise TargetError("give either a run/model or --policy, not both")
         if config_path is None:
             raise TargetError(f"--policy {policy} needs --config CONFIG.yaml")
-        from harness.baselines import BASELINES, make_baseline  # SciPy: only when used
+        from harness.evaluation.baselines import BASELINES, make_baseline  # SciPy: only when used
 
         if policy not in BASELINES:
             raise TargetError(f"unknown policy {policy!r}; known: {', '.join(BASELINES)}")
@@ -229,7 +230,7 @@ def sampling_note(temperature: float | None, step_bonus: float | None = None) ->
 
 
 def format_summary(summary: dict[str, Any]) -> str:
-    """A readable table of :func:`harness.evaluation.summarize`'s numbers."""
+    """A readable table of :func:`harness.evaluation.episodes.summarize`'s numbers."""
     pct = "{:6.1%}".format
     env = summary["env"]
     where = env["map"] if env["map"] != "random" else f"random {env['height']}x{env['width']}"
@@ -324,7 +325,7 @@ TUNE_KEYS = (
 def choose_temperature(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """The row of a temperature sweep to test with.
 
-    :func:`harness.evaluation.selection_score` (fewest wall hits, then the highest median
+    :func:`harness.evaluation.episodes.selection_score` (fewest wall hits, then the highest median
     coverage) picks it; among equals, the lower temperature (the one closer to the greedy policy).
     """
     if not rows:
@@ -410,7 +411,7 @@ def export_reference(run: Path, out: Path, model: str = "model") -> Path:
         raise TargetError(f"{source}: no such model")
     if out.exists():
         raise TargetError(f"{out}: already exists (a reference is never overwritten)")
-    from harness.dqn import DoubleDQN
+    from harness.sb3.dqn import DoubleDQN
 
     try:
         policy = DoubleDQN.load(source, device="cpu")
@@ -510,8 +511,8 @@ def evaluate_group(
     """``harness eval GROUP``: ``evaluate_run(run)`` for every run, then, for the standard
     evaluation (no ``--set``, 100 episodes), the numbers over seeds in ``GROUP/group-eval.json``.
     """
-    from harness.groups import GROUP_EVAL_FILE, group_runs
-    from harness.stats import describe, seed_statistics
+    from harness.results.groups import GROUP_EVAL_FILE, group_runs
+    from harness.results.stats import describe, seed_statistics
 
     runs = group_runs(group)
     summaries = {}
@@ -565,7 +566,7 @@ def render(target: Target, out: Path | None, gif: Path | None, every: int) -> li
     """``harness render``'s work: episode 0 of the target's seed as a path picture (``out``, by
     default ``paths.png`` where the target's results go) and, with ``gif``, an animated GIF
     keeping a frame every ``every`` steps. Returns the files written."""
-    from harness.plots import play_episode, plot_paths, write_gif
+    from harness.results.plots import play_episode, plot_paths, write_gif
 
     rec = play_episode(target.config.env, target.policy, target.seed, every, gif is not None)
     out = out or RunDir(target.results_dir or Path()).paths_png
@@ -600,8 +601,8 @@ def compare(
     numbers (its ``eval.json``, or the evaluation ``eval_name``), and over the seeds of each
     group the mean and IQM with 95 % bootstrap intervals and the probability of improvement
     (rliable, ``reps`` bootstrap resamples)."""
-    from harness.groups import group_runs, is_group
-    from harness.plots import plot_learning_curves
+    from harness.results.groups import group_runs, is_group
+    from harness.results.plots import plot_learning_curves
 
     check_output_file(out, "--out")
     curves: dict[str, list[Any]] = {}
@@ -630,7 +631,7 @@ def _over_seeds(
     eval_name: str = "eval",
 ) -> tuple[str, list[Path]]:
     """The over-seeds part of ``compare``: a Markdown table, P(X > Y) per pair, two PNGs."""
-    from harness.stats import (
+    from harness.results.stats import (
         markdown_table,
         percent,
         plot_curves_with_ci,

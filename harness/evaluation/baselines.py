@@ -1,7 +1,7 @@
 """Non-learned reference policies: ``random``, the memoryless ``local`` rule and the classical
 ``frontier`` explorer.
 
-Both are :data:`harness.evaluation.BatchPolicy` callables, so ``run_episodes`` evaluates them on
+Both are :data:`harness.evaluation.episodes.BatchPolicy` callables, so ``run_episodes`` evaluates them on
 exactly the maps and start cells a trained model sees (``harness eval --policy frontier``).
 
 ``local`` is a hand-written rule that sees exactly what a learned agent sees (its own 13-number
@@ -42,7 +42,7 @@ import numpy as np
 from envs.coverage import CoverageEnv
 from envs.coverage.frontier import FrontierPlanner
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL, FRONTIER_STEP
-from harness.evaluation import BatchPolicy, batch_len, episode_draws, sample_categorical
+from harness.evaluation.episodes import BatchPolicy, batch_len, episode_draws, sample_categorical
 
 #: The baselines by the name ``--policy`` takes (the one list of them), each made from the
 #: evaluation's seed (only ``random`` uses it: the others draw from each episode's generator or
@@ -66,7 +66,7 @@ def make_baseline(name: str, seed: int) -> BatchPolicy:
             generator, ``frontier`` is deterministic).
 
     Returns:
-        A ``policy(obs, envs) -> actions`` callable (see ``harness.evaluation.BatchPolicy``).
+        A ``policy(obs, envs) -> actions`` callable (see ``harness.evaluation.episodes.BatchPolicy``).
 
     Raises:
         ValueError: For an unknown name.

@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from harness.rundir import CheckpointDir
+from harness.results.rundir import CheckpointDir
 
 STEP_PREFIX = "step-"
 KEEP = 2  # checkpoints kept: the newest and the one before it

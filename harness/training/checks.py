@@ -1,7 +1,7 @@
 """Config checks that need torch: is the optimizer usable, is the device there, do the networks
 and the replay buffer fit in memory.
 
-``harness.config`` runs :func:`check_runtime` once a config has passed its schema, so that a
+``harness.config.schema`` runs :func:`check_runtime` once a config has passed its schema, so that a
 config error never pays for importing torch, and a config that passes both never fails later
 for one of these reasons (an allocation error hours into a run, an optimizer that cannot step).
 """
@@ -14,12 +14,12 @@ from typing import TYPE_CHECKING, Any
 
 import torch as th
 
-from harness.buffers import replay_memory_bytes
-from harness.dqn import resolve_optimizer_class
-from harness.registry import POLICIES
+from harness.sb3.buffers import replay_memory_bytes
+from harness.sb3.dqn import resolve_optimizer_class
+from harness.sb3.registry import POLICIES
 
 if TYPE_CHECKING:
-    from harness.config import ExperimentConfig
+    from harness.config.schema import ExperimentConfig
 
 #: Device types a DQN can train on.
 TRAINING_DEVICE_TYPES = ("cpu", "cuda", "mps")

@@ -24,11 +24,11 @@ from matplotlib.lines import Line2D
 from matplotlib.ticker import MaxNLocator, PercentFormatter
 
 from envs.coverage import render
-from harness.evaluation import CHECKPOINT_FRACTIONS, EpisodeResult, run_episodes
+from harness.evaluation.episodes import CHECKPOINT_FRACTIONS, EpisodeResult, run_episodes
 
 if TYPE_CHECKING:  # only for annotations: keeps this module importable without a cycle
-    from harness.config import EnvConfig
-    from harness.evaluation import BatchPolicy
+    from harness.config.schema import EnvConfig
+    from harness.evaluation.episodes import BatchPolicy
 
 DPI = 150
 #: Okabe-Ito colours as matplotlib hex strings, agent 0 first.
@@ -460,7 +460,7 @@ def plot_learning_curves(
 
     Args:
         curves: ``label -> [(timesteps, coverage), ...]``, one pair per run, e.g. from
-            :func:`harness.rundir.read_episodes_csv`. Coverage as fractions.
+            :func:`harness.results.rundir.read_episodes_csv`. Coverage as fractions.
         out: PNG file to write.
         title: Axes title.
         window: Episodes per rolling median.
@@ -468,7 +468,7 @@ def plot_learning_curves(
         references: Optional ``label -> coverage`` horizontal lines (a baseline's or the
             thesis's median coverage).
         evaluations: Optional ``label -> [(timesteps, coverage_median), ...]`` from
-            :func:`harness.rundir.read_evaluations_csv`: when any run has one, a second panel
+            :func:`harness.results.rundir.read_evaluations_csv`: when any run has one, a second panel
             draws the test policy's evaluations during training (median across a label's runs,
             unsmoothed).
 
@@ -617,7 +617,7 @@ def play_episode(
 
     Args:
         env_cfg: The env to build.
-        policy: ``policy(obs, envs) -> actions`` (``harness.evaluation.BatchPolicy``).
+        policy: ``policy(obs, envs) -> actions`` (``harness.evaluation.episodes.BatchPolicy``).
         seed: Reset seed.
         every: Keep a frame every ``every`` steps (plus the first and the last).
         frames: Render frames at all (``False`` records only the paths).

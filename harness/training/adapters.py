@@ -23,7 +23,7 @@ from supersuit.vector import MakeCPUAsyncConstructor
 from supersuit.vector.sb3_vector_wrapper import SB3VecEnvWrapper
 
 from envs import coverage_v0
-from harness.config import EnvConfig
+from harness.config.schema import EnvConfig
 
 #: Env info keys that VecMonitor copies into each finished episode's ``info["episode"]``.
 EPISODE_INFO_KEYS = ("coverage", "new_cells", "wall_hits")

@@ -2,8 +2,8 @@
 
 Importing this module imports neither torch nor SB3 (a config is checked against it before any of
 them loads); the objects are imported when used. The other registries: observation kinds in
-``envs.coverage.observations.OBSERVATIONS``, baselines in ``harness.baselines.BASELINES``,
-optimizers in ``torch.optim`` (resolved by ``harness.dqn.resolve_optimizer_class``).
+``envs.coverage.observations.OBSERVATIONS``, baselines in ``harness.evaluation.baselines.BASELINES``,
+optimizers in ``torch.optim`` (resolved by ``harness.sb3.dqn.resolve_optimizer_class``).
 """
 
 from __future__ import annotations
@@ -43,23 +43,23 @@ POLICIES: dict[str, PolicyEntry] = {
     "MlpPolicy": PolicyEntry(
         "stable_baselines3.dqn.policies:MlpPolicy",
         "thesis",
-        per_agent="harness.policies:PerAgentMlpPolicy",
+        per_agent="harness.sb3.policies:PerAgentMlpPolicy",
     ),
     "DuelingMlpPolicy": PolicyEntry(
-        "harness.policies:DuelingDQNPolicy",
+        "harness.sb3.policies:DuelingDQNPolicy",
         "thesis",
         dueling=True,
-        per_agent="harness.policies:PerAgentDuelingMlpPolicy",
+        per_agent="harness.sb3.policies:PerAgentDuelingMlpPolicy",
     ),
     "TeamMapPolicy": PolicyEntry(
-        "harness.policies:TeamMapPolicy",
+        "harness.sb3.policies:TeamMapPolicy",
         "teammap",
-        per_agent="harness.policies:PerAgentTeamMapPolicy",
+        per_agent="harness.sb3.policies:PerAgentTeamMapPolicy",
     ),
     "DuelingTeamMapPolicy": PolicyEntry(
-        "harness.policies:DuelingTeamMapPolicy",
+        "harness.sb3.policies:DuelingTeamMapPolicy",
         "teammap",
         dueling=True,
-        per_agent="harness.policies:PerAgentDuelingTeamMapPolicy",
+        per_agent="harness.sb3.policies:PerAgentDuelingTeamMapPolicy",
     ),
 }

@@ -1,6 +1,6 @@
 """SB3 callbacks of a training phase: epochs by coverage, episode metrics, periodic evaluation
 and checkpoints. Each is small and does one thing. (The ε, β and learning-rate schedules are not
-callbacks: ``harness.train.apply_phase`` installs them on the model.)"""
+callbacks: ``harness.training.train.apply_phase`` installs them on the model.)"""
 
 from __future__ import annotations
 
@@ -12,8 +12,8 @@ from typing import Any
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
-from harness.rundir import EPISODE_COLUMNS, append_csv_rows
-from harness.schedules import epochs_for
+from harness.results.rundir import EPISODE_COLUMNS, append_csv_rows
+from harness.sb3.schedules import epochs_for
 
 
 def recent_coverages(ep_info_buffer: Any, episodes: int, n_agents: int) -> list[float]:

@@ -3,7 +3,7 @@
 ``train(config, run)`` is what ``harness run`` calls:
 
 1. seed everything and set torch's thread count;
-2. build the VecEnv (``harness.adapters``) and the ``DoubleDQN`` (``build_model``);
+2. build the VecEnv (``harness.training.adapters``) and the ``DoubleDQN`` (``build_model``);
 3. for each phase in order, on the same model and replay buffer: apply the phase's settings
    (learning rate, batch size, train_freq, PER alpha) and call ``model.learn`` with the phase's
    callbacks (ε and β schedules, epochs by coverage, episode log, evaluation, checkpoints);
@@ -34,34 +34,9 @@ from stable_baselines3.common.utils import set_random_seed
 from stable_baselines3.common.vec_env import VecEnv
 
 from envs.coverage.types import FRONTIER_STEP
-from harness.adapters import make_vec_env
-from harness.buffers import PrioritizedDictReplayBuffer, PrioritizedReplayBuffer
-from harness.callbacks import (
-    EpisodeLogCallback,
-    EpochsByCoverageCallback,
-    PeriodicCallback,
-)
-from harness.checkpoints import (
-    CheckpointError,
-    TrainingState,
-    complete_checkpoints,
-    read_rng,
-    read_state,
-    save_checkpoint,
-    set_aside,
-    set_rng_states,
-)
-from harness.checks import (
-    check_replay_memory,
-    format_bytes,
-    network_kwargs,
-    optimizer_kwargs_with_foreach,
-    policy_class_name,
-)
-from harness.config import AlgoConfig, ExperimentConfig, PhaseConfig
-from harness.dqn import DoubleDQN, NonFiniteLossError, resolve_optimizer_class
-from harness.evaluation import model_policy, run_episodes, selection_score, summarize
-from harness.rundir import (
+from harness.config.schema import AlgoConfig, ExperimentConfig, PhaseConfig
+from harness.evaluation.episodes import model_policy, run_episodes, selection_score, summarize
+from harness.results.rundir import (
     EVALUATION_COLUMNS,
     CheckpointDir,
     LogMismatchError,
@@ -71,7 +46,32 @@ from harness.rundir import (
     atomic_write_text,
     rewind_logs,
 )
-from harness.schedules import PhaseLinearSchedule
+from harness.sb3.buffers import PrioritizedDictReplayBuffer, PrioritizedReplayBuffer
+from harness.sb3.dqn import DoubleDQN, NonFiniteLossError, resolve_optimizer_class
+from harness.sb3.schedules import PhaseLinearSchedule
+from harness.training.adapters import make_vec_env
+from harness.training.callbacks import (
+    EpisodeLogCallback,
+    EpochsByCoverageCallback,
+    PeriodicCallback,
+)
+from harness.training.checkpoints import (
+    CheckpointError,
+    TrainingState,
+    complete_checkpoints,
+    read_rng,
+    read_state,
+    save_checkpoint,
+    set_aside,
+    set_rng_states,
+)
+from harness.training.checks import (
+    check_replay_memory,
+    format_bytes,
+    network_kwargs,
+    optimizer_kwargs_with_foreach,
+    policy_class_name,
+)
 
 
 def configure_torch(threads: int | None) -> None:
@@ -206,7 +206,7 @@ class Evaluator:
     The episodes come from ``eval.validation_seed``, never the test seed of ``harness eval``, so
     ``best_model.zip`` is chosen without seeing the test maps. The same maps and start cells are
     used at every evaluation, so the curve is comparable over training. "Best": see
-    :func:`harness.evaluation.selection_score`.
+    :func:`harness.evaluation.episodes.selection_score`.
     """
 
     def __init__(

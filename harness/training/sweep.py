@@ -44,8 +44,9 @@ from typing import Any
 
 import yaml
 
-from harness.config import ConfigError, load_config, parse_yaml
-from harness.rundir import RunDir, atomic_write_text
+from harness.config.loading import load_config, parse_yaml
+from harness.config.schema import ConfigError
+from harness.results.rundir import RunDir, atomic_write_text
 
 #: Kinds of distribution a space file may name.
 KINDS = ("float", "int", "choice", "grid")
@@ -283,7 +284,7 @@ def run_sweep(
         _run_workers(jobs, folder, config_path, overrides, space_path, trials, study_name,
                      sweeps_dir, storage_url, pruner)  # fmt: skip
     else:
-        from harness.train import TrainingFailed
+        from harness.training.train import TrainingFailed
 
         counted = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED)
         left = trials - len(study.get_trials(deepcopy=False, states=counted))
@@ -315,7 +316,7 @@ def _run_workers(
     Raises:
         SweepError: when a worker failed (naming its log).
     """
-    from harness.groups import threads_per_job
+    from harness.results.groups import threads_per_job
 
     threads = threads_per_job(jobs)
     cmd = [sys.executable, "-m", "harness.cli", "sweep", str(config_path), "--space",
@@ -401,8 +402,8 @@ def _objective(
     """
     import optuna
 
-    from harness.evaluation import model_policy, run_episodes, summarize
-    from harness.train import train
+    from harness.evaluation.episodes import model_policy, run_episodes, summarize
+    from harness.training.train import train
 
     _claim(trial, total)
     params = {d.key: d.suggest(trial) for d in dims}

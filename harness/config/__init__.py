@@ -1,0 +1,11 @@
+"""Configuration: the typed schema (:mod:`~harness.config.schema`), YAML loading and ``--set``
+overrides (:mod:`~harness.config.loading`), map sources (:mod:`~harness.config.maps`) and the
+migration of old files (:mod:`~harness.config.migrate`).
+
+Imports nothing from training, evaluation or the CLI, and builds no environment.
+"""
+
+from harness.config.loading import config_from_dict, load_config
+from harness.config.schema import ConfigError, EnvConfig, ExperimentConfig
+
+__all__ = ["ConfigError", "EnvConfig", "ExperimentConfig", "config_from_dict", "load_config"]

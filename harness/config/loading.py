@@ -1,0 +1,172 @@
+"""Loading a config: YAML (safe, no duplicate keys, bounded), ``--set key.path=value``
+overrides, and validation against the schema (:mod:`harness.config.schema`), with one-line errors."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import yaml
+from pydantic import ValidationError
+
+from harness.config.schema import MAX_CONFIG_BYTES, ConfigError, ExperimentConfig
+
+
+# ---------------------------------------------------------------------- loading
+def _format_error(source: str, err: ValidationError) -> str:
+    first = err.errors()[0]
+    loc = ".".join(str(p) for p in first["loc"]) or "(top level)"
+    msg = first["msg"].removeprefix("Value error, ")
+    more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
+    return f"{source}: {loc}: {msg}{more}"
+
+
+def parse_override(text: str) -> tuple[list[str], Any]:
+    """Split ``a.b.c=value`` into a key path and a YAML-parsed value.
+
+    Raises:
+        ConfigError: when there is no ``=`` or no key.
+    """
+    key, sep, raw = text.partition("=")
+    if not sep or not key.strip():
+        raise ConfigError(f"--set {text!r}: expected key.path=value")
+    try:
+        value = yaml.safe_load(raw) if raw.strip() else None
+    except RecursionError:
+        raise ConfigError(f"--set {text[:40]!r}...: value nested too deeply") from None
+    except ValueError as exc:  # e.g. an integer of more digits than Python converts
+        raise ConfigError(f"--set {text[:40]!r}: {str(exc).split(';')[0][:120]}") from None
+    except yaml.YAMLError:
+        value = raw  # not YAML: keep the text; the schema decides whether a string fits
+    if isinstance(value, str):
+        # YAML 1.1 reads "1e-4" (no dot) as text; on the command line it means a number.
+        with contextlib.suppress(ValueError):
+            value = float(value)
+    return key.strip().split("."), value
+
+
+def apply_override(data: dict[str, Any], path: Sequence[str], value: Any, text: str) -> None:
+    """Set ``value`` at ``path`` in nested dicts/lists. List items are picked by index or, for
+    lists of named items such as ``phases``, by name (``phases.optimizing.timesteps=...``)."""
+    node: Any = data
+    for i, key in enumerate(path):
+        last = i == len(path) - 1
+        where = ".".join(path[: i + 1])
+        if isinstance(node, list):
+            idx = _list_index(node, key)
+            if idx is None:
+                raise ConfigError(f"--set {text}: no item {key!r} at {where}")
+            if last:
+                node[idx] = value
+            else:
+                node = node[idx]
+        elif isinstance(node, dict):
+            if last:
+                node[key] = value
+            else:
+                node = node.setdefault(key, {})
+        else:
+            raise ConfigError(f"--set {text}: {'.'.join(path[:i])} is not a section")
+
+
+def _list_index(items: list[Any], key: str) -> int | None:
+    if key.lstrip("-").isdigit():
+        idx = int(key)
+        return idx if -len(items) <= idx < len(items) else None
+    for idx, item in enumerate(items):
+        if isinstance(item, dict) and item.get("name") == key:
+            return idx
+    return None
+
+
+class _UniqueKeyLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that refuses a key given twice in one mapping (plain YAML keeps the
+    last one silently, so a repeated ``learning_rate:`` would quietly win)."""
+
+    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+        seen: set[Any] = set()
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=deep)
+            if key in seen:
+                mark = key_node.start_mark
+                raise yaml.constructor.ConstructorError(
+                    None,
+                    None,
+                    f"duplicate key {key!r}",
+                    mark,
+                )
+            with contextlib.suppress(TypeError):  # unhashable keys: SafeLoader's own error
+                seen.add(key)
+        return super().construct_mapping(node, deep=deep)
+
+
+def parse_yaml(text: str, source: str) -> Any:
+    """Parse config YAML safely: no Python objects, no duplicate keys, bounded nesting.
+
+    Raises:
+        ConfigError: naming ``source`` and, where known, the line and column.
+    """
+    try:
+        return yaml.load(text, Loader=_UniqueKeyLoader)
+    except yaml.YAMLError as exc:
+        mark = getattr(exc, "problem_mark", None)
+        where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""
+        problem = getattr(exc, "problem", None) or str(exc).splitlines()[0]
+        raise ConfigError(f"{source}: {where}invalid YAML ({problem})") from None
+    except RecursionError:
+        raise ConfigError(f"{source}: invalid YAML (nested too deeply)") from None
+    except ValueError as exc:  # e.g. an integer of more digits than Python converts
+        raise ConfigError(f"{source}: invalid YAML ({str(exc).split(';')[0][:120]})") from None
+
+
+def load_config(path: str | Path, overrides: Sequence[str] = ()) -> ExperimentConfig:
+    """Read a YAML experiment file, apply ``--set`` overrides and validate.
+
+    Raises:
+        ConfigError: with one line naming the file (or the override) and the key.
+    """
+    path = Path(path)
+    try:
+        # Read at most one byte past the limit: /dev/zero or a pipe never ends, and a size from
+        # stat() says nothing about them.
+        with path.open("rb") as f:
+            data = f.read(MAX_CONFIG_BYTES + 1)
+        if len(data) > MAX_CONFIG_BYTES:
+            raise ConfigError(
+                f"{path}: more than {MAX_CONFIG_BYTES:,} bytes is too large for a config file"
+            )
+        text = data.decode("utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: config file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read config ({exc})") from None
+    raw = parse_yaml(text, str(path))
+    if raw is None:
+        raise ConfigError(f"{path}: the config file is empty (see configs/ for examples)")
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: the top level must be a mapping of sections")
+    return config_from_dict(raw, str(path), overrides)
+
+
+def config_from_dict(
+    raw: dict[str, Any], source: str = "<config>", overrides: Sequence[str] = ()
+) -> ExperimentConfig:
+    """Validate a config mapping, then apply overrides (on the validated, defaults-filled form so
+    that ``--set phases.initial.timesteps=...`` works even when the file leaves phases out)."""
+    try:
+        config = ExperimentConfig.model_validate(raw)
+    except ValidationError as err:
+        raise ConfigError(_format_error(source, err)) from None
+    if overrides:
+        data = config.model_dump(mode="json")
+        for text in overrides:
+            keys, value = parse_override(text)
+            apply_override(data, keys, value, text)
+        source = f"{source} with --set {' '.join(overrides)}"
+        try:
+            config = ExperimentConfig.model_validate(data)
+        except ValidationError as err:
+            raise ConfigError(_format_error(source, err)) from None
+    return config

@@ -17,7 +17,7 @@ PettingZoo ``ParallelEnv``.
 ========================  ==========================================================
 Import                    ``from envs import coverage_v0``
 Actions                   Discrete(5): 0 up, 1 down, 2 left, 3 right, 4 stay; Discrete(6)
-                          with ``frontier_action=True`` (5: the frontier step)
+                          with ``frontier={"action": "step"}`` (5: the frontier step)
 Parallel API              yes (``parallel_env``); AEC through ``env()``
 Agents                    ``agent_0 ... agent_{n-1}``
 Observation shape         (13,) float32 (``observation="thesis"``); a ``Dict`` for
@@ -56,10 +56,8 @@ included); outside the grid is known wall. Binary channels are 0 or 255.
 
 * ``"local"`` ``Box(0, 255, (5, crop, crop), uint8)``: the ``crop`` x ``crop`` window centred on
   the agent; channels known wall (outside the grid too), visited, known free not yet visited,
-  unknown, teammates present (other agents); with ``trail=K > 0`` (shape ``(6, crop, crop)``) a
-  sixth channel, the agent's own trail: a cell it stood on ``a < K`` steps ago is
-  ``round(255 * (K - a) / K)`` (its current cell 255), older or never 0; with ``frontier=True``
-  one more channel (the last), the frontier field: with ``d`` the length of a shortest path
+  unknown, teammates present (other agents); with the planner extension (``frontier``) a sixth
+  channel, the frontier field: with ``d`` the length of a shortest path
   through known free cells to the nearest known free cell not yet visited, a reachable known
   cell of the crop is ``clip(128 + 16 * (d(agent) - d(cell)), 1, 255)`` (brighter is nearer),
   other cells 0.
@@ -74,20 +72,20 @@ included); outside the grid is known wall. Binary channels are 0 or 255.
   known wall (outside the grid counts as wall), and teammates present (255). The same pattern
   means the same thing wherever the agent stands, unlike the absolute ``"global"`` view.
 * ``"vector"`` ``Box(0, 1, (3,), float32)``: own row/(H-1), own col/(W-1), steps/max_steps.
-* ``"frontier"`` ``Box(0, 1, (5,), float32)``, only with ``frontier=True``: the frontier
+* ``"frontier"`` ``Box(0, 1, (5,), float32)``, only with ``frontier``: the frontier
   compass, 1 for each move (up, down, left, right) that takes the agent one step nearer the
   nearest known free unvisited cell, else 0, then ``d(agent) / (H + W)`` (at most 1; 1 when no
-  such cell is reachable). With ``frontier_claims=True`` the four moves mark instead the one
-  move of the frontier explorer with claims (``envs/coverage/frontier.py``: towards the nearest
-  such cell that no lower-index teammate claimed this step; none when it would stay), whose
-  choice among equally near cells is ``frontier_tie_break``: ``"order"`` (default, the classical
+  such cell is reachable). When ``frontier`` names a planner the four moves mark instead that
+  planner's move (``envs/coverage/frontier.py``: towards the nearest such cell that no
+  lower-index teammate claimed this step; none when it would stay): ``"order"`` (the classical
   explorer's fixed neighbour order) or ``"pocket"`` (the cell with the fewest open neighbours).
 
-``crop`` is odd and >= 5 (>= 7 with the trail, the frontier field or both; default
-15), ``trail`` >= 0 (default 0: none), ``frontier`` a bool (default ``False``),
-``global_size`` >= 6 (default 13), ``ego_size`` 0 (no
-ego view, the default) or odd and >= 5, ``ego_block`` odd (default 5): Stable-Baselines3 reads a
-uint8 image as channel-first only when no side is smaller than its channel count. The local and
+The team map's options are passed as ``observation={"teammap": {"crop": 15, ...}}`` or
+``observation=TeamMap(crop=15, ...)`` (``envs.coverage.observations.TeamMap``, which checks them):
+``crop`` odd and >= 5 (>= 7 with the frontier field; default 15), ``global_size`` >= 6 (default
+13), ``ego_size`` 0 (no ego view, the default) or odd and >= 5, ``ego_block`` odd (default 5),
+each at most 2,000: Stable-Baselines3 reads a uint8 image as channel-first only when no side is
+smaller than its channel count. The local and
 global images are updated incrementally (only the agents' new 3x3 windows), so they cost
 O(agents * crop^2 + G^2) a step whatever the map's size; the ego view is pooled from one
 summed-area table of the map per step.
@@ -107,21 +105,18 @@ credited to this agent so far), ``wall_hits`` (this agent's count so far), ``ste
 ``wall_fraction=(0.15, 0.20)``, ``n_agents=4``, ``max_steps=1000``, ``observation="thesis"``,
 ``coords="normalized"``, ``rewards={"new_cell": 2.0, "wall_hit": -10.0, "step": -1.0}``,
 ``starts=None`` (fixed start cells, else distinct random free cells each reset),
-``render_mode=None | "rgb_array" | "ansi"``, ``crop=15``, ``global_size=13``, ``ego_size=0``,
-``ego_block=5``, ``trail=0``, ``frontier=False``, ``frontier_action=False``,
-``frontier_claims=False`` and ``frontier_tie_break="order"`` (``"teammap"`` only),
-``agent_id=False``.
+``render_mode=None | "rgb_array" | "ansi"``, ``frontier=None``, ``agent_id=False`` (13 in all).
 
-**Frontier step** (``frontier_action=True``, needs ``observation="teammap"`` and
-``frontier=True``): a sixth action, 5, one step along the frontier compass, i.e. the first move
-of a shortest path through known free cells to the nearest known free cell not yet visited
-(drawn from the episode's generator when several moves tie; stay when no such cell is
-reachable). It never hits a wall. A learned policy then chooses, each step, between the five
-primitive moves and "walk on towards the nearest unexplored ground". With
-``frontier_claims=True`` (needs ``frontier=True``) the step is the frontier explorer's move for
-the agent (the compass marks one move): a team that always steps is the frontier explorer (with
-``frontier_tie_break="pocket"``, the ``frontier_pocket`` baseline), and a learned policy chooses
-when to leave it.
+**The planner extension** (``frontier``, needs the team map; one module owns it,
+``envs/coverage/frontier.py``): ``None`` (off), or ``{"action": ..., "planner": ...}`` (or a
+``FrontierOptions``). Any mapping adds the frontier field and compass. ``action="step"`` (an
+entry of the registry ``ACTIONS``) adds a sixth action, 5, one step along the frontier compass,
+i.e. the first move of a shortest path through known free cells to the nearest known free cell
+not yet visited (drawn from the episode's generator when several moves tie; stay when no such
+cell is reachable). It never hits a wall. ``planner`` (an entry of the registry ``PLANNERS``
+that the env can follow: ``"order"`` or ``"pocket"``) makes the compass, so the step, that
+planner's move for the agent: a team that always steps is the planner (``"pocket"``: the
+``frontier_pocket`` baseline), and a learned policy chooses when to leave it.
 
 ``reset(seed=None, options=None)``: ``options={"grid": bool_array, "starts": [(r, c), ...]}`` fixes
 that episode's map and/or start cells. Bad input raises ``ValueError`` naming the problem.

@@ -63,16 +63,19 @@ def machine_info() -> dict[str, Any]:
 # ---------------------------------------------------------------------- env
 def bench_env(episodes: int = 3) -> dict[str, Any]:
     """Agent-steps per second of the bare env and of the training VecEnv."""
-    from envs import coverage_v0
+    from harness.factory import make_env
     from harness.training.adapters import make_vec_env
 
     n, steps = THESIS_ENV.n_agents, THESIS_ENV.max_steps
     rng = np.random.default_rng(0)
     moves = rng.integers(0, 5, (steps, n)).tolist()
 
-    def bare_rate(observation: str, **options: int | bool) -> float:
-        kwargs = {**THESIS_ENV.kwargs(), "observation": observation, **options}
-        env = coverage_v0.parallel_env(**kwargs)
+    def bare_rate(
+        observation: str | dict[str, Any], frontier: dict[str, Any] | None = None
+    ) -> float:
+        env = make_env(
+            THESIS_ENV.model_copy(update={"observation": observation, "frontier": frontier})
+        )
         env.reset(seed=0)
         actions = [dict(zip(env.possible_agents, a)) for a in moves]
 
@@ -91,21 +94,18 @@ def bench_env(episodes: int = 3) -> dict[str, Any]:
         out["env_bare_teammap_agent_steps_per_s"] / out["env_bare_agent_steps_per_s"]
     )
     # With the ego view of the shipped team-map configs (pooled from a summed-area table).
-    out["env_bare_teammap_ego_agent_steps_per_s"] = bare_rate("teammap", ego_size=21, ego_block=5)
-    # With the own-trail channel (env.trail) on top of the crop.
-    out["env_bare_teammap_trail_agent_steps_per_s"] = bare_rate("teammap", trail=50)
-    # With the frontier field and compass (env.frontier): one compiled search a step.
-    out["env_bare_teammap_frontier_agent_steps_per_s"] = bare_rate("teammap", frontier=True)
-    # With the frontier explorer's claimed moves in the compass (env.frontier_claims): its
+    out["env_bare_teammap_ego_agent_steps_per_s"] = bare_rate(
+        {"teammap": {"ego_size": 21, "ego_block": 5}}
+    )
+    # With the planner extension's frontier field and compass (env.frontier: {}): one compiled
+    # search a step.
+    out["env_bare_teammap_frontier_agent_steps_per_s"] = bare_rate("teammap", {})
+    # With the classical explorer's claimed moves in the compass (planner: order): its
     # incremental team map and one search per agent a step, on top of the frontier field.
-    out["env_bare_teammap_claims_agent_steps_per_s"] = bare_rate(
-        "teammap", frontier=True, frontier_claims=True
-    )
-    # The same with the pocket tie-break (env.frontier_tie_break): a search finishes the nearest
+    out["env_bare_teammap_claims_agent_steps_per_s"] = bare_rate("teammap", {"planner": "order"})
+    # The same with the pocket tie-break (planner: pocket): a search finishes the nearest
     # distance layer to see every tied cell instead of stopping at the first.
-    out["env_bare_teammap_pocket_agent_steps_per_s"] = bare_rate(
-        "teammap", frontier=True, frontier_claims=True, frontier_tie_break="pocket"
-    )
+    out["env_bare_teammap_pocket_agent_steps_per_s"] = bare_rate("teammap", {"planner": "pocket"})
 
     def vec_rate(copies: int, num_cpus: int = 0) -> float:
         venv = make_vec_env(THESIS_ENV, copies, num_cpus, seed=0)
@@ -238,7 +238,9 @@ def bench_sharing(
     n = THESIS_ENV.n_agents
     models, venvs = {}, []
     for mode in SHARING_MODES:
-        venv = make_vec_env({**THESIS_ENV.kwargs(), "agent_id": mode != "shared"}, copies=4, seed=0)
+        env = THESIS_ENV.model_copy()
+        env._agent_id = mode != "shared"
+        venv = make_vec_env(env, copies=4, seed=0)
         venvs.append(venv)
         kwargs: dict[str, Any] = {"net_arch": net, "optimizer_class": torch.optim.RMSprop}
         if mode == "per_agent":
@@ -374,9 +376,6 @@ def format_bench(r: dict[str, Any]) -> str:
         if "env_bare_teammap_ego_agent_steps_per_s" in r:
             ego = r["env_bare_teammap_ego_agent_steps_per_s"]
             lines.append(f"  teammap + ego view 21x21   {n(ego)}   {ego / bare:5.2f} x thesis")
-        if "env_bare_teammap_trail_agent_steps_per_s" in r:
-            trail = r["env_bare_teammap_trail_agent_steps_per_s"]
-            lines.append(f"  teammap + trail (50 steps) {n(trail)}   {trail / bare:5.2f} x thesis")
         if "env_bare_teammap_frontier_agent_steps_per_s" in r:
             fr = r["env_bare_teammap_frontier_agent_steps_per_s"]
             lines.append(f"  teammap + frontier field   {n(fr)}   {fr / bare:5.2f} x thesis")

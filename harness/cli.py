@@ -4,11 +4,11 @@ elsewhere:
 
 ========  ==========================================================================
 run       :func:`harness.training.train.train` (``--seeds``: :mod:`harness.results.groups`)
-eval      :func:`harness.evaluation.commands.evaluate` (a seed group: ``evaluate_group``)
-tune      :func:`harness.evaluation.commands.tune` (a seed group: every run)
-compare   :func:`harness.evaluation.commands.compare`
-render    :func:`harness.evaluation.commands.render`
-export    :func:`harness.evaluation.commands.export_reference`
+eval      :func:`harness.commands.evaluate` (a seed group: ``evaluate_group``)
+tune      :func:`harness.commands.tune` (a seed group: every run)
+compare   :func:`harness.commands.compare`
+render    :func:`harness.commands.render`
+export    :func:`harness.commands.export_reference`
 sweep     :func:`harness.training.sweep.run_sweep`
 bench     :func:`harness.bench.run_bench`
 ========  ==========================================================================
@@ -29,9 +29,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
-from harness.config.loading import load_config
-from harness.config.schema import MAX_SEED, ConfigError, ExperimentConfig
-from harness.evaluation.commands import (
+from harness.commands import (
     DEFAULT_EPISODES,
     DEFAULT_TEMPERATURES,
     DEFAULT_TUNE_EPISODES,
@@ -47,6 +45,8 @@ from harness.evaluation.commands import (
     resolve_target,
     tune,
 )
+from harness.config.loading import load_config
+from harness.config.schema import MAX_SEED, ConfigError, ExperimentConfig
 from harness.results.groups import GroupError
 from harness.results.rundir import (
     RunDir,
@@ -352,6 +352,10 @@ def resolve_run_config(args: argparse.Namespace) -> ExperimentConfig:
     if args.name is not None:
         overrides.append(f"name={json.dumps(args.name)}")
     config = load_config(args.config, overrides)
+    from harness.training.checks import checked_config  # torch: only here
+
+    source = f"{args.config}" + (f" with --set {' '.join(overrides)}" if overrides else "")
+    checked_config(config, source)
     try:
         config.env.check_training_map()
     except ValueError as exc:

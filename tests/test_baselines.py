@@ -4,7 +4,8 @@ frontier explorer.
 Speed of the frontier policy (50x50 random maps, 4 agents, 1000 steps, 100 episodes)::
 
     python -c "import time; from harness.config.schema import EnvConfig; \
-from harness.evaluation.episodes import run_episodes; from harness.evaluation.baselines import make_baseline; \
+from harness.evaluation.episodes import run_episodes; \
+from harness.evaluation.baselines import make_baseline; \
 t = time.perf_counter(); run_episodes(make_baseline('frontier', 0), EnvConfig(), 100, 0); \
 print(100 / (time.perf_counter() - t), 'episodes/s')"
 """
@@ -48,8 +49,8 @@ def test_names_and_unknown_name() -> None:
 # ---------------------------------------------------------------------- frontier_step
 def test_frontier_step_baseline_walks_the_compass_and_needs_the_action() -> None:
     step_env = EnvConfig(
-        height=12, width=12, n_agents=2, max_steps=40, observation="teammap", crop=7,
-        frontier=True, frontier_action=True,
+        height=12, width=12, n_agents=2, max_steps=40, observation={"teammap": {"crop": 7}},
+        frontier={"action": "step"},
     )  # fmt: skip
     results = run_episodes(make_baseline("frontier_step", 0), step_env, episodes=3, seed=4)
     # Every step heads for unexplored ground through known free cells: never a wall, and a lone
@@ -58,7 +59,7 @@ def test_frontier_step_baseline_walks_the_compass_and_needs_the_action() -> None
     assert all(r.coverage > 0.5 for r in results)
     again = run_episodes(make_baseline("frontier_step", 0), step_env, episodes=3, seed=4)
     assert [r.coverage for r in again] == [r.coverage for r in results]  # ties: episode seed
-    with pytest.raises(ValueError, match=r"needs env\.frontier_action: true"):
+    with pytest.raises(ValueError, match=r"needs env\.frontier\.action: step"):
         run_episodes(make_baseline("frontier_step", 0), small_maps(2, 10), episodes=1, seed=0)
 
 
@@ -137,7 +138,7 @@ def test_local_rule_acts_the_same_whatever_the_observation() -> None:
     # It reads each agent's 3x3 window from the env's state, so the team-map observation gives
     # the same episodes as the thesis one (same maps, starts and tie-breaking draws).
     thesis = EnvConfig(height=12, width=12, n_agents=2, max_steps=60)
-    teammap = thesis.model_copy(update={"observation": "teammap", "crop": 5, "global_size": 7})
+    teammap = thesis.model_copy(update={"observation": {"teammap": {"crop": 5, "global_size": 7}}})
     a = run_episodes(make_baseline("local", 0), thesis, episodes=3, seed=4, record_paths=True)
     b = run_episodes(make_baseline("local", 0), teammap, episodes=3, seed=4, record_paths=True)
     for x, y in zip(a, b, strict=True):

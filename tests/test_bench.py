@@ -16,7 +16,6 @@ def test_bench_env_json_has_the_documented_keys(capsys):
         "env_bare_teammap_agent_steps_per_s",
         "env_teammap_over_thesis",
         "env_bare_teammap_ego_agent_steps_per_s",
-        "env_bare_teammap_trail_agent_steps_per_s",
         "env_bare_teammap_frontier_agent_steps_per_s",
         "env_bare_teammap_claims_agent_steps_per_s",
         "env_bare_teammap_pocket_agent_steps_per_s",
@@ -34,7 +33,6 @@ def test_bench_report_shows_every_section_with_targets():
         "env_bare_agent_steps_per_s": 120_000.0,
         "env_bare_teammap_agent_steps_per_s": 36_000.0,
         "env_bare_teammap_ego_agent_steps_per_s": 24_000.0,
-        "env_bare_teammap_trail_agent_steps_per_s": 30_000.0,
         "env_bare_teammap_frontier_agent_steps_per_s": 6_000.0,
         "env_bare_teammap_claims_agent_steps_per_s": 4_800.0,
         "env_bare_teammap_pocket_agent_steps_per_s": 3_600.0,
@@ -72,7 +70,6 @@ def test_bench_report_shows_every_section_with_targets():
     ):
         assert expected in text, expected
     assert "2x64" in text and "450" in text
-    assert "teammap + trail (50 steps)       30,000" in text
     (line,) = [line for line in text.splitlines() if "teammap + frontier field" in line]
     assert "6,000" in line and "0.05 x thesis" in line
     (line,) = [line for line in text.splitlines() if "frontier claims" in line]

@@ -11,8 +11,8 @@ import pytest
 from PIL import Image
 
 from harness.cli import main
+from harness.commands import choose_temperature
 from harness.config.loading import load_config
-from harness.evaluation.commands import choose_temperature
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "smoke.yaml"
@@ -146,7 +146,7 @@ def test_compare_writes_a_plot_and_a_table(smoke_run, tmp_path, capsys):
         (["eval", "--policy", "random"], "needs --config"),
         (
             ["eval", "--policy", "frontier_step", "--config", str(SMOKE)],
-            "--policy frontier_step needs env.frontier_action: true",
+            "--policy frontier_step needs env.frontier.action: step",
         ),
         (["eval"], "give a run folder or model zip"),
         (["eval", "--policy", "random", "--config", str(SMOKE), "--episodes", "0"], "--episodes"),

@@ -9,6 +9,8 @@ import yaml
 
 from harness.config.loading import load_config, parse_override
 from harness.config.schema import ConfigError, ExperimentConfig
+from harness.factory import check_env
+from harness.training.checks import checked_config
 
 CONFIGS = sorted(Path(__file__).resolve().parents[1].joinpath("configs").glob("*.yaml"))
 
@@ -52,7 +54,6 @@ def test_shipped_configs_load(path):
         ("env: {n_agents: many}", r"env.n_agents: Input should be a valid integer"),
         ("env: {map: nowhere.txt}", r"env.map: 'nowhere.txt' is not 'random'"),
         ("env: {height: 2, width: 2, n_agents: 5}", r"env: n_agents=5 is more than the 2x2 map"),
-        ("algo: {optimizer: Adamm}", r"algo.optimizer: unknown torch optimizer 'Adamm'"),
         ("algo: {policy: CnnPolicy}", r"algo.policy: unknown policy .CnnPolicy.; known: MlpPolicy"),
         ("phases: []", r"phases: needs at least one phase"),
         ("phases: [{name: a}]", r"phases.0.timesteps: Field required"),
@@ -77,8 +78,20 @@ def test_missing_file(tmp_path):
 def test_env_problems_found_by_the_env_are_config_errors(tmp_path):
     bad_map = tmp_path / "m.txt"
     bad_map.write_text("..\n.x\n")
+    # The schema checks keys without building an env; the factory builds it once and turns the
+    # env's own complaint into a one-line config error.
+    config = load_config(write(tmp_path, f"env: {{map: {bad_map}, n_agents: 1}}"))
     with pytest.raises(ConfigError, match=r"env: .*m.txt: line 2, column 2"):
-        load_config(write(tmp_path, f"env: {{map: {bad_map}, n_agents: 1}}"))
+        check_env(config.env)
+
+
+def test_runtime_problems_are_config_errors_before_training(tmp_path):
+    path = write(tmp_path, "algo: {optimizer: Adamm}")
+    config = load_config(path)  # torch is not asked by the schema
+    with pytest.raises(
+        ConfigError, match=r"exp\.yaml: algo.optimizer: unknown torch optimizer 'Adamm'"
+    ):
+        checked_config(config, str(path))
 
 
 def test_overrides_are_typed_and_reach_nested_keys(tmp_path):

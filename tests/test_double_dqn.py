@@ -1,7 +1,10 @@
-"""DoubleDQN: hand-computed updates, prioritized training, per-slot exploration, save/load."""
+"""DoubleDQN: hand-computed updates, prioritized training, per-slot exploration, save/load, and
+the SB3 layer's independence of the env."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 from pathlib import Path
 from typing import Any
 
@@ -20,7 +23,6 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 import harness.sb3.dqn
 import harness.sb3.targets
-from envs.coverage.types import CELL_WALL
 from harness import DoubleDQN, DuelingDQNPolicy, PrioritizedReplayBuffer
 
 S = np.array([[1.0, 0.0]], dtype=np.float32)  # state s
@@ -252,83 +254,8 @@ def test_single_observation_like_sb3(five_action_model: DoubleDQN) -> None:
     assert actions == set(range(5))
 
 
-# ---------------------------------------------------------------------- action masking
-
-# A thesis observation (3x3 window, then positions) whose window shows walls above and to the
-# right of the agent: `up` (0) and `right` (3) are blocked, down, left and stay are free.
-WALLED = np.zeros(13, dtype=np.float32)
-WALLED[1] = WALLED[5] = CELL_WALL
-FREE = np.zeros(13, dtype=np.float32)
-
-
-class WindowEnv(TinyEnv):
-    """Five actions and 13-number observations: the walled window, then the free one."""
-
-    def __init__(self) -> None:
-        super().__init__(5)
-        self.observation_space = spaces.Box(-1.0, 1.0, shape=(13,), dtype=np.float32)
-
-    def _obs(self) -> np.ndarray:
-        return WALLED.copy()
-
-
-def make_masked_model(q: list[float], target_q: list[float], **kwargs: Any) -> DoubleDQN:
-    """A linear model whose Q-values are its biases: ``q`` online, ``target_q`` target."""
-    model = DoubleDQN(
-        "MlpPolicy", DummyVecEnv([WindowEnv]), policy_kwargs=dict(net_arch=[]),
-        learning_rate=0.0, gamma=GAMMA, buffer_size=4, device="cpu", seed=0, action_mask=True,
-        **kwargs,
-    )  # fmt: skip
-    model.set_logger(configure(folder=None, format_strings=[]))
-    for net, bias in ((model.q_net, q), (model.q_net_target, target_q)):
-        layer = net.q_net[0]
-        with th.no_grad():
-            layer.weight.zero_()
-            layer.bias.copy_(th.tensor(bias))
-    return model
-
-
-def test_masked_greedy_and_random_actions_avoid_blocked_moves() -> None:
-    # Q prefers `up`, then `right` (both blocked), then `left`.
-    model = make_masked_model([9.0, 1.0, 5.0, 8.0, 0.0], [0.0] * 5)
-    obs = np.stack([WALLED, FREE])
-    greedy, _ = model.predict(obs, deterministic=True)
-    np.testing.assert_array_equal(greedy, [2, 0])  # walled: left; free window: up
-    assert np.shape(model.predict(WALLED, deterministic=True)[0]) == ()
-    model.exploration_rate = 1.0
-    set_random_seed(0)
-    walled = np.repeat(WALLED[None], 3000, axis=0)
-    actions, _ = model.predict(walled)
-    counts = np.bincount(actions, minlength=5) / len(actions)
-    # Uniform over the three free moves (std of a share ~0.009: tolerance 5 std), none blocked.
-    assert counts[0] == counts[3] == 0
-    np.testing.assert_allclose(counts[[1, 2, 4]], 1 / 3, atol=0.045)
-    set_random_seed(0)
-    np.testing.assert_array_equal(model.predict(walled)[0], actions)  # reproducible
-
-
-@pytest.mark.parametrize(("double_q", "bootstrap"), [(True, 1.0), (False, 4.0)])
-def test_masked_target_bootstraps_from_free_moves_only(double_q: bool, bootstrap: float) -> None:
-    # s' (the walled window): online Q = [5, 0, 1, 2, 0] -> best free move `left` (2), whose
-    # target value is 1 (unmasked Double-Q would take `up`, valued 3). Plain max over the free
-    # moves of the target Q [3, 4, 1, 7, 0]: `down`, 4 (unmasked: `right`, 7).
-    online, target_net = [5.0, 0.0, 1.0, 2.0, 0.0], [3.0, 4.0, 1.0, 7.0, 0.0]
-    model = make_masked_model(online, target_net, double_q=double_q)
-    assert model.replay_buffer is not None
-    model.replay_buffer.add(
-        FREE[None], WALLED[None], np.array([[4]]), np.array([1.0]), np.array([False]), [{}]
-    )
-    model.train(gradient_steps=1, batch_size=4)
-    # Q(s, stay) = 0; target = 1 + 0.5 * bootstrap; Huber of |0 - target| > 1: |x| - 0.5
-    target = 1.0 + GAMMA * bootstrap
-    assert logged(model, "train/loss") == pytest.approx(target - 0.5)
-
-
-def test_action_mask_is_saved_with_the_model(tmp_path: Path) -> None:
-    model = make_masked_model([0.0] * 5, [0.0] * 5)
-    model.save(tmp_path / "m.zip")
-    assert DoubleDQN.load(tmp_path / "m.zip", device="cpu").action_mask is True
-    assert make_linear_model().action_mask is False
+# ---------------------------------------------------------------------- imitation loss
+# (Invalid-action masking: tests/test_action_mask.py.)
 
 
 def test_margin_loss_is_added_to_the_td_loss_hand_computed() -> None:
@@ -535,3 +462,20 @@ def test_two_slot_smoke_training(tmp_path: Path) -> None:
     with th.no_grad():
         observations = th.as_tensor(np.stack([env.observation_space.sample() for _ in range(8)]))
         assert th.allclose(loaded.q_net(observations), model.q_net(observations))
+
+
+# ---------------------------------------------------------------------------------- layering
+
+
+def test_the_sb3_layer_imports_no_env_module() -> None:
+    # A fresh interpreter: this test process has imported envs through other tests already.
+    code = (
+        "import harness.sb3.dqn, harness.sb3.policies, harness.sb3.buffers, harness.sb3.targets, "
+        "harness.sb3.schedules, sys; "
+        "print([m for m in sys.modules if m == 'envs' or m.startswith('envs.')])"
+    )
+    root = Path(__file__).resolve().parents[1]
+    result = subprocess.run(
+        [sys.executable, "-c", code], cwd=root, capture_output=True, text=True, check=True
+    )
+    assert result.stdout.strip() == "[]"

@@ -183,7 +183,12 @@ def test_blocked_moves_read_the_walls_next_to_the_agent_from_its_observation(obs
 
     grid = grid_from(SHIELD_ROOM)
     env = coverage_v0.parallel_env(
-        height=4, width=5, n_agents=2, observation=observation, crop=5, global_size=6
+        height=4,
+        width=5,
+        n_agents=2,
+        observation=observation
+        if observation == "thesis"
+        else {"teammap": {"crop": 5, "global_size": 6}},
     )
     obs, _ = env.reset(seed=0, options={"grid": grid, "starts": [(1, 1), (1, 2)]})
     blocked = blocked_moves(stack_observations([obs]))
@@ -261,24 +266,3 @@ class StepQModel(FixedQModel):
         import torch as th
 
         return th.tensor([[5.0, -3.0, -2.0, -4.0, 1.0, 3.5]]).repeat(len(x), 1)
-
-
-@pytest.mark.parametrize(("bonus", "expected"), [(None, 0), (0.0, 0), (1.0, 0), (2.0, 5)])
-def test_step_bonus_keeps_the_step_unless_another_move_leads_by_more(bonus, expected):
-    from harness.evaluation.episodes import model_policy
-
-    obs = np.zeros((2, 13), dtype=np.float32)
-    # greedy: up (5.0) leads the step (3.5) by 1.5, so a bonus of 2 makes the step greedy
-    actions = model_policy(StepQModel, 0.0, step_bonus=bonus)(obs, [])
-    assert actions.tolist() == [expected, expected]
-
-
-def test_step_bonus_needs_the_frontier_step():
-    from harness.evaluation.episodes import model_policy
-
-    class FiveActions(FixedQModel):
-        class action_space:
-            n = 5
-
-    with pytest.raises(ValueError, match="step_bonus needs a model with the frontier step"):
-        model_policy(FiveActions, 0.0, step_bonus=1.0)

@@ -26,6 +26,7 @@ from envs.coverage.generators import (
 )
 from harness.config.loading import config_from_dict, load_config
 from harness.config.schema import ConfigError
+from harness.factory import env_kwargs
 
 SOURCES = {
     "random": lambda: RandomMaps(20, 30, (0.15, 0.2)),
@@ -186,7 +187,7 @@ def test_a_mix_of_sizes_draws_each_size_and_sizes_the_space_for_the_largest():
 
 def test_the_team_map_takes_maps_of_any_size_in_one_env():
     mix = MixGenerator([(1.0, RandomMaps(12, 20)), (1.0, CaveMaps(30, 18))])
-    env = coverage_v0.parallel_env(map=mix, n_agents=2, observation="teammap", crop=7)
+    env = coverage_v0.parallel_env(map=mix, n_agents=2, observation={"teammap": {"crop": 7}})
     space = env.observation_space("agent_0")
     env.reset(seed=1)
     for _ in range(6):
@@ -266,7 +267,7 @@ THESIS_MIX = {
 
 def test_a_mix_in_a_config_builds_the_mix_and_survives_the_run_folders_yaml(tmp_path):
     config = config_from_dict({"env": {"n_agents": 2, "map": THESIS_MIX}})
-    mix = config.env.kwargs()["map"]
+    mix = env_kwargs(config.env)["map"]
     assert isinstance(mix, MixGenerator)
     np.testing.assert_allclose(mix.probabilities, [0.5, 0.25, 0.25])
     assert [type(g) for g in mix.sources] == [RandomMaps, CaveMaps, MazeMaps]
@@ -281,7 +282,7 @@ def test_a_mix_in_a_config_builds_the_mix_and_survives_the_run_folders_yaml(tmp_
 
 def test_a_source_without_a_size_takes_the_envs():
     config = config_from_dict({"env": {"height": 24, "width": 36, "map": {"cave": None}}})
-    assert config.env.kwargs()["map"].shapes == {(24, 36)}
+    assert env_kwargs(config.env)["map"].shapes == {(24, 36)}
 
 
 def test_a_map_file_source_is_stored_with_its_absolute_path(tmp_path, monkeypatch):
@@ -314,7 +315,7 @@ def test_bad_map_sources_are_one_line_config_errors(source, message):
 
 def test_test_maps_keep_generated_training_maps_apart_from_the_shipped_ones():
     config = config_from_dict({"env": {"map": {"cave": {}}, "test_maps": ["cave_100x50"]}})
-    assert isinstance(config.env.kwargs()["map"], WithoutMaps)
+    assert isinstance(env_kwargs(config.env)["map"], WithoutMaps)
     with pytest.raises(ConfigError, match="'cave_100x50' is a test-only map"):
         config_from_dict(
             {
@@ -326,7 +327,7 @@ def test_test_maps_keep_generated_training_maps_apart_from_the_shipped_ones():
         )
     # A fixed test map named in env.map is used as given (evaluating a run on it) ...
     fixed = config_from_dict({"env": {"map": "cave_100x50", "test_maps": ["cave_100x50"]}})
-    assert isinstance(fixed.env.kwargs()["map"], str)
+    assert isinstance(env_kwargs(fixed.env)["map"], str)
     # ... and `harness run` refuses to train on it.
     with pytest.raises(ValueError, match="test-only map"):
         fixed.env.check_training_map()

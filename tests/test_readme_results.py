@@ -1,4 +1,5 @@
-"""README's results table quotes the committed reference evaluations, digit for digit."""
+"""The results tables (docs/results.md, moved there from README) quote the committed reference
+evaluations and stored baselines, digit for digit."""
 
 from __future__ import annotations
 
@@ -11,13 +12,17 @@ import pytest
 from harness.config.loading import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
+#: The page that holds every results table (README links to it).
+RESULTS = ROOT / "docs" / "results.md"
+#: The page that describes the sweep on a real question.
+SWEEPS = ROOT / "docs" / "seeds-and-sweeps.md"
 TABLE_HEADER = "| experiment | thesis | this project | T | walls | greedy |"
 
 
 def table_rows(header_start: str) -> list[dict[str, str]]:
-    """The rows of the README table whose header line starts with ``header_start``, as
-    ``{column: cell}``."""
-    lines = (ROOT / "README.md").read_text().splitlines()
+    """The rows of the results table (docs/results.md) whose header line starts with
+    ``header_start``, as ``{column: cell}``."""
+    lines = RESULTS.read_text().splitlines()
     start = next(i for i, line in enumerate(lines) if line.startswith(header_start))
     header = [c.strip() for c in lines[start].strip("|").split("|")]
     rows = []
@@ -74,7 +79,7 @@ def test_results_row_quotes_its_reference_evaluation(row: dict[str, str]) -> Non
 
 
 # The baseline columns quote `harness eval --policy P --config configs/C.yaml [--set ...] --json`,
-# stored as docs/baselines/C[-KEY-VALUE]-P.json (see README "Evaluation, baselines, ...").
+# stored as docs/baselines/C[-KEY-VALUE]-P.json (see docs/evaluation.md, "Baselines").
 BASELINES = ROOT / "docs" / "baselines"
 POLICIES = ("random", "local", "frontier")
 
@@ -152,7 +157,8 @@ TEAMMAP_SETTINGS: dict[tuple[str, str], tuple[str, str]] = {
 }
 #: The frontier_step baseline of each setting (every agent always takes the env's frontier step),
 #: run on `configs/teammap_2agents.yaml --set env.frontier=true --set env.frontier_action=true`
-#: with the setting's overrides: docs/baselines/teammap-<stem>-frontier_step.json.
+#: (today `--set 'env.frontier={action: step}'`) with the setting's overrides:
+#: docs/baselines/teammap-<stem>-frontier_step.json (their stored `env` has the old keys).
 TEAMMAP_STEP_BASELINES: dict[tuple[str, str], str] = {
     ("50x50 random, 1000 steps", "1"): "random-1agent",
     ("50x50 random, 1000 steps", "2"): "random-2agents",
@@ -316,7 +322,7 @@ def test_sweep_paragraph_quotes_the_saved_study() -> None:
     best = json.loads((folder / "best.json").read_text())
     complete = [float(r["value"]) for r in rows if r["state"] == "COMPLETE"]
     pruned = [r for r in rows if r["state"] == "PRUNED"]
-    text = (ROOT / "README.md").read_text()
+    text = SWEEPS.read_text()
     assert f"{len(rows)} trials (TPE" in text
     assert f"{len(complete)} complete, {len(pruned)} stopped by" in text
     assert f"span {percent(min(complete), '')[:-1]}–{percent(max(complete))}" in text

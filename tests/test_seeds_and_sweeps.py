@@ -64,7 +64,8 @@ def test_jobs_share_the_cores_this_process_may_use():
     # the machine's full core count: the share follows the CPU affinity.
     code = (
         "import os; os.sched_setaffinity(0, {min(os.sched_getaffinity(0))}); "
-        "from harness.results.groups import threads_per_job; print(threads_per_job(1), threads_per_job(2))"
+        "from harness.results.groups import threads_per_job; "
+        "print(threads_per_job(1), threads_per_job(2))"
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.split() == ["1", "1"]

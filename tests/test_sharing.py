@@ -25,6 +25,7 @@ from harness import DoubleDQN, PrioritizedReplayBuffer
 from harness.cli import main
 from harness.config.loading import load_config
 from harness.config.schema import ConfigError, EnvConfig
+from harness.factory import env_kwargs
 from harness.sb3.dqn import per_agent_loss
 from harness.sb3.policies import PerAgentQNetwork, without_agent_id
 from harness.sb3.registry import POLICIES
@@ -37,16 +38,16 @@ ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "smoke.yaml"
 MODES = ("shared", "shared_id", "per_agent")
 SMALL = {"height": 8, "width": 8, "n_agents": 2, "max_steps": 12}
-TEAMMAP = {**SMALL, "observation": "teammap", "crop": 5, "global_size": 6}
+TEAMMAP = {**SMALL, "observation": {"teammap": {"crop": 5, "global_size": 6}}}
 
 
 # ----------------------------------------------------------------------------------- config
 def test_sharing_defaults_to_shared_and_only_the_other_modes_add_the_agent_id():
     assert load_config(SMOKE).algo.sharing == "shared"
-    assert "agent_id" not in load_config(SMOKE).env.kwargs()
+    assert "agent_id" not in env_kwargs(load_config(SMOKE).env)
     for mode in ("shared_id", "per_agent"):
         config = load_config(SMOKE, [f"algo.sharing={mode}"])
-        assert config.env.kwargs()["agent_id"] is True
+        assert env_kwargs(config.env)["agent_id"] is True
         assert f"sharing: {mode}" in config.to_yaml()
         assert "agent_id" not in config.to_yaml()  # algo.sharing is its one key
 
@@ -475,4 +476,4 @@ def test_a_shared_model_plays_another_team_size(runs, capsys):
 
 def test_env_config_alone_has_no_agent_id():
     # Baselines and benchmarks build EnvConfig directly: plain observations.
-    assert "agent_id" not in EnvConfig(**SMALL).kwargs()
+    assert "agent_id" not in env_kwargs(EnvConfig(**SMALL))

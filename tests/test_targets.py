@@ -91,10 +91,27 @@ def test_blocked_actions_are_left_out_of_the_max_and_the_argmax() -> None:
     assert th.allclose(double, th.tensor([[3.7], [0.5]]))
 
 
-def test_a_row_with_every_action_blocked_is_an_error() -> None:
-    blocked = th.tensor([[True, True], [False, False]])
-    with pytest.raises(ValueError, match="at least one action"):
-        max_q_target(REWARDS, DONES, 0.9, NEXT_Q_TARGET, blocked)
+def test_a_row_with_every_action_blocked_falls_back_to_all_actions() -> None:
+    # Row 0 blocks both actions: it bootstraps as if unmasked, never from -inf. Row 1 is terminal
+    # and blocks both too: (1 - done) * max must be 0, not 0 * -inf = NaN.
+    blocked = th.tensor([[True, True], [True, True]])
+    plain = max_q_target(REWARDS, DONES, 0.9, NEXT_Q_TARGET, blocked)
+    # row 0: 1 + 0.9 * max(1, 3) = 3.7; row 1: 0.5
+    assert th.allclose(plain, th.tensor([[3.7], [0.5]]))
+    double = double_q_target(REWARDS, DONES, 0.9, NEXT_Q_ONLINE, NEXT_Q_TARGET, blocked)
+    # row 0: online argmax over both = action 0, target value 1 -> 1.9; row 1: 0.5
+    assert th.allclose(double, th.tensor([[1.9], [0.5]]))
+    assert th.isfinite(plain).all() and th.isfinite(double).all()
+    # Only the fully blocked row falls back: row 1 (one action blocked) is still masked.
+    mixed = th.tensor([[True, True], [False, True]])
+    dones = th.zeros(2, 1)
+    # row 1 not terminal now: max over action 0 only = 2 -> 0.5 + 0.9 * 2 = 2.3 (unmasked: 5)
+    assert th.allclose(
+        max_q_target(REWARDS, dones, 0.9, NEXT_Q_TARGET, mixed), th.tensor([[3.7], [2.3]])
+    )
+
+
+def test_blocked_must_match_the_q_values() -> None:
     with pytest.raises(ValueError, match="blocked must be"):
         max_q_target(REWARDS, DONES, 0.9, NEXT_Q_TARGET, th.tensor([True, False]))
 

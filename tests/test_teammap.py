@@ -1,8 +1,11 @@
-"""The team-map observation (``observation="teammap"``): hand-built grids, crop padding at the
-border, pooling of maps of any size, the incremental arrays against a from-scratch recomputation,
+"""The team-map observation (``observation={"teammap": {...}}``) and the planner extension
+(``frontier={...}``) on it: hand-built grids, crop padding at the border, pooling of maps of any
+size, the incremental arrays against a from-scratch recomputation, old configs that still load,
 and PettingZoo's own API and seed tests."""
 
 from __future__ import annotations
+
+import inspect
 
 import numpy as np
 import pytest
@@ -10,9 +13,11 @@ from gymnasium import spaces
 from pettingzoo.test import parallel_api_test, parallel_seed_test
 
 from envs import coverage_v0
-from envs.coverage.frontier import COMPASS_TIE_BREAKS
-from harness.config.loading import load_config
-from harness.config.schema import ConfigError
+from envs.coverage.env import CoverageEnv
+from envs.coverage.frontier import PLANNERS, Frontier, FrontierOptions
+from envs.coverage.observations import TeamMap, TeamMapObservation
+from harness.config.loading import config_from_dict, load_config
+from harness.config.schema import ConfigError, EnvConfig
 from tests.conftest import grid_from
 
 UP, DOWN, LEFT, RIGHT, STAY = range(5)
@@ -25,14 +30,16 @@ ROOM = """
 """
 
 
-def teammap_env(text: str, starts: list[tuple[int, int]], **kwargs):
+def teammap_env(text: str, starts: list[tuple[int, int]], frontier=None, **options):
+    """An env with the team map (``options``: crop, global_size, ego_size, ego_block) reset on
+    the text grid with fixed start cells."""
     grid = grid_from(text)
     env = coverage_v0.parallel_env(
         height=grid.shape[0],
         width=grid.shape[1],
         n_agents=len(starts),
-        observation="teammap",
-        **kwargs,
+        observation={"teammap": options},
+        frontier=frontier,
     )
     obs, _ = env.reset(seed=0, options={"grid": grid, "starts": starts})
     return env, obs
@@ -148,43 +155,6 @@ def test_known_cells_after_a_few_moves_on_a_hand_built_grid():
     check(env, obs, crop=5, g=7)
 
 
-def test_own_trail_fades_over_k_steps_on_a_hand_built_grid():
-    # Two agents, trail K = 3: a cell stood on a steps ago is round(255 * (3 - a) / 3).
-    env, obs = teammap_env(ROOM, [(1, 1), (3, 5)], crop=7, global_size=7, trail=3)
-    assert obs["agent_0"]["local"].shape == (6, 7, 7)
-    trail = obs["agent_0"]["local"][5]
-    assert trail[3, 3] == 255 and trail.sum() == 255  # only the start cell, this step
-    for _ in range(3):
-        obs, *_ = env.step({"agent_0": RIGHT, "agent_1": LEFT})
-    # agent 0 walked (1, 1) -> (1, 2) -> (1, 3) -> (1, 4); the crop centre is (1, 4).
-    trail = obs["agent_0"]["local"][5]
-    assert [trail[3, 3 - a] for a in range(4)] == [255, 170, 85, 0]  # (1, 4) .. (1, 1)
-    assert trail.sum() == 255 + 170 + 85  # nothing else: not the teammate's path
-    # agent 1 walked (3, 5) -> (3, 2) past agent 0's path; it sees only its own.
-    other = obs["agent_1"]["local"][5]
-    assert [other[3, 3 + a] for a in range(4)] == [255, 170, 85, 0]
-    assert other.sum() == 255 + 170 + 85
-    # Standing still keeps the cell fresh; bumping a wall is standing still.
-    obs, *_ = env.step({"agent_0": UP, "agent_1": STAY})  # (0, 4) is a wall
-    trail = obs["agent_0"]["local"][5]
-    assert trail[3, 3] == 255 and trail[3, 2] == 85 and trail[3, 1] == 0
-    # A new episode starts a new trail.
-    obs, _ = env.reset(seed=1, options={"grid": grid_from(ROOM), "starts": [(3, 1), (1, 5)]})
-    assert obs["agent_0"]["local"][5].sum() == 255
-
-
-def test_trail_off_keeps_five_channels_and_every_other_view_the_same():
-    plain, obs_plain = teammap_env(ROOM, [(1, 1), (3, 5)], crop=7, global_size=7)
-    trailed, obs_trail = teammap_env(ROOM, [(1, 1), (3, 5)], crop=7, global_size=7, trail=4)
-    for _ in range(4):
-        for a in obs_plain:
-            np.testing.assert_array_equal(obs_trail[a]["local"][:5], obs_plain[a]["local"])
-            np.testing.assert_array_equal(obs_trail[a]["global"], obs_plain[a]["global"])
-        obs_plain, *_ = plain.step({"agent_0": DOWN, "agent_1": LEFT})
-        obs_trail, *_ = trailed.step({"agent_0": DOWN, "agent_1": LEFT})
-    assert plain.observation_space("agent_0")["local"].shape == (5, 7, 7)
-
-
 LOOP = """
 #########
 #.......#
@@ -195,7 +165,7 @@ LOOP = """
 
 
 def test_frontier_field_and_compass_on_a_hand_built_grid():
-    env, obs = teammap_env(LOOP, [(1, 1)], crop=7, global_size=7, frontier=True)
+    env, obs = teammap_env(LOOP, [(1, 1)], crop=7, global_size=7, frontier={})
     o = obs["agent_0"]
     assert o["local"].shape == (6, 7, 7) and o["frontier"].shape == (5,)
     # Known after the start: the 3x3 window of (1, 1); unvisited known free: (1, 2) and (2, 1),
@@ -223,9 +193,7 @@ FRONTIER_STEP = 5
 
 
 def test_frontier_step_follows_the_compass_and_stays_when_none_is_left():
-    env, obs = teammap_env(
-        LOOP, [(1, 1)], crop=7, global_size=7, frontier=True, frontier_action=True
-    )
+    env, obs = teammap_env(LOOP, [(1, 1)], crop=7, global_size=7, frontier={"action": "step"})
     assert env.action_space("agent_0").n == 6
     # At (1, 1) the compass marks down and right (both one step from a frontier cell): a tie,
     # drawn from the episode's generator.
@@ -248,10 +216,8 @@ def test_frontier_step_ties_repeat_with_the_episode_seed():
             height=20,
             width=20,
             n_agents=3,
-            observation="teammap",
-            crop=7,
-            frontier=True,
-            frontier_action=True,
+            observation={"teammap": {"crop": 7}},
+            frontier={"action": "step"},
             max_steps=60,
         )
         env.reset(seed=seed)
@@ -276,13 +242,12 @@ def test_frontier_claims_keep_a_teammate_from_following_into_a_dead_end():
     # Agent 1 at (1, 1) is behind agent 0 at (1, 2) in a corridor closed on the left: the one
     # unvisited known cell is (1, 3), one step from agent 0, two from agent 1.
     starts = [(1, 2), (1, 1)]
-    plain, obs_plain = teammap_env(CORRIDOR, starts, crop=7, global_size=7, frontier=True)
+    plain, obs_plain = teammap_env(CORRIDOR, starts, crop=7, global_size=7, frontier={})
     for a, d in (("agent_0", 1), ("agent_1", 2)):  # without claims both head right
         np.testing.assert_allclose(obs_plain[a]["frontier"], [0, 0, 0, 1, d / 12])
     env, obs = teammap_env(
-        CORRIDOR, starts, crop=7, global_size=7, frontier=True, frontier_action=True,
-        frontier_claims=True,
-    )  # fmt: skip
+        CORRIDOR, starts, crop=7, global_size=7, frontier={"action": "step", "planner": "order"}
+    )
     # With claims agent 0 takes (1, 3); nothing is left for agent 1, so no move is marked (its
     # step stays), and the distance is still the nearest cell's.
     np.testing.assert_allclose(obs["agent_0"]["frontier"], [0, 0, 0, 1, 1 / 12])
@@ -296,54 +261,90 @@ def test_frontier_claims_keep_a_teammate_from_following_into_a_dead_end():
     assert obs["agent_0"]["frontier"][:4].sum() == 0  # nothing left: no move marked, stay
 
 
-@pytest.mark.parametrize(("n_agents", "tie_break"), [(1, "order"), (3, "order"), (3, "pocket")])
-def test_always_stepping_with_claims_is_the_frontier_explorer(n_agents, tie_break):
-    from harness.config.schema import EnvConfig
+@pytest.mark.parametrize(("n_agents", "planner"), [(1, "order"), (3, "order"), (3, "pocket")])
+def test_always_stepping_with_a_planner_is_the_frontier_explorer(n_agents, planner):
     from harness.evaluation.baselines import make_baseline
     from harness.evaluation.episodes import run_episodes
 
     size = {"height": 18, "width": 22, "n_agents": n_agents, "max_steps": 120}
     steps = EnvConfig(
-        **size, observation="teammap", crop=7, frontier=True, frontier_action=True,
-        frontier_claims=True, frontier_tie_break=tie_break,
-    )  # fmt: skip
+        **size,
+        observation={"teammap": {"crop": 7}},
+        frontier={"action": "step", "planner": planner},
+    )
     stepped = run_episodes(make_baseline("frontier_step", 0), steps, episodes=3, seed=5)
-    planner = {"order": "frontier", "pocket": "frontier_pocket"}[tie_break]
-    planned = run_episodes(make_baseline(planner, 0), EnvConfig(**size), episodes=3, seed=5)
+    baseline = {"order": "frontier", "pocket": "frontier_pocket"}[planner]
+    assert baseline == PLANNERS[planner].baseline
+    planned = run_episodes(make_baseline(baseline, 0), EnvConfig(**size), episodes=3, seed=5)
     assert [r.coverage for r in stepped] == [r.coverage for r in planned]
     assert [r.new_cells for r in stepped] == [r.new_cells for r in planned]
     assert all(sum(r.wall_hits) == 0 for r in stepped)
 
 
-def test_frontier_claims_need_the_frontier_compass():
-    with pytest.raises(ValueError, match="frontier_claims needs observation='teammap'"):
-        coverage_v0.parallel_env(observation="teammap", frontier_claims=True)
-    with pytest.raises(ValueError, match="frontier_claims must be True or False"):
-        coverage_v0.parallel_env(observation="teammap", frontier=True, frontier_claims="yes")
-    from harness.config.schema import EnvConfig
+def test_always_taking_the_step_with_the_pocket_planner_plays_the_frontier_pocket_moves():
+    # Move for move, not only the same totals: the env's step with frontier.planner: pocket is
+    # the frontier_pocket baseline's move for every agent at every step.
+    from harness.evaluation.baselines import make_baseline
 
-    with pytest.raises(ValueError, match="frontier_claims needs observation: teammap"):
-        EnvConfig(observation="teammap", crop=7, frontier_claims=True)
+    def make(**kwargs) -> CoverageEnv:
+        return coverage_v0.parallel_env(height=18, width=22, n_agents=3, max_steps=150, **kwargs)
+
+    stepped = make(
+        observation={"teammap": {"crop": 7}}, frontier={"action": "step", "planner": "pocket"}
+    )
+    planned = make()  # the thesis observation, no planner extension
+    baseline = make_baseline("frontier_pocket", 0)
+    for seed in (5, 6):
+        stepped.reset(seed=seed)
+        obs, _ = planned.reset(seed=seed)
+        np.testing.assert_array_equal(stepped.walls, planned.walls)
+        np.testing.assert_array_equal(stepped.positions, planned.positions)
+        while planned.agents:
+            moves = baseline(np.stack([obs[a] for a in planned.agents]), [planned])
+            obs, *_ = planned.step(dict(zip(planned.agents, moves.tolist())))
+            _, _, _, _, infos = stepped.step(dict.fromkeys(stepped.agents, FRONTIER_STEP))
+            np.testing.assert_array_equal(stepped.positions, planned.positions)
+            assert all(info["wall_hits"] == 0 for info in infos.values())
+        assert not stepped.agents and stepped.coverage == planned.coverage
+        np.testing.assert_array_equal(stepped.credited_by, planned.credited_by)
 
 
-def test_the_compass_tie_break_needs_claims_and_a_known_name():
-    from harness.config.schema import EnvConfig
+def test_the_frontier_planner_needs_the_team_map_and_a_known_name():
+    # The planner (the old frontier_claims) is part of the frontier option: it cannot be asked
+    # for without the compass, which needs the team map.
+    with pytest.raises(ValueError, match="frontier needs the teammap observation"):
+        coverage_v0.parallel_env(frontier={"planner": "order"})  # the thesis observation
+    with pytest.raises(ValueError, match=r"frontier\.planner: unknown planner 'yes'"):
+        coverage_v0.parallel_env(observation="teammap", frontier={"planner": "yes"})
+    with pytest.raises(ValueError, match="frontier needs the teammap observation"):
+        EnvConfig(frontier={"planner": "order"})
+    with pytest.raises(ValueError, match=r"frontier\.planner: unknown planner 'yes'"):
+        EnvConfig(observation={"teammap": {"crop": 7}}, frontier={"planner": "yes"})
+    # A planner without a planner-backed action: the compass marks its move, five actions.
+    env = coverage_v0.parallel_env(observation="teammap", frontier={"planner": "order"})
+    assert env.action_space("agent_0").n == 5
 
-    with pytest.raises(ValueError, match="frontier_tie_break needs frontier_claims=True"):
-        coverage_v0.parallel_env(observation="teammap", frontier=True, frontier_tie_break="pocket")
-    with pytest.raises(
-        ValueError, match=r"frontier_tie_break must be one of \('order', 'pocket'\)"
-    ):
+
+def test_the_env_planner_choices_are_the_registry_s_in_env_planners():
+    in_env = [name for name, entry in PLANNERS.items() if entry.in_env]
+    assert in_env == ["order", "pocket"]
+    baseline_only = (
+        "frontier.planner: 'random' draws its ties from a generator: it is a baseline only"
+    )
+    with pytest.raises(ValueError, match=baseline_only):
         coverage_v0.parallel_env(
-            observation="teammap", frontier=True, frontier_claims=True, frontier_tie_break="random"
+            observation="teammap", frontier={"action": "step", "planner": "random"}
         )
-    with pytest.raises(ValueError, match="frontier_tie_break needs frontier_claims: true"):
-        EnvConfig(observation="teammap", crop=7, frontier=True, frontier_tie_break="pocket")
-    with pytest.raises(ValueError, match="frontier_tie_break"):
-        EnvConfig(frontier_tie_break="random")  # not a choice
     # The config offers exactly the env's choices.
-    choices = EnvConfig.model_fields["frontier_tie_break"].annotation.__args__
-    assert choices == COMPASS_TIE_BREAKS
+    for name in PLANNERS:
+        frontier = {"action": "step", "planner": name}
+        if name in in_env:
+            env = EnvConfig(observation={"teammap": {"crop": 7}}, frontier=frontier)
+            assert env.frontier == frontier
+            assert env.frontier_options == FrontierOptions(action="step", planner=name)
+        else:
+            with pytest.raises(ValueError, match=baseline_only):
+                EnvConfig(observation={"teammap": {"crop": 7}}, frontier=frontier)
 
 
 def frontier_distances(env) -> np.ndarray:
@@ -376,9 +377,8 @@ def test_frontier_views_equal_a_search_through_known_cells_only(seed):
         height=height,
         width=width,
         n_agents=3,
-        observation="teammap",
-        crop=crop,
-        frontier=True,
+        observation={"teammap": {"crop": crop}},
+        frontier={},
         max_steps=400,
     )
     obs, _ = env.reset(seed=seed)
@@ -460,11 +460,8 @@ def test_ego_view_equals_a_cell_by_cell_recomputation_after_many_steps(seed):
         height=23,
         width=31,
         n_agents=3,
-        observation="teammap",
+        observation={"teammap": {"crop": 7, "ego_size": 7, "ego_block": 5}},
         max_steps=200,
-        crop=7,
-        ego_size=7,
-        ego_block=5,
     )
     obs, _ = env.reset(seed=seed)
     rng = np.random.default_rng(seed)
@@ -559,7 +556,7 @@ def windows_of(positions: list[tuple[int, int]], height: int, width: int) -> np.
 @pytest.mark.parametrize("seed", [0, 1])
 def test_incremental_arrays_equal_a_recomputation_after_many_steps(seed):
     env = coverage_v0.parallel_env(
-        height=23, width=31, n_agents=3, observation="teammap", max_steps=300, crop=7
+        height=23, width=31, n_agents=3, observation={"teammap": {"crop": 7}}, max_steps=300
     )
     obs, _ = env.reset(seed=seed)
     held = [tuple(p) for p in env.positions.tolist()]
@@ -579,18 +576,17 @@ def test_incremental_arrays_equal_a_recomputation_after_many_steps(seed):
 
 
 @pytest.mark.parametrize(
-    ("height", "width", "sizes"),
+    ("height", "width", "sizes", "frontier"),
     [
-        (12, 40, {}),
-        (4, 5, {"crop": 5, "global_size": 6}),
-        (12, 40, {"ego_size": 9, "ego_block": 3}),
-        (12, 40, {"crop": 7, "trail": 20}),
-        (12, 40, {"crop": 7, "trail": 20, "frontier": True}),
+        (12, 40, {}, None),
+        (4, 5, {"crop": 5, "global_size": 6}, None),
+        (12, 40, {"ego_size": 9, "ego_block": 3}, None),
+        (12, 40, {"crop": 7}, {}),
     ],
 )
-def test_observations_lie_in_the_space(height, width, sizes):
+def test_observations_lie_in_the_space(height, width, sizes, frontier):
     env = coverage_v0.parallel_env(
-        height=height, width=width, n_agents=2, observation="teammap", **sizes
+        height=height, width=width, n_agents=2, observation={"teammap": sizes}, frontier=frontier
     )
     obs, _ = env.reset(seed=2)
     space = env.observation_space("agent_0")
@@ -601,28 +597,46 @@ def test_observations_lie_in_the_space(height, width, sizes):
         obs, *_ = env.step({a: int(rng.integers(5)) for a in env.agents})
 
 
+#: The team map's default sizes, by keyword.
+TEAM_MAP_DEFAULTS = {"crop": 15, "global_size": 13, "ego_size": 0, "ego_block": 5}
+
+
 @pytest.mark.parametrize(
-    ("kwargs", "message"),
+    ("options", "frontier", "message"),
     [
-        ({"crop": 4}, "crop must be an odd integer >= 5, got 4"),
-        ({"crop": 3}, "crop must be an odd integer >= 5, got 3"),
-        ({"crop": 7.0}, "crop must be an odd integer"),
-        ({"global_size": 5}, "global_size must be an integer >= 6, got 5"),
-        ({"global_size": True}, "global_size must be an integer"),
-        ({"ego_size": 4}, "ego_size must be 0 .off. or an odd integer >= 5, got 4"),
-        ({"ego_size": 3}, "ego_size must be 0 .off. or an odd integer >= 5, got 3"),
-        ({"ego_block": 2}, "ego_block must be an odd integer >= 1, got 2"),
-        ({"crop": 5, "trail": 10}, "crop must be an odd integer >= 7, got 5"),
-        ({"trail": -1}, "trail must be an integer >= 0"),
-        ({"crop": 5, "frontier": True}, "crop must be an odd integer >= 7, got 5"),
-        ({"frontier": 1}, "frontier must be True or False, got 1"),
-        ({"frontier_action": True}, "frontier_action needs observation='teammap' with frontier"),
-        ({"frontier_action": "yes", "frontier": True}, "frontier_action must be True or False"),
+        ({"crop": 4}, None, "crop must be an odd integer in 5..2000, got 4"),
+        ({"crop": 3}, None, "crop must be an odd integer in 5..2000, got 3"),
+        ({"crop": 7.0}, None, "crop must be an odd integer"),
+        ({"global_size": 5}, None, "global_size must be an integer in 6..2000, got 5"),
+        ({"global_size": True}, None, "global_size must be an integer"),
+        ({"ego_size": 4}, None, "ego_size must be 0 .off. or an odd integer in 5..2000, got 4"),
+        ({"ego_size": 3}, None, "ego_size must be 0 .off. or an odd integer in 5..2000, got 3"),
+        ({"ego_block": 2}, None, "ego_block must be an odd integer in 1..2000, got 2"),
+        ({"crop": 5}, {}, "crop must be an odd integer in 7..2000 with the frontier field, got 5"),
+        ({}, 1, "frontier must be null or a mapping with action and planner, got 1"),
+        ({}, True, "frontier must be null or a mapping with action and planner, got True"),
+        ({}, {"action": "yes"}, "frontier.action: unknown action 'yes'"),
+        ({}, {"claims": True}, r"frontier: unknown key\(s\) \['claims'\]"),
+        ({"trail": 3}, None, r"observation 'teammap': unknown option\(s\) \['trail'\]"),
     ],
 )
-def test_bad_sizes_are_value_errors(kwargs, message):
+def test_bad_sizes_are_value_errors(options, frontier, message):
     with pytest.raises(ValueError, match=message):
-        coverage_v0.parallel_env(observation="teammap", **kwargs)
+        coverage_v0.parallel_env(observation={"teammap": options}, frontier=frontier)
+    if "trail" not in options and (frontier is None or frontier == {}):
+        # The builder checks its sizes too, when made by hand (the field: a Frontier object).
+        ext = None if frontier is None else Frontier(FrontierOptions(), 9, 9)
+        with pytest.raises(ValueError, match=message):
+            TeamMapObservation(
+                9, 9, "normalized", 100, **{**TEAM_MAP_DEFAULTS, **options}, frontier=ext
+            )
+
+
+def test_the_frontier_action_needs_the_team_map():
+    with pytest.raises(ValueError, match="frontier needs the teammap observation"):
+        coverage_v0.parallel_env(observation="thesis", frontier={"action": "step"})
+    with pytest.raises(ValueError, match="frontier needs the teammap observation"):
+        coverage_v0.parallel_env(frontier={})  # the thesis observation is the default
 
 
 def test_smallest_sizes_are_read_as_channel_first_images_by_sb3():
@@ -633,12 +647,13 @@ def test_smallest_sizes_are_read_as_channel_first_images_by_sb3():
     )
 
     space = coverage_v0.parallel_env(
-        observation="teammap", crop=5, global_size=6, ego_size=5
+        observation=TeamMap(crop=5, global_size=6, ego_size=5)
     ).observation_space("agent_0")
     for key in ("local", "global", "ego"):
         assert is_image_space(space[key]) and is_image_space_channels_first(space[key])
-    trailed = coverage_v0.parallel_env(observation="teammap", crop=7, trail=5)
-    local = trailed.observation_space("agent_0")["local"]
+    # The frontier field's sixth channel needs a crop of 7.
+    with_field = coverage_v0.parallel_env(observation=TeamMap(crop=7), frontier={})
+    local = with_field.observation_space("agent_0")["local"]
     assert local.shape == (6, 7, 7) and is_image_space_channels_first(local)
     too_small = spaces.Box(0, 255, (5, 3, 3), np.uint8)  # what crop=3 would give
     with pytest.warns(UserWarning, match="channels-last"):
@@ -648,17 +663,40 @@ def test_smallest_sizes_are_read_as_channel_first_images_by_sb3():
 @pytest.mark.parametrize(
     ("env_yaml", "message"),
     [
-        ("{crop: 4}", r"env.crop: must be odd and >= 5"),
-        ("{crop: 3}", r"env.crop: must be odd and >= 5"),
-        ("{global_size: 5}", r"env.global_size: must be >= 6"),
-        ("{ego_size: 4}", r"env.ego_size: must be 0 \(no ego view\) or odd and >= 5"),
-        ("{ego_block: 4}", r"env.ego_block: must be odd"),
-        ("{crop: 5, trail: 8}", r"env: crop must be >= 7 with a trail"),
-        ("{trail: -2}", r"env.trail: Input should be greater than or equal to 0"),
-        ("{crop: 5, frontier: true}", r"env: crop must be >= 7 with the frontier field"),
-        ("{crop: 5, trail: 3, frontier: true}", r"crop must be >= 7 with a trail and the frontier"),
-        ("{frontier: 2}", r"env.frontier: Input should be a valid boolean"),
-        ("{frontier_action: true}", r"env: frontier_action needs observation: teammap and front"),
+        (
+            "{observation: {teammap: {crop: 4}}}",
+            r"env.observation: crop must be an odd integer in 5..2000, got 4",
+        ),
+        (
+            "{observation: {teammap: {crop: 3}}}",
+            r"env.observation: crop must be an odd integer in 5..2000, got 3",
+        ),
+        (
+            "{observation: {teammap: {global_size: 5}}}",
+            r"env.observation: global_size must be an integer in 6..2000, got 5",
+        ),
+        (
+            "{observation: {teammap: {ego_size: 4}}}",
+            r"env.observation: ego_size must be 0 \(off\) or an odd integer in 5..2000",
+        ),
+        (
+            "{observation: {teammap: {ego_block: 4}}}",
+            r"env.observation: ego_block must be an odd integer in 1..2000, got 4",
+        ),
+        (
+            "{observation: {teammap: {crop: 5}}, frontier: {}}",
+            r"env: crop must be an odd integer in 7..2000 with the frontier field",
+        ),
+        ("{observation: teammap, frontier: 2}", r"env.frontier: Input should be a valid dict"),
+        (
+            "{observation: teammap, frontier: {planner: nope}}",
+            r"env.frontier: frontier.planner: unknown planner 'nope'",
+        ),
+        (
+            "{observation: teammap, frontier: {claims: true}}",
+            r"env.frontier: frontier: unknown key\(s\)",
+        ),
+        ("{frontier: {action: step}}", r"env: frontier needs the teammap observation"),
     ],
 )
 def test_config_refuses_bad_sizes(tmp_path, env_yaml, message):
@@ -669,22 +707,64 @@ def test_config_refuses_bad_sizes(tmp_path, env_yaml, message):
 
 
 def test_config_sizes_reach_the_env(tmp_path):
+    from harness.factory import make_env
+
     path = tmp_path / "exp.yaml"
     path.write_text(
-        "name: tm\nenv: {observation: teammap, crop: 9, global_size: 8, ego_size: 11, trail: 30,"
-        " frontier: true}\nalgo: {policy: TeamMapPolicy}\n"
+        "name: tm\nenv: {observation: {teammap: {crop: 9, global_size: 8, ego_size: 11}},"
+        " frontier: {}}\nalgo: {policy: TeamMapPolicy}\n"
     )
-    env = coverage_v0.parallel_env(**load_config(path).env.kwargs())
+    env = make_env(load_config(path).env)
     space = env.observation_space("agent_0")
-    assert space["local"].shape == (7, 9, 9) and space["global"].shape == (6, 8, 8)
+    assert space["local"].shape == (6, 9, 9) and space["global"].shape == (6, 8, 8)
     assert space["frontier"].shape == (5,)
+    assert env.action_space("agent_0").n == 5
     path.write_text(
-        "name: tm\nenv: {observation: teammap, frontier: true, frontier_action: true}\n"
+        "name: tm\nenv: {observation: teammap, frontier: {action: step}}\n"
         "algo: {policy: TeamMapPolicy}\n"
     )
-    env = coverage_v0.parallel_env(**load_config(path).env.kwargs())
+    env = make_env(load_config(path).env)
     assert env.action_space("agent_0").n == 6
     assert space["ego"].shape == (5, 11, 11)
+
+
+def test_an_old_config_loads_and_a_retired_knob_turned_on_is_refused():
+    old = {
+        "observation": "teammap",
+        "trail": 0,
+        "crop": 9,
+        "frontier": True,
+        "frontier_action": True,
+        "frontier_claims": True,
+        "frontier_tie_break": "pocket",
+    }
+
+    def load(env: dict) -> EnvConfig:
+        return config_from_dict({"env": env, "algo": {"policy": "TeamMapPolicy"}}).env
+
+    env = load(old)
+    assert env.observation == {"teammap": {"crop": 9}}
+    assert env.frontier == {"action": "step", "planner": "pocket"}
+    # The own trail is retired: its old default (0, off) loads, a trail turned on does not.
+    with pytest.raises(ConfigError, match=r"env\.trail: 5: .*docs/experiment-log\.md"):
+        load({**old, "trail": 5})
+    # The old flags' rules: the tie-break needed the claims, the claims needed the compass.
+    with pytest.raises(ConfigError, match=r"env\.frontier_tie_break needed env\.frontier_claims"):
+        load({**old, "frontier_claims": False})
+    with pytest.raises(
+        ConfigError, match=r"frontier_action and frontier_claims needed env\.frontier"
+    ):
+        load({**old, "frontier": False})
+    with pytest.raises(
+        ConfigError, match=r"env: frontier_action are old keys: write env\.frontier"
+    ):
+        load({"observation": "teammap", "frontier_action": True})
+
+
+def test_the_env_takes_at_most_13_constructor_arguments():
+    parameters = list(inspect.signature(CoverageEnv.__init__).parameters)
+    assert parameters[0] == "self"
+    assert len(parameters) - 1 <= 13, parameters
 
 
 def test_parallel_api_and_seed_tests_pass_with_the_team_map():
@@ -694,33 +774,13 @@ def test_parallel_api_and_seed_tests_pass_with_the_team_map():
             width=17,
             n_agents=3,
             max_steps=60,
-            observation="teammap",
-            crop=7,
-            frontier=True,
+            observation={"teammap": {"crop": 7}},
+            frontier={},
         ),
         num_cycles=100,
     )
     parallel_seed_test(
         lambda: coverage_v0.parallel_env(
-            height=10, width=10, n_agents=2, max_steps=40, observation="teammap", crop=5
+            height=10, width=10, n_agents=2, max_steps=40, observation={"teammap": {"crop": 5}}
         )
     )
-
-
-def test_step_equivalents_read_the_compass_marks():
-    from envs.coverage.observations import step_equivalents
-
-    compass = np.array(
-        [
-            [0, 0, 1, 0, 0.2],  # the step goes left
-            [1, 0, 0, 1, 0.1],  # two shortest ways (no claims): up or right
-            [0, 0, 0, 0, 1.0],  # no frontier reachable: the step stays
-        ],
-        dtype=np.float32,
-    )
-    same = step_equivalents({"frontier": compass})
-    assert same.tolist() == [
-        [False, False, True, False, False, True],
-        [True, False, False, True, False, True],
-        [False, False, False, False, True, True],
-    ]

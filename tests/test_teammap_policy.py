@@ -66,22 +66,24 @@ def test_extractor_gives_the_ego_view_its_own_branch():
 
 
 @pytest.mark.parametrize(
-    ("policy", "ego_size", "trail", "frontier"),
+    ("policy", "ego_size", "frontier"),
     [
-        ("TeamMapPolicy", 0, 0, False),
-        ("DuelingTeamMapPolicy", 0, 0, False),
-        ("TeamMapPolicy", 5, 0, False),
-        ("TeamMapPolicy", 0, 8, False),
-        ("DuelingTeamMapPolicy", 0, 0, True),
+        ("TeamMapPolicy", 0, None),
+        ("DuelingTeamMapPolicy", 0, None),
+        ("TeamMapPolicy", 5, None),
+        ("DuelingTeamMapPolicy", 0, {}),
     ],
 )
-def test_policy_save_and_load_give_the_same_q_values(tmp_path, policy, ego_size, trail, frontier):
+def test_policy_save_and_load_give_the_same_q_values(tmp_path, policy, ego_size, frontier):
+    from harness.config.schema import EnvConfig
     from harness.training.adapters import make_vec_env
 
+    teammap = {"crop": 7, "global_size": 7, "ego_size": ego_size, "ego_block": 3}
     venv = make_vec_env(
-        {"height": 9, "width": 9, "n_agents": 2, "max_steps": 10, "observation": "teammap",
-         "crop": 7, "global_size": 7, "ego_size": ego_size, "ego_block": 3, "trail": trail,
-         "frontier": frontier},
+        EnvConfig(
+            height=9, width=9, n_agents=2, max_steps=10, observation={"teammap": teammap},
+            frontier=frontier,
+        ),
     )  # fmt: skip
     model = DoubleDQN(
         policy,
@@ -103,12 +105,15 @@ def test_policy_save_and_load_give_the_same_q_values(tmp_path, policy, ego_size,
 
 
 def test_double_dqn_on_dict_batches_learns_and_sets_priorities_to_double_q_td_errors(monkeypatch):
+    from harness.config.schema import EnvConfig
     from harness.training.adapters import make_vec_env
 
     set_random_seed(0)
     venv = make_vec_env(
-        {"height": 9, "width": 9, "n_agents": 2, "max_steps": 20, "observation": "teammap",
-         "crop": 5, "global_size": 7},
+        EnvConfig(
+            height=9, width=9, n_agents=2, max_steps=20,
+            observation={"teammap": {"crop": 5, "global_size": 7}},
+        ),
         copies=2,
         seed=0,
     )  # fmt: skip
@@ -254,8 +259,8 @@ def test_tiny_teammap_run_trains_evaluates_and_resumes(tmp_path, capsys):
     config = tmp_path / "tm.yaml"
     config.write_text(
         "name: tm\n"
-        "env: {height: 12, width: 12, n_agents: 2, max_steps: 40, observation: teammap,"
-        " crop: 7, global_size: 7}\n"
+        "env: {height: 12, width: 12, n_agents: 2, max_steps: 40,"
+        " observation: {teammap: {crop: 7, global_size: 7}}}\n"
         "vec: {copies: 2}\n"
         "algo: {policy: DuelingTeamMapPolicy, net_arch: [], buffer_size: 2000,"
         " learning_starts: 100, target_update_interval: 200, optimizer: Adam,"

@@ -14,19 +14,19 @@ from gymnasium.utils import seeding
 from pettingzoo import ParallelEnv
 
 from envs.coverage import generators, maps, render
+from envs.coverage.frontier import Frontier, FrontierOptions
 from envs.coverage.observations import (
-    OBSERVATIONS,
     ObservationBuilder,
+    ObservationOptions,
     add_agent_id,
     agent_id_space,
+    observation_options,
 )
 from envs.coverage.step import credit_new_cells, resolve_moves, thesis_reward
 from envs.coverage.types import (
     CELL_UNVISITED,
     CELL_VISITED,
     CELL_WALL,
-    FRONTIER_STEP,
-    STAY,
     GridState,
 )
 
@@ -53,40 +53,15 @@ class CoverageEnv(ParallelEnv):
         wall_fraction: Sequence[float] = (0.15, 0.20),
         n_agents: int = 4,
         max_steps: int = 1000,
-        observation: str = "thesis",
+        observation: str | Mapping[str, Any] | ObservationOptions = "thesis",
         coords: str = "normalized",
         rewards: Mapping[str, float] | None = None,
         starts: Sequence[Sequence[int]] | None = None,
         render_mode: str | None = None,
-        crop: int = 15,
-        global_size: int = 13,
-        ego_size: int = 0,
-        ego_block: int = 5,
-        trail: int = 0,
-        frontier: bool = False,
-        frontier_action: bool = False,
-        frontier_claims: bool = False,
-        frontier_tie_break: str = "order",
+        frontier: FrontierOptions | Mapping[str, Any] | None = None,
         agent_id: bool = False,
     ) -> None:
         _check_int("n_agents", n_agents, 1)
-        _check_bool("frontier_action", frontier_action)
-        if frontier_action and not (observation == "teammap" and frontier):
-            raise ValueError(
-                "frontier_action needs observation='teammap' with frontier=True (the step "
-                "follows the frontier compass)"
-            )
-        _check_bool("frontier_claims", frontier_claims)
-        if frontier_claims and not (observation == "teammap" and frontier):
-            raise ValueError(
-                "frontier_claims needs observation='teammap' with frontier=True (it changes "
-                "the frontier compass)"
-            )
-        if frontier_tie_break != "order" and not frontier_claims:
-            raise ValueError(
-                "frontier_tie_break needs frontier_claims=True (it is the tie-break of the "
-                "frontier explorer that the compass follows)"
-            )
         _check_bool("agent_id", agent_id)
         _check_int("max_steps", max_steps, 1)
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
@@ -94,10 +69,9 @@ class CoverageEnv(ParallelEnv):
                 f"render_mode must be one of {self.metadata['render_modes']} or None, "
                 f"got {render_mode!r}"
             )
-        if observation not in OBSERVATIONS:
-            raise ValueError(
-                f"observation must be one of {sorted(OBSERVATIONS)}, got {observation!r}"
-            )
+        observation = observation_options(observation)
+        self.frontier = FrontierOptions.parse(frontier)
+        FrontierOptions.check_fits(observation, self.frontier)
         self.rewards = _check_rewards(rewards)
 
         # The map source (envs/coverage/generators.py): a generator object, or built from the
@@ -141,28 +115,13 @@ class CoverageEnv(ParallelEnv):
             grid = self._map_spec.grid if self._map_spec is not None else None
             _check_starts(self._starts, self.n_agents, *self._generator.min_shape, grid)
 
-        builder = OBSERVATIONS[observation]
-        given = {
-            "crop": crop,
-            "global_size": global_size,
-            "ego_size": ego_size,
-            "ego_block": ego_block,
-            "trail": trail,
-            "frontier": frontier,
-            "frontier_claims": frontier_claims,
-            "frontier_tie_break": frontier_tie_break,
-        }
-        # One builder per map size: a mix may draw maps of several sizes. The space is the
-        # largest size's (with raw coordinates its bounds hold every smaller map's positions).
-        self._new_observer = functools.partial(
-            builder,
-            coords=coords,
-            max_steps=self.max_steps,
-            **{name: given[name] for name in builder.options},
-        )
-        self._observers: dict[tuple[int, int], ObservationBuilder] = {}
-        self._observer = self._observer_for(self.height, self.width)
-        self.observation_kind, self.coords = observation, coords
+        # One builder (and planner extension) per map size: a mix may draw maps of several sizes.
+        # The space is the largest size's (with raw coordinates its bounds hold every smaller
+        # map's positions).
+        self.observation, self.coords = observation, coords
+        self._observers: dict[tuple[int, int], tuple[ObservationBuilder, Frontier | None]] = {}
+        self._observer, self._frontier = self._observer_for(self.height, self.width)
+        self.observation_kind = observation.name
         self.possible_agents = [f"agent_{i}" for i in range(self.n_agents)]
         self.agents: list[str] = []
         # Agent indication: each agent's one-hot index is part of its observation (so of the
@@ -170,10 +129,10 @@ class CoverageEnv(ParallelEnv):
         self.agent_id = bool(agent_id)
         space = self._observer.space()
         self._obs_space = agent_id_space(space, self.n_agents) if self.agent_id else space
-        # Actions 0..4 move (up, down, left, right, stay); with the frontier action, 5 steps
-        # towards the nearest unvisited known cell.
-        self.frontier_action = bool(frontier_action)
-        self._act_space = spaces.Discrete(6 if self.frontier_action else 5)
+        # Actions 0..4 move (up, down, left, right, stay); a planner-backed action kind of the
+        # frontier option adds its actions after them (the frontier step: 5).
+        extra = self.frontier.extra_actions if self.frontier is not None else 0
+        self._act_space = spaces.Discrete(5 + extra)
         self._np_random: np.random.Generator | None = None
         self._state: GridState | None = None
         self._walls = np.zeros((self.height, self.width), dtype=bool)
@@ -265,7 +224,7 @@ class CoverageEnv(ParallelEnv):
         options = options or {}
         walls = self._episode_grid(options.get("grid"))
         self.height, self.width = walls.shape
-        self._observer = self._observer_for(self.height, self.width)
+        self._observer, self._frontier = self._observer_for(self.height, self.width)
         starts = self._episode_starts(walls, options.get("starts"))
 
         pad = self._observer.padding
@@ -309,8 +268,8 @@ class CoverageEnv(ParallelEnv):
         last = int(self._act_space.n) - 1
         if not all(0 <= a <= last for a in acts):
             raise ValueError(f"actions must be in 0..{last}, got {[int(a) for a in acts]}")
-        if self.frontier_action:
-            acts = self._frontier_steps(acts)
+        if self._frontier is not None:
+            acts = self._frontier.resolve(acts, self.np_random)
 
         positions, hit = resolve_moves(state.cells, state.pad, self._positions, acts)
         credited = credit_new_cells(state.cells, state.pad, positions, state.credited_by)
@@ -359,23 +318,6 @@ class CoverageEnv(ParallelEnv):
         pass
 
     # ------------------------------------------------------------------ helpers
-    def _frontier_steps(self, acts: list[int]) -> list[int]:
-        """``acts`` with every frontier step replaced by its move: one of the moves the agent's
-        current frontier compass marks (drawn from the episode's generator when several tie,
-        so teammates at one spot may part), or stay when no unvisited known cell is reachable."""
-        compass = self._observer.compass  # type: ignore[attr-defined]  # built for this state
-        out = list(acts)
-        for i, a in enumerate(acts):
-            if a == FRONTIER_STEP:
-                moves = np.flatnonzero(compass[i, :4])
-                if moves.size == 0:
-                    out[i] = STAY
-                elif moves.size == 1:
-                    out[i] = int(moves[0])
-                else:
-                    out[i] = int(moves[self.np_random.integers(moves.size)])
-        return out
-
     def _observe(self, state: GridState) -> np.ndarray | dict[str, np.ndarray]:
         obs = self._observer.build(state)
         return add_agent_id(obs, self.n_agents) if self.agent_id else obs
@@ -401,10 +343,12 @@ class CoverageEnv(ParallelEnv):
                 seen |= visited[dr : dr + height, dc : dc + width]
         return seen
 
-    def _observer_for(self, height: int, width: int) -> ObservationBuilder:
+    def _observer_for(self, height: int, width: int) -> tuple[ObservationBuilder, Frontier | None]:
         key = (height, width)
         if key not in self._observers:
-            self._observers[key] = self._new_observer(height, width)
+            ext = Frontier(self.frontier, height, width) if self.frontier is not None else None
+            observer = self.observation.make(height, width, self.coords, self.max_steps, ext)
+            self._observers[key] = (observer, ext)
         return self._observers[key]
 
     def _require_state(self) -> GridState:

@@ -3,23 +3,27 @@
 An observation kind turns the environment's state into every agent's observation (an array, or
 a dict of arrays for a ``Dict`` space). It is a small class with a ``space()``, a ``reset(state)``
 called at the start of each episode and a ``build(state)`` called after the reset and after every
-step, so that new kinds can be added without touching the step logic: register the class in
-:data:`OBSERVATIONS` and pass ``observation="<name>"`` to the env. Kinds that keep per-episode
-arrays (the team map) start them in ``reset`` and bring them up to date in ``build``.
+step, so that new kinds can be added without touching the step logic: register its options class
+(a frozen dataclass with a ``make`` method, e.g. :class:`TeamMap`) in :data:`OBSERVATIONS` and
+pass ``observation="<name>"`` or an options object to the env (as Jumanji passes its observation
+in). Kinds that keep per-episode arrays (the team map) start them in ``reset`` and bring them up
+to date in ``build``.
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from typing import ClassVar
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from typing import Any, ClassVar
 
 import numpy as np
 from gymnasium import spaces
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from envs.coverage.frontier import COMPASS_TIE_BREAKS, FrontierPlanner
-from envs.coverage.types import CELL_UNVISITED, CELL_VISITED, CELL_WALL, GridState
+from envs.coverage.frontier import Frontier
+from envs.coverage.types import CELL_UNVISITED, CELL_WALL, GridState
 
 COORD_MODES = ("normalized", "raw")
 
@@ -35,9 +39,6 @@ class ObservationBuilder(ABC):
     """
 
     name: ClassVar[str]
-    #: Names of the env's constructor arguments this kind takes (beyond height, width, coords and
-    #: max_steps), e.g. the team map's ``crop`` and ``global_size``.
-    options: ClassVar[tuple[str, ...]] = ()
     #: Cells of padding around the grid that :meth:`build` reads (``state.cells`` is padded by
     #: the largest padding of the builder in use, so windows never need bounds checks).
     padding: int = 1
@@ -162,15 +163,12 @@ class TeamMapObservation(ObservationBuilder):
     visited; the others are unknown. Per agent:
 
     * ``"local"`` ``(5, crop, crop)``: the crop centred on the agent; channels known wall,
-      visited, known free not visited, unknown, teammates present (0 or 255); with ``trail=K >
-      0`` a sixth channel, the agent's own trail: a cell it stood on ``a < K`` steps ago is
-      ``round(255 * (K - a) / K)`` (its own cell 255), older or never 0. Every visited cell
-      looks alike in the team's map; the trail tells the agent where it has just been (which
-      way it came, where it is going round in circles). With ``frontier=True`` one more
-      channel (the last), the *frontier field*: how much nearer each cell of the crop is to
-      the nearest known free cell not yet visited than the agent's own cell is, along a shortest
-      path through known free cells, ``clip(128 + 16 * (d(agent) - d(cell)), 1, 255)`` (brighter
-      is nearer; 0 on walls, unknown cells and cells from which no such cell can be reached).
+      visited, known free not visited, unknown, teammates present (0 or 255). With the planner
+      extension (``frontier``) one more channel (the last), the *frontier field*: how much
+      nearer each cell of the crop is to the nearest known free cell not yet visited than the
+      agent's own cell is, along a shortest path through known free cells,
+      ``clip(128 + 16 * (d(agent) - d(cell)), 1, 255)`` (brighter is nearer; 0 on walls,
+      unknown cells and cells from which no such cell can be reached).
     * ``"global"`` ``(6, G, G)``: the whole map cut into a G x G grid of blocks (block ``i`` holds
       rows ``floor(i*H/G) .. floor((i+1)*H/G) - 1``, likewise columns, so any size or aspect
       fits); channels the share of the block visited, known free not visited, unknown and known
@@ -184,18 +182,17 @@ class TeamMapObservation(ObservationBuilder):
       the agent is on the map, this one makes "which way is unexplored ground, which way are my
       teammates" the same pattern wherever the agent stands (translation-equivariant).
     * ``"vector"`` ``(3,)`` float32: own row / (H-1), own col / (W-1), steps / max_steps.
-    * ``"frontier"`` ``(5,)`` float32, only with ``frontier=True``: the frontier compass. For
+    * ``"frontier"`` ``(5,)`` float32, only with ``frontier``: the frontier compass. For
       each move (up, down, left, right) 1 if it takes the agent one step nearer the nearest
       known free cell not yet visited (it starts a shortest path there), else 0; then the
       distance to that cell over ``H + W`` (at most 1; 1 when none is reachable). A shortest
       path to the nearest unvisited known cell is what the frontier planner walks; the
-      compass shows it beyond the crop, the field shows the other frontiers nearby. With
-      ``frontier_claims=True`` the four moves mark instead the one move of the frontier
-      explorer with claims (:class:`envs.coverage.frontier.FrontierPlanner`: the first step
-      towards the nearest such cell that no lower-index teammate claimed this step), none when
-      it would stay; the distance stays the nearest cell's. The env's frontier step follows the
-      compass, so with claims a team that always steps is the frontier explorer
-      (``frontier_tie_break="pocket"``: the explorer that finishes pockets first).
+      compass shows it beyond the crop, the field shows the other frontiers nearby. When the
+      frontier options name a planner the four moves mark instead that planner's move
+      (:attr:`envs.coverage.frontier.Frontier.planned_moves`: the first step towards the
+      nearest such cell that no lower-index teammate claimed this step), none when it would
+      stay; the distance stays the nearest cell's. The compass is written to the
+      :class:`~envs.coverage.frontier.Frontier`, whose planner-backed actions follow it.
 
     The frontier distances ``d`` are one multi-source breadth-first search per step from every
     known free unvisited cell (SciPy's compiled ``dijkstra`` with ``min_only``, unit weights) on
@@ -217,39 +214,22 @@ class TeamMapObservation(ObservationBuilder):
         ego_size: E, blocks per side of the ego view (0: no ego view; else odd and
             >= :attr:`MIN_EGO_SIZE`).
         ego_block: Cells per side of an ego block (odd, >= 1).
-        trail: K, steps of the agent's own trail in the crop (0: no trail channel).
-        frontier: Add the frontier field (a crop channel) and the frontier compass.
-        frontier_claims: With ``frontier``: the compass marks the frontier explorer's move
-            (targets claimed in agent index order) rather than every move towards the nearest
-            unvisited known cell.
-        frontier_tie_break: With ``frontier_claims``: that explorer's choice among equally near
-            cells, ``"order"`` or ``"pocket"`` (:data:`envs.coverage.frontier.COMPASS_TIE_BREAKS`).
+        frontier: The planner extension's state (:class:`envs.coverage.frontier.Frontier`):
+            adds the frontier field (a crop channel) and the frontier compass; ``None``: off.
 
     Raises:
         ValueError: For a crop or global size out of range.
     """
 
     name = "teammap"
-    options = (
-        "crop",
-        "global_size",
-        "ego_size",
-        "ego_block",
-        "trail",
-        "frontier",
-        "frontier_claims",
-        "frontier_tie_break",
-    )
     LOCAL_CHANNELS = 5
-    #: Index of the trail channel in ``"local"`` (with ``trail > 0``).
-    TRAIL = 5
     GLOBAL_CHANNELS = 6
     EGO_CHANNELS = 5
     # Stable-Baselines3 reads a uint8 image as channel-first only when its first axis is (one of)
     # the smallest (``is_image_space_channels_first``; otherwise it wraps the env in
     # ``VecTransposeImage`` and swaps the axes), so no spatial side may be below the channels.
-    #: Smallest crop: odd and at least the local view's 5 channels (7 with the trail or the
-    #: frontier field, :meth:`min_crop`).
+    #: Smallest crop: odd and at least the local view's 5 channels (7 with the frontier field,
+    #: :meth:`min_crop`).
     MIN_CROP = 5
     #: Smallest global size: the global view's 6 channels.
     MIN_GLOBAL_SIZE = 6
@@ -268,51 +248,16 @@ class TeamMapObservation(ObservationBuilder):
         global_size: int = 13,
         ego_size: int = 0,
         ego_block: int = 5,
-        trail: int = 0,
-        frontier: bool = False,
-        frontier_claims: bool = False,
-        frontier_tie_break: str = "order",
+        frontier: Frontier | None = None,
     ) -> None:
         super().__init__(height, width, coords, max_steps)
-        if not (_is_int(trail) and trail >= 0):
-            raise ValueError(f"trail must be an integer >= 0 (0: off), got {trail!r}")
-        if not isinstance(frontier, (bool, np.bool_)):
-            raise ValueError(f"frontier must be True or False, got {frontier!r}")
-        if not isinstance(frontier_claims, (bool, np.bool_)):
-            raise ValueError(f"frontier_claims must be True or False, got {frontier_claims!r}")
-        if frontier_claims and not frontier:
-            raise ValueError("frontier_claims needs frontier=True (it changes the compass)")
-        if frontier_tie_break not in COMPASS_TIE_BREAKS:
-            raise ValueError(
-                f"frontier_tie_break must be one of {COMPASS_TIE_BREAKS}, "
-                f"got {frontier_tie_break!r}"
-            )
-        if frontier_tie_break != "order" and not frontier_claims:
-            raise ValueError("frontier_tie_break needs frontier_claims=True (it is the planner's)")
-        least = self.min_crop(int(trail), bool(frontier))
-        if not (_is_int(crop) and crop >= least and crop % 2 == 1):
-            raise ValueError(f"crop must be an odd integer >= {least}, got {crop!r}")
-        if not (_is_int(global_size) and global_size >= self.MIN_GLOBAL_SIZE):
-            raise ValueError(
-                f"global_size must be an integer >= {self.MIN_GLOBAL_SIZE}, got {global_size!r}"
-            )
-        if not (
-            _is_int(ego_size)
-            and (ego_size == 0 or (ego_size >= self.MIN_EGO_SIZE and ego_size % 2 == 1))
-        ):
-            raise ValueError(
-                f"ego_size must be 0 (off) or an odd integer >= {self.MIN_EGO_SIZE}, "
-                f"got {ego_size!r}"
-            )
-        if not (_is_int(ego_block) and ego_block >= 1 and ego_block % 2 == 1):
-            raise ValueError(f"ego_block must be an odd integer >= 1, got {ego_block!r}")
+        TeamMap(crop, global_size, ego_size, ego_block).check(frontier is not None)
         crop, global_size = int(crop), int(global_size)
         self.crop, self.global_size = crop, global_size
         self.ego_size, self.ego_block = int(ego_size), int(ego_block)
-        self.trail, self.frontier = int(trail), bool(frontier)
-        self.frontier_claims = bool(frontier_claims)
-        self.frontier_tie_break = frontier_tie_break
-        self.local_channels = self.LOCAL_CHANNELS + (self.trail > 0) + self.frontier
+        self.frontier = frontier is not None
+        self._frontier_ext = frontier
+        self.local_channels = self.LOCAL_CHANNELS + self.frontier
         #: Index of the frontier field in ``"local"`` (with ``frontier``): the last channel.
         self.frontier_channel = self.local_channels - 1
         self._frontier_scale = 1.0 / (height + width)
@@ -342,9 +287,9 @@ class TeamMapObservation(ObservationBuilder):
         )
 
     @classmethod
-    def min_crop(cls, trail: int = 0, frontier: bool = False) -> int:
+    def min_crop(cls, frontier: bool = False) -> int:
         """Smallest crop: odd and at least the local view's channel count."""
-        channels = cls.LOCAL_CHANNELS + (trail > 0) + bool(frontier)
+        channels = cls.LOCAL_CHANNELS + bool(frontier)
         return channels + 1 - channels % 2
 
     def space(self) -> spaces.Dict:
@@ -383,17 +328,8 @@ class TeamMapObservation(ObservationBuilder):
         self._wp = wp
         self._window = (np.arange(-1, 2)[:, None] * wp + np.arange(-1, 2)[None, :]).ravel()
         self._moves = np.array([-wp, wp, -1, 1])  # up, down, left, right on the flat grid
-        # Step at which each agent last stood on each padded cell (the trail); long ago at first.
-        if self.trail:
-            n = state.positions.shape[0]
-            self._last_visit = np.full((n, hp * wp), -self.trail, dtype=np.int64)
         if self.frontier:
             self._free_graph = _free_cell_graph(state.cells != CELL_WALL)
-            #: The frontier compass of the last :meth:`build` (agents, 5): the env's frontier
-            #: step follows it. Set again by the build that ends every reset and step.
-            self.compass = np.zeros((state.positions.shape[0], 5), dtype=np.float32)
-        if self.frontier_claims:
-            self._planner = FrontierPlanner(self.height, self.width, self.frontier_tie_break)
 
     def _update(self, state: GridState) -> None:
         """Make the agents' 3x3 windows known and bring changed cells up to date."""
@@ -436,13 +372,13 @@ class TeamMapObservation(ObservationBuilder):
             r, col = int(rows[i]), int(cols[i])
             local[i, :4] = self._planes_2d[:, r : r + c, col : col + c]
         local[:, 4] = 0
-        if self.trail:
-            local[:, self.TRAIL] = self._trail(state)
-        if self.frontier:
+        ext = self._frontier_ext
+        if ext is not None:
             field, compass = self._frontier_views(state)
             local[:, self.frontier_channel] = field
-            if self.frontier_claims:
-                compass[:, :4] = self._claimed_moves(state)
+            if ext.planner is not None:
+                moves = np.asarray(ext.planned_moves(state))
+                compass[:, :4] = moves[:, None] == np.arange(4)[None, :]  # STAY (4) marks none
         if n > 1:
             dr = rows[None, :] - rows[:, None] + half  # (agent, teammate)
             dc = cols[None, :] - cols[:, None] + half
@@ -466,9 +402,9 @@ class TeamMapObservation(ObservationBuilder):
         if self.ego_size:
             views["ego"] = self._ego(rows, cols)
         views["vector"] = vector
-        if self.frontier:
+        if ext is not None:
             views["frontier"] = compass
-            self.compass = compass  # what the frontier step of the next env step follows
+            ext.compass = compass  # what planner-backed actions of the next env step follow
         return views
 
     def _frontier_views(self, state: GridState) -> tuple[np.ndarray, np.ndarray]:
@@ -497,30 +433,6 @@ class TeamMapObservation(ObservationBuilder):
             value = np.clip(128.0 + 16.0 * (own[:, None, None] - crops), 1.0, 255.0)
         field[...] = np.where(np.isfinite(crops) & np.isfinite(own)[:, None, None], value, 0.0)
         return field, compass
-
-    def _claimed_moves(self, state: GridState) -> np.ndarray:
-        """``(agents, 4)``: one-hot of each agent's move by the frontier explorer with claims
-        (all zero where it stays)."""
-        interior = state.interior
-        self._planner.sync(
-            state.steps,
-            state.positions,
-            lambda: (interior == CELL_WALL, interior == CELL_VISITED),
-        )
-        moves = np.asarray(self._planner.act())
-        return moves[:, None] == np.arange(4)[None, :]  # STAY (4) marks no move
-
-    def _trail(self, state: GridState) -> np.ndarray:
-        """Each agent's trail in its crop, ``(agents, crop, crop)``, after marking this step."""
-        n, c, k, wp = state.positions.shape[0], self.crop, self.trail, self._wp
-        p, rows, cols = state.pad, state.positions[:, 0], state.positions[:, 1]
-        self._last_visit[np.arange(n), (rows + p) * wp + (cols + p)] = state.steps
-        last = self._last_visit.reshape(n, -1, wp)
-        out = np.empty((n, c, c), dtype=np.uint8)
-        for i in range(n):  # padded rows r .. r+crop are the crop centred on grid row r
-            age = state.steps - last[i, rows[i] : rows[i] + c, cols[i] : cols[i] + c]
-            out[i] = np.where(age < k, np.rint(255.0 * (k - age) / k), 0)
-        return out
 
     def _ego(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
         """The ego views of all agents, pooled from a summed-area table of the categories."""
@@ -637,28 +549,122 @@ def blocked_moves(obs: np.ndarray | dict[str, np.ndarray], n_actions: int = 5) -
     return blocked
 
 
-def step_equivalents(obs: dict[str, np.ndarray]) -> np.ndarray:
-    """Which actions do what the frontier step does, per team-map observation: ``(batch, 6)``
-    bool in action order (up, down, left, right, stay, frontier step).
+# ---------------------------------------------------------------------- options (user-facing)
+@dataclass(frozen=True)
+class Thesis:
+    """Options of the thesis observation (:class:`ThesisObservation`): none."""
 
-    The step itself, the moves the frontier compass marks (``obs["frontier"][:, :4]``: with
-    ``frontier_claims`` the step's own move; without, every move on a shortest way, among which
-    the step draws), and ``stay`` when none is marked (the step stays when no frontier is
-    reachable). Used by DQfD's margin loss so that it separates different behaviour only.
+    name: ClassVar[str] = ThesisObservation.name
+    #: Whether the planner extension's field and compass fit in this observation.
+    takes_frontier: ClassVar[bool] = False
 
-    Args:
-        obs: A dict of stacked team-map arrays with the ``"frontier"`` compass ``(batch, 5)``.
+    def make(
+        self, height: int, width: int, coords: str, max_steps: int, frontier: Frontier | None
+    ) -> ThesisObservation:
+        """The builder for one map size."""
+        return ThesisObservation(height, width, coords, max_steps)
+
+
+@dataclass(frozen=True)
+class TeamMap:
+    """Options of the team-map observation (:class:`TeamMapObservation`), checked here once.
+
+    Attributes:
+        crop: Side of the local crop (odd, >= 5; >= 7 with the frontier field).
+        global_size: G, blocks per side of the global view (>= 6).
+        ego_size: E, blocks per side of the ego view (0: none; else odd and >= 5).
+        ego_block: Cells per side of an ego block (odd).
     """
-    marks = np.asarray(obs["frontier"])[:, :4] > 0
-    same = np.zeros((marks.shape[0], 6), dtype=bool)
-    same[:, :4] = marks
-    same[:, 4] = ~marks.any(axis=1)
-    same[:, 5] = True
-    return same
+
+    crop: int = 15
+    global_size: int = 13
+    ego_size: int = 0
+    ego_block: int = 5
+    name: ClassVar[str] = TeamMapObservation.name
+    takes_frontier: ClassVar[bool] = True
+    #: Largest side of an image (the cell count of the largest map the harness takes): larger
+    #: sides would fail only when the env allocates its arrays.
+    MAX_SIDE: ClassVar[int] = 2_000
+
+    def __post_init__(self) -> None:
+        self.check(frontier=False)
+
+    def check(self, frontier: bool) -> None:
+        """Raise ``ValueError`` naming the option that is out of range (with the frontier field
+        when ``frontier``)."""
+        top = self.MAX_SIDE
+        least = TeamMapObservation.min_crop(frontier)
+        c = self.crop
+        if not (_is_int(c) and least <= c <= top and c % 2 == 1):
+            with_field = " with the frontier field" if frontier else ""
+            raise ValueError(
+                f"crop must be an odd integer in {least}..{top}{with_field}, got {c!r}"
+            )
+        least = TeamMapObservation.MIN_GLOBAL_SIZE
+        g = self.global_size
+        if not (_is_int(g) and least <= g <= top):
+            raise ValueError(f"global_size must be an integer in {least}..{top}, got {g!r}")
+        least = TeamMapObservation.MIN_EGO_SIZE
+        e = self.ego_size
+        if not (_is_int(e) and (e == 0 or (least <= e <= top and e % 2 == 1))):
+            raise ValueError(
+                f"ego_size must be 0 (off) or an odd integer in {least}..{top}, got {e!r}"
+            )
+        b = self.ego_block
+        if not (_is_int(b) and 1 <= b <= top and b % 2 == 1):
+            raise ValueError(f"ego_block must be an odd integer in 1..{top}, got {b!r}")
+
+    def make(
+        self, height: int, width: int, coords: str, max_steps: int, frontier: Frontier | None
+    ) -> TeamMapObservation:
+        """The builder for one map size."""
+        return TeamMapObservation(
+            height,
+            width,
+            coords,
+            max_steps,
+            self.crop,
+            self.global_size,
+            self.ego_size,
+            self.ego_block,
+            frontier,
+        )
 
 
-#: Observation kinds by name (the env's ``observation=`` argument).
-OBSERVATIONS: dict[str, type[ObservationBuilder]] = {
-    ThesisObservation.name: ThesisObservation,
-    TeamMapObservation.name: TeamMapObservation,
-}
+ObservationOptions = Thesis | TeamMap
+
+#: Observation kinds by name: their options classes (the env's ``observation=`` argument).
+OBSERVATIONS: dict[str, type[Thesis] | type[TeamMap]] = {"thesis": Thesis, "teammap": TeamMap}
+
+
+def observation_options(value: str | Mapping[str, Any] | ObservationOptions) -> ObservationOptions:
+    """The options object of ``value``: a kind's name (its defaults), ``{name: {option:
+    value, ...}}``, or options already made.
+
+    Raises:
+        ValueError: naming the kind or option that is wrong.
+    """
+    if isinstance(value, (Thesis, TeamMap)):
+        return value
+    if isinstance(value, str):
+        name, given = value, {}
+    elif isinstance(value, Mapping) and len(value) == 1:
+        name, given = next(iter(value.items()))
+        given = {} if given is None else given
+        if not isinstance(given, Mapping):
+            raise ValueError(f"observation {name!r}: options must be a mapping, got {given!r}")
+    else:
+        raise ValueError(
+            f"observation must be a kind's name or {{name: {{options}}}}, got {value!r}"
+        )
+    if name not in OBSERVATIONS:
+        raise ValueError(f"unknown observation {name!r}; known: {', '.join(OBSERVATIONS)}")
+    cls = OBSERVATIONS[name]
+    known = [f.name for f in fields(cls)]
+    unknown = sorted(set(given) - set(known))
+    if unknown:
+        raise ValueError(
+            f"observation {name!r}: unknown option(s) {unknown}; "
+            f"known: {', '.join(known) or 'none'}"
+        )
+    return cls(**given)

@@ -16,8 +16,8 @@ CELL_WALL = 1.0
 MOVES = np.array([[-1, 0], [1, 0], [0, -1], [0, 1], [0, 0]], dtype=np.int64)
 #: The stay action.
 STAY = 4
-#: With ``frontier_action=True``: one step along a shortest path to the nearest known free cell
-#: not yet visited (the frontier compass's move), stay when there is none.
+#: With ``frontier={"action": "step"}``: one step along a shortest path to the nearest known free
+#: cell not yet visited (the frontier compass's move), stay when there is none.
 FRONTIER_STEP = 5
 
 

@@ -1,5 +1,6 @@
 """Loading a config: YAML (safe, no duplicate keys, bounded), ``--set key.path=value``
-overrides, and validation against the schema (:mod:`harness.config.schema`), with one-line errors."""
+overrides, the migration of old layouts, and validation against the schema
+(:mod:`harness.config.schema`), with one-line errors."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ from typing import Any
 import yaml
 from pydantic import ValidationError
 
+from harness.config.migrate import migrate
 from harness.config.schema import MAX_CONFIG_BYTES, ConfigError, ExperimentConfig
 
 
@@ -154,10 +156,13 @@ def config_from_dict(
     raw: dict[str, Any], source: str = "<config>", overrides: Sequence[str] = ()
 ) -> ExperimentConfig:
     """Validate a config mapping, then apply overrides (on the validated, defaults-filled form so
-    that ``--set phases.initial.timesteps=...`` works even when the file leaves phases out)."""
+    that ``--set phases.initial.timesteps=...`` works even when the file leaves phases out).
+    A file of an older layout is migrated first (:func:`harness.config.migrate.migrate`)."""
     try:
-        config = ExperimentConfig.model_validate(raw)
-    except ValidationError as err:
+        config = ExperimentConfig.model_validate(migrate(raw))
+    except ValueError as err:  # a retired knob turned on
+        if not isinstance(err, ValidationError):
+            raise ConfigError(f"{source}: {err}") from None
         raise ConfigError(_format_error(source, err)) from None
     if overrides:
         data = config.model_dump(mode="json")
@@ -165,8 +170,10 @@ def config_from_dict(
             keys, value = parse_override(text)
             apply_override(data, keys, value, text)
         source = f"{source} with --set {' '.join(overrides)}"
-        try:
-            config = ExperimentConfig.model_validate(data)
+        try:  # an old key given with --set migrates as in a file
+            config = ExperimentConfig.model_validate(migrate(data))
         except ValidationError as err:
             raise ConfigError(_format_error(source, err)) from None
+        except ValueError as err:
+            raise ConfigError(f"{source}: {err}") from None
     return config

@@ -41,11 +41,11 @@ from pydantic import (
     model_validator,
 )
 
-from envs import coverage_v0
-from envs.coverage import generators, maps
+from envs.coverage import maps
 from envs.coverage.env import DEFAULT_REWARDS
+from envs.coverage.frontier import FrontierOptions
 from envs.coverage.maps import check_wall_fraction, shipped_maps
-from envs.coverage.observations import OBSERVATIONS, TeamMapObservation
+from envs.coverage.observations import observation_options
 from harness.config.maps import build_source, parse_source
 from harness.sb3.registry import POLICIES
 
@@ -72,12 +72,6 @@ MAX_MAP_CELLS = 4_000_000
 
 #: Largest config file: configs are a few KB; anything this large is not one.
 MAX_CONFIG_BYTES = 1 << 20
-
-#: Largest side of a team-map image (``crop``, ``global_size``): the same cell count as the
-#: largest map; larger sides fail only when the env allocates its arrays.
-MAX_IMAGE_SIDE = 2_000
-#: Longest own trail of the team-map crop (steps); far beyond any episode here.
-MAX_TRAIL = 1_000_000
 
 #: Most replay-buffer transitions: more than any machine holds; the memory check says so with
 #: an estimate below this, above it the numbers stop being numbers.
@@ -118,34 +112,15 @@ class EnvConfig(_Section):
     wall_fraction: tuple[float, float] = (0.15, 0.20)
     n_agents: PositiveInt = 4
     max_steps: PositiveInt = 1000
-    observation: str = "thesis"
+    observation: str | dict[str, dict[str, Any] | None] = "thesis"
     """An observation kind of the env's registry (``envs.coverage.observations.OBSERVATIONS``):
-    ``thesis`` (13 numbers) or ``teammap`` (images of the team's knowledge)."""
-    crop: Annotated[int, Field(ge=1, le=MAX_IMAGE_SIDE)] = 15
-    """``teammap``: side of the local crop (odd)."""
-    global_size: Annotated[int, Field(ge=1, le=MAX_IMAGE_SIDE)] = 13
-    """``teammap``: blocks per side of the pooled whole-map view."""
-    ego_size: Annotated[int, Field(ge=0, le=MAX_IMAGE_SIDE)] = 0
-    """``teammap``: blocks per side of the coarse map centred on the agent (odd; 0 = none)."""
-    ego_block: Annotated[int, Field(ge=1, le=MAX_IMAGE_SIDE)] = 5
-    """``teammap``: cells per side of a block of the ego view (odd)."""
-    trail: Annotated[int, Field(ge=0, le=MAX_TRAIL)] = 0
-    """``teammap``: steps of the agent's own trail, a sixth channel of the local crop (0 = none;
-    the crop must then be >= 7)."""
-    frontier: bool = False
-    """``teammap``: add the frontier field (a crop channel: how much nearer the nearest known
-    unvisited free cell each cell is than the agent) and the frontier compass (``"frontier"``:
-    the moves that start a shortest path there, and its distance)."""
-    frontier_action: bool = False
-    """``teammap`` with ``frontier``: a sixth action, one step along the frontier compass (a
-    shortest way to the nearest known unvisited cell; stay when there is none)."""
-    frontier_claims: bool = False
-    """``teammap`` with ``frontier``: the compass, so the frontier step, follows the frontier
-    explorer with claims (the nearest unvisited known cell no lower-index teammate claimed)."""
-    frontier_tie_break: Literal["order", "pocket"] = "order"
-    """With ``frontier_claims``: how that explorer chooses among equally near cells: ``order``
-    (the classical explorer, the ``frontier`` baseline) or ``pocket`` (the one with the fewest
-    open neighbours first: the ``frontier_pocket`` baseline)."""
+    ``thesis`` (13 numbers) or ``teammap`` (images of the team's knowledge), or ``{teammap:
+    {crop: 15, global_size: 13, ego_size: 0, ego_block: 5}}`` with its options (checked by the
+    env's ``TeamMap``)."""
+    frontier: dict[str, Any] | None = None
+    """The planner extension (``envs.coverage.frontier``, which checks it): ``null`` (off), or
+    ``{action: step | null, planner: order | pocket | null}``: the frontier field and compass
+    in the team map, a planner-backed action, and the planner the compass follows."""
     coords: Literal["normalized", "raw"] = "normalized"
     rewards: RewardsConfig = RewardsConfig()
     starts: list[tuple[int, int]] | None = None
@@ -184,73 +159,30 @@ class EnvConfig(_Section):
 
     @field_validator("observation")
     @classmethod
-    def _known_observation(cls, v: str) -> str:
-        return _registered(v, OBSERVATIONS, "observation")
-
-    @field_validator("crop")
-    @classmethod
-    def _odd_crop(cls, v: int) -> int:
-        # The env owns the bound (SB3 must read the crop as a channel-first image).
-        least = TeamMapObservation.MIN_CROP
-        if v < least or v % 2 == 0:
-            raise ValueError(f"must be odd and >= {least} (the crop's channels), got {v}")
+    def _known_observation(cls, v: str | dict[str, Any]) -> str | dict[str, Any]:
+        observation_options(v)  # the env's options class checks the kind and its options
         return v
+
+    @field_validator("frontier")
+    @classmethod
+    def _frontier_options(cls, v: dict[str, Any] | None) -> dict[str, Any] | None:
+        options = FrontierOptions.parse(v)
+        return None if options is None else {"action": options.action, "planner": options.planner}
 
     @model_validator(mode="after")
-    def _crop_holds_the_trail(self) -> EnvConfig:
-        least = TeamMapObservation.min_crop(self.trail, self.frontier)
-        if self.crop < least:
-            extras = [
-                name
-                for name, on in (("a trail", self.trail), ("the frontier field", self.frontier))
-                if on
-            ]
-            raise ValueError(
-                f"crop must be >= {least} with {' and '.join(extras)} (the crop's channels)"
-            )
+    def _frontier_fits_observation(self) -> EnvConfig:
+        FrontierOptions.check_fits(observation_options(self.observation), self.frontier_options)
         return self
 
-    @model_validator(mode="after")
-    def _frontier_action_follows_the_compass(self) -> EnvConfig:
-        if self.frontier_action and not (self.observation == "teammap" and self.frontier):
-            raise ValueError(
-                "frontier_action needs observation: teammap and frontier: true "
-                "(the step follows the frontier compass)"
-            )
-        if self.frontier_claims and not (self.observation == "teammap" and self.frontier):
-            raise ValueError(
-                "frontier_claims needs observation: teammap and frontier: true "
-                "(it changes the frontier compass)"
-            )
-        if self.frontier_tie_break != "order" and not self.frontier_claims:
-            raise ValueError(
-                "frontier_tie_break needs frontier_claims: true (it is the tie-break of the "
-                "frontier explorer that the compass follows)"
-            )
-        return self
+    @property
+    def observation_kind(self) -> str:
+        """The observation kind's name (``thesis``, ``teammap``)."""
+        return observation_options(self.observation).name
 
-    @field_validator("global_size")
-    @classmethod
-    def _global_size(cls, v: int) -> int:
-        least = TeamMapObservation.MIN_GLOBAL_SIZE
-        if v < least:
-            raise ValueError(f"must be >= {least} (the global view's channels), got {v}")
-        return v
-
-    @field_validator("ego_size")
-    @classmethod
-    def _ego_size(cls, v: int) -> int:
-        least = TeamMapObservation.MIN_EGO_SIZE
-        if v != 0 and (v < least or v % 2 == 0):
-            raise ValueError(f"must be 0 (no ego view) or odd and >= {least}, got {v}")
-        return v
-
-    @field_validator("ego_block")
-    @classmethod
-    def _ego_block(cls, v: int) -> int:
-        if v % 2 == 0:
-            raise ValueError(f"must be odd (the centre block is centred on the agent), got {v}")
-        return v
+    @property
+    def frontier_options(self) -> FrontierOptions | None:
+        """``frontier`` as the env's options object."""
+        return FrontierOptions.parse(self.frontier)
 
     @field_validator("wall_fraction")
     @classmethod
@@ -298,44 +230,14 @@ class EnvConfig(_Section):
                 )
         if self.starts is not None and len(self.starts) != self.n_agents:
             raise ValueError(f"starts has {len(self.starts)} cells for n_agents={self.n_agents}")
-        # The env checks the rest (map file contents, start cells on walls, ...): build one, and
-        # draw a few random maps, so that a map too small or too walled to place the agents is
-        # a config error rather than a crash in the middle of training.
-        env = coverage_v0.parallel_env(**self.kwargs())
-        if self.map == "random" or isinstance(self.map, dict):
-            for seed in range(3):
-                try:
-                    env.reset(seed=seed)
-                except ValueError:
-                    raise
-                except Exception as exc:  # a generator that cannot draw this size at all
-                    raise ValueError(
-                        f"cannot draw a {self.height}x{self.width} map from {self.map!r} "
-                        f"({type(exc).__name__}: {exc})"
-                    ) from None
+        # The env checks the rest (map file contents, start cells on walls, maps that cannot
+        # place the team) where it is built: harness.factory.check_env.
         return self
 
-    def kwargs(self) -> dict[str, Any]:
-        """Keyword arguments for ``coverage_v0.parallel_env``."""
-        out = self.model_dump(exclude={"map_sha256", "test_maps"})
-        out["wall_fraction"] = tuple(out["wall_fraction"])
-        if self._agent_id:
-            out["agent_id"] = True
-        if isinstance(self.map, dict):
-            out["map"] = build_source(self.map, self.height, self.width)
-        if self.test_maps and (isinstance(self.map, dict) or self.map == "random"):
-            # Generated maps only: a fixed map named in env.map is used as given (evaluation
-            # on a test map); `harness run` refuses to train on one.
-            source = (
-                out["map"]
-                if isinstance(self.map, dict)
-                else generators.from_name("random", self.height, self.width, self.wall_fraction)
-            )
-            try:
-                out["map"] = generators.WithoutMaps(source, self.test_grids())
-            except ValueError as exc:
-                raise ValueError(f"map: {exc} (it is in env.test_maps)") from None
-        return out
+    @property
+    def agent_id(self) -> bool:
+        """Whether each observation holds the agent's one-hot index (set from ``algo.sharing``)."""
+        return self._agent_id
 
     def test_grids(self) -> list[Any]:
         """The grids of ``test_maps``."""
@@ -368,7 +270,7 @@ class ImitationConfig(_Section):
 
     Every sampled transition adds ``weight * (max_a [Q(s, a) + margin * (a != step)] -
     Q(s, step))`` to its TD loss: the network's greedy policy is the step (with
-    ``env.frontier_claims``, the frontier planner's move) unless the TD term holds another
+    a planner in ``env.frontier``, the planner's move) unless the TD term holds another
     move's value higher. The weight decides how hard that is: a move becomes greedy only when
     its advantage exceeds about ``weight / (its share of the samples)``, never when the weight
     is above that share (README "Imitating the planner"). The step is computed by the env in
@@ -379,9 +281,6 @@ class ImitationConfig(_Section):
     cell is +2, a move -1)."""
     weight: Annotated[float, Field(ge=0.0)] = 1.0
     """The loss's weight beside the TD (Huber) loss: DQfD's lambda_2."""
-    same_moves: bool = False
-    """Count the primitive move that the step takes (the compass's mark) as the step: the
-    margin then separates different behaviour only, not two names of the same move."""
 
 
 class AlgoConfig(_Section):
@@ -420,14 +319,8 @@ class AlgoConfig(_Section):
     """torch CPU threads (``torch.set_num_threads``); ``null`` keeps torch's default (one per
     core). On a 2-core machine 2 threads train the 3x512 net ~20 % faster than 1 (harness bench)."""
 
-    action_mask: bool = False
-    """Invalid-action masking: the moves the agent's observation shows to be blocked (a known
-    wall or the grid's edge next to it) are never chosen, neither greedily nor at random, and
-    never bootstrapped from (the TD target's max). The policy acts behind the mask at test time
-    too: it needs ``eval.shield: true``."""
-
     imitation: ImitationConfig | None = None
-    """DQfD's large-margin loss towards the frontier step (needs ``env.frontier_action: true``);
+    """DQfD's large-margin loss towards the planner-backed action (needs ``env.frontier.action``);
     ``null``: none."""
 
     features_dim: PositiveInt = 256
@@ -548,10 +441,6 @@ class EvalConfig(_Section):
     (a wall or the edge next to it) before the choice, so the test policy never hits a wall.
     Applies to ``harness eval``/``tune``, the in-training evaluations and sweeps; training's
     own (ε-greedy) actions are unchanged."""
-    step_bonus: NonNegativeFloat | None = None
-    """Test-time bonus on the frontier step's Q-value (needs ``env.frontier_action``): the
-    greedy test policy leaves the step only for a move the network values more than
-    ``step_bonus`` above it. ``null``: none. Like the temperature, chosen on validation episodes."""
 
     @model_validator(mode="after")
     def _separate_seeds(self) -> EvalConfig:
@@ -604,34 +493,25 @@ class ExperimentConfig(_Section):
         return self
 
     @model_validator(mode="after")
-    def _mask_at_test_time(self) -> ExperimentConfig:
-        # A masked policy never learned what its blocked moves are worth: unmasked, its test
-        # policy would pick among untrained Q-values.
-        if self.algo.action_mask and not self.eval.shield:
+    def _imitation_has_an_expert(self) -> ExperimentConfig:
+        # The expert's action is the env's planner-backed action: without one there is nothing
+        # to imitate.
+        options = self.env.frontier_options
+        if self.algo.imitation is not None and (options is None or options.expert_action is None):
             raise ValueError(
-                "algo.action_mask: true needs eval.shield: true (a policy trained behind the "
-                "mask is tested behind it)"
+                "algo.imitation needs env.frontier.action (the planner-backed action is the "
+                "expert's)"
             )
-        return self
-
-    @model_validator(mode="after")
-    def _options_of_the_frontier_step(self) -> ExperimentConfig:
-        # Both act on the env's frontier step: without it there is nothing to copy or favour.
-        if not self.env.frontier_action:
-            for key, used, what in (
-                ("algo.imitation", self.algo.imitation is not None, "the expert's move"),
-                ("eval.step_bonus", self.eval.step_bonus is not None, "the move it favours"),
-            ):
-                if used:
-                    raise ValueError(
-                        f"{key} needs env.frontier_action: true (the frontier step is {what})"
-                    )
         return self
 
     @model_validator(mode="after")
     def _n_step_buffer_exists(self) -> ExperimentConfig:
         # SB3's own Dict buffer has no n-step variant; the prioritized ones do.
-        if self.algo.n_steps > 1 and not self.algo.prioritized and self.env.observation != "thesis":
+        if (
+            self.algo.n_steps > 1
+            and not self.algo.prioritized
+            and self.env.observation_kind != "thesis"
+        ):
             raise ValueError(
                 f"algo.n_steps: {self.algo.n_steps} needs algo.prioritized: true with "
                 f"env.observation {self.env.observation!r} (SB3 has no n-step Dict buffer; "
@@ -642,13 +522,14 @@ class ExperimentConfig(_Section):
     @model_validator(mode="after")
     def _policy_fits_observation(self) -> ExperimentConfig:
         wanted = POLICIES[self.algo.policy].observation
-        if wanted != self.env.observation:
+        if wanted != self.env.observation_kind:
             fitting = [
-                name for name, p in POLICIES.items() if p.observation == self.env.observation
+                name for name, p in POLICIES.items() if p.observation == self.env.observation_kind
             ]
             raise ValueError(
                 f"algo.policy {self.algo.policy} is for observation {wanted!r}, but "
-                f"env.observation is {self.env.observation!r} (use one of {', '.join(fitting)})"
+                f"env.observation is {self.env.observation_kind!r} (use one of "
+                f"{', '.join(fitting)})"
             )
         return self
 

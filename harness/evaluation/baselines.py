@@ -1,8 +1,9 @@
 """Non-learned reference policies: ``random``, the memoryless ``local`` rule and the classical
 ``frontier`` explorer.
 
-Both are :data:`harness.evaluation.episodes.BatchPolicy` callables, so ``run_episodes`` evaluates them on
-exactly the maps and start cells a trained model sees (``harness eval --policy frontier``).
+All are :data:`harness.evaluation.episodes.BatchPolicy` callables, so ``run_episodes``
+evaluates them on exactly the maps and start cells a trained model sees (``harness eval
+--policy frontier``).
 
 ``local`` is a hand-written rule that sees exactly what a learned agent sees (its own 13-number
 observation, no memory): step into an unvisited neighbour if there is one; otherwise towards an
@@ -13,16 +14,17 @@ the frontier explorer is the bar for any policy. Its random draws come from each
 ``np_random`` (seeded by the episode's reset), like the Boltzmann test policy, so an episode
 repeats whatever the number of copies.
 
-``frontier_step`` (only on an env with ``frontier_action``) always takes the env's frontier
-step: without ``frontier_claims`` the frontier explorer without claims, each agent heading for
-its own nearest unvisited known cell; with them, the frontier explorer itself.
+``frontier_step`` (only on an env with ``frontier: {action: step}``) always takes the env's
+frontier step: without a planner the frontier explorer without claims, each agent heading for
+its own nearest unvisited known cell; with one, that planner itself.
 
 ``frontier`` is the classical frontier-based explorer (Yamauchi 1997) on the team's shared map
 (``envs.coverage.frontier``, where its search is described): every agent walks, by a shortest
 path through free cells the team has seen, to the nearest seen free cell nobody has visited yet,
 skipping the cells lower-index teammates claimed this step; equally near cells are chosen in a
 fixed neighbour order. ``frontier_pocket`` and ``frontier_random`` are the same explorer with
-other tie-breaks (``envs.coverage.frontier``): the target with the fewest open neighbours
+other tie-breaks. Every planner of the registry ``envs.coverage.frontier.PLANNERS`` is a baseline
+under its entry's ``baseline`` name: the target with the fewest open neighbours
 (finish a pocket before leaving it), or a random one (from each episode's generator). The
 frontier agent knows the whole team's map, which a learned agent (13 numbers of local view) does
 not: it is a strong reference, not a fair opponent. It only ever steps into seen free cells, so
@@ -40,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from envs.coverage import CoverageEnv
-from envs.coverage.frontier import FrontierPlanner
+from envs.coverage.frontier import PLANNERS, FrontierPlanner
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL, FRONTIER_STEP
 from harness.evaluation.episodes import BatchPolicy, batch_len, episode_draws, sample_categorical
 
@@ -50,9 +52,11 @@ from harness.evaluation.episodes import BatchPolicy, batch_len, episode_draws, s
 BASELINES: dict[str, Callable[[int], BatchPolicy]] = {
     "random": lambda seed: RandomPolicy(seed),
     "local": lambda seed: LocalPolicy(),
-    "frontier": lambda seed: FrontierPolicy(),
-    "frontier_pocket": lambda seed: FrontierPolicy("pocket"),
-    "frontier_random": lambda seed: FrontierPolicy("random"),
+    # One per planner of the registry: frontier, frontier_pocket, frontier_random.
+    **{
+        entry.baseline: (lambda seed, name=name: FrontierPolicy(name))
+        for name, entry in PLANNERS.items()
+    },
     "frontier_step": lambda seed: FrontierStepPolicy(),
 }
 
@@ -66,7 +70,7 @@ def make_baseline(name: str, seed: int) -> BatchPolicy:
             generator, ``frontier`` is deterministic).
 
     Returns:
-        A ``policy(obs, envs) -> actions`` callable (see ``harness.evaluation.episodes.BatchPolicy``).
+        A ``policy(obs, envs) -> actions`` callable (``harness.evaluation.episodes.BatchPolicy``).
 
     Raises:
         ValueError: For an unknown name.
@@ -77,16 +81,16 @@ def make_baseline(name: str, seed: int) -> BatchPolicy:
 
 
 class FrontierStepPolicy:
-    """Every agent always takes the env's frontier step (``env.frontier_action``): one step along
-    a shortest way to its nearest unvisited known cell, ties drawn from the episode's generator,
-    no coordination; with ``env.frontier_claims`` the frontier explorer's move (this policy is
-    then the ``frontier`` baseline, move for move). The bar a learned policy with that action
+    """Every agent always takes the env's frontier step (``env.frontier.action: step``): one step
+    along a shortest way to its nearest unvisited known cell, ties drawn from the episode's
+    generator, no coordination; with ``env.frontier.planner`` that planner's move (this policy is
+    then the planner's baseline, move for move). The bar a learned policy with that action
     must beat to show it learned more than "always take it"."""
 
     def __call__(self, obs: Any, envs: Sequence[CoverageEnv]) -> np.ndarray:
         """The frontier step for every agent of every env copy."""
-        if not all(env.frontier_action for env in envs):
-            raise ValueError("the frontier_step baseline needs env.frontier_action: true")
+        if not all(env.frontier is not None and env.frontier.action == "step" for env in envs):
+            raise ValueError("the frontier_step baseline needs env.frontier.action: step")
         return np.full(batch_len(obs), FRONTIER_STEP, dtype=np.int64)
 
 
@@ -158,13 +162,15 @@ class FrontierPolicy:
     """Nearest-unclaimed-frontier explorer on the team's known map (see the module docstring).
 
     Args:
-        tie_break: How equally near targets are chosen (``envs.coverage.frontier.TIE_BREAKS``):
-            ``"order"`` the classical explorer; ``"random"`` draws from each episode's generator,
-            so an episode repeats from its seed.
+        planner: A planner of ``envs.coverage.frontier.PLANNERS``: ``"order"`` the classical
+            explorer; ``"random"`` draws from each episode's generator, so an episode repeats
+            from its seed.
     """
 
-    def __init__(self, tie_break: str = "order") -> None:
-        self.tie_break = tie_break
+    def __init__(self, planner: str = "order") -> None:
+        if planner not in PLANNERS:
+            raise ValueError(f"unknown planner {planner!r}; known: {', '.join(PLANNERS)}")
+        self.planner = planner
         # One team map per env copy; weak keys so finished envs do not pile up.
         self._maps: weakref.WeakKeyDictionary[CoverageEnv, FrontierPlanner] = (
             weakref.WeakKeyDictionary()
@@ -176,7 +182,7 @@ class FrontierPolicy:
         for env in envs:
             team = self._maps.get(env)
             if team is None or team.shape != (env.height, env.width):
-                team = self._maps[env] = FrontierPlanner(env.height, env.width, self.tie_break)
+                team = self._maps[env] = PLANNERS[self.planner].make(env.height, env.width)
             team.sync(env.steps, env.positions, lambda env=env: (env.walls, env.visited))
             actions.extend(team.act(env.np_random))
         return np.asarray(actions, dtype=np.int64)

@@ -15,11 +15,10 @@ from typing import Any
 
 import numpy as np
 
-from envs import coverage_v0
 from envs.coverage import CoverageEnv
 from envs.coverage.observations import blocked_moves
-from envs.coverage.types import FRONTIER_STEP
 from harness.config.schema import EnvConfig
+from harness.factory import make_env
 
 #: A batched policy: ``policy(obs, envs)`` maps the observations ``(len(envs) * n_agents, ...)``
 #: of every agent of every env copy in play (copy-major: copy 0's agents first; a dict of such
@@ -59,9 +58,7 @@ class EpisodeResult:
     and the last step, when asked for."""
 
 
-def model_policy(
-    model: Any, temperature: float = 0.0, shield: bool = False, step_bonus: float | None = None
-) -> BatchPolicy:
+def model_policy(model: Any, temperature: float = 0.0, shield: bool = False) -> BatchPolicy:
     """A batched policy from an SB3 model: greedy (ε = 0) when ``temperature`` is 0, else
     Boltzmann, each agent sampling its action from ``softmax(Q / temperature)``.
 
@@ -71,11 +68,6 @@ def model_policy(
     Reinforcement Learning via Shielding"), so the test policy never hits a wall, and an agent
     whose best Q-value is a blocked move takes its best free one instead of pushing forever.
 
-    With ``step_bonus`` (a model with the frontier step) ``step_bonus`` is added to the step's
-    Q-value before the choice: greedily, the agent leaves the step only for a move the network
-    values more than ``step_bonus`` above it (a conservative, SPIBB-like deviation rule;
-    ``step_bonus`` large is the step's policy, 0 the network's own).
-
     A memoryless greedy policy on a partial observation repeats itself once its surroundings are
     visited (a loop it cannot leave); sampling near-tied actions breaks such loops, while actions
     far below the best (a wall: -10) keep a vanishing probability. The noise of each env copy is
@@ -84,8 +76,6 @@ def model_policy(
     """
     if temperature < 0:
         raise ValueError(f"temperature must be >= 0, got {temperature}")
-    if step_bonus is not None and model.action_space.n <= FRONTIER_STEP:
-        raise ValueError("step_bonus needs a model with the frontier step (env.frontier_action)")
 
     def q_values(obs: np.ndarray) -> np.ndarray:
         import torch as th
@@ -95,12 +85,10 @@ def model_policy(
         if shield:
             # stay is never blocked: a row keeps a finite value
             q[blocked_moves(obs, q.shape[1])] = -np.inf
-        if step_bonus is not None:
-            q[:, FRONTIER_STEP] += step_bonus
         return q
 
     def greedy(obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
-        if shield or step_bonus is not None:
+        if shield:
             return q_values(obs).argmax(axis=1)
         actions, _ = model.policy.predict(obs, deterministic=True)
         return np.asarray(actions)
@@ -187,11 +175,9 @@ def run_episodes(
     """
     if frames_every < 0:
         raise ValueError(f"frames_every must be >= 0, got {frames_every}")
-    kwargs = env.kwargs()
-    if frames_every:
-        kwargs["render_mode"] = "rgb_array"
+    render_mode = "rgb_array" if frames_every else None
     n_copies = max(1, min(copies, episodes))
-    envs = [coverage_v0.parallel_env(**kwargs) for _ in range(n_copies)]
+    envs = [make_env(env, render_mode) for _ in range(n_copies)]
     n_agents, max_steps = env.n_agents, env.max_steps
     marks = [max(1, round(f * max_steps)) for f in CHECKPOINT_FRACTIONS]
     results: list[EpisodeResult] = []

@@ -468,8 +468,8 @@ def plot_learning_curves(
         references: Optional ``label -> coverage`` horizontal lines (a baseline's or the
             thesis's median coverage).
         evaluations: Optional ``label -> [(timesteps, coverage_median), ...]`` from
-            :func:`harness.results.rundir.read_evaluations_csv`: when any run has one, a second panel
-            draws the test policy's evaluations during training (median across a label's runs,
+            :func:`harness.results.rundir.read_evaluations_csv`: when any run has one, a second
+            panel draws the test policy's evaluations during training (median across a label's runs,
             unsmoothed).
 
     Returns:

@@ -13,17 +13,18 @@ from typing import Any, ClassVar
 
 import numpy as np
 import torch as th
+from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
+from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.type_aliases import GymEnv, Schedule
+from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
 from stable_baselines3.common.utils import ConstantSchedule
 from stable_baselines3.dqn import DQN
 from stable_baselines3.dqn.policies import DQNPolicy
 from torch.nn import functional as F
 
-from envs.coverage.observations import blocked_moves, step_equivalents
 from harness.sb3.buffers import PrioritizedReplayBuffer
-from harness.sb3.policies import PerAgentQNetwork
+from harness.sb3.policies import ACTION_MASK_KEY, MultiInputPolicy, PerAgentQNetwork
 from harness.sb3.registry import POLICIES
 from harness.sb3.targets import double_q_target, large_margin_loss, max_q_target
 
@@ -59,20 +60,34 @@ def moved_classes(path: str | Path | io.BufferedIOBase) -> dict[str, Any]:
     return out
 
 
-__all__ = ["DoubleDQN", "blocked_actions", "per_agent_loss", "resolve_optimizer_class"]
+__all__ = [
+    "ACTION_MASK_KEY",
+    "DoubleDQN",
+    "allowed_actions",
+    "per_agent_loss",
+    "resolve_optimizer_class",
+]
 
 
-def blocked_actions(obs: th.Tensor | dict[str, th.Tensor], n_actions: int = 5) -> th.Tensor:
-    """The moves a batch of observation tensors shows to be blocked (a known wall or the grid's
-    edge next to the agent): :func:`envs.coverage.observations.blocked_moves`, as a
-    ``(batch, n_actions)`` bool tensor on the observations' device."""
-    if isinstance(obs, dict):
-        device = next(iter(obs.values())).device
-        blocked = blocked_moves({k: v.cpu().numpy() for k, v in obs.items()}, n_actions)
-    else:
-        device = obs.device
-        blocked = blocked_moves(obs.cpu().numpy(), n_actions)
-    return th.as_tensor(blocked, device=device)
+def allowed_actions(
+    obs: PyTorchObs | np.ndarray | dict[str, np.ndarray], n_actions: int
+) -> th.Tensor | np.ndarray | None:
+    """The actions the observations' :data:`ACTION_MASK_KEY` entry allows, ``(batch, n_actions)``
+    bool (a torch tensor for tensors, a numpy array for arrays), or ``None`` when the
+    observations carry no mask.
+
+    Any nonzero entry counts as allowed. A row that allows nothing allows every action instead:
+    the terminal observation of a PettingZoo env often has an all-zero mask, and a choice among
+    no actions has no value (its bootstrap would be ``-inf``, and ``0 * -inf`` a NaN target).
+    """
+    if not isinstance(obs, dict) or ACTION_MASK_KEY not in obs:
+        return None
+    mask = obs[ACTION_MASK_KEY]
+    if isinstance(mask, th.Tensor):
+        allowed = mask.reshape(-1, n_actions) != 0
+        return allowed | ~allowed.any(dim=1, keepdim=True)
+    allowed = np.asarray(mask).reshape(-1, n_actions) != 0
+    return allowed | ~allowed.any(axis=1, keepdims=True)
 
 
 def resolve_optimizer_class(optimizer: str | type[th.optim.Optimizer]) -> type[th.optim.Optimizer]:
@@ -159,22 +174,25 @@ class DoubleDQN(DQN):
       ``torch.optim`` class, e.g. ``"Adam"``.
     * ``predict(deterministic=False)`` draws one exploration coin per observation (per VecEnv
       slot / agent), instead of SB3's single coin for the whole batch.
-    * ``action_mask=True`` leaves out the moves the observation shows to be blocked
-      (:func:`blocked_actions`) wherever an action is chosen: the greedy action and the
-      ε-random one (uniform over the free moves) in :meth:`predict`, and the next-state
-      max/argmax of the TD target (invalid-action masking, Huang & Ontañón 2022). The random
-      actions before ``learning_starts`` are SB3's, unmasked.
+    * Invalid-action masking (Huang & Ontañón 2022), PettingZoo's convention: when the
+      observation space is a ``Dict`` with an :data:`ACTION_MASK_KEY` (``"action_mask"``) entry,
+      a ``MultiBinary(n)`` or a ``Box`` of shape ``(n,)`` with 1 where an action is allowed,
+      only allowed actions are chosen: the greedy action and the ε-random one (uniform over the
+      allowed actions) in :meth:`predict`, the random actions before ``learning_starts``, and
+      the next-state max (or the online argmax of the double-Q target) of the TD target, over
+      the next observation's mask. A row that allows nothing counts as allowing every action
+      (:func:`allowed_actions`). The harness's policies and ``"MultiInputPolicy"`` keep the mask
+      out of the network's input (:mod:`harness.sb3.policies`). Without such an entry nothing
+      is masked.
     * ``expert_action=a`` adds DQfD's large-margin loss (Hester et al. 2018;
       :func:`harness.sb3.targets.large_margin_loss`) towards action ``a`` to every sample's TD loss,
       ``margin_weight * max_a [Q(s, a) + margin * (a != a_E)] - Q(s, a_E)``: the greedy policy
-      follows the expert's action (the env's frontier step, whose move is the frontier planner's
-      with ``frontier_claims``) unless the TD targets hold another action's value higher (how
-      strongly depends on ``margin_weight``: README "Imitating the planner"). With
-      ``same_moves=True`` the primitive move that the step takes (read from the team-map
-      observation's compass, :func:`envs.coverage.observations.step_equivalents`) counts as the
-      expert's action too. The priorities stay ``|TD error|``.
+      follows the expert's action (for the coverage env, its frontier step) unless the TD targets
+      hold another action's value higher (how strongly depends on ``margin_weight``: README
+      "Imitating the planner"). The priorities stay ``|TD error|``.
     * The names of :data:`harness.sb3.registry.POLICIES` select the harness's policies
-      (``"DuelingMlpPolicy"``, ``"TeamMapPolicy"``, ``"DuelingTeamMapPolicy"``).
+      (``"DuelingMlpPolicy"``, ``"TeamMapPolicy"``, ``"DuelingTeamMapPolicy"``), and
+      ``"MultiInputPolicy"`` is SB3's with the mask left out of the network's input.
 
     Schedules. SB3 overwrites ``exploration_rate`` in ``_on_step`` from
     ``exploration_schedule(progress_remaining)``, so assigning ``exploration_rate`` from a
@@ -221,11 +239,9 @@ class DoubleDQN(DQN):
         seed: Random seed.
         device: Torch device.
         double_q: Use the Double-DQN target.
-        action_mask: Leave out the moves the observation shows to be blocked.
         expert_action: The action DQfD's large-margin loss favours; ``None``: no such loss.
         margin: The lead over every other action's value the loss asks of ``expert_action``.
         margin_weight: The loss's weight beside the TD loss (DQfD's lambda_2).
-        same_moves: Count the moves that do what the frontier step does as the expert's action.
         _init_setup_model: Build the networks now (``False`` is used by ``load``).
     """
 
@@ -235,6 +251,7 @@ class DoubleDQN(DQN):
         **DQN.policy_aliases,
         **{name: entry.load() for name, entry in POLICIES.items()},
         **{entry.per_agent_name: entry.load(per_agent=True) for entry in POLICIES.values()},
+        "MultiInputPolicy": MultiInputPolicy,
     }
     beta_schedule: Schedule
     #: Transition count (``num_timesteps``) at which the current phase started.
@@ -242,10 +259,11 @@ class DoubleDQN(DQN):
     #: Transitions in the current phase; ``None``: SB3's own progress (no phases).
     phase_timesteps: int | None = None
     # Class defaults, so that models saved before the imitation loss existed load without it.
+    # (SB3's load sets every saved attribute on the model: a model saved with the retired
+    # `action_mask` or `same_moves` settings gets them as attributes that nothing reads.)
     expert_action: int | None = None
     margin: float = 0.8
     margin_weight: float = 1.0
-    same_moves: bool = False
 
     def __init__(
         self,
@@ -275,11 +293,9 @@ class DoubleDQN(DQN):
         seed: int | None = None,
         device: th.device | str = "auto",
         double_q: bool = True,
-        action_mask: bool = False,
         expert_action: int | None = None,
         margin: float = 0.8,
         margin_weight: float = 1.0,
-        same_moves: bool = False,
         _init_setup_model: bool = True,
     ) -> None:
         # Copy: the caller's dict must not change, and the resolved class (not a string) is
@@ -317,7 +333,6 @@ class DoubleDQN(DQN):
             _init_setup_model=False,
         )
         self.double_q = double_q
-        self.action_mask = action_mask
         if expert_action is not None and not 0 <= expert_action < self.action_space.n:  # type: ignore[attr-defined]
             raise ValueError(
                 f"expert_action {expert_action} is not an action of {self.action_space}"
@@ -329,7 +344,6 @@ class DoubleDQN(DQN):
         self.expert_action = expert_action
         self.margin = float(margin)
         self.margin_weight = float(margin_weight)
-        self.same_moves = bool(same_moves)
         # (margin loss, expert agreement) of each gradient step since the last log.
         self._imitation_stats: list[tuple[float, float]] = []
         if _init_setup_model:
@@ -340,7 +354,26 @@ class DoubleDQN(DQN):
         """Whether the replay buffer is a :class:`PrioritizedReplayBuffer`."""
         return isinstance(self.replay_buffer, PrioritizedReplayBuffer)
 
+    @property
+    def masked(self) -> bool:
+        """Whether the observations carry an action mask (:data:`ACTION_MASK_KEY`)."""
+        space = self.observation_space
+        return isinstance(space, spaces.Dict) and ACTION_MASK_KEY in space.spaces
+
+    def _check_action_mask_space(self) -> None:
+        if not self.masked:
+            return
+        mask_space = self.observation_space[ACTION_MASK_KEY]  # type: ignore[index]
+        n_actions = int(self.action_space.n)  # type: ignore[attr-defined]
+        shape_ok = mask_space.shape == (n_actions,)
+        if not (isinstance(mask_space, (spaces.MultiBinary, spaces.Box)) and shape_ok):
+            raise ValueError(
+                f"the {ACTION_MASK_KEY!r} observation must be a MultiBinary({n_actions}) or a Box "
+                f"of shape ({n_actions},), one entry per action, got {mask_space}"
+            )
+
     def _setup_model(self) -> None:
+        self._check_action_mask_space()
         super()._setup_model()
         initial_beta = self.replay_buffer.beta if self.prioritized else 0.0  # type: ignore[union-attr]
         self.beta_schedule = ConstantSchedule(initial_beta)
@@ -486,13 +519,11 @@ class DoubleDQN(DQN):
         discounts = getattr(replay_data, "discounts", None)
         if discounts is None:
             discounts = self.gamma
+        n_actions = int(self.action_space.n)  # type: ignore[attr-defined]
         with th.no_grad():
             next_q_target = self.q_net_target(replay_data.next_observations)
-            blocked = (
-                blocked_actions(replay_data.next_observations, self.action_space.n)  # type: ignore[attr-defined]
-                if self.action_mask
-                else None
-            )
+            allowed = allowed_actions(replay_data.next_observations, n_actions)
+            blocked = None if allowed is None else ~allowed
             if self.double_q:
                 next_q_online = self.q_net(replay_data.next_observations)
                 target_q = double_q_target(
@@ -513,11 +544,13 @@ class DoubleDQN(DQN):
         # Per-sample Huber loss so that the IS weights can scale each term.
         per_sample_loss = F.smooth_l1_loss(current_q, target_q, reduction="none")
         if self.expert_action is not None:
-            expert_set = self._expert_set(replay_data.observations, q_values)
-            margin_loss = large_margin_loss(q_values, self.expert_action, self.margin, expert_set)
+            margin_loss = large_margin_loss(q_values, self.expert_action, self.margin)
             per_sample_loss = per_sample_loss + self.margin_weight * margin_loss
-            greedy = q_values.argmax(dim=1, keepdim=True)
-            agreement = expert_set.gather(1, greedy).float().mean()
+            # The agreement of the action the policy would take: the greedy one among the
+            # allowed actions when the observations carry a mask.
+            allowed_now = allowed_actions(replay_data.observations, n_actions)
+            greedy = _masked(q_values, allowed_now).argmax(dim=1)  # type: ignore[arg-type]
+            agreement = (greedy == self.expert_action).float().mean()
             self._imitation_stats.append((margin_loss.mean().item(), agreement.item()))
         weights = getattr(replay_data, "weights", None)
         sets = self.agent_sets
@@ -543,19 +576,6 @@ class DoubleDQN(DQN):
         self.policy.optimizer.step()
         return loss_value, (current_q.detach() - target_q).abs().reshape(-1)
 
-    def _expert_set(self, obs: Any, q_values: th.Tensor) -> th.Tensor:
-        """The ``(batch, n_actions)`` actions that count as the expert's: ``expert_action``, and
-        with ``same_moves`` the moves that do what the frontier step does
-        (:func:`envs.coverage.observations.step_equivalents`)."""
-        expert = th.zeros_like(q_values, dtype=th.bool)
-        expert[:, self.expert_action] = True
-        if not self.same_moves:
-            return expert
-        if not isinstance(obs, dict) or "frontier" not in obs:
-            raise ValueError("same_moves needs team-map observations with the frontier compass")
-        same = step_equivalents({"frontier": obs["frontier"].cpu().numpy()})
-        return expert | th.as_tensor(same[:, : q_values.shape[1]], device=q_values.device)
-
     def predict(
         self,
         observation: np.ndarray | dict[str, np.ndarray],
@@ -568,6 +588,8 @@ class DoubleDQN(DQN):
         SB3's ``DQN.predict`` draws one coin for the whole batch, so all VecEnv slots (all
         agents of a SuperSuit-vectorised PettingZoo env) explore or exploit together. Here
         each slot explores with probability ``exploration_rate`` on its own, vectorised.
+        With an :data:`ACTION_MASK_KEY` entry in the observations, the greedy action and the
+        random one are both chosen among the allowed actions (:func:`allowed_actions`).
 
         Args:
             observation: One observation or a batch (one per VecEnv slot).
@@ -579,9 +601,9 @@ class DoubleDQN(DQN):
             The actions (shape as SB3's: ``(n,)`` for a batch, ``()`` for one observation)
             and the state.
         """
-        blocked = None
-        if self.action_mask:
-            action, blocked = self._masked_greedy(observation)
+        allowed = None
+        if self.masked:
+            action, allowed = self._masked_greedy(observation)  # type: ignore[arg-type]
         else:
             action, state = self.policy.predict(observation, state, episode_start, deterministic)
         if deterministic or self.exploration_rate <= 0.0:
@@ -593,24 +615,50 @@ class DoubleDQN(DQN):
         # stay reproducible with `seed=`. Random actions are in [0, n) like the greedy argmax
         # (SB3's Q-network ignores Discrete.start).
         explore = np.random.random_sample(flat.shape[0]) < self.exploration_rate  # noqa: NPY002
-        if blocked is None:
+        if allowed is None:
             random_actions = np.random.randint(n_actions, size=flat.shape[0])  # noqa: NPY002
-        else:  # uniform over the free moves: the largest of iid keys, blocked keys below all
+        else:  # uniform over the allowed actions: the largest of iid keys, the others below all
             keys = np.random.random_sample((flat.shape[0], n_actions))  # noqa: NPY002
-            random_actions = np.where(blocked, -1.0, keys).argmax(axis=1)
+            random_actions = np.where(allowed, keys, -1.0).argmax(axis=1)
         mixed = np.where(explore, random_actions, flat).astype(flat.dtype, copy=False)
         return mixed.reshape(greedy.shape), state
 
     def _masked_greedy(
-        self, observation: np.ndarray | dict[str, np.ndarray]
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """The greedy action among the moves the observation leaves free, shaped as SB3's
-        ``policy.predict`` shapes it, and the ``(batch, n_actions)`` blocked mask."""
+        self, observation: dict[str, np.ndarray]
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """The greedy action among the actions the observation's mask allows, shaped as SB3's
+        ``policy.predict`` shapes it, and the ``(batch, n_actions)`` allowed mask (``None``, and
+        no masking, for an observation that comes without its mask)."""
         self.policy.set_training_mode(False)
         obs, vectorized = self.policy.obs_to_tensor(observation)
         with th.no_grad():
             q = self.q_net(obs)
-            blocked = blocked_actions(obs, q.shape[1])
-            q = q.masked_fill(blocked, float("-inf"))
-        action = q.argmax(dim=1).cpu().numpy()
-        return (action if vectorized else action.squeeze(axis=0)), blocked.cpu().numpy()
+            allowed = allowed_actions(obs, q.shape[1])
+            action = _masked(q, allowed).argmax(dim=1).cpu().numpy()  # type: ignore[arg-type]
+        action = action if vectorized else action.squeeze(axis=0)
+        return action, None if allowed is None else allowed.cpu().numpy()  # type: ignore[union-attr]
+
+    def _sample_action(
+        self,
+        learning_starts: int,
+        action_noise: ActionNoise | None = None,
+        n_envs: int = 1,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """SB3's action choice during ``learn``; the uniformly random actions before
+        ``learning_starts`` are drawn among the allowed actions when the observations carry a
+        mask (from the action space's own generator, as SB3's are)."""
+        allowed = None
+        if self.masked and self.num_timesteps < learning_starts:
+            assert self._last_obs is not None, "self._last_obs was not set"
+            allowed = allowed_actions(self._last_obs, int(self.action_space.n))  # type: ignore[attr-defined]
+        if allowed is None:
+            return super()._sample_action(learning_starts, action_noise, n_envs)
+        action = np.array(
+            [self.action_space.sample(mask=row.astype(np.int8)) for row in allowed]  # type: ignore[call-arg]
+        )
+        return action, action
+
+
+def _masked(q: th.Tensor, allowed: th.Tensor | None) -> th.Tensor:
+    """``q`` with the actions ``allowed`` leaves out at ``-inf``, so that argmax skips them."""
+    return q if allowed is None else q.masked_fill(~allowed, float("-inf"))

@@ -1,7 +1,12 @@
 """Policies for SB3's DQN: the dueling Q-network (Wang et al., 2016,
 https://arxiv.org/abs/1511.06581), the team-map CNN policies (plain and dueling) that read the
 ``"teammap"`` observation's images, and per-agent versions of every policy (one parameter set
-per agent in one batched module, ``algo.sharing: per_agent``)."""
+per agent in one batched module, ``algo.sharing: per_agent``).
+
+Every policy here builds its features extractor on the observation space less the
+:data:`ACTION_MASK_KEY` entry: an invalid-action mask is for choosing among the Q-values
+(:class:`harness.sb3.dqn.DoubleDQN`), not an input of the network that computes them.
+"""
 
 from __future__ import annotations
 
@@ -19,16 +24,18 @@ from stable_baselines3.common.torch_layers import (
 )
 from stable_baselines3.common.type_aliases import PyTorchObs, Schedule
 from stable_baselines3.dqn.policies import DQNPolicy, QNetwork
+from stable_baselines3.dqn.policies import MultiInputPolicy as SB3MultiInputPolicy
 from torch import nn
 
-from envs.coverage.observations import AGENT_ID_KEY
-
 __all__ = [
+    "ACTION_MASK_KEY",
+    "AGENT_KEY",
     "AGGREGATORS",
     "DuelingDQNPolicy",
     "DuelingHead",
     "DuelingQNetwork",
     "DuelingTeamMapPolicy",
+    "MultiInputPolicy",
     "PerAgentDuelingMlpPolicy",
     "PerAgentDuelingTeamMapPolicy",
     "PerAgentMlpPolicy",
@@ -39,6 +46,15 @@ __all__ = [
 ]
 
 AGGREGATORS = ("mean", "max")
+
+#: The key of a ``Dict`` observation's invalid-action mask (PettingZoo's convention): a
+#: ``MultiBinary(n)`` or a ``Box`` of shape ``(n,)``, 1 where an action is allowed, 0 where not.
+ACTION_MASK_KEY = "action_mask"
+
+#: Default key of the agent's one-hot index in a ``Dict`` observation, read by the per-agent
+#: policies (``agent_key``): the key under which the coverage env adds its agent indication
+#: (``envs.coverage.observations.AGENT_ID_KEY``).
+AGENT_KEY = "agent_id"
 
 #: ``net_arch`` is one list for both streams or ``{"value": [...], "advantage": [...]}``.
 DuelingNetArch = list[int] | dict[str, list[int]]
@@ -68,6 +84,32 @@ def split_net_arch(net_arch: DuelingNetArch) -> tuple[list[int], list[int]]:
             )
         return list(net_arch["value"]), list(net_arch["advantage"])
     return list(net_arch), list(net_arch)
+
+
+def without_action_mask(space: spaces.Space) -> spaces.Space:
+    """``space`` less its :data:`ACTION_MASK_KEY` entry (any other space as it is)."""
+    if isinstance(space, spaces.Dict) and ACTION_MASK_KEY in space.spaces:
+        return spaces.Dict({k: v for k, v in space.spaces.items() if k != ACTION_MASK_KEY})
+    return space
+
+
+class _IgnoresActionMask:
+    """Mixin for a DQN policy whose features extractor does not read the action mask.
+
+    SB3's ``CombinedExtractor`` and :class:`TeamMapExtractor` build one branch per key of the
+    space they are given and read only those keys in ``forward``, so an extractor built on the
+    space less the mask ignores the mask in every batch. The Q-network itself keeps the full
+    space: SB3's ``preprocess_obs`` converts every key of a batch by the space's entry for it,
+    and the batches (from the env and the replay buffer) carry the mask.
+    """
+
+    observation_space: spaces.Space
+    features_extractor_class: type[BaseFeaturesExtractor]
+    features_extractor_kwargs: dict[str, Any]
+
+    def make_features_extractor(self) -> BaseFeaturesExtractor:
+        space = without_action_mask(self.observation_space)
+        return self.features_extractor_class(space, **self.features_extractor_kwargs)
 
 
 class DuelingHead(nn.Module):
@@ -167,7 +209,7 @@ class DuelingQNetwork(QNetwork):
         return data
 
 
-class DuelingDQNPolicy(DQNPolicy):
+class DuelingDQNPolicy(_IgnoresActionMask, DQNPolicy):
     """DQN policy (online and target networks) with dueling Q-networks.
 
     Registered on :class:`harness.sb3.dqn.DoubleDQN` as ``"DuelingMlpPolicy"``. ``net_arch``
@@ -286,7 +328,7 @@ class TeamMapExtractor(BaseFeaturesExtractor):
         return self.linear(th.cat(parts, dim=1))
 
 
-class TeamMapPolicy(DQNPolicy):
+class TeamMapPolicy(_IgnoresActionMask, DQNPolicy):
     """DQN policy on the ``"teammap"`` observation: :class:`TeamMapExtractor`, then SB3's Q head
     (``net_arch`` hidden layers, default none). Registered as ``"TeamMapPolicy"``."""
 
@@ -351,24 +393,38 @@ class DuelingTeamMapPolicy(DuelingDQNPolicy):
         )
 
 
+class MultiInputPolicy(_IgnoresActionMask, SB3MultiInputPolicy):
+    """SB3's DQN ``MultiInputPolicy`` (``CombinedExtractor`` on a ``Dict`` observation) whose
+    extractor leaves out the action mask. ``DoubleDQN``'s ``"MultiInputPolicy"``."""
+
+
 # ---------------------------------------------------------------------- per-agent networks
-def split_agent_id(obs: PyTorchObs, n_agents: int) -> tuple[PyTorchObs, th.Tensor]:
+def split_agent_id(
+    obs: PyTorchObs, n_agents: int, agent_key: str = AGENT_KEY
+) -> tuple[PyTorchObs, th.Tensor]:
     """The observation without the agent's one-hot index, and the index ``(batch,)``.
 
-    Reads the layout of :func:`envs.coverage.observations.agent_id_space`: the last
-    ``n_agents`` entries of a vector, or the :data:`~envs.coverage.observations.AGENT_ID_KEY`
-    entry of a dict.
+    The two layouts of agent indication (Terry et al. 2020): the last ``n_agents`` entries of a
+    vector, or the ``agent_key`` entry of a dict.
     """
     if isinstance(obs, dict):
-        inner = {key: value for key, value in obs.items() if key != AGENT_ID_KEY}
-        return inner, obs[AGENT_ID_KEY].argmax(dim=1)
+        inner = {key: value for key, value in obs.items() if key != agent_key}
+        return inner, obs[agent_key].argmax(dim=1)
     return obs[:, :-n_agents], obs[:, -n_agents:].argmax(dim=1)
 
 
-def without_agent_id(space: spaces.Space, n_agents: int) -> spaces.Space:
-    """The observation space of one agent's network: ``space`` less the one-hot index."""
+def without_agent_id(
+    space: spaces.Space, n_agents: int, agent_key: str = AGENT_KEY
+) -> spaces.Space:
+    """The observation space of one agent's network: ``space`` less the one-hot index (the
+    ``agent_key`` entry of a ``Dict``, the last ``n_agents`` entries of a vector)."""
     if isinstance(space, spaces.Dict):
-        return spaces.Dict({k: v for k, v in space.spaces.items() if k != AGENT_ID_KEY})
+        if agent_key not in space.spaces:
+            raise ValueError(
+                f"a per-agent policy needs the agent's one-hot index under {agent_key!r} "
+                f"(agent_key), got the keys {sorted(space.spaces)}"
+            )
+        return spaces.Dict({k: v for k, v in space.spaces.items() if k != agent_key})
     assert isinstance(space, spaces.Box) and space.shape is not None
     if space.shape != (space.shape[0],) or space.shape[0] <= n_agents:
         raise ValueError(
@@ -396,15 +452,21 @@ class PerAgentQNetwork(BasePolicy):
         action_space: Action space.
         nets: The N networks (built on the space without the index), one per agent, in
             agent order; their weights become the initial sets.
+        agent_key: The key of the one-hot index in a ``Dict`` observation (unused for a vector).
     """
 
     action_space: spaces.Discrete
 
     def __init__(
-        self, observation_space: spaces.Space, action_space: spaces.Discrete, nets: list[nn.Module]
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Discrete,
+        nets: list[nn.Module],
+        agent_key: str = AGENT_KEY,
     ) -> None:
         super().__init__(observation_space, action_space)
         self.n_agents = len(nets)
+        self.agent_key = agent_key
         params, buffers = th.func.stack_module_state(nets)  # type: ignore[arg-type]
         linear_weights = {
             f"{name}.weight" if name else "weight"
@@ -427,12 +489,12 @@ class PerAgentQNetwork(BasePolicy):
 
     def forward(self, obs: PyTorchObs) -> th.Tensor:
         """Q-values ``(batch, n_actions)``, each row from its agent's network."""
-        inner, agent = split_agent_id(obs, self.n_agents)
+        inner, agent = split_agent_id(obs, self.n_agents, self.agent_key)
         return self.route(inner, agent)
 
     def agents_of(self, obs: PyTorchObs) -> th.Tensor:
         """The agent index ``(batch,)`` of each observation."""
-        return split_agent_id(obs, self.n_agents)[1]
+        return split_agent_id(obs, self.n_agents, self.agent_key)[1]
 
     def route(self, inner: PyTorchObs, agent: th.Tensor) -> th.Tensor:
         """Q-values of observations without the index, row ``j`` by agent ``agent[j]``'s set."""
@@ -505,30 +567,35 @@ def _input_major(weight: th.Tensor) -> th.Tensor:
     return weight.transpose(-1, -2).contiguous().transpose(-1, -2)
 
 
-class _PerAgent:
+class _PerAgent(_IgnoresActionMask):
     """Mixin that gives a DQN policy one parameter set per agent (``algo.sharing: per_agent``).
 
     The online and target networks are :class:`PerAgentQNetwork` s of ``n_agents`` networks of
     the base policy's kind (MLP, dueling, team map), each built on the observation space less
-    the agent's one-hot index. ``n_agents`` is a constructor parameter, saved with the model.
-    Everything else (optimizer, target updates, double-Q, PER) is the base policy's.
+    the agent's one-hot index. ``n_agents`` and ``agent_key`` (the key of the one-hot index in a
+    ``Dict`` observation; default :data:`AGENT_KEY`, so models saved before it was a parameter
+    load as they were) are constructor parameters, saved with the model. Everything else
+    (optimizer, target updates, double-Q, PER) is the base policy's.
     """
 
     n_agents: int
-    observation_space: spaces.Space
+    agent_key: str
     net_args: dict[str, Any]
 
-    def __init__(self, *args: Any, n_agents: int = 1, **kwargs: Any) -> None:
+    def __init__(
+        self, *args: Any, n_agents: int = 1, agent_key: str = AGENT_KEY, **kwargs: Any
+    ) -> None:
         if isinstance(n_agents, bool) or not isinstance(n_agents, int) or n_agents < 1:
             raise ValueError(f"n_agents must be an integer >= 1, got {n_agents!r}")
-        # make_q_net runs inside the base __init__ and needs it; a plain int is safe to set
+        # make_q_net runs inside the base __init__ and needs them; plain values are safe to set
         # before nn.Module.__init__.
         self.n_agents = n_agents
+        self.agent_key = str(agent_key)
         super().__init__(*args, **kwargs)
 
     def make_q_net(self) -> PerAgentQNetwork:
         full = self.observation_space
-        inner = without_agent_id(full, self.n_agents)
+        inner = without_agent_id(full, self.n_agents, self.agent_key)
         make_one = super().make_q_net  # type: ignore[misc]
         # The base policy builds a network (features extractor included) for the space it was
         # given: show it the space without the index while it builds the N of them.
@@ -539,11 +606,12 @@ class _PerAgent:
         finally:
             self.observation_space = full
             self.net_args = {**self.net_args, "observation_space": full}
-        return PerAgentQNetwork(full, self.action_space, nets).to(self.device)  # type: ignore[attr-defined]
+        q_net = PerAgentQNetwork(full, self.action_space, nets, self.agent_key)  # type: ignore[attr-defined]
+        return q_net.to(self.device)  # type: ignore[attr-defined]
 
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()  # type: ignore[misc]
-        data.update(n_agents=self.n_agents)
+        data.update(n_agents=self.n_agents, agent_key=self.agent_key)
         return data
 
 

@@ -2,8 +2,9 @@
 
 Importing this module imports neither torch nor SB3 (a config is checked against it before any of
 them loads); the objects are imported when used. The other registries: observation kinds in
-``envs.coverage.observations.OBSERVATIONS``, baselines in ``harness.evaluation.baselines.BASELINES``,
-optimizers in ``torch.optim`` (resolved by ``harness.sb3.dqn.resolve_optimizer_class``).
+``envs.coverage.observations.OBSERVATIONS``, planners and planner-backed actions in
+``envs.coverage.frontier``, baselines in ``harness.evaluation.baselines.BASELINES``, optimizers
+in ``torch.optim`` (resolved by ``harness.sb3.dqn.resolve_optimizer_class``).
 """
 
 from __future__ import annotations

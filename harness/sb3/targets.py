@@ -8,9 +8,11 @@ tensors (``(batch,)`` is accepted and reshaped), the next-state Q-values are
 They carry no autograd state of their own: call them under ``torch.no_grad()`` as the
 training loop does.
 
-Both take an optional ``blocked`` mask, ``(batch, n_actions)`` bool: moves the next observation
-shows to be impossible (``algo.action_mask``), left out of the max (or the online argmax). Every
-row must keep at least one allowed action (``stay`` is never blocked).
+Both take an optional ``blocked`` mask, ``(batch, n_actions)`` bool: actions the next
+observation does not allow (the negation of its invalid-action mask), left out of the max (or the
+online argmax). A row that blocks every action falls back to all of them: the terminal
+observation of a PettingZoo env often allows nothing, and its bootstrap, multiplied by
+``1 - done = 0``, would otherwise be ``0 * -inf``, a NaN target.
 """
 
 from __future__ import annotations
@@ -50,13 +52,14 @@ def _prepare(
 
 
 def _allowed(q: th.Tensor, blocked: th.Tensor | None) -> th.Tensor:
-    """``q`` with the blocked actions at ``-inf``, so that max and argmax skip them."""
+    """``q`` with the blocked actions at ``-inf``, so that max and argmax skip them; a row that
+    blocks every action keeps all of them (see the module's docstring)."""
     if blocked is None:
         return q
     if blocked.shape != q.shape:
         raise ValueError(f"blocked must be {tuple(q.shape)}, got {tuple(blocked.shape)}")
-    if bool(blocked.all(dim=1).any()):
-        raise ValueError("every row of blocked must allow at least one action")
+    blocked = blocked.bool()
+    blocked = blocked & ~blocked.all(dim=1, keepdim=True)
     return q.masked_fill(blocked, float("-inf"))
 
 
@@ -74,7 +77,8 @@ def max_q_target(
         dones: Termination flags (timeouts already removed), ``(batch, 1)``.
         discounts: ``gamma`` or per-sample discounts ``(batch, 1)``.
         next_q_target: Target-network Q-values of the next observations, ``(batch, n_actions)``.
-        blocked: Actions the max leaves out, ``(batch, n_actions)`` bool, or ``None``.
+        blocked: Actions the max leaves out, ``(batch, n_actions)`` bool, or ``None``; a row
+            that blocks every action leaves out none.
 
     Returns:
         The TD target, ``(batch, 1)``.
@@ -104,7 +108,8 @@ def double_q_target(
         discounts: ``gamma`` or per-sample discounts ``(batch, 1)``.
         next_q_online: Online-network Q-values of the next observations, ``(batch, n_actions)``.
         next_q_target: Target-network Q-values of the next observations, ``(batch, n_actions)``.
-        blocked: Actions the online argmax leaves out, ``(batch, n_actions)`` bool, or ``None``.
+        blocked: Actions the online argmax leaves out, ``(batch, n_actions)`` bool, or ``None``;
+            a row that blocks every action leaves out none.
 
     Returns:
         The TD target, ``(batch, 1)``.

@@ -15,6 +15,7 @@ import functools
 import os
 import signal
 import warnings
+from collections.abc import Mapping
 from typing import Any
 
 import supersuit as ss
@@ -22,14 +23,16 @@ from stable_baselines3.common.vec_env import VecEnv, VecMonitor
 from supersuit.vector import MakeCPUAsyncConstructor
 from supersuit.vector.sb3_vector_wrapper import SB3VecEnvWrapper
 
-from envs import coverage_v0
 from harness.config.schema import EnvConfig
+from harness.factory import make_env
 
 #: Env info keys that VecMonitor copies into each finished episode's ``info["episode"]``.
 EPISODE_INFO_KEYS = ("coverage", "new_cells", "wall_hits")
 
 
-def _make_copy(env_kwargs: dict[str, Any], seed: int | None, owner: int | None = None) -> Any:
+def _make_copy(
+    env: EnvConfig | Mapping[str, Any], seed: int | None, owner: int | None = None
+) -> Any:
     """One env copy as a SuperSuit Markov VecEnv (one slot per agent), seeded once.
 
     Built in a worker process (``vec.num_cpus > 1``: the pid is not ``owner``'s), it makes the
@@ -40,14 +43,14 @@ def _make_copy(env_kwargs: dict[str, Any], seed: int | None, owner: int | None =
     if owner is not None and os.getpid() != owner:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
-    vec = ss.pettingzoo_env_to_vec_env_v1(coverage_v0.parallel_env(**env_kwargs))
+    vec = ss.pettingzoo_env_to_vec_env_v1(make_env(env))
     if seed is not None:
         vec.reset(seed=seed)
     return vec
 
 
 def make_vec_env(
-    env: EnvConfig | dict[str, Any],
+    env: EnvConfig | Mapping[str, Any],
     copies: int = 1,
     num_cpus: int = 0,
     seed: int | None = None,
@@ -56,7 +59,8 @@ def make_vec_env(
     """Build the SB3 VecEnv of ``copies × n_agents`` slots.
 
     Args:
-        env: The env section of a config (or ``parallel_env`` keyword arguments).
+        env: The env section of a config, or ``parallel_env`` keyword arguments (built by
+            :func:`harness.factory.make_env`).
         copies: Env copies.
         num_cpus: Processes stepping the copies (0 or 1: in this process).
         seed: Copy ``i`` is seeded with ``seed + i``; ``None`` leaves them unseeded.
@@ -66,12 +70,11 @@ def make_vec_env(
     Returns:
         The VecEnv. Its ``num_envs`` is ``copies * n_agents``.
     """
-    kwargs = env.kwargs() if isinstance(env, EnvConfig) else dict(env)
     fns = [
-        functools.partial(_make_copy, kwargs, None if seed is None else seed + i, os.getpid())
+        functools.partial(_make_copy, env, None if seed is None else seed + i, os.getpid())
         for i in range(copies)
     ]
-    probe = coverage_v0.parallel_env(**kwargs)
+    probe = make_env(env)
     # The same constructor concat_vec_envs_v1 uses, given one seeded function per copy.
     inner = MakeCPUAsyncConstructor(min(num_cpus, copies))(
         fns, probe.observation_space("agent_0"), probe.action_space("agent_0")

@@ -1,9 +1,10 @@
-"""Config checks that need torch: is the optimizer usable, is the device there, do the networks
-and the replay buffer fit in memory.
+"""Config checks that need torch or an env: is the optimizer usable, is the device there, do
+the networks and the replay buffer fit in memory, can the env place the team on its maps.
 
-``harness.config.schema`` runs :func:`check_runtime` once a config has passed its schema, so that a
-config error never pays for importing torch, and a config that passes both never fails later
-for one of these reasons (an allocation error hours into a run, an optimizer that cannot step).
+Training and sweeps run :func:`checked_config` once a config has passed its schema (which
+imports neither torch nor builds an env), so that a config error never pays for importing
+torch, and a config that passes both never fails later for one of these reasons (an
+allocation error hours into a run, an optimizer that cannot step, a map too small).
 """
 
 from __future__ import annotations
@@ -14,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch as th
 
+from harness.config.schema import ConfigError
 from harness.sb3.buffers import replay_memory_bytes
 from harness.sb3.dqn import resolve_optimizer_class
 from harness.sb3.registry import POLICIES
@@ -48,6 +50,20 @@ def network_kwargs(algo: Any, n_agents: int) -> dict[str, Any]:
             "channels": list(algo.cnn_channels),
         }
     return kwargs
+
+
+def checked_config(config: ExperimentConfig, source: str) -> ExperimentConfig:
+    """``config`` once :func:`check_runtime` passes.
+
+    Raises:
+        ConfigError: one line naming ``source`` and the key.
+    """
+    try:
+        check_runtime(config)
+    except ValueError as exc:
+        message = str(exc)
+        raise ConfigError(message if message.startswith(source) else f"{source}: {exc}") from None
+    return config
 
 
 def check_runtime(config: ExperimentConfig) -> None:
@@ -163,9 +179,9 @@ def available_memory_bytes() -> int | None:
 
 def _slot_spaces(config: ExperimentConfig) -> tuple[Any, Any]:
     """One VecEnv slot's observation and action spaces (an env is built, not reset)."""
-    from envs import coverage_v0
+    from harness.factory import check_env
 
-    env = coverage_v0.parallel_env(**config.env.kwargs())
+    env = check_env(config.env)
     agent = env.possible_agents[0]
     return env.observation_space(agent), env.action_space(agent)
 

@@ -250,7 +250,9 @@ def run_sweep(
     import optuna
 
     dims = load_space(space_path)
-    load_config(config_path, overrides)
+    from harness.training.checks import checked_config
+
+    checked_config(load_config(config_path, overrides), str(config_path))
     check_space(config_path, overrides, dims)
     grid = all(d.kind == "grid" for d in dims)
     points = math.prod(len(d.values) for d in dims)
@@ -427,7 +429,7 @@ def _objective(
         return last["value"]
     ev = config.eval
     results = run_episodes(
-        model_policy(model, ev.temperature, ev.shield, ev.step_bonus),
+        model_policy(model, ev.temperature, ev.shield),
         config.env,
         ev.episodes,
         ev.validation_seed,

@@ -33,8 +33,7 @@ from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 from stable_baselines3.common.utils import set_random_seed
 from stable_baselines3.common.vec_env import VecEnv
 
-from envs.coverage.types import FRONTIER_STEP
-from harness.config.schema import AlgoConfig, ExperimentConfig, PhaseConfig
+from harness.config.schema import ExperimentConfig, PhaseConfig
 from harness.evaluation.episodes import model_policy, run_episodes, selection_score, summarize
 from harness.results.rundir import (
     EVALUATION_COLUMNS,
@@ -120,8 +119,7 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
         # ε, β and the learning rate's schedules are installed by apply_phase, in one place.
         max_grad_norm=algo.max_grad_norm,
         double_q=algo.double_q,
-        action_mask=algo.action_mask,
-        **_imitation_kwargs(algo),
+        **_imitation_kwargs(config),
         # Enough finished episodes for the epochs table's median (one entry per slot).
         stats_window_size=max(
             100, max(p.epochs_window for p in config.phases) * config.env.n_agents
@@ -133,16 +131,16 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
     )
 
 
-def _imitation_kwargs(algo: AlgoConfig) -> dict[str, Any]:
-    """DoubleDQN's arguments for ``algo.imitation``: DQfD's margin loss with the env's frontier
-    step as the expert's action; none (DoubleDQN's defaults) without it."""
-    if algo.imitation is None:
+def _imitation_kwargs(config: ExperimentConfig) -> dict[str, Any]:
+    """DoubleDQN's arguments for ``algo.imitation``: DQfD's margin loss with the env's
+    planner-backed action as the expert's; none (DoubleDQN's defaults) without it."""
+    imitation, options = config.algo.imitation, config.env.frontier_options
+    if imitation is None or options is None:
         return {}
     return {
-        "expert_action": FRONTIER_STEP,
-        "margin": algo.imitation.margin,
-        "margin_weight": algo.imitation.weight,
-        "same_moves": algo.imitation.same_moves,
+        "expert_action": options.expert_action,
+        "margin": imitation.margin,
+        "margin_weight": imitation.weight,
     }
 
 
@@ -224,7 +222,7 @@ class Evaluator:
 
     def __call__(self, model: DoubleDQN) -> None:
         cfg = self.config.eval
-        policy = model_policy(model, cfg.temperature, cfg.shield, cfg.step_bonus)
+        policy = model_policy(model, cfg.temperature, cfg.shield)
         results = run_episodes(policy, self.config.env, cfg.episodes, cfg.validation_seed)
         summary = summarize(results)
         model.logger.record("eval/coverage_median", summary["coverage_median"])

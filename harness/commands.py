@@ -30,6 +30,7 @@ from harness.evaluation.episodes import (
     selection_score,
     summarize,
 )
+from harness.factory import make_env
 from harness.results.rundir import (
     REFERENCE_FILES,
     STANDARD_EPISODES,
@@ -114,16 +115,14 @@ def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) ->
     # path as given, so that a symlink to a model elsewhere is named like the link.
     name = Path(os.path.relpath(model_path.absolute(), run_dir.absolute())).with_suffix("")
     ev = config.eval
-    policy = model_policy(model, ev.temperature, ev.shield, ev.step_bonus)
+    policy = model_policy(model, ev.temperature, ev.shield)
     return Target(policy, config, str(model_path), run_dir, seed, name.as_posix(), model)
 
 
 def check_model_fits(model: Any, model_path: Path, config: ExperimentConfig) -> None:
     """Refuse a model whose observation or action space is not its config's env's (a zip of
     another experiment, or made for another observation kind or team size)."""
-    from envs import coverage_v0
-
-    env = coverage_v0.parallel_env(**config.env.kwargs())
+    env = make_env(config.env)
     agent = env.possible_agents[0]
     check_team_size(model, model_path, config, env.observation_space(agent))
     for what, expected, got in (
@@ -204,10 +203,11 @@ def resolve_target(
         if policy not in BASELINES:
             raise TargetError(f"unknown policy {policy!r}; known: {', '.join(BASELINES)}")
         config = load_config(config_path, overrides)
-        if policy == "frontier_step" and not config.env.frontier_action:
+        options = config.env.frontier_options
+        if policy == "frontier_step" and (options is None or options.action != "step"):
             raise TargetError(
-                "--policy frontier_step needs env.frontier_action: true (with env.observation: "
-                "teammap and env.frontier: true)"
+                "--policy frontier_step needs env.frontier.action: step (with the teammap "
+                "observation)"
             )
         seed = config.eval.seed if seed is None else seed
         return Target(make_baseline(policy, seed), config, policy, None, seed)
@@ -221,12 +221,9 @@ def resolve_target(
     return load_model_target(target, overrides, seed)
 
 
-def sampling_note(temperature: float | None, step_bonus: float | None = None) -> str:
-    """How a test policy picks actions: ``"Boltzmann, temperature T"`` (``""`` when greedy),
-    and ``"step bonus B"`` when ``eval.step_bonus`` is set."""
-    notes = [f"Boltzmann, temperature {temperature:g}"] if temperature else []
-    notes += [f"step bonus {step_bonus:g}"] if step_bonus is not None else []
-    return ", ".join(notes)
+def sampling_note(temperature: float | None) -> str:
+    """How a test policy picks actions: ``"Boltzmann, temperature T"`` (``""`` when greedy)."""
+    return f"Boltzmann, temperature {temperature:g}" if temperature else ""
 
 
 def format_summary(summary: dict[str, Any]) -> str:
@@ -235,7 +232,7 @@ def format_summary(summary: dict[str, Any]) -> str:
     env = summary["env"]
     where = env["map"] if env["map"] != "random" else f"random {env['height']}x{env['width']}"
     at = summary["coverage_at_median"]
-    how = sampling_note(summary.get("temperature"), summary.get("step_bonus"))
+    how = sampling_note(summary.get("temperature"))
     lines = [
         f"policy    {summary['policy']}{f' ({how})' if how else ''}",
         f"episodes  {summary['episodes']} (seed {summary['seed']}), {where}, "
@@ -347,7 +344,7 @@ def tune_temperature(
     rows = []
     for temperature in temperatures:
         ev = target.config.eval
-        policy = model_policy(target.model, temperature, ev.shield, ev.step_bonus)
+        policy = model_policy(target.model, temperature, ev.shield)
         summary = summarize(run_episodes(policy, target.config.env, episodes, target.seed))
         rows.append({"temperature": temperature, **{k: summary[k] for k in TUNE_KEYS}})
     return {
@@ -355,7 +352,6 @@ def tune_temperature(
         "seed": target.seed,
         "episodes": episodes,
         "shield": target.config.eval.shield,
-        "step_bonus": target.config.eval.step_bonus,
         "rows": rows,
         "chosen": choose_temperature(rows)["temperature"],
     }
@@ -490,7 +486,6 @@ def evaluate(target: Target, episodes: int, overrides: Sequence[str]) -> tuple[d
         # Only a learned policy has a test temperature (eval.temperature); baselines ignore it.
         "temperature": target.config.eval.temperature if target.run_dir is not None else None,
         "shield": target.config.eval.shield if target.run_dir is not None else None,
-        "step_bonus": target.config.eval.step_bonus if target.run_dir is not None else None,
         "overrides": list(overrides),
         "env": target.config.env.model_dump(mode="json"),
         **summarize(results),
@@ -572,7 +567,7 @@ def render(target: Target, out: Path | None, gif: Path | None, every: int) -> li
     out = out or RunDir(target.results_dir or Path()).paths_png
     title = f"{target.label}: coverage {rec.coverage:.1%}, seed {target.seed}"
     ev = target.config.eval
-    note = sampling_note(ev.temperature, ev.step_bonus) if target.run_dir else ""
+    note = sampling_note(ev.temperature) if target.run_dir else ""
     title += f", {note}" if note else ""
     saved = [plot_paths(rec.walls, rec.paths, out, title)]
     if gif is not None:

@@ -1,0 +1,86 @@
+"""The one env factory: every environment of the harness (training copies, evaluation episodes,
+pictures, benchmarks, the checks of a config) is built here from the ``env`` section of a config.
+
+It is also where a config meets the env's own checks: the config's schema validates each key
+without building anything, and :func:`check_env` builds one env and draws a few maps, once,
+before training or evaluation starts, so that a map too small or too walled for the team is a
+one-line config error rather than a failure part-way through.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from typing import Any
+
+from envs import coverage_v0
+from envs.coverage import generators
+from envs.coverage.env import CoverageEnv
+from harness.config.maps import build_source
+from harness.config.schema import ConfigError, EnvConfig
+
+#: Maps drawn by :func:`check_env` (random and generated sources).
+CHECK_DRAWS = 3
+
+
+def env_kwargs(env: EnvConfig) -> dict[str, Any]:
+    """Keyword arguments of ``coverage_v0.parallel_env`` for the ``env`` section of a config:
+    map sources built, test maps left out of generated ones, options as the env's objects."""
+    out = env.model_dump(exclude={"map_sha256", "test_maps", "frontier"})
+    out["wall_fraction"] = tuple(out["wall_fraction"])
+    out["frontier"] = env.frontier_options
+    if env.agent_id:
+        out["agent_id"] = True
+    if isinstance(env.map, dict):
+        out["map"] = build_source(env.map, env.height, env.width)
+    if env.test_maps and (isinstance(env.map, dict) or env.map == "random"):
+        # Generated maps only: a fixed map named in env.map is used as given (evaluation on a
+        # test map); `harness run` refuses to train on one.
+        source = (
+            out["map"]
+            if isinstance(env.map, dict)
+            else generators.from_name("random", env.height, env.width, env.wall_fraction)
+        )
+        try:
+            out["map"] = generators.WithoutMaps(source, env.test_grids())
+        except ValueError as exc:
+            raise ConfigError(f"env.map: {exc} (it is in env.test_maps)") from None
+    return out
+
+
+def make_env(env: EnvConfig | Mapping[str, Any], render_mode: str | None = None) -> CoverageEnv:
+    """The PettingZoo env of a config's ``env`` section (or of ``parallel_env``'s keyword
+    arguments, for code that builds envs without a config: benchmarks, tests).
+
+    Raises:
+        ConfigError: the env's own ``ValueError`` (a map file's content, start cells on a wall,
+            ...), as one line naming ``env``.
+    """
+    kwargs = env_kwargs(env) if isinstance(env, EnvConfig) else dict(env)
+    if render_mode is not None:
+        kwargs["render_mode"] = render_mode
+    try:
+        return coverage_v0.parallel_env(**kwargs)
+    except ValueError as exc:
+        raise ConfigError(f"env: {exc}") from None
+
+
+def check_env(env: EnvConfig) -> CoverageEnv:
+    """Build the env once and draw :data:`CHECK_DRAWS` maps of a generated source, so that a map
+    too small or too walled to place the team is a config error; returns the env.
+
+    Raises:
+        ConfigError: naming ``env`` and the problem.
+    """
+    built = make_env(env)
+    if env.map == "random" or isinstance(env.map, dict):
+        for seed in range(CHECK_DRAWS):
+            try:
+                built.reset(seed=seed)
+            except ValueError as exc:
+                raise ConfigError(f"env: {exc}") from None
+            except Exception as exc:  # a generator that cannot draw this size at all
+                raise ConfigError(
+                    f"env.map: cannot draw a {env.height}x{env.width} map from {env.map!r} "
+                    f"({type(exc).__name__}: {exc})"
+                ) from None
+    return built

@@ -12,12 +12,15 @@ from pathlib import Path
 import pytest
 
 from harness.cli import main
-from harness.config import load_config
+from harness.config import ConfigError, load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 REFERENCES = sorted(p.parent.name for p in (ROOT / "runs" / "reference").glob("*/eval.json"))
+#: The ablation that measured a knob since retired (docs/experiment-log.md).
+RETIRED_ABLATION = ROOT / "docs" / "ablations" / "teammap_2agents_mask" / "config.yaml"
 SAVED_CONFIGS = sorted(
-    [*(ROOT / "runs" / "reference").glob("*/config.yaml"), *(ROOT / "docs").rglob("config.yaml")]
+    {*(ROOT / "runs" / "reference").glob("*/config.yaml"), *(ROOT / "docs").rglob("config.yaml")}
+    - {RETIRED_ABLATION}
 )
 
 
@@ -34,6 +37,11 @@ def test_every_saved_config_loads(path: Path) -> None:
     assert observation == "thesis" or set(observation) == {"teammap"}
     if config.env.frontier is not None:
         assert set(config.env.frontier) == {"action", "planner"}
+
+
+def test_a_saved_config_that_turned_a_retired_knob_on_is_refused_by_name() -> None:
+    with pytest.raises(ConfigError, match=r"algo\.action_mask: True: this knob was retired"):
+        load_config(RETIRED_ABLATION)
 
 
 @pytest.mark.parametrize("name", REFERENCES)

@@ -41,7 +41,7 @@ from pydantic import (
     model_validator,
 )
 
-from envs.coverage import maps
+from envs.coverage import generators, maps
 from envs.coverage.env import DEFAULT_REWARDS
 from envs.coverage.frontier import FrontierOptions
 from envs.coverage.maps import check_wall_fraction, shipped_maps
@@ -215,6 +215,12 @@ class EnvConfig(_Section):
             if isinstance(self.map, dict):
                 source = build_source(self.map, self.height, self.width)
                 largest, smallest = source.max_shape, source.min_shape
+                if self.test_maps:
+                    # A mix that names a test map: the generators' own refusal, no env built.
+                    try:
+                        generators.WithoutMaps(source, self.test_grids())
+                    except ValueError as exc:
+                        raise ValueError(f"map: {exc} (it is in env.test_maps)") from None
             else:
                 largest = smallest = (self.height, self.width)
             cells = largest[0] * largest[1]

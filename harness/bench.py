@@ -271,8 +271,10 @@ def bench_sharing(
 
 # ---------------------------------------------------------------------- eval
 def bench_eval(episodes: int = 8) -> dict[str, Any]:
-    """Episodes per second of greedy evaluation (MLP 3x512) and of the frontier baselines
-    (the classical tie-break and ``frontier_pocket``)."""
+    """Episodes per second of greedy evaluation (MLP 3x512) and of every planner's baseline
+    (``eval_<baseline>_episodes_per_s``, one per entry of ``envs.coverage.frontier.PLANNERS``),
+    with each planner's speed over the classical explorer's (``eval_<baseline>_over_frontier``)."""
+    from envs.coverage.frontier import PLANNERS
     import torch
 
     from harness import DoubleDQN
@@ -292,13 +294,13 @@ def bench_eval(episodes: int = 8) -> dict[str, Any]:
             episodes, lambda: run_episodes(make_baseline(name, 0), THESIS_ENV, episodes, 0)
         )
 
-    planners = {name: planner_rate(name) for name in ("frontier", "frontier_pocket")}
-    return {
-        "eval_episodes_per_s": mlp,
-        "eval_100_episodes_s": 100 / mlp,
-        "eval_frontier_episodes_per_s": planners["frontier"],
-        "eval_frontier_pocket_episodes_per_s": planners["frontier_pocket"],
-    }
+    rates = {entry.baseline: planner_rate(entry.baseline) for entry in PLANNERS.values()}
+    out = {"eval_episodes_per_s": mlp, "eval_100_episodes_s": 100 / mlp}
+    for name, rate in rates.items():
+        out[f"eval_{name}_episodes_per_s"] = rate
+        if name != "frontier":
+            out[f"eval_{name}_over_frontier"] = rate / rates["frontier"]
+    return out
 
 
 # ---------------------------------------------------------------------- memory
@@ -424,9 +426,12 @@ def format_bench(r: dict[str, Any]) -> str:
             f"100 episodes in {r['eval_100_episodes_s']:.0f} s (target < 60 s)",
             f"  frontier episodes/s        {r['eval_frontier_episodes_per_s']:>12.2f}",
         ]
-        if "eval_frontier_pocket_episodes_per_s" in r:
-            pocket = r["eval_frontier_pocket_episodes_per_s"]
-            lines.append(f"  frontier_pocket episodes/s {pocket:>12.2f}")
+        for key, rate in r.items():
+            name = key.removeprefix("eval_").removesuffix("_episodes_per_s")
+            if key.endswith("_episodes_per_s") and name.startswith("frontier_"):
+                ratio = r.get(f"eval_{name}_over_frontier")
+                tail = f"   {ratio:5.2f} x frontier" if ratio is not None else ""
+                lines.append(f"  {name + ' episodes/s':<27}{rate:>12.2f}{tail}")
     if "train_peak_memory_mib" in r:
         lines += [
             "",

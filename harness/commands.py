@@ -240,6 +240,13 @@ def format_summary(summary: dict[str, Any]) -> str:
         f"coverage  median {pct(summary['coverage_median'])}   mean {pct(summary['coverage_mean'])}"
         f"   IQR {pct(summary['coverage_iqr'])} ({pct(summary['coverage_q1'])} .."
         f" {pct(summary['coverage_q3'])})",
+        f"bound     {pct(summary['bound'])} (every move a new cell)   efficiency "
+        f"{summary['efficiency']:.3f} (mean / bound)",
+        "steps to 90 % / 99 % (median): "
+        + " / ".join(
+            "not reached" if summary[k] is None else f"{summary[k]:g}"
+            for k in ("steps_to_90", "steps_to_99")
+        ),
         "at 33 % / 66 % / 100 % of the episode (median): "
         + " / ".join(pct(v).strip() for v in at.values()),
         f"wall hits {summary['wall_hits_mean']:.2f} per episode; "

@@ -6,7 +6,11 @@
 #   scripts/baselines.sh cave_2agents cave_4agents  # only these configs (their own max_steps)
 #
 # EPISODES (default 100) and OUT (default docs/baselines) override the episode count and folder;
-# POLICIES (default "random local frontier") the baselines, e.g. POLICIES=frontier.
+# POLICIES (default "random local frontier") the baselines, e.g. POLICIES=frontier. The written
+# planners' table (docs/results.md, scripts/planner_table.py) was made with
+#   POLICIES="frontier frontier_pocket frontier_utility frontier_minpos frontier_hungarian" \
+#   scripts/baselines.sh ddqn_1agent ddqn_2agents ddqn_3agents ddqn_4agents ddqn_15x15 \
+#   cave_2agents cave_4agents maze_2agents maze_4agents
 set -euo pipefail
 cd "$(dirname "$0")/.."
 episodes=${EPISODES:-100}

@@ -19,7 +19,7 @@ import numpy as np
 import pytest
 
 from envs import coverage_v0
-from envs.coverage import frontier
+from envs.coverage import planners
 from harness.config.schema import EnvConfig
 from harness.evaluation import baselines
 from harness.evaluation.baselines import BASELINES, make_baseline
@@ -229,14 +229,14 @@ def test_frontier_tie_breaks_choose_between_equally_near_targets(make_env) -> No
     batch = np.stack(list(obs.values()))
     assert make_baseline("frontier", 0)(batch, [env]).tolist() == [2]
     assert make_baseline("frontier_pocket", 0)(batch, [env]).tolist() == [3]
-    planner = frontier.FrontierPlanner(3, 3, tie_break="random")
+    planner = planners.FrontierPlanner(3, 3, tie_break="random")
     planner.sync(0, env.positions, lambda: (env.walls, env.visited))
     moves = [planner.act(np.random.default_rng(seed))[0] for seed in range(40)]
     assert set(moves) == {2, 3}
     with pytest.raises(ValueError, match="needs a generator"):
         planner.act()
     with pytest.raises(ValueError, match="unknown tie_break"):
-        frontier.FrontierPlanner(3, 3, tie_break="nearest")
+        planners.FrontierPlanner(3, 3, tie_break="nearest")
 
 
 def test_frontier_random_repeats_an_episode_whatever_the_copies() -> None:
@@ -307,10 +307,10 @@ def reference_actions(
 
 
 @pytest.mark.parametrize("tie_break", ["order", "pocket", "random"])
-@pytest.mark.parametrize("budget", [frontier.SEARCH_BUDGET, 3])
+@pytest.mark.parametrize("budget", [planners.SEARCH_BUDGET, 3])
 def test_frontier_matches_reference_rule(monkeypatch, budget: int, tie_break: str) -> None:
     # A tiny budget sends nearly every search to the compiled (SciPy) path.
-    monkeypatch.setattr(frontier, "SEARCH_BUDGET", budget)
+    monkeypatch.setattr(planners, "SEARCH_BUDGET", budget)
     name = {"order": "frontier"}.get(tie_break, f"frontier_{tie_break}")
     env = coverage_v0.parallel_env(height=16, width=20, n_agents=4, max_steps=250)
     for seed in (0, 1):

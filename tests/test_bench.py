@@ -54,6 +54,9 @@ def test_bench_report_shows_every_section_with_targets():
         "eval_100_episodes_s": 12.5,
         "eval_frontier_episodes_per_s": 11.0,
         "eval_frontier_pocket_episodes_per_s": 7.5,
+        "eval_frontier_pocket_over_frontier": 7.5 / 11.0,
+        "eval_frontier_hungarian_episodes_per_s": 5.5,
+        "eval_frontier_hungarian_over_frontier": 0.5,
         "train_peak_memory_mib": 370.0,
     }
     text = format_bench(figures)
@@ -77,7 +80,21 @@ def test_bench_report_shows_every_section_with_targets():
     (line,) = [line for line in text.splitlines() if "pocket tie-break" in line]
     assert "3,600" in line and "0.03 x thesis" in line
     (line,) = [line for line in text.splitlines() if "frontier_pocket episodes/s" in line]
-    assert "7.50" in line
+    assert "7.50" in line and "0.68 x frontier" in line
+    (line,) = [line for line in text.splitlines() if "frontier_hungarian episodes/s" in line]
+    assert "5.50" in line and "0.50 x frontier" in line
+
+
+def test_bench_eval_has_a_key_per_planner():
+    from envs.coverage.frontier import PLANNERS
+    from harness.bench import bench_eval
+
+    out = bench_eval(episodes=1)
+    for entry in PLANNERS.values():
+        assert out[f"eval_{entry.baseline}_episodes_per_s"] > 0
+    assert set(k for k in out if k.endswith("_over_frontier")) == {
+        f"eval_{e.baseline}_over_frontier" for e in PLANNERS.values() if e.baseline != "frontier"
+    }
 
 
 def test_bench_sharing_reports_gradient_steps_per_mode():

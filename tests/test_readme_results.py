@@ -328,3 +328,33 @@ def test_sweep_paragraph_quotes_the_saved_study() -> None:
     assert f"span {percent(min(complete), '')[:-1]}–{percent(max(complete))}" in text
     assert f"the best, trial {best['trial']} " in text and max(complete) == best["value"]
     assert best["trials"]["complete"] == len(complete)
+
+
+def _planner_table():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location(
+        "planner_table", ROOT / "scripts" / "planner_table.py"
+    )
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_planner_table_is_made_from_the_stored_evaluations() -> None:
+    # docs/results.md holds exactly the table scripts/planner_table.py makes from the stored
+    # 100-episode evaluations, and README exactly its summary (strongest planner per setting).
+    module = _planner_table()
+    assert module.table() in (ROOT / "docs" / "results.md").read_text()
+    assert module.summary() in (ROOT / "README.md").read_text()
+
+
+def test_planner_evaluations_report_the_physical_bound() -> None:
+    module = _planner_table()
+    for config, _ in module.SETTINGS:
+        for policy in module.PLANNERS:
+            d = module.load(config, policy)
+            assert d["episodes"] == 100 and d["wall_hits_mean"] == 0
+            assert 0 < d["bound"] <= 1 and d["efficiency"] == d["coverage_mean"] / d["bound"]
+            low, high = d["coverage_mean_ci"]
+            assert low <= d["coverage_mean"] <= high

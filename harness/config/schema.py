@@ -119,7 +119,7 @@ class EnvConfig(_Section):
     env's ``TeamMap``)."""
     frontier: dict[str, Any] | None = None
     """The planner extension (``envs.coverage.frontier``, which checks it): ``null`` (off), or
-    ``{action: step | null, planner: order | pocket | null}``: the frontier field and compass
+    ``{action: step | null, planner: <a planner of the registry> | null}``: the field and compass
     in the team map, a planner-backed action, and the planner the compass follows."""
     coords: Literal["normalized", "raw"] = "normalized"
     rewards: RewardsConfig = RewardsConfig()

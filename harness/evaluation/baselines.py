@@ -42,7 +42,8 @@ from typing import Any
 import numpy as np
 
 from envs.coverage import CoverageEnv
-from envs.coverage.frontier import PLANNERS, FrontierPlanner
+from envs.coverage.frontier import PLANNERS
+from envs.coverage.planners import FrontierPlanner
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL, FRONTIER_STEP
 from harness.evaluation.episodes import BatchPolicy, batch_len, episode_draws, sample_categorical
 
@@ -162,14 +163,19 @@ class FrontierPolicy:
     """Nearest-unclaimed-frontier explorer on the team's known map (see the module docstring).
 
     Args:
-        planner: A planner of ``envs.coverage.frontier.PLANNERS``: ``"order"`` the classical
+        planner: A planner of ``envs.coverage.frontier.PLANNERS`` (``"order"`` the classical
             explorer; ``"random"`` draws from each episode's generator, so an episode repeats
-            from its seed.
+            from its seed), or a ``(height, width) -> planner`` factory, e.g. a coordinated
+            planner with other parameters (``lambda h, w: UtilityPlanner(h, w, beta=0.1)``).
     """
 
-    def __init__(self, planner: str = "order") -> None:
-        if planner not in PLANNERS:
-            raise ValueError(f"unknown planner {planner!r}; known: {', '.join(PLANNERS)}")
+    def __init__(self, planner: str | Callable[[int, int], FrontierPlanner] = "order") -> None:
+        if isinstance(planner, str):
+            if planner not in PLANNERS:
+                raise ValueError(f"unknown planner {planner!r}; known: {', '.join(PLANNERS)}")
+            self._make = PLANNERS[planner].make
+        else:
+            self._make = planner
         self.planner = planner
         # One team map per env copy; weak keys so finished envs do not pile up.
         self._maps: weakref.WeakKeyDictionary[CoverageEnv, FrontierPlanner] = (
@@ -182,7 +188,7 @@ class FrontierPolicy:
         for env in envs:
             team = self._maps.get(env)
             if team is None or team.shape != (env.height, env.width):
-                team = self._maps[env] = PLANNERS[self.planner].make(env.height, env.width)
+                team = self._maps[env] = self._make(env.height, env.width)
             team.sync(env.steps, env.positions, lambda env=env: (env.walls, env.visited))
             actions.extend(team.act(env.np_random))
         return np.asarray(actions, dtype=np.int64)

@@ -253,8 +253,39 @@ def selection_score(summary: dict[str, Any]) -> float:
     return float(summary["coverage_median"]) - 1000.0 * float(summary["wall_hits_mean"])
 
 
+def physical_bound(n_agents: int, steps: int, free_cells: int) -> float:
+    """The most of a map a team can have covered: ``min(1, N * (T + 1) / F)`` for ``N`` agents,
+    ``T`` steps and ``F`` free cells (each agent's start cell, then one new cell per move)."""
+    return min(1.0, n_agents * (steps + 1) / free_cells)
+
+
+#: Bootstrap resamples of the interval of the mean coverage, and the generator's seed (fixed:
+#: the same episodes give the same interval).
+BOOTSTRAP_RESAMPLES, BOOTSTRAP_SEED = 2000, 0
+
+
+def mean_interval(values: np.ndarray, level: float = 0.95) -> tuple[float, float]:
+    """The ``level`` percentile-bootstrap interval of the mean of ``values`` (over episodes),
+    SciPy's ``bootstrap``; a single value is its own interval."""
+    if len(values) < 2 or np.ptp(values) == 0:
+        return float(values[0]), float(values[0])
+    from scipy.stats import bootstrap
+
+    res = bootstrap(
+        (values,),
+        np.mean,
+        n_resamples=BOOTSTRAP_RESAMPLES,
+        confidence_level=level,
+        method="percentile",
+        rng=np.random.default_rng(BOOTSTRAP_SEED),
+    )
+    return float(res.confidence_interval.low), float(res.confidence_interval.high)
+
+
 def summarize(results: list[EpisodeResult]) -> dict[str, Any]:
-    """The thesis's numbers over a list of episodes (all fractions in [0, 1])."""
+    """The thesis's numbers over a list of episodes (all fractions in [0, 1]), and the physical
+    limit beside them: ``bound`` (the mean over episodes of :func:`physical_bound`) and
+    ``efficiency``, ``coverage_mean / bound``."""
     cov = np.array([r.coverage for r in results])
     q1, q3 = np.percentile(cov, [25, 75])
     n_agents = len(results[0].new_cells)
@@ -269,10 +300,15 @@ def summarize(results: list[EpisodeResult]) -> dict[str, Any]:
             }
         )
     at = np.array([r.coverage_at for r in results])
+    bound = float(np.mean([physical_bound(n_agents, r.steps, r.free_cells) for r in results]))
+    low, high = mean_interval(cov)
     return {
         "episodes": len(results),
         "coverage_median": float(np.median(cov)),
         "coverage_mean": float(cov.mean()),
+        "coverage_mean_ci": [low, high],
+        "bound": bound,
+        "efficiency": float(cov.mean()) / bound,
         "coverage_iqr": float(q3 - q1),
         "coverage_q1": float(q1),
         "coverage_q3": float(q3),

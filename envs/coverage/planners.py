@@ -1,0 +1,564 @@
+"""The planners of the planner extension (``envs.coverage.frontier`` registers them).
+
+**The classical frontier explorer** (Yamauchi 1997, :class:`FrontierPlanner`) on the team's
+shared map, for one episode.
+
+Every agent walks, by a shortest 4-connected path through free cells the team has *seen*, to the
+nearest *target*: a seen free cell nobody has visited yet. Targets are claimed in agent index
+order (agent 0 first), and an agent skips targets a lower-index teammate already claimed this
+step, so a team spreads out instead of chasing one cell. "Seen" is the env's *known*: the visited
+cells and the 3x3 window around each of them (start windows included, start cells being visited).
+
+Ties between equally near targets (``tie_break``) are frequent, and how they break matters:
+
+- ``"order"`` (the classical explorer, the default): the first target the search discovers,
+  neighbours visited up, left, right, down, so the team keeps sweeping in one consistent way;
+- ``"pocket"``: the target with the fewest *open* neighbours (unseen, or seen free and not yet
+  visited), then ``"order"``: finish a pocket before leaving it, so less ground is left behind to
+  walk back to;
+- ``"random"``: uniformly among them, from a generator the caller passes (the episode's): what a
+  policy that is right about *how far* but noisy about *which* looks like.
+
+Speed: the team's map only grows, so the planner keeps it incrementally (updated from the
+agents' positions each step, rebuilt when an episode starts). The search is a breadth-first search
+in Python that stops at the first unclaimed target; most of the time that target is a step or two
+away. When a search grows past ``SEARCH_BUDGET`` cells (late in an episode, when the remaining
+ground is far away) it is redone by SciPy's compiled breadth-first search on a graph of the seen
+free cells, rebuilt only when a cell became passable since the last such search; an agent whose
+target was far goes straight to SciPy on the next step. Both searches visit neighbours in the same
+order, so the choice of target does not depend on which one ran.
+
+**Coordinated planners** (:class:`CoordinatedPlanner`): the team's assignment of targets is
+chosen together, from one distance field per agent per step (SciPy's compiled shortest paths on
+the graph of seen free cells, reused for every candidate): :class:`UtilityPlanner` (Burgard et al.
+2005), :class:`MinPosPlanner` (Bautin et al. 2012) and :class:`HungarianPlanner` (an optimal
+assignment by :func:`scipy.optimize.linear_sum_assignment`).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Callable
+
+import numpy as np
+from scipy.ndimage import label
+from scipy.optimize import linear_sum_assignment
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import breadth_first_order, dijkstra
+
+from envs.coverage.types import STAY
+
+__all__ = [
+    "CANDIDATES",
+    "TIE_BREAKS",
+    "CoordinatedPlanner",
+    "FrontierPlanner",
+    "HungarianPlanner",
+    "MinPosPlanner",
+    "UtilityPlanner",
+]
+
+#: Cells a Python search may reach before the compiled search takes over. Below it the Python
+#: search wins (no graph to build); above it SciPy's search is cheaper even with a fresh graph.
+SEARCH_BUDGET = 128
+#: Path length above which an agent's next search skips the Python search.
+FAR = 8
+#: How :class:`FrontierPlanner` chooses among equally near unclaimed targets (module docstring).
+TIE_BREAKS = ("order", "pocket", "random")
+
+
+class FrontierPlanner:
+    """The frontier explorer's team map of one episode, on a flat grid padded with one ring of
+    wall, and its moves (see the module docstring).
+
+    Call :meth:`sync` with the episode's state after every reset and step, then :meth:`act`.
+    ``tie_break`` is one of :data:`TIE_BREAKS`.
+
+    Padding lets neighbour lookups skip bounds checks; the per-cell state is kept in Python lists
+    because the search reads single cells, which lists do several times faster than numpy.
+    """
+
+    def __init__(self, height: int, width: int, tie_break: str = "order") -> None:
+        if tie_break not in TIE_BREAKS:
+            raise ValueError(f"unknown tie_break {tie_break!r}; known: {', '.join(TIE_BREAKS)}")
+        self.tie_break = tie_break
+        self.rng: np.random.Generator | None = None  # act()'s generator, for "random" ties
+        self.shape = (height, width)
+        self.stride = width + 2
+        # Neighbour offsets in ascending index order (up, left, right, down); the compiled search
+        # visits neighbours in the same order, so both break ties between equally near targets
+        # the same way.
+        s = self.stride
+        self.offsets = (-s, -1, 1, s)
+        self.action_of = {-s: 0, s: 1, -1: 2, 1: 3}
+        self.window = tuple(dr * s + dc for dr in (-1, 0, 1) for dc in (-1, 0, 1))
+        self.steps = -1
+        self.positions: list[int] = []
+        #: Per agent: its last target was far, so its next search goes straight to SciPy (the
+        #: distance shrinks by one a step, and the Python search would only hit its budget).
+        self.far: list[bool] = []
+        self._neighbours: np.ndarray | None = None
+
+    # ------------------------------------------------------------------ map upkeep
+    def sync(
+        self,
+        steps: int,
+        positions: np.ndarray,
+        read_map: Callable[[], tuple[np.ndarray, np.ndarray]],
+    ) -> None:
+        """Bring the map up to date: incrementally when the planner saw the previous step (only
+        the agents' current cells can be new), from scratch otherwise.
+
+        Args:
+            steps: Steps taken in the episode (0 right after a reset).
+            positions: ``(n_agents, 2)`` (row, col) of each agent.
+            read_map: Returns ``(walls, visited)``, both ``bool (H, W)``; called only when the
+                map is rebuilt (an episode's start, or a step the planner did not see), so the
+                per-step path never builds whole-map arrays.
+        """
+        self.positions = ((positions[:, 0] + 1) * self.stride + positions[:, 1] + 1).tolist()
+        if steps == 0 or not (self.steps <= steps <= self.steps + 1):
+            self._rebuild(*read_map())
+        else:
+            for p in self.positions:
+                if not self.visited[p]:
+                    self._visit(p)
+        self.steps = steps
+
+    def _rebuild(self, walls: np.ndarray, visited_map: np.ndarray) -> None:
+        free = np.pad(~walls, 1, constant_values=False)
+        visited = np.pad(visited_map, 1, constant_values=False)
+        seen = visited.copy()
+        # 3x3 dilation of the visited cells: what the agents' observation windows revealed.
+        seen[1:, :] |= visited[:-1, :]
+        seen[:-1, :] |= visited[1:, :]
+        rows = seen.copy()
+        seen[:, 1:] |= rows[:, :-1]
+        seen[:, :-1] |= rows[:, 1:]
+        # Outside the grid is known wall (as in the env's team map), never open ground.
+        seen[[0, -1], :] = seen[:, [0, -1]] = True
+        passable = (seen & free).ravel()
+        target = passable & ~visited.ravel()
+        self.free = free.ravel().tolist()
+        self.visited = visited.ravel().tolist()
+        self.seen = seen.ravel().tolist()
+        self.passable = passable.tolist()
+        self.target = target.tolist()
+        # numpy mirrors of the two lists the compiled search needs whole.
+        self.passable_np = passable
+        self.target_np = target
+        self.n_targets = int(target.sum())
+        self.graph_version = 0  # bumped whenever a cell becomes passable
+        self.far = [False] * len(self.positions)
+        self._graph: tuple[int, csr_matrix] | None = None
+
+    def _visit(self, p: int) -> None:
+        self.visited[p] = True
+        if self.target[p]:
+            self.target[p] = self.target_np[p] = False
+            self.n_targets -= 1
+        for d in self.window:
+            q = p + d
+            if not self.seen[q]:
+                self.seen[q] = True
+                if self.free[q]:
+                    self.passable[q] = self.passable_np[q] = True
+                    self.graph_version += 1
+                    if not self.visited[q]:
+                        self.target[q] = self.target_np[q] = True
+                        self.n_targets += 1
+
+    # ------------------------------------------------------------------ acting
+    def act(self, rng: np.random.Generator | None = None) -> list[int]:
+        """One action per agent; targets are claimed in agent index order.
+
+        Args:
+            rng: Draws the ``"random"`` tie-break (required then, unused otherwise).
+        """
+        if self.tie_break == "random" and rng is None:
+            raise ValueError('tie_break="random" needs a generator: act(rng=...)')
+        self.rng = rng
+        if self.n_targets == 0:  # everything seen is visited: nothing left to walk to
+            return [STAY] * len(self.positions)
+        claimed: set[int] = set()
+        actions = []
+        for i, start in enumerate(self.positions):
+            if self.far[i]:
+                found = self._search_compiled(start, claimed, i)
+            elif self.tie_break == "order":
+                found = self._search(start, claimed, i)
+            else:
+                found = self._search_ties(start, claimed, i)
+            if found is None:
+                actions.append(STAY)
+                continue
+            goal, step = found
+            claimed.add(goal)
+            actions.append(self.action_of[step - start])
+        return actions
+
+    def _search(self, start: int, claimed: set[int], agent: int) -> tuple[int, int] | None:
+        """Nearest unclaimed target from ``start`` and the first cell of a shortest path to it,
+        or ``None`` when no unclaimed target is reachable through seen free cells."""
+        passable, target, offsets = self.passable, self.target, self.offsets
+        # Each reached cell remembers the first step of its path, so no back-tracking is needed.
+        first = {start: start}
+        queue = deque()
+        for d in offsets:
+            n = start + d
+            if passable[n]:
+                first[n] = n
+                # Checked on discovery: BFS discovers cells in order of distance, so the first
+                # unclaimed target discovered is a nearest one.
+                if target[n] and n not in claimed:
+                    return n, n
+                queue.append(n)
+        while queue:
+            c = queue.popleft()
+            f = first[c]
+            for d in offsets:
+                n = c + d
+                if passable[n] and n not in first:
+                    first[n] = f
+                    if target[n] and n not in claimed:
+                        return n, f
+                    queue.append(n)
+            if len(first) > SEARCH_BUDGET:
+                return self._search_compiled(start, claimed, agent)
+        return None
+
+    def _search_ties(self, start: int, claimed: set[int], agent: int) -> tuple[int, int] | None:
+        """:meth:`_search` for the tie-breaks other than ``"order"``: the same search, one
+        distance layer at a time, so that every target of the nearest layer is a candidate."""
+        passable, target, offsets = self.passable, self.target, self.offsets
+        first = {start: start}
+        layer = [start]
+        while layer:
+            ties: list[int] = []
+            next_layer = []
+            for c in layer:
+                f = first[c]
+                for d in offsets:
+                    n = c + d
+                    if passable[n] and n not in first:
+                        first[n] = n if c == start else f
+                        if target[n] and n not in claimed:
+                            ties.append(n)
+                        next_layer.append(n)
+            if ties:
+                goal = self._choose(ties)
+                return goal, first[goal]
+            if len(first) > SEARCH_BUDGET:
+                return self._search_compiled(start, claimed, agent)
+            layer = next_layer
+        return None
+
+    def _search_compiled(self, start: int, claimed: set[int], agent: int) -> tuple[int, int] | None:
+        """:meth:`_search` by SciPy's breadth-first search (for far targets). It visits
+        neighbours in the same order, so both searches pick the same target."""
+        order, pred = breadth_first_order(
+            self._graph_now(), start, directed=True, return_predecessors=True
+        )
+
+        def first_step(goal: int) -> tuple[int, int]:
+            step, distance = goal, 1
+            while pred[step] != start:
+                step = int(pred[step])
+                distance += 1
+            return step, distance
+
+        candidates = [g for g in order[self.target_np[order]].tolist() if g not in claimed]
+        if not candidates:
+            # Nothing left for this agent (teammates claimed the last targets): that search saw
+            # the whole reachable map, so the next one goes straight to SciPy too.
+            self.far[agent] = True
+            return None
+        goal = candidates[0]
+        step, distance = first_step(goal)
+        if self.tie_break != "order":
+            # BFS order lists targets by distance: the nearest layer is a prefix of it.
+            steps = {goal: step}
+            for g in candidates[1:]:
+                s, d = first_step(g)
+                if d > distance:
+                    break
+                steps[g] = s
+            goal = self._choose(list(steps))
+            step = steps[goal]
+        self.far[agent] = distance > FAR
+        return goal, step
+
+    def _choose(self, ties: list[int]) -> int:
+        """The tie-break among equally near targets, listed in the order the search found them."""
+        if self.tie_break == "random":
+            return ties[int(self.rng.integers(len(ties)))]
+        if self.tie_break == "pocket":
+            seen, target, offsets = self.seen, self.target, self.offsets
+            return min(
+                ties, key=lambda g: sum(not seen[g + d] or target[g + d] for d in offsets)
+            )  # min keeps the first of equals: "order" breaks the remaining ties
+        return ties[0]
+
+    def _graph_now(self) -> csr_matrix:
+        """Adjacency (CSR) of the seen free cells, cached until a cell becomes passable.
+
+        Built straight in CSR form: each cell's neighbours in ascending index order (up, left,
+        right, down), as :meth:`_search` visits them. The padding ring has no edges, so only the
+        rows of the inner cells are computed.
+        """
+        if self._graph is not None and self._graph[0] == self.graph_version:
+            return self._graph[1]
+        p, s = self.passable_np, self.stride
+        n = p.size
+        inner = p[s:-s]
+        mask = np.empty((n - 2 * s, 4), dtype=bool)
+        np.logical_and(inner, p[: -2 * s], out=mask[:, 0])
+        np.logical_and(inner, p[s - 1 : -s - 1], out=mask[:, 1])
+        np.logical_and(inner, p[s + 1 : n - s + 1], out=mask[:, 2])
+        np.logical_and(inner, p[2 * s :], out=mask[:, 3])
+        if self._neighbours is None or len(self._neighbours) != n - 2 * s:
+            cells = np.arange(s, n - s, dtype=np.int32)
+            self._neighbours = cells[:, None] + np.array(self.offsets, dtype=np.int32)
+        indices = self._neighbours[mask]
+        counts = mask.view(np.uint8)
+        degree = counts[:, 0] + counts[:, 1]  # summing columns beats count_nonzero(axis=1)
+        degree += counts[:, 2]
+        degree += counts[:, 3]
+        indptr = np.zeros(n + 1, dtype=np.int32)
+        np.cumsum(degree, out=indptr[s + 1 : n - s + 1])
+        indptr[n - s + 1 :] = indptr[n - s]
+        graph = csr_matrix((np.ones(indices.size), indices, indptr), shape=(n, n), copy=False)
+        self._graph = (self.graph_version, graph)
+        return graph
+
+
+
+
+# ---------------------------------------------------------------------- coordinated planners
+#: How a coordinated planner gathers its candidate targets: every known free unvisited cell
+#: (``"all"``), or one per frontier cluster (``"clusters"``: a 4-connected group of such cells,
+#: reached at its cell nearest to the agent).
+CANDIDATES = ("all", "clusters")
+#: Cost of an unreachable candidate in an assignment (any path is shorter).
+_UNREACHABLE = 1e9
+#: 4-connectivity of frontier clusters (SciPy's ``label`` structure, made once).
+_CROSS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], dtype=bool)
+
+
+class CoordinatedPlanner(FrontierPlanner):
+    """A planner that chooses every agent's target together, re-planning every step.
+
+    Each step it computes one distance field per agent (shortest paths through the seen free
+    cells, SciPy's compiled search from all agents in one call), reads the cost of every
+    candidate target for every agent from them, lets :meth:`assign` choose one candidate per
+    agent, and moves each agent one step along a shortest path to its own. It keeps the team's
+    map as :class:`FrontierPlanner` does (:meth:`sync`), plans only over what the team knows and
+    only steps into seen free cells, so it never hits a wall; it draws no random numbers, so an
+    episode repeats from its seed. Ties go to the lower candidate index (cells in row-major
+    order), then the lower agent index.
+
+    The distance fields reach ``horizon`` cells (SciPy's ``limit``): candidates farther than
+    that from an agent cost it nothing it can plan with (as if unreachable), which keeps a step's
+    searches local; an agent with no candidate within the horizon searches the whole map.
+
+    The defaults (frontier clusters, a horizon of 15 cells; for the utility planner
+    ``beta=0.2``, ``radius=10``) were chosen on validation episodes by
+    ``scripts/planner_params.py`` (``docs/planners/validation.json``, docs/planners.md).
+
+    Args:
+        height: Rows of the map.
+        width: Columns of the map.
+        candidates: One of :data:`CANDIDATES`.
+        horizon: Path length the distance fields reach (``None``: the whole map).
+    """
+
+    def __init__(
+        self, height: int, width: int, candidates: str = "clusters", horizon: int | None = 15
+    ) -> None:
+        super().__init__(height, width, "order")
+        if candidates not in CANDIDATES:
+            raise ValueError(f"unknown candidates {candidates!r}; known: {', '.join(CANDIDATES)}")
+        if horizon is not None and not horizon >= 1:
+            raise ValueError(f"horizon must be >= 1 or None, got {horizon!r}")
+        self.candidates, self.horizon = candidates, horizon
+        #: Per agent: the padded cell of its target this step (-1: none), for tests and pictures.
+        self.goals: list[int] = []
+        self._grid: csr_matrix | None = None
+
+    def _weighted_grid(self) -> csr_matrix:
+        """The 4-neighbour graph of the whole padded grid with weight 1 on edges between seen
+        free cells and infinity elsewhere (no path crosses them), its weights brought up to date
+        in place when cells became passable: no graph is built again during an episode."""
+        passable, s = self.passable_np, self.stride
+        n = passable.size
+        if self._grid is None or self._grid.shape[0] != n:
+            inner = np.arange(s, n - s)
+            self._nbr = inner[:, None] + np.array(self.offsets)  # (inner cells, 4)
+            indptr = np.zeros(n + 1, dtype=np.int32)
+            indptr[s + 1 : n - s + 1] = 4 * np.arange(1, inner.size + 1)
+            indptr[n - s + 1 :] = 4 * inner.size
+            data = np.full(4 * inner.size, np.inf)
+            self._grid = csr_matrix(
+                (data, self._nbr.ravel().astype(np.int32), indptr), shape=(n, n), copy=False
+            )
+            # Data slot of the edge from each neighbour back to the cell (offsets are symmetric:
+            # the reverse of direction k is direction 3 - k).
+            self._back = 4 * (self._nbr - s) + (3 - np.arange(4))
+            self._known = np.zeros(n, dtype=bool)
+        changed = np.flatnonzero(passable != self._known)
+        if changed.size:
+            self._known = passable.copy()
+            rows = changed - s  # every passable cell is inside the padding ring
+            nbr_ok = passable[self._nbr[rows]]  # (changed, 4)
+            data = self._grid.data
+            data[4 * rows[:, None] + np.arange(4)] = np.where(nbr_ok, 1.0, np.inf)
+            back = self._back[rows][nbr_ok]
+            data[back] = 1.0
+        return self._grid
+
+    def act(self, rng: np.random.Generator | None = None) -> list[int]:
+        """One action per agent (``rng`` is unused: the choice is deterministic)."""
+        n = len(self.positions)
+        self.goals = [-1] * n
+        if self.n_targets == 0:
+            return [STAY] * n
+        starts = np.asarray(self.positions)
+        graph = self._weighted_grid()
+        limit = np.inf if self.horizon is None else self.horizon
+        dist, pred = dijkstra(graph, indices=starts, return_predecessors=True, limit=limit)
+        cells = np.flatnonzero(self.target_np)
+        costs = dist[:, cells]
+        blind = ~(costs < np.inf).any(axis=1)
+        if self.horizon is not None and blind.any():  # nothing within reach: the whole map
+            dist[blind], pred[blind] = dijkstra(
+                graph, indices=starts[blind], return_predecessors=True
+            )
+            costs = dist[:, cells]
+        cost, goal_cells = self._candidate_costs(costs, cells)
+        chosen = self.assign(cost, goal_cells)
+        actions = []
+        for i, c in enumerate(chosen):
+            if c < 0 or not cost.item(i, c) < np.inf:
+                actions.append(STAY)
+                continue
+            goal = int(goal_cells[i, c])
+            self.goals[i] = goal
+            back, start, step = pred[i], self.positions[i], goal
+            while (prev := back.item(step)) != start:  # walk back to the first step
+                step = prev
+            actions.append(self.action_of[step - start])
+        return actions
+
+    def _candidate_costs(
+        self, costs: np.ndarray, cells: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """``(agents, candidates)`` path lengths and the cell each agent would head for, from
+        the agents' path lengths ``costs`` to the target ``cells`` ``(agents, cells)``."""
+        if self.candidates == "all":
+            return costs, np.repeat(cells[None, :], costs.shape[0], axis=0)
+        labels, _ = label(self.target_np.reshape(-1, self.stride), structure=_CROSS)
+        ids = labels.ravel()[cells]
+        # Per agent, cells sorted by cluster, then cost, then cell (lexsort is stable and the
+        # cells come in row-major order): the first of each cluster is its nearest cell.
+        n_agents = costs.shape[0]
+        order = np.lexsort((costs, ids[None, :].repeat(n_agents, axis=0)), axis=-1)
+        sorted_ids = ids[order[0]]
+        firsts = np.flatnonzero(np.concatenate(([True], sorted_ids[1:] != sorted_ids[:-1])))
+        picks = order[:, firsts]  # (agents, clusters): column of each cluster's nearest cell
+        best = np.take_along_axis(costs, picks, axis=1)
+        return best, cells[picks].reshape(n_agents, -1)
+
+    def assign(self, cost: np.ndarray, goal_cells: np.ndarray) -> list[int]:
+        """Each agent's candidate (a column of ``cost``; -1 for none)."""
+        raise NotImplementedError
+
+
+class HungarianPlanner(CoordinatedPlanner):
+    """Distinct targets minimising the team's total path length, an optimal assignment
+    (:func:`scipy.optimize.linear_sum_assignment`). With fewer reachable candidates than agents
+    the agents left over head for their nearest candidate."""
+
+    def assign(self, cost: np.ndarray, goal_cells: np.ndarray) -> list[int]:
+        finite = np.where(np.isfinite(cost), cost, _UNREACHABLE)
+        rows, cols = linear_sum_assignment(finite)
+        chosen = finite.argmin(axis=1).tolist()  # the agents the assignment leaves out
+        for r, c in zip(rows.tolist(), cols.tolist()):
+            if finite[r, c] < _UNREACHABLE:
+                chosen[r] = c
+        return chosen
+
+
+class MinPosPlanner(CoordinatedPlanner):
+    """MinPos (Bautin, Simonin & Charpillet 2012): an agent's rank for a candidate is the number
+    of teammates closer to it; each agent heads for the candidate where its rank is lowest, ties
+    by its own distance. As printed, two agents that meet on one cell have equal distances and
+    ranks everywhere and move in lockstep for the rest of the episode; here, as in the other
+    planners, candidates are claimed in agent index order: an agent skips a candidate a
+    lower-index teammate chose this step."""
+
+    def assign(self, cost: np.ndarray, goal_cells: np.ndarray) -> list[int]:
+        # rank[i, c]: teammates j with cost[j, c] < cost[i, c] (an agent is not closer to itself).
+        rank = (cost[None, :, :] < cost[:, None, :]).sum(axis=1)
+        rank = np.where(np.isfinite(cost), rank, cost.shape[0])  # unreachable: sorted last
+        claimed: set[int] = set()
+        chosen = []
+        for i in range(cost.shape[0]):
+            order = np.lexsort((cost[i], rank[i]))  # rank first, then distance, then index
+            pick = -1
+            for c in order.tolist():
+                if not np.isfinite(cost[i, c]):
+                    break  # unreachable candidates sort last (their rank and cost are largest)
+                if c not in claimed:
+                    pick = c
+                    break
+            if pick >= 0:
+                claimed.add(pick)
+            chosen.append(pick)
+        return chosen
+
+
+class UtilityPlanner(CoordinatedPlanner):
+    """Coordinated exploration by utility (Burgard, Moors, Stachniss & Schneider 2005): every
+    candidate starts with utility 1; agents in index order take the candidate that maximises
+    ``utility - beta * path length``, then lower the utility of the candidates near the chosen
+    one by how likely they are to be seen from it, ``max(0, 1 - d / radius)`` for the Euclidean
+    distance ``d`` between the two cells, so teammates spread out.
+
+    Args:
+        height, width, candidates, horizon: As :class:`CoordinatedPlanner`.
+        beta: Utility traded for one cell of path (the paper's cost weight).
+        radius: Cells beyond which a chosen target does not lower another's utility.
+    """
+
+    def __init__(
+        self,
+        height: int,
+        width: int,
+        candidates: str = "clusters",
+        horizon: int | None = 15,
+        beta: float = 0.2,
+        radius: float = 10.0,
+    ) -> None:
+        super().__init__(height, width, candidates, horizon)
+        if not beta >= 0 or not radius > 0:
+            raise ValueError(f"beta must be >= 0 and radius > 0, got {beta} and {radius}")
+        self.beta, self.radius = float(beta), float(radius)
+
+    def assign(self, cost: np.ndarray, goal_cells: np.ndarray) -> list[int]:
+        utility = np.ones(cost.shape[1])
+        chosen = []
+        for i in range(cost.shape[0]):
+            reachable = np.isfinite(cost[i])
+            if not reachable.any():
+                chosen.append(-1)
+                continue
+            score = np.where(reachable, utility - self.beta * cost[i], -np.inf)
+            pick = int(score.argmax())  # the first maximum: the lowest candidate index
+            chosen.append(pick)
+            # Where each candidate would be reached by this agent: the visibility is between
+            # those cells and the chosen one.
+            rows, cols = np.divmod(goal_cells[i], self.stride)
+            r0, c0 = divmod(int(goal_cells[i, pick]), self.stride)
+            d = np.hypot(rows - r0, cols - c0)
+            utility -= np.clip(1.0 - d / self.radius, 0.0, 1.0)
+        return chosen

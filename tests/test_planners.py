@@ -1,0 +1,186 @@
+"""The coordinated planners (utility, MinPos, Hungarian) on hand-built grids where their choice
+is known and differs from the nearest-frontier explorer's, their safety and repeatability on
+whole episodes, and the physical bound of every evaluation."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from envs.coverage.frontier import PLANNERS
+from envs.coverage.planners import (
+    FrontierPlanner,
+    HungarianPlanner,
+    MinPosPlanner,
+    UtilityPlanner,
+)
+from harness.config.schema import EnvConfig
+from harness.evaluation.baselines import BASELINES, make_baseline
+from harness.evaluation.episodes import EpisodeResult, physical_bound, run_episodes, summarize
+
+UP, DOWN, LEFT, RIGHT, STAY = range(5)
+COORDINATED = {"utility": UtilityPlanner, "minpos": MinPosPlanner, "hungarian": HungarianPlanner}
+
+
+def corridor(planner: FrontierPlanner, positions: list[int], visited: range) -> list[int]:
+    """Plan one step in a 1x13 corridor (outside it: wall) with the columns ``visited`` visited
+    and the agents at ``positions`` (columns); returns the planner's actions."""
+    walls = np.zeros((1, 13), dtype=bool)
+    seen = np.zeros((1, 13), dtype=bool)
+    seen[0, list(visited)] = True
+    planner.sync(0, np.array([[0, c] for c in positions]), lambda: (walls, seen))
+    return planner.act()
+
+
+# Visited columns 2..10: the known unvisited cells are column 1 (left) and 11 (right). Agent 0
+# at column 5 is 4 from the left one and 6 from the right one; agent 1 at column 3 is 2 and 8.
+AGENTS, VISITED = [5, 3], range(2, 11)
+
+
+def test_the_nearest_frontier_explorer_sends_agent_0_left_and_agent_1_round_it() -> None:
+    # Agent 0 claims its nearest cell (left, 4 away); agent 1 must walk 8 to the right one.
+    assert corridor(FrontierPlanner(1, 13), AGENTS, VISITED) == [LEFT, RIGHT]
+
+
+def test_hungarian_assigns_the_shorter_total_path() -> None:
+    # Agent 0 right (6) + agent 1 left (2) = 8 < 4 + 8 = 12.
+    planner = HungarianPlanner(1, 13)
+    assert corridor(planner, AGENTS, VISITED) == [RIGHT, LEFT]
+    stride = 13 + 2
+    assert planner.goals == [1 * stride + 12, 1 * stride + 2]  # padded cells of columns 11, 1
+
+
+def test_minpos_makes_the_farther_agent_yield() -> None:
+    # Agent 0's rank is 1 on the left cell (agent 1 is closer) and 0 on the right one.
+    assert corridor(MinPosPlanner(1, 13), AGENTS, VISITED) == [RIGHT, LEFT]
+
+
+def test_minpos_claims_keep_agents_on_one_cell_from_moving_in_lockstep() -> None:
+    # Both at column 5 (equal ranks and distances everywhere): agent 0 takes the nearer left
+    # cell, agent 1 the other one, instead of following agent 0 (MinPos as printed).
+    assert corridor(MinPosPlanner(1, 13), [5, 5], VISITED) == [LEFT, RIGHT]
+
+
+def test_utility_radius_pushes_the_second_agent_away_from_the_firsts_target() -> None:
+    # Three candidates on a 1x13 strip: A at column 4 and A' at column 5 (next to it), B at
+    # column 10. Both agents cost 2 to A, 3 to A' and 6 to B.
+    planner = UtilityPlanner(1, 13, beta=0.05, radius=5.0)
+    stride = 15
+    goals = np.array([[stride + 5, stride + 6, stride + 11]] * 2)
+    cost = np.array([[2.0, 3.0, 6.0], [2.0, 3.0, 6.0]])
+    # Agent 0: utility 1 - 0.05 * cost -> A (0.9). A' is 1 cell from A: its utility drops by
+    # 1 - 1/5 to 0.2, so agent 1 scores A' 0.2 - 0.15 = 0.05, B 1 - 0.3 = 0.7 -> B.
+    assert planner.assign(cost, goals) == [0, 2]
+    # Without the spreading (a radius too small to reach A'), agent 1 follows to A'.
+    assert UtilityPlanner(1, 13, beta=0.05, radius=0.5).assign(cost, goals) == [0, 1]
+
+
+def test_clusters_are_one_candidate_each_reached_at_their_nearest_cell() -> None:
+    planner = HungarianPlanner(1, 13, candidates="clusters")
+    # Columns 0..1 unvisited on the left (seen: 1), 11..12 on the right (seen: 11).
+    assert corridor(planner, AGENTS, VISITED) == [RIGHT, LEFT]
+
+
+@pytest.mark.parametrize("name", sorted(COORDINATED))
+def test_bad_parameters_are_refused(name: str) -> None:
+    with pytest.raises(ValueError, match="unknown candidates"):
+        COORDINATED[name](5, 5, candidates="some")
+    with pytest.raises(ValueError, match="horizon must be >= 1"):
+        COORDINATED[name](5, 5, horizon=0)
+    if name == "utility":
+        with pytest.raises(ValueError, match="beta must be >= 0 and radius > 0"):
+            UtilityPlanner(5, 5, radius=0)
+
+
+@pytest.mark.parametrize("name", sorted(COORDINATED))
+def test_the_planners_are_registry_entries_and_baselines(name: str) -> None:
+    entry = PLANNERS[name]
+    assert entry.baseline == f"frontier_{name}" and entry.baseline in BASELINES
+    assert entry.in_env  # deterministic: the env's compass and step can follow them
+    assert isinstance(entry.make(7, 9), COORDINATED[name])
+
+
+@pytest.mark.parametrize("name", sorted(COORDINATED))
+@pytest.mark.parametrize(
+    "env",
+    [
+        EnvConfig(height=12, width=12, n_agents=3, max_steps=80),
+        EnvConfig(map={"cave": {"height": 20, "width": 30}}, n_agents=2, max_steps=120),
+    ],
+    ids=["random", "cave"],
+)
+def test_never_a_wall_and_an_episode_repeats_from_its_seed(name: str, env: EnvConfig) -> None:
+    policy = f"frontier_{name}"
+    results = run_episodes(make_baseline(policy, 0), env, episodes=3, seed=7)
+    again = run_episodes(make_baseline(policy, 0), env, episodes=3, seed=7)
+    assert all(sum(r.wall_hits) == 0 for r in results)
+    assert [r.new_cells for r in again] == [r.new_cells for r in results]
+    assert all(r.coverage > 0.4 for r in results)  # it explores
+
+
+def test_a_team_that_always_steps_with_a_coordinated_planner_plays_its_baseline() -> None:
+    from envs import coverage_v0
+
+    env = coverage_v0.parallel_env(
+        height=14, width=14, n_agents=3, max_steps=60, observation={"teammap": {"crop": 7}},
+        frontier={"action": "step", "planner": "hungarian"},
+    )  # fmt: skip
+    planner = HungarianPlanner(14, 14)
+    env.reset(seed=3)
+    while env.agents:
+        planner.sync(env.steps, env.positions, lambda: (env.walls, env.visited))
+        expected = planner.act()
+        before = env.positions
+        env.step(dict.fromkeys(env.agents, 5))
+        moves = np.array([[-1, 0], [1, 0], [0, -1], [0, 1], [0, 0]])
+        np.testing.assert_array_equal(env.positions, before + moves[expected])
+
+
+# ---------------------------------------------------------------------- the physical bound
+def test_physical_bound_by_hand() -> None:
+    assert physical_bound(1, 1000, 2000) == pytest.approx(1001 / 2000)
+    assert physical_bound(4, 1000, 2000) == 1.0
+    assert physical_bound(2, 9, 40) == pytest.approx(0.5)
+
+
+def test_summary_reports_bound_and_efficiency_by_hand() -> None:
+    def episode(coverage: float, free: int) -> EpisodeResult:
+        return EpisodeResult(coverage, [coverage] * 3, [0, 0], [1, 1], 9, free)
+
+    # Two agents, 9 steps: at most 20 cells. Bounds 20/40 = 0.5 and 1 (10 free cells).
+    summary = summarize([episode(0.25, 40), episode(1.0, 10)])
+    assert summary["bound"] == pytest.approx(0.75)
+    assert summary["coverage_mean"] == pytest.approx(0.625)
+    assert summary["efficiency"] == pytest.approx(0.625 / 0.75)
+    low, high = summary["coverage_mean_ci"]
+    assert 0.25 <= low <= 0.625 <= high <= 1.0
+
+
+def test_cluster_candidates_match_a_from_scratch_reference() -> None:
+    # A planner mid-episode on a random map: every cluster of known unvisited cells (4-connected)
+    # costs each agent its path length to the cluster's nearest cell, the first in row-major
+    # order among equally near ones.
+    from scipy.ndimage import label
+
+    from envs import coverage_v0
+
+    env = coverage_v0.parallel_env(height=20, width=24, n_agents=3, max_steps=200)
+    env.reset(seed=5)
+    planner = HungarianPlanner(20, 24)
+    for _ in range(30):
+        planner.sync(env.steps, env.positions, lambda: (env.walls, env.visited))
+        env.step(dict(zip(env.agents, planner.act())))
+    planner.sync(env.steps, env.positions, lambda: (env.walls, env.visited))
+    from scipy.sparse.csgraph import dijkstra
+
+    dist = dijkstra(planner._weighted_grid(), indices=np.asarray(planner.positions))
+    cells = np.flatnonzero(planner.target_np)
+    cost, goals = planner._candidate_costs(dist[:, cells], cells)
+    labels, n = label(planner.target_np.reshape(-1, planner.stride))
+    assert cost.shape == (3, n) and n > 1
+    for k in range(1, n + 1):
+        members = [c for c in cells.tolist() if labels.ravel()[c] == k]
+        for i in range(3):
+            nearest = min(members, key=lambda c: (dist[i, c], c))
+            column = list(goals[i]).index(nearest)
+            assert cost[i, column] == dist[i, nearest]

@@ -274,9 +274,9 @@ def bench_eval(episodes: int = 8) -> dict[str, Any]:
     """Episodes per second of greedy evaluation (MLP 3x512) and of every planner's baseline
     (``eval_<baseline>_episodes_per_s``, one per entry of ``envs.coverage.frontier.PLANNERS``),
     with each planner's speed over the classical explorer's (``eval_<baseline>_over_frontier``)."""
-    from envs.coverage.frontier import PLANNERS
     import torch
 
+    from envs.coverage.frontier import PLANNERS
     from harness import DoubleDQN
     from harness.evaluation.baselines import make_baseline
     from harness.evaluation.episodes import model_policy, run_episodes

@@ -41,6 +41,7 @@ def load(config: str, policy: str) -> dict:
 def rank_key(d: dict) -> tuple[float, float, float]:
     """Best first: the higher mean coverage (to 0.1 point), then the fewer steps to 99 %, then
     to 90 % (an episode set that never got there: last)."""
+
     def steps(key: str) -> float:
         return float("inf") if d[key] is None else d[key]
 

@@ -332,8 +332,6 @@ class FrontierPlanner:
         return graph
 
 
-
-
 # ---------------------------------------------------------------------- coordinated planners
 #: How a coordinated planner gathers its candidate targets: every known free unvisited cell
 #: (``"all"``), or one per frontier cluster (``"clusters"``: a 4-connected group of such cells,

@@ -334,7 +334,8 @@ def _add_target(parser: argparse.ArgumentParser) -> None:
         "--policy",
         help=(
             "a baseline instead of a model: random, local, frontier, frontier_pocket, "
-            "frontier_random or frontier_step"
+            "frontier_random, frontier_utility, frontier_minpos, frontier_hungarian or "
+            "frontier_step"
         ),
     )
     parser.add_argument("--config", type=Path, help="the experiment config of a --policy")

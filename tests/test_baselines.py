@@ -38,6 +38,9 @@ def test_names_and_unknown_name() -> None:
         "frontier",
         "frontier_pocket",
         "frontier_random",
+        "frontier_utility",
+        "frontier_minpos",
+        "frontier_hungarian",
         "frontier_step",
     )
     for name in BASELINES:

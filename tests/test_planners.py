@@ -184,3 +184,17 @@ def test_cluster_candidates_match_a_from_scratch_reference() -> None:
             nearest = min(members, key=lambda c: (dist[i, c], c))
             column = list(goals[i]).index(nearest)
             assert cost[i, column] == dist[i, nearest]
+
+
+@pytest.mark.parametrize("name", sorted(COORDINATED))
+def test_a_planner_reused_over_episodes_plays_each_as_a_fresh_one(name: str) -> None:
+    # A baseline keeps one planner per env copy over many episodes: each new episode must start
+    # from its own map (a graph left from the last episode once stopped agents for good).
+    env = EnvConfig(height=15, width=15, n_agents=2, max_steps=150)
+    reused = run_episodes(make_baseline(f"frontier_{name}", 0), env, episodes=12, seed=2000003)
+    fresh = [
+        run_episodes(make_baseline(f"frontier_{name}", 0), env, episodes=1, seed=2000003 + k)[0]
+        for k in range(12)
+    ]
+    assert [r.new_cells for r in reused] == [r.new_cells for r in fresh]
+    assert min(r.coverage for r in reused) > 0.9

@@ -327,7 +327,7 @@ def test_the_frontier_planner_needs_the_team_map_and_a_known_name():
 
 def test_the_env_planner_choices_are_the_registry_s_in_env_planners():
     in_env = [name for name, entry in PLANNERS.items() if entry.in_env]
-    assert in_env == ["order", "pocket"]
+    assert in_env == ["order", "pocket", "utility", "minpos", "hungarian"]
     baseline_only = (
         "frontier.planner: 'random' draws its ties from a generator: it is a baseline only"
     )

@@ -406,13 +406,19 @@ class CoordinatedPlanner(FrontierPlanner):
         changed = np.flatnonzero(passable != self._known)
         if changed.size:
             self._known = passable.copy()
-            rows = changed - s  # every passable cell is inside the padding ring
-            nbr_ok = passable[self._nbr[rows]]  # (changed, 4)
+            rows = changed - s  # the padding ring is never passable: only inner cells change
+            both = passable[changed][:, None] & passable[self._nbr[rows]]  # (changed, 4)
+            weight = np.where(both, 1.0, np.inf)
             data = self._grid.data
-            data[4 * rows[:, None] + np.arange(4)] = np.where(nbr_ok, 1.0, np.inf)
-            back = self._back[rows][nbr_ok]
-            data[back] = 1.0
+            data[4 * rows[:, None] + np.arange(4)] = weight  # out of the changed cells
+            # Into them, from passable neighbours (inner cells): cells only become passable
+            # during an episode, and a new episode starts from a graph without edges.
+            data[self._back[rows][both]] = 1.0
         return self._grid
+
+    def _rebuild(self, walls: np.ndarray, visited_map: np.ndarray) -> None:
+        super()._rebuild(walls, visited_map)
+        self._grid = None  # a new map (a new episode): the weights start again
 
     def act(self, rng: np.random.Generator | None = None) -> list[int]:
         """One action per agent (``rng`` is unused: the choice is deterministic)."""

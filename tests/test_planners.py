@@ -166,7 +166,7 @@ def test_cluster_candidates_match_a_from_scratch_reference() -> None:
 
     env = coverage_v0.parallel_env(height=20, width=24, n_agents=3, max_steps=200)
     env.reset(seed=5)
-    planner = HungarianPlanner(20, 24)
+    planner = HungarianPlanner(20, 24, candidates="clusters")
     for _ in range(30):
         planner.sync(env.steps, env.positions, lambda: (env.walls, env.visited))
         env.step(dict(zip(env.agents, planner.act())))

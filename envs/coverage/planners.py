@@ -359,8 +359,8 @@ class CoordinatedPlanner(FrontierPlanner):
     that from an agent cost it nothing it can plan with (as if unreachable), which keeps a step's
     searches local; an agent with no candidate within the horizon searches the whole map.
 
-    The defaults (frontier clusters, a horizon of 15 cells; for the utility planner
-    ``beta=0.2``, ``radius=10``) were chosen on validation episodes by
+    The defaults (every known unvisited cell a candidate, the whole map; for the utility
+    planner ``beta=0.2``, ``radius=3``) were chosen on validation episodes by
     ``scripts/planner_params.py`` (``docs/planners/validation.json``, docs/planners.md).
 
     Args:
@@ -371,7 +371,7 @@ class CoordinatedPlanner(FrontierPlanner):
     """
 
     def __init__(
-        self, height: int, width: int, candidates: str = "clusters", horizon: int | None = 15
+        self, height: int, width: int, candidates: str = "all", horizon: int | None = None
     ) -> None:
         super().__init__(height, width, "order")
         if candidates not in CANDIDATES:
@@ -538,10 +538,10 @@ class UtilityPlanner(CoordinatedPlanner):
         self,
         height: int,
         width: int,
-        candidates: str = "clusters",
-        horizon: int | None = 15,
+        candidates: str = "all",
+        horizon: int | None = None,
         beta: float = 0.2,
-        radius: float = 10.0,
+        radius: float = 3.0,
     ) -> None:
         super().__init__(height, width, candidates, horizon)
         if not beta >= 0 or not radius > 0:

@@ -505,20 +505,18 @@ class MinPosPlanner(CoordinatedPlanner):
     def assign(self, cost: np.ndarray, goal_cells: np.ndarray) -> list[int]:
         # rank[i, c]: teammates j with cost[j, c] < cost[i, c] (an agent is not closer to itself).
         rank = (cost[None, :, :] < cost[:, None, :]).sum(axis=1)
-        rank = np.where(np.isfinite(cost), rank, cost.shape[0])  # unreachable: sorted last
-        claimed: set[int] = set()
+        reachable = np.isfinite(cost)
+        # One key per (agent, candidate): rank first, then distance (argmin then takes the
+        # lowest candidate index among equals); unreachable candidates never.
+        span = cost[reachable].max(initial=0.0) + 1.0
+        key = np.where(reachable, rank * span + cost, np.inf)
         chosen = []
         for i in range(cost.shape[0]):
-            order = np.lexsort((cost[i], rank[i]))  # rank first, then distance, then index
-            pick = -1
-            for c in order.tolist():
-                if not np.isfinite(cost[i, c]):
-                    break  # unreachable candidates sort last (their rank and cost are largest)
-                if c not in claimed:
-                    pick = c
-                    break
-            if pick >= 0:
-                claimed.add(pick)
+            pick = int(key[i].argmin())
+            if not key[i, pick] < np.inf:
+                pick = -1
+            else:
+                key[:, pick] = np.inf  # claimed: the next agents skip it
             chosen.append(pick)
         return chosen
 
@@ -552,19 +550,18 @@ class UtilityPlanner(CoordinatedPlanner):
 
     def assign(self, cost: np.ndarray, goal_cells: np.ndarray) -> list[int]:
         utility = np.ones(cost.shape[1])
+        # Where each candidate would be reached by each agent: the visibility is between those
+        # cells and the chosen one.
+        rows, cols = np.divmod(goal_cells, self.stride)
+        penalty = np.where(np.isfinite(cost), self.beta * cost, np.inf)
         chosen = []
         for i in range(cost.shape[0]):
-            reachable = np.isfinite(cost[i])
-            if not reachable.any():
-                chosen.append(-1)
-                continue
-            score = np.where(reachable, utility - self.beta * cost[i], -np.inf)
+            score = utility - penalty[i]
             pick = int(score.argmax())  # the first maximum: the lowest candidate index
+            if not score[pick] > -np.inf:
+                chosen.append(-1)  # nothing reachable
+                continue
             chosen.append(pick)
-            # Where each candidate would be reached by this agent: the visibility is between
-            # those cells and the chosen one.
-            rows, cols = np.divmod(goal_cells[i], self.stride)
-            r0, c0 = divmod(int(goal_cells[i, pick]), self.stride)
-            d = np.hypot(rows - r0, cols - c0)
+            d = np.hypot(rows[i] - rows[i, pick], cols[i] - cols[i, pick])
             utility -= np.clip(1.0 - d / self.radius, 0.0, 1.0)
         return chosen

@@ -198,17 +198,20 @@ def resolve_target(
             raise TargetError("give either a run/model or --policy, not both")
         if config_path is None:
             raise TargetError(f"--policy {policy} needs --config CONFIG.yaml")
-        from harness.evaluation.baselines import BASELINES, make_baseline  # SciPy: only when used
+        from harness.evaluation.baselines import (  # SciPy: only when used
+            BASELINES,
+            FrontierStepPolicy,
+            make_baseline,
+        )
 
         if policy not in BASELINES:
             raise TargetError(f"unknown policy {policy!r}; known: {', '.join(BASELINES)}")
         config = load_config(config_path, overrides)
-        options = config.env.frontier_options
-        if policy == "frontier_step" and (options is None or options.action != "step"):
-            raise TargetError(
-                "--policy frontier_step needs env.frontier.action: step (with the teammap "
-                "observation)"
-            )
+        if policy == "frontier_step":
+            try:
+                FrontierStepPolicy.check(config.env.frontier_options)
+            except ValueError as exc:
+                raise TargetError(f"--policy {policy}: {exc}") from None
         seed = config.eval.seed if seed is None else seed
         return Target(make_baseline(policy, seed), config, policy, None, seed)
     if target is None:

@@ -562,6 +562,8 @@ class UtilityPlanner(CoordinatedPlanner):
                 chosen.append(-1)  # nothing reachable
                 continue
             chosen.append(pick)
-            d = np.hypot(rows[i] - rows[i, pick], cols[i] - cols[i, pick])
-            utility -= np.clip(1.0 - d / self.radius, 0.0, 1.0)
+            dr, dc = rows[i] - rows[i, pick], cols[i] - cols[i, pick]
+            d2 = dr * dr + dc * dc
+            seen = d2 < self.radius**2  # only candidates within the radius lose utility
+            utility[seen] -= 1.0 - np.sqrt(d2[seen]) / self.radius
         return chosen

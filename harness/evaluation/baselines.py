@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 
 from envs.coverage import CoverageEnv
-from envs.coverage.frontier import PLANNERS
+from envs.coverage.frontier import PLANNERS, FrontierOptions
 from envs.coverage.planners import FrontierPlanner
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL, FRONTIER_STEP
 from harness.evaluation.episodes import BatchPolicy, batch_len, episode_draws, sample_categorical
@@ -88,10 +88,19 @@ class FrontierStepPolicy:
     then the planner's baseline, move for move). The bar a learned policy with that action
     must beat to show it learned more than "always take it"."""
 
+    @staticmethod
+    def check(options: FrontierOptions | None) -> None:
+        """Raise ``ValueError`` unless the env's planner extension has the frontier step."""
+        if options is None or options.action != "step":
+            raise ValueError(
+                "the frontier_step baseline needs env.frontier.action: step (with the teammap "
+                "observation)"
+            )
+
     def __call__(self, obs: Any, envs: Sequence[CoverageEnv]) -> np.ndarray:
         """The frontier step for every agent of every env copy."""
-        if not all(env.frontier is not None and env.frontier.action == "step" for env in envs):
-            raise ValueError("the frontier_step baseline needs env.frontier.action: step")
+        for env in envs:
+            self.check(env.frontier)
         return np.full(batch_len(obs), FRONTIER_STEP, dtype=np.int64)
 
 

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 import yaml
 
-from harness.config.loading import load_config, parse_override
+from harness.config.loading import config_from_dict, load_config, parse_override
 from harness.config.schema import ConfigError, ExperimentConfig
 from harness.factory import check_env
 from harness.training.checks import checked_config
@@ -163,3 +163,41 @@ def test_relative_map_path_is_stored_absolute_with_its_hash(tmp_path, monkeypatc
     (maps / "room.txt").write_text("....\n....\n....\n")
     with pytest.raises(ConfigError, match=r"env: .*has changed since this config was written"):
         load_config(saved)
+
+
+@pytest.mark.parametrize(
+    ("raw", "guess"),
+    [
+        ({"env": {"max_step": 5}}, "env.max_steps"),
+        ({"algo": {"polcy": "MlpPolicy"}}, "algo.policy"),
+        (
+            {"phases": [{"name": "a", "timesteps": 5, "learning_rat": 1e-4}]},
+            "phases.0.learning_rate",
+        ),
+        ({"evall": {}}, "eval"),
+    ],
+)
+def test_an_unknown_key_names_the_nearest_known_one(raw, guess):
+    with pytest.raises(
+        ConfigError, match=rf"Extra inputs are not permitted \(did you mean `{guess}`\?\)"
+    ):
+        config_from_dict(raw)
+
+
+def test_an_unknown_key_far_from_every_known_one_gets_no_guess():
+    with pytest.raises(ConfigError) as err:
+        config_from_dict({"env": {"zzzzzz": 1}})
+    assert "did you mean" not in str(err.value)
+
+
+def test_one_key_given_twice_with_set_is_refused():
+    with pytest.raises(ConfigError, match=r"--set env\.n_agents is given twice"):
+        config_from_dict({}, overrides=["env.n_agents=2", "env.n_agents=3"])
+
+
+def test_quoted_set_values_stay_text_and_bare_exponents_are_numbers():
+    # `harness run --name 2024` passes name="2024": a name, not a number.
+    for name in ("2024", "1e5", "nan"):
+        assert config_from_dict({}, overrides=[f'name="{name}"']).name == name
+    config = config_from_dict({}, overrides=["phases.0.learning_rate=1e-4"])
+    assert config.phases[0].learning_rate == 1e-4

@@ -5,6 +5,8 @@ overrides, the migration of old layouts, and validation against the schema
 from __future__ import annotations
 
 import contextlib
+import difflib
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -21,8 +23,38 @@ def _format_error(source: str, err: ValidationError) -> str:
     first = err.errors()[0]
     loc = ".".join(str(p) for p in first["loc"]) or "(top level)"
     msg = first["msg"].removeprefix("Value error, ")
+    if first["type"] == "extra_forbidden":
+        guess = _closest_key(first["loc"])
+        msg += f" (did you mean {guess}?)" if guess else ""
     more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
     return f"{source}: {loc}: {msg}{more}"
+
+
+def _closest_key(loc: tuple[Any, ...]) -> str | None:
+    """The key of the schema's section at ``loc[:-1]`` nearest to the unknown ``loc[-1]``
+    (difflib), dotted as a config writes it; ``None`` when nothing is near."""
+    model: Any = ExperimentConfig
+    for part in loc[:-1]:
+        if isinstance(part, int):
+            continue  # an item of a list section (phases.0)
+        field = getattr(model, "model_fields", {}).get(part)
+        if field is None:
+            return None
+        candidates = [field.annotation, *getattr(field.annotation, "__args__", ())]
+        nested = [c for c in candidates if isinstance(c, type) and hasattr(c, "model_fields")]
+        if not nested:
+            return None
+        model = nested[0]
+    names = list(getattr(model, "model_fields", {}))
+    close = difflib.get_close_matches(str(loc[-1]), names, n=1, cutoff=0.6)
+    if not close:
+        return None
+    path = [str(p) for p in loc[:-1]] + close
+    return f"`{'.'.join(path)}`"
+
+
+#: An unquoted number in YAML 1.1's blind spot (``1e-4``, ``5E3``): ``--set`` reads it as one.
+_NUMBER = re.compile(r"[+-]?(\d+\.?\d*|\.\d+)[eE][+-]?\d+")
 
 
 def parse_override(text: str) -> tuple[list[str], Any]:
@@ -42,8 +74,9 @@ def parse_override(text: str) -> tuple[list[str], Any]:
         raise ConfigError(f"--set {text[:40]!r}: {str(exc).split(';')[0][:120]}") from None
     except yaml.YAMLError:
         value = raw  # not YAML: keep the text; the schema decides whether a string fits
-    if isinstance(value, str):
-        # YAML 1.1 reads "1e-4" (no dot) as text; on the command line it means a number.
+    if isinstance(value, str) and _NUMBER.fullmatch(raw.strip()):
+        # YAML 1.1 reads "1e-4" (no dot) as text; on the command line it means a number. A
+        # quoted value ("2024") stays the text it was written as.
         with contextlib.suppress(ValueError):
             value = float(value)
     return key.strip().split("."), value
@@ -166,8 +199,13 @@ def config_from_dict(
         raise ConfigError(_format_error(source, err)) from None
     if overrides:
         data = config.model_dump(mode="json")
+        given: set[str] = set()
         for text in overrides:
             keys, value = parse_override(text)
+            key = ".".join(keys)
+            if key in given:
+                raise ConfigError(f"--set {key} is given twice: give each key once")
+            given.add(key)
             apply_override(data, keys, value, text)
         source = f"{source} with --set {' '.join(overrides)}"
         try:  # an old key given with --set migrates as in a file

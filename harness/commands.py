@@ -94,6 +94,11 @@ def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) ->
             raise TargetError(
                 f"{path}: no model.zip yet (training unfinished? `harness run --resume {path}`)"
             )
+    elif path.is_file() and path.suffix.lower() in (".yaml", ".yml"):
+        raise TargetError(
+            f"{path} is a config, not a run or a model: evaluate a baseline on it with "
+            f"--policy NAME --config {path}, or train it first (harness run {path})"
+        )
     elif path.is_file():
         model_path, config_path = path, find_run_config(path)
     else:

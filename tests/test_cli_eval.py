@@ -142,6 +142,10 @@ def test_compare_writes_a_plot_and_a_table(smoke_run, tmp_path, capsys):
     ("args", "message"),
     [
         (["eval", "no/such/run"], "no such run folder or model file"),
+        (
+            ["eval", str(SMOKE)],
+            "is a config, not a run or a model: evaluate a baseline on it with --policy NAME",
+        ),
         (["eval", "--policy", "greedy", "--config", str(SMOKE)], "unknown policy 'greedy'"),
         (["eval", "--policy", "random"], "needs --config"),
         (

@@ -563,15 +563,22 @@ def cmd_compare(args: argparse.Namespace) -> int:
     check_image_output(args.out, "--out")
     labels = args.labels or [None] * len(args.runs)
     result = compare(args.runs, labels, Path(args.out), args.window, args.reps, args.eval)
-    print(f"{'experiment':<20}{'run':<40}{'median':>8}{'IQR':>8}{'wall hits':>11}")
+    wide = max([len(label) for label, _, _ in result.rows] + [len("experiment")]) + 2
+    runs = max([len(name) for _, name, _ in result.rows] + [len("run")]) + 2
+    print(f"{'experiment':<{wide}}{'run':<{runs}}{'median':>8}{'IQR':>8}{'wall hits':>11}")
     for label, name, ev in result.rows:
         if ev is None:
-            missing = f"(no {args.eval}.json: run harness eval)"
-            print(f"{label:<20}{name:<40}{missing:>27}")
+            others = result.others.get(name, [])
+            hint = (
+                f"has {', '.join(others)}: pick one with --eval {others[0]}"
+                if others
+                else "run harness eval"
+            )
+            print(f"{label:<{wide}}{name:<{runs}}(no {args.eval}.json; {hint})")
         else:
             print(
-                f"{label:<20}{name:<40}{ev['coverage_median']:>8.1%}{ev['coverage_iqr']:>8.1%}"
-                f"{ev['wall_hits_mean']:>11.2f}"
+                f"{label:<{wide}}{name:<{runs}}{ev['coverage_median']:>8.1%}"
+                f"{ev['coverage_iqr']:>8.1%}{ev['wall_hits_mean']:>11.2f}"
             )
     if result.over_seeds:
         print()

@@ -10,6 +10,7 @@ episodes.
 from __future__ import annotations
 
 import csv
+import dataclasses
 import io
 import math
 import os
@@ -597,6 +598,8 @@ class Comparison:
     rows: list[tuple[str, str, dict[str, Any] | None]]
     over_seeds: str
     saved: list[Path]
+    #: Per run without the evaluation asked for: the evaluations it has (``--eval`` stems).
+    others: dict[str, list[str]] = dataclasses.field(default_factory=dict)
 
 
 def compare(
@@ -618,6 +621,7 @@ def compare(
     curves: dict[str, list[Any]] = {}
     evaluations: dict[str, list[Any]] = {}
     rows: list[tuple[str, str, dict[str, Any] | None]] = []
+    others: dict[str, list[str]] = {}
     for item, given in zip(items, labels, strict=True):
         runs = group_runs(item) if is_group(item) else [item]
         label = given or (item.name if is_group(item) else run_label(item))
@@ -626,11 +630,14 @@ def compare(
             curves.setdefault(label, []).append(episodes)
             if evals is not None:
                 evaluations.setdefault(label, []).append(evals)
-            rows.append((label, run.name, read_eval_json(run, eval_name)))
+            found = read_eval_json(run, eval_name)
+            rows.append((label, run.name, found))
+            if found is None:
+                others[run.name] = RunDir(run).eval_names()
     title = "team coverage of the training episodes"
     saved = [plot_learning_curves(curves, out, title, window=window, evaluations=evaluations)]
     over_seeds, more = _over_seeds(rows, evaluations, Path(out), reps, eval_name)
-    return Comparison(rows, over_seeds, saved + more)
+    return Comparison(rows, over_seeds, saved + more, others)
 
 
 def _over_seeds(

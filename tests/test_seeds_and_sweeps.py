@@ -232,7 +232,12 @@ def test_compare_reads_another_evaluation_when_asked(tmp_path, capsys):
     assert _interval(_row(capsys.readouterr().out, "a")[2])[0] == 60.0
     # A run without that evaluation says so; a name that is not an evaluation is one line, 2.
     assert main([*args, "--eval", "eval-seed7"]) == 0
-    assert "(no eval-seed7.json: run harness eval)" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "(no eval-seed7.json; has eval, eval-env.map-random: pick one with --eval eval)" in out
+    # The table's columns stay apart whatever the names' lengths.
+    header, first = out.splitlines()[:2]
+    assert header.split() == ["experiment", "run", "median", "IQR", "wall", "hits"]
+    assert first.split()[:2] == ["a", "run-seed0"]
     assert main([*args, "--eval", "../config"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["harness: error: '../config' is not an evaluation's name: 'eval' (eval.json) "

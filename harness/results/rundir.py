@@ -292,6 +292,12 @@ class RunDir:
             )
         return self.path / f"{name}.json"
 
+    def eval_names(self) -> list[str]:
+        """The evaluations this folder holds, by the stem :meth:`eval_file` takes (sorted)."""
+        return sorted(
+            p.stem for p in self.path.glob("eval*.json") if p.stem == "eval" or p.stem[4:5] == "-"
+        )
+
     def read_eval(self, name: str = "eval") -> dict[str, Any] | None:
         """An evaluation (by default the standard ``eval.json``; see :meth:`eval_file`) as a
         JSON object, or ``None`` if there is none.

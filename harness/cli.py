@@ -524,6 +524,14 @@ def _eval_group(args: argparse.Namespace) -> int:
     standard = not args.overrides and args.episodes == DEFAULT_EPISODES and args.seed is None
     result, saved = evaluate_group(Path(args.target), evaluate_run, standard)
     if saved is not None:
+        from harness.results.stats import with_ci
+
+        over = result["coverage_mean_over_seeds"]
+        ci = over["mean_ci95"]
+        print(
+            f"== over {over['seeds']} seeds: mean coverage {with_ci(over['mean'], ci)}, "
+            f"IQM {with_ci(over['iqm'], over['iqm_ci95'])}"
+        )
         print(f"saved {saved}", file=sys.stderr)
         if args.json:
             print(json.dumps(result))

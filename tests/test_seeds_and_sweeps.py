@@ -96,7 +96,13 @@ def test_seed_group_trains_evaluates_and_compares(tiny, tmp_path, capsys):
         assert load_config(run / "config.yaml").eval.temperature == chosen
     capsys.readouterr()
     assert main(["eval", str(group), "--json"]) == 0
-    result = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    printed = capsys.readouterr().out.strip().splitlines()
+    result = json.loads(printed[-1])
+    over = result["coverage_mean_over_seeds"]
+    low, high = (f"{100 * x:.1f} %" for x in over["mean_ci95"])
+    assert printed[-2].startswith(
+        f"== over 2 seeds: mean coverage {100 * over['mean']:.1f} % [{low}, {high}], IQM "
+    )
     assert set(result["runs"]) == {m.name for m in members}
     assert result["coverage_mean_over_seeds"]["seeds"] == 2
     # Both seeds were tested on the same episodes.

@@ -124,7 +124,7 @@ def percent(x: float) -> str:
     return f"{100 * x:.1f} %"
 
 
-def _with_ci(value: float, ci: tuple[float, float] | None) -> str:
+def with_ci(value: float, ci: tuple[float, float] | None) -> str:
     if ci is None:
         return f"{percent(value)} (1 seed: no interval)"
     return f"{percent(value)} [{percent(ci[0])}, {percent(ci[1])}]"
@@ -138,7 +138,7 @@ def markdown_table(stats: Mapping[str, SeedStats], wall_hits: Mapping[str, float
     ]
     for name, s in stats.items():
         lines.append(
-            f"| {name} | {s.seeds} | {_with_ci(s.mean, s.mean_ci)} | {_with_ci(s.iqm, s.iqm_ci)}"
+            f"| {name} | {s.seeds} | {with_ci(s.mean, s.mean_ci)} | {with_ci(s.iqm, s.iqm_ci)}"
             f" | {wall_hits[name]:.2f} |"
         )
     return "\n".join(lines)

@@ -141,3 +141,21 @@ def test_periodic_callback_waits_for_its_condition():
         model.num_timesteps, model.ok = t, ok
         cb.on_step()
     assert calls == [20, 32]  # first step at/past 10 where ok; then at/past 30
+
+
+def test_the_phase_progress_bar_names_the_phase_stops_at_its_total_and_shows_figures():
+    from harness.training.adapters import make_vec_env
+    from harness.training.callbacks import PhaseProgressBar
+
+    venv = make_vec_env({"height": 8, "width": 8, "n_agents": 2, "max_steps": 10}, copies=3, seed=0)
+    model = DoubleDQN("MlpPolicy", venv, learning_starts=10, buffer_size=500)
+    total = 100  # SB3 collects whole rounds (train_freq 4 x 6 slots): 120 transitions
+    bar = PhaseProgressBar("initial", total, n_agents=2, every=1)
+    model.learn(total, callback=bar)
+    assert model.num_timesteps == 120
+    assert (bar.pbar.n, bar.pbar.total) == (100, 100)
+    figures = bar.postfix()
+    assert bar.pbar.desc.startswith("initial: cov ")
+    assert set(figures) == {"cov", "ε", "loss"}
+    assert figures["ε"] == f"{model.exploration_rate:.2f}"
+    assert figures["cov"].endswith("%")

@@ -1,6 +1,6 @@
-"""SB3 callbacks of a training phase: epochs by coverage, episode metrics, periodic evaluation
-and checkpoints. Each is small and does one thing. (The ε, β and learning-rate schedules are not
-callbacks: ``harness.training.train.apply_phase`` installs them on the model.)"""
+"""SB3 callbacks of a training phase: epochs by coverage, episode metrics, periodic evaluation,
+checkpoints and the progress bar. Each is small and does one thing. (The ε, β and learning-rate
+schedules are not callbacks: ``harness.training.train.apply_phase`` installs them on the model.)"""
 
 from __future__ import annotations
 
@@ -10,7 +10,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from stable_baselines3.common.callbacks import BaseCallback
+from stable_baselines3.common.callbacks import BaseCallback, ProgressBarCallback
+from tqdm.rich import tqdm
 
 from harness.results.rundir import EPISODE_COLUMNS, append_csv_rows
 from harness.sb3.schedules import epochs_for
@@ -139,3 +140,46 @@ class PeriodicCallback(BaseCallback):
             self._next = (self.num_timesteps // self.every + 1) * self.every
             self.fn(self.model)
         return True
+
+
+class PhaseProgressBar(ProgressBarCallback):
+    """SB3's progress bar for one phase: named after the phase, counting the phase's own
+    transitions up to its length (SB3 collects whole rounds of ``n_envs`` and may pass it; the
+    bar stops at the total), with the latest median coverage, ε and loss beside the name.
+
+    Args:
+        phase: The phase's name (the bar's description).
+        total: Transitions of the phase still to run.
+        n_agents: Agents per env copy (the coverage's episodes are ``n_agents`` entries each).
+        every: Env steps between postfix updates (each reads the logger and the episodes).
+    """
+
+    def __init__(self, phase: str, total: int, n_agents: int, every: int = 50) -> None:
+        super().__init__()
+        self.phase, self.total, self.n_agents, self.every = phase, int(total), n_agents, every
+        self._calls = 0
+
+    def _on_training_start(self) -> None:
+        self.pbar = tqdm(total=self.total, desc=self.phase)
+
+    def _on_step(self) -> bool:
+        self.pbar.update(min(self.training_env.num_envs, self.total - self.pbar.n))
+        self._calls += 1
+        if self._calls % self.every == 0:
+            # In the description: tqdm.rich's columns show no postfix.
+            figures = " ".join(f"{k} {v}" for k, v in self.postfix().items())
+            self.pbar.set_description(f"{self.phase}: {figures}", refresh=False)
+        return True
+
+    def postfix(self) -> dict[str, str]:
+        """The latest figures: ``cov``, the median coverage of the last 20 episodes; ``ε``;
+        ``loss``, the training loss."""
+        out = {}
+        coverages = recent_coverages(self.model.ep_info_buffer or [], 20, self.n_agents)
+        if coverages:
+            out["cov"] = f"{np.median(coverages):.0%}"
+        out["ε"] = f"{self.model.exploration_rate:.2f}"
+        loss = self.model.logger.name_to_value.get("train/loss")
+        if loss is not None:
+            out["loss"] = f"{loss:.3g}"
+        return out

@@ -53,6 +53,7 @@ from harness.training.callbacks import (
     EpisodeLogCallback,
     EpochsByCoverageCallback,
     PeriodicCallback,
+    PhaseProgressBar,
 )
 from harness.training.checkpoints import (
     CheckpointError,
@@ -481,13 +482,15 @@ def _run_phase(
             config.checkpoint.every, checkpointer, when=DoubleDQN.at_round_boundary
         )
         callbacks += [checkpoints, stopper]
+        if progress_bar:
+            bar = PhaseProgressBar(phase.name, phase.timesteps - done, config.env.n_agents)
+            callbacks.append(bar)
         try:
             model.learn(
                 total_timesteps=phase.timesteps - done,
                 callback=CallbackList(callbacks),
                 log_interval=config.n_slots,  # dump logs once per round of finished episodes
                 reset_num_timesteps=False,
-                progress_bar=progress_bar,
             )
         except NonFiniteLossError as exc:
             found = complete_checkpoints(run.checkpoints)

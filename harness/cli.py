@@ -311,6 +311,7 @@ def _add_sweep_parser(sub: Any) -> None:
     sw.add_argument(
         "--sweeps-dir", type=Path, default=Path("runs/sweeps"), help="where sweep folders go"
     )
+    sw.add_argument("--quiet", action="store_true", help="no line per finished trial (for scripts)")
     _add_overrides(sw)
 
 
@@ -629,6 +630,7 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             pruner=args.pruner,
             jobs=args.jobs,
             worker=args.worker,
+            report=None if args.quiet else print_trial,
         )
     except (KeyboardInterrupt, TrainingInterrupted):  # the trial under way is marked failed
         print("harness: sweep stopped; continue it with the same command and --resume",
@@ -640,6 +642,11 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     if result is not None:
         print(f"saved {args.sweeps_dir / study / BEST_CONFIG}", file=sys.stderr)
     return 0
+
+
+def print_trial(line: str) -> None:
+    """One finished trial of a sweep, on stderr."""
+    print(line, file=sys.stderr, flush=True)
 
 
 def cmd_bench(args: argparse.Namespace) -> int:

@@ -316,14 +316,22 @@ def test_a_storage_url_that_cannot_be_opened_is_one_line_and_makes_no_folder(
     assert not sweeps.exists()
 
 
-def test_sweep_on_the_embedded_store_runs_the_trials_asked_and_writes_the_best(tiny, tmp_path):
+def test_sweep_on_the_embedded_store_runs_the_trials_asked_and_writes_the_best(
+    tiny, tmp_path, capsys
+):
     space = tmp_path / "space.yaml"
     space.write_text(SPACE)
     sweeps = tmp_path / "sweeps"
     args = ["sweep", str(tiny), "--space", str(space), "--trials", "3", "--sweeps-dir", str(sweeps)]
+    capsys.readouterr()
     assert main(args) == 0
     folder = sweeps / "tiny"
     best = json.loads((folder / "best.json").read_text())
+    # One line per finished trial while the sweep runs: number, parameters, value, state, best.
+    lines = [x for x in capsys.readouterr().err.splitlines() if x.startswith("trial ")]
+    assert [x.split()[1] for x in lines] == ["1/3", "2/3", "3/3"]
+    assert all(x.split()[2] in ("complete:", "pruned:") and "algo.gamma=" in x for x in lines)
+    assert f"(best {best['value']:.3f}, trial {best['trial']})" in lines[-1]
     finished = best["trials"]["complete"] + best["trials"]["pruned"]
     assert finished == 3
     assert sorted(p.name for p in folder.glob("trial-*")) == [
@@ -341,7 +349,8 @@ def test_sweep_on_the_embedded_store_runs_the_trials_asked_and_writes_the_best(t
     assert config == load_config(Path(best["run"]) / "config.yaml")
     # The same command again is refused; --resume continues to a larger total.
     assert main(args) == 2
-    assert main([*args[:5], "4", *args[6:], "--resume"]) == 0
+    assert main([*args[:5], "4", *args[6:], "--resume", "--quiet"]) == 0
+    assert not [x for x in capsys.readouterr().err.splitlines() if x.startswith("trial ")]
     best = json.loads((folder / "best.json").read_text())
     assert best["trials"]["complete"] + best["trials"]["pruned"] == 4
     with (folder / "trials.csv").open() as f:

@@ -37,7 +37,7 @@ import subprocess
 import sys
 import time
 import warnings
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -232,12 +232,14 @@ def run_sweep(
     pruner: str = "median",
     jobs: int = 1,
     worker: bool = False,
+    report: Callable[[str], None] | None = None,
 ) -> dict[str, Any] | None:
     """Run this worker's share of a sweep of ``trials`` trials in total, then write the best.
 
     With ``jobs > 1``, the share is run by ``jobs`` worker processes (``harness sweep ...
     --worker``), each with ``cores // jobs`` torch threads. A ``worker`` neither refuses an
     existing study nor fails running trials (its siblings' are running), nor writes the best.
+    ``report`` receives one line per trial this process finishes (:func:`trial_line`).
 
     Returns:
         ``best.json``'s content, or ``None`` when no trial has completed yet.
@@ -294,7 +296,10 @@ def run_sweep(
             study.optimize(
                 lambda trial: _objective(trial, config_path, overrides, dims, folder, trials),
                 n_trials=left,
-                callbacks=[optuna.study.MaxTrialsCallback(trials, states=counted)],
+                callbacks=[
+                    optuna.study.MaxTrialsCallback(trials, states=counted),
+                    *([_Reporter(report, trials)] if report is not None else []),
+                ],
                 catch=(StudyFull, TrainingFailed),
             )
     return None if worker else write_best(study, config_path, overrides, folder)
@@ -435,6 +440,31 @@ def _objective(
         ev.validation_seed,
     )
     return float(summarize(results)["coverage_median"])
+
+
+def trial_line(study: Any, trial: Any, total: int) -> str:
+    """One finished trial: its number of ``total``, parameters, value, state and the best so far,
+    e.g. ``trial 3/40 complete: algo.gamma=0.97 -> 0.812 (best 0.840, trial 1)``."""
+    params = " ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}"
+                      for k, v in trial.params.items())  # fmt: skip
+    state = trial.state.name.lower()
+    value = f" -> {trial.value:.3f}" if trial.value is not None else ""
+    try:
+        best = study.best_trial
+        best_text = f" (best {best.value:.3f}, trial {best.number})"
+    except ValueError:  # no trial completed yet
+        best_text = ""
+    return f"trial {trial.number + 1}/{total} {state}: {params}{value}{best_text}"
+
+
+class _Reporter:
+    """Optuna callback: :func:`trial_line` of every trial this process finishes."""
+
+    def __init__(self, report: Callable[[str], None], total: int) -> None:
+        self.report, self.total = report, total
+
+    def __call__(self, study: Any, trial: Any) -> None:
+        self.report(trial_line(study, trial, self.total))
 
 
 def write_best(

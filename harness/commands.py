@@ -622,9 +622,15 @@ def compare(
     evaluations: dict[str, list[Any]] = {}
     rows: list[tuple[str, str, dict[str, Any] | None]] = []
     others: dict[str, list[str]] = {}
+    taken: dict[str, int] = {}
     for item, given in zip(items, labels, strict=True):
         runs = group_runs(item) if is_group(item) else [item]
-        label = given or (item.name if is_group(item) else run_label(item))
+        label = given or run_label(runs[0] if runs else item)
+        if not given and is_group(item):
+            # Two groups of one config (say, two --set variants) stay apart: name#2, name#3;
+            # runs named one by one share their config's label (the seeds of one experiment).
+            taken[label] = taken.get(label, 0) + 1
+            label = label if taken[label] == 1 else f"{label}#{taken[label]}"
         for run in runs:
             episodes, evals = read_run_curves(run)
             curves.setdefault(label, []).append(episodes)

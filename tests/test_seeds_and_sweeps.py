@@ -511,3 +511,16 @@ def test_load_space_reads_every_kind(tmp_path):
     path.write_text("seed: {int: [0.5, 2]}\n")
     with pytest.raises(SweepError, match="int needs"):
         load_space(path)
+
+
+def test_compare_labels_groups_by_their_config_name_and_keeps_two_groups_apart(tmp_path, capsys):
+    a = _fake_group(tmp_path / "tiny-20260101T000000Z", [0.1, 0.2, 0.3], [{100: 0.1}] * 3)
+    b = _fake_group(tmp_path / "tiny-20260102T000000Z", [0.5, 0.6, 0.7], [{100: 0.5}] * 3)
+    out = str(tmp_path / "cmp.png")
+    assert main(["compare", str(a), str(b), "--out", out, "--reps", "200"]) == 0
+    text = capsys.readouterr().out
+    name = load_config(a / "run-seed0" / "config.yaml").name
+    # Labelled by the config's name, not the timestamped folder; the second group apart.
+    assert _interval(_row(text, name)[2])[0] == 20.0
+    assert _interval(_row(text, f"{name}#2")[2])[0] == 60.0
+    assert "tiny-2026" not in text.split("\n\n")[-1]  # the table over seeds

@@ -5,12 +5,14 @@ schedules are not callbacks: ``harness.training.train.apply_phase`` installs the
 from __future__ import annotations
 
 import math
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback, ProgressBarCallback
+from tqdm import TqdmExperimentalWarning
 from tqdm.rich import tqdm
 
 from harness.results.rundir import EPISODE_COLUMNS, append_csv_rows
@@ -160,7 +162,9 @@ class PhaseProgressBar(ProgressBarCallback):
         self._calls = 0
 
     def _on_training_start(self) -> None:
-        self.pbar = tqdm(total=self.total, desc=self.phase)
+        with warnings.catch_warnings():  # "rich is experimental": SB3's own bar is the same
+            warnings.simplefilter("ignore", TqdmExperimentalWarning)
+            self.pbar = tqdm(total=self.total, desc=self.phase)
 
     def _on_step(self) -> bool:
         self.pbar.update(min(self.training_env.num_envs, self.total - self.pbar.n))

@@ -386,20 +386,41 @@ def cmd_run(args: argparse.Namespace) -> int:
 
 def _run_group(args: argparse.Namespace, config: ExperimentConfig) -> int:
     """``harness run CONFIG --seeds ...``: one run per seed in a group folder."""
-    from harness.results.groups import parse_seeds, run_group
+    from harness.results.groups import parse_seeds, run_group, seed_progress_value
 
     if args.seed is not None or args.into is not None:
         raise HarnessError("--seeds makes its own seeds and folders; drop --seed and --into")
     seeds = parse_seeds(args.seeds, MAX_SEED)
     overrides = list(args.overrides) + ([f"name={json.dumps(args.name)}"] if args.name else [])
     group, jobs = run_group(
-        args.config, config.name, overrides, seeds, args.jobs, args.runs_dir, args.argv
+        args.config,
+        config.name,
+        overrides,
+        seeds,
+        args.jobs,
+        args.runs_dir,
+        args.argv,
+        report=None if args.no_progress else print_progress,
     )
     print(f"group folder: {group}", file=sys.stderr)
     for job in jobs:
         state = "done" if job.returncode == 0 else f"failed (exit {job.returncode}, see its log)"
         print(f"  seed {job.seed}: {job.run.path.name} {state}", file=sys.stderr)
+    finals = [seed_progress_value(job.run) for job in jobs if job.returncode == 0]
+    finals = [f for f in finals if f is not None]
+    if finals:
+        print(
+            f"  last validation over {len(finals)} seed(s): median coverage "
+            + ", ".join(f"{f:.1%}" for f in finals)
+            + f" (mean {sum(finals) / len(finals):.1%}); test them: harness eval {group}",
+            file=sys.stderr,
+        )
     return 0 if all(job.returncode == 0 for job in jobs) else 1
+
+
+def print_progress(line: str) -> None:
+    """A progress line of long work (seed groups), on stderr."""
+    print(f"  {line}", file=sys.stderr, flush=True)
 
 
 def _resume(args: argparse.Namespace) -> int:

@@ -6,6 +6,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -78,6 +79,11 @@ def test_seed_group_trains_evaluates_and_compares(tiny, tmp_path, capsys):
     args = ["run", str(tiny), "--seeds", "2", "--jobs", "2", "--runs-dir", str(runs)]
     assert main(args) == 0
     (group,) = runs.iterdir()
+    # Each seed's end is reported with its progress, and the group's last validations.
+    err = capsys.readouterr().err
+    for seed in (0, 1):
+        assert re.search(rf"seed {seed}, [\d,]+ transitions(, validation [\d.]+%)?: done", err)
+    assert "test them: harness eval" in err
     data = json.loads((group / "group.json").read_text())
     assert data["seeds"] == [0, 1]
     assert data["threads_per_job"] == max(1, len(os.sched_getaffinity(0)) // 2)
@@ -524,3 +530,26 @@ def test_compare_labels_groups_by_their_config_name_and_keeps_two_groups_apart(t
     assert _interval(_row(text, name)[2])[0] == 20.0
     assert _interval(_row(text, f"{name}#2")[2])[0] == 60.0
     assert "tiny-2026" not in text.split("\n\n")[-1]  # the table over seeds
+
+
+def test_seed_progress_reads_the_last_complete_rows_of_the_run_logs(tmp_path):
+    from harness.results.groups import Job, seed_progress, seed_progress_value
+    from harness.results.rundir import RunDir
+
+    run = RunDir(tmp_path / "run")
+    run.path.mkdir()
+    job = Job(3, run)
+    assert seed_progress(job) == "seed 3, starting"
+    run.episodes_csv.write_text(
+        "episode,phase,timesteps,copy,coverage,reward_mean,wall_hits,new_cells,length\n"
+        "0,initial,1200,0,0.5,1.0,0,3;4,150\n"
+        "1,initial,2400,0,0.6,1.0,0,3;4,150\n"
+        "2,initial,36"  # being written: skipped
+    )
+    assert seed_progress(job) == "seed 3, 2,400 transitions"
+    run.evaluations_csv.write_text(
+        "timesteps,episodes,temperature,coverage_median,coverage_q1,coverage_q3,"
+        "coverage_mean,wall_hits_mean\n2400,10,0.0,0.625,0.5,0.7,0.6,0.0\n"
+    )
+    assert seed_progress(job) == "seed 3, 2,400 transitions, validation 62.5%"
+    assert seed_progress_value(run) == 0.625

@@ -17,7 +17,7 @@ import os
 import subprocess
 import sys
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -116,11 +116,15 @@ def run_group(
     jobs: int,
     runs_dir: Path,
     argv: Sequence[str],
+    report: Callable[[str], None] | None = None,
+    every: float = 30.0,
 ) -> tuple[Path, list[Job]]:
     """Train one run per seed, ``jobs`` at a time, in a new group folder.
 
     Each seed is ``harness run CONFIG --set ... --seed k`` in its own process, writing into its
-    own run folder inside the group; its output goes to ``<name>-seed<k>.log`` there.
+    own run folder inside the group; its output goes to ``<name>-seed<k>.log`` there. With
+    ``report``, a line per running seed (:func:`seed_progress`) every ``every`` seconds when it
+    changed, and one when a seed ends.
 
     Returns:
         The group folder and the jobs with their exit codes.
@@ -147,6 +151,8 @@ def run_group(
     running: list[Job] = []
     done: list[Job] = []
     queue = list(pending)
+    said: dict[int, str] = {}
+    next_report = time.monotonic() + every
     try:
         while queue or running:
             while queue and len(running) < jobs:
@@ -160,6 +166,16 @@ def run_group(
                     job.returncode = job.process.returncode
                     running.remove(job)
                     done.append(job)
+                    if report is not None:
+                        state = "done" if job.returncode == 0 else f"failed (exit {job.returncode})"
+                        report(f"{seed_progress(job)}: {state}")
+            if report is not None and time.monotonic() >= next_report:
+                next_report = time.monotonic() + every
+                for job in running:
+                    line = seed_progress(job)
+                    if said.get(job.seed) != line:
+                        said[job.seed] = line
+                        report(line)
     except KeyboardInterrupt:  # pass Ctrl-C on: each child checkpoints and stops cleanly
         for job in running:
             assert job.process is not None
@@ -168,6 +184,43 @@ def run_group(
             done.append(job)
         raise
     return group, sorted(done, key=lambda j: seeds.index(j.seed))
+
+
+def seed_progress(job: Job) -> str:
+    """``seed k: N transitions, validation M %`` from the run's logs so far (the last finished
+    episode's transition count and the last in-training validation's median coverage)."""
+    parts = [f"seed {job.seed}"]
+    steps = _last_value(job.run.episodes_csv, "timesteps")
+    parts.append(f"{int(float(steps)):,} transitions" if steps is not None else "starting")
+    coverage = seed_progress_value(job.run)
+    if coverage is not None:
+        parts.append(f"validation {coverage:.1%}")
+    return ", ".join(parts)
+
+
+def seed_progress_value(run: RunDir) -> float | None:
+    """The last in-training validation's median coverage of ``run`` (``None``: none yet)."""
+    value = _last_value(run.evaluations_csv, "coverage_median")
+    return None if value is None else float(value)
+
+
+def _last_value(path: Path, column: str) -> str | None:
+    """``column`` of the last row of a CSV log, ``None`` when there is none yet (or it is being
+    written: a partial last line is skipped)."""
+    try:
+        lines = path.read_text().splitlines()
+    except OSError:
+        return None
+    if len(lines) < 2:
+        return None
+    header = lines[0].split(",")
+    if column not in header:
+        return None
+    for line in reversed(lines[1:]):
+        cells = line.split(",")
+        if len(cells) == len(header):
+            return cells[header.index(column)]
+    return None
 
 
 def _start(

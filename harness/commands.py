@@ -623,6 +623,13 @@ def compare(
     rows: list[tuple[str, str, dict[str, Any] | None]] = []
     others: dict[str, list[str]] = {}
     taken: dict[str, int] = {}
+    seen: dict[Path, Path] = {}
+    for item in items:  # a run counted twice would narrow every interval over seeds
+        for run in group_runs(item) if is_group(item) else [item]:
+            key = Path(run).resolve()
+            if key in seen:
+                raise TargetError(f"{run} is compared twice (also in {seen[key]}): name it once")
+            seen[key] = Path(item)
     for item, given in zip(items, labels, strict=True):
         runs = group_runs(item) if is_group(item) else [item]
         label = given or run_label(runs[0] if runs else item)

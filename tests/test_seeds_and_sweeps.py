@@ -60,6 +60,13 @@ def test_bad_seed_lists_are_errors(text):
         parse_seeds(text, 100)
 
 
+@pytest.mark.parametrize("text", ["1001", ",".join(map(str, range(1001)))])
+def test_a_group_holds_at_most_1000_runs_given_as_a_count_or_a_list(text):
+    with pytest.raises(GroupError, match="at most 1,000 runs in a group"):
+        parse_seeds(text, 10**6)
+    assert len(parse_seeds(",".join(map(str, range(1000))), 10**6)) == 1000
+
+
 def test_jobs_share_the_cores_this_process_may_use():
     # A group started under `taskset -c 0` (or a Slurm job with one CPU) must not give each job
     # the machine's full core count: the share follows the CPU affinity.
@@ -117,10 +124,12 @@ def test_seed_group_trains_evaluates_and_compares(tiny, tmp_path, capsys):
     for run, ev in zip(members, evals, strict=True):  # at the temperature its tune chose
         assert ev["temperature"] == json.loads((run / "tune.json").read_text())["chosen"]
     out = tmp_path / "cmp.png"
-    assert (
-        main(["compare", str(group), str(members[0]), "--labels", "g", "one", "--out", str(out)])
-        == 0
-    )
+    # A run of the group named again is refused (it would count twice); a copy elsewhere is a
+    # run of its own.
+    assert main(["compare", str(group), str(members[0]), "--out", str(out)]) == 2
+    one = tmp_path / "one"
+    shutil.copytree(members[0], one)
+    assert main(["compare", str(group), str(one), "--labels", "g", "one", "--out", str(out)]) == 0
     text = capsys.readouterr().out
     assert "| g | 2 |" in text and "| one | 1 |" in text
     assert "1 seed: no interval" in text
@@ -553,3 +562,14 @@ def test_seed_progress_reads_the_last_complete_rows_of_the_run_logs(tmp_path):
     )
     assert seed_progress(job) == "seed 3, 2,400 transitions, validation 62.5%"
     assert seed_progress_value(run) == 0.625
+
+
+def test_compare_refuses_a_run_named_twice(tmp_path, capsys):
+    a = _fake_group(tmp_path / "a", [0.1, 0.2, 0.3], [{100: 0.1}] * 3)
+    out = str(tmp_path / "cmp.png")
+    for args in ([str(a), str(a)], [str(a), str(a / "run-seed1")]):
+        assert main(["compare", *args, "--out", out]) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.startswith("harness: error:") and "run-seed" in err
+        assert "is compared twice" in err and "\n" not in err
+    assert not (tmp_path / "cmp.png").exists()

@@ -49,8 +49,8 @@ def parse_seeds(text: str, max_seed: int) -> list[int]:
         numbers = [int(p) for p in parts]
     except ValueError:
         raise GroupError(f"--seeds {text!r}: expected a count (3) or a list (0,1,2)") from None
-    if len(numbers) == 1 and numbers[0] > MAX_GROUP_RUNS:
-        raise GroupError(f"--seeds {text!r}: at most {MAX_GROUP_RUNS:,} runs in a group")
+    if (numbers[0] if len(numbers) == 1 else len(numbers)) > MAX_GROUP_RUNS:
+        raise GroupError(f"--seeds {text[:40]!r}: at most {MAX_GROUP_RUNS:,} runs in a group")
     seeds = list(range(numbers[0])) if len(numbers) == 1 else numbers
     if not seeds:
         raise GroupError(f"--seeds {text!r}: needs at least one seed")

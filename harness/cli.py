@@ -46,7 +46,7 @@ from harness.commands import (
     tune,
 )
 from harness.config.loading import load_config
-from harness.config.schema import MAX_SEED, ConfigError, ExperimentConfig
+from harness.config.schema import MAX_SEED, ConfigError, ExperimentConfig, check_name
 from harness.results.groups import GroupError
 from harness.results.rundir import (
     RunDir,
@@ -637,6 +637,11 @@ def cmd_sweep(args: argparse.Namespace) -> int:
     from harness.training.sweep import format_best, run_sweep  # Optuna: only here
     from harness.training.train import TrainingInterrupted
 
+    if args.study is not None:
+        try:
+            check_name(args.study)
+        except ValueError as exc:
+            raise HarnessError(f"--study {args.study[:40]!r}: a study name {exc}") from None
     study = args.study or load_config(args.config, args.overrides).name
     try:
         result = run_sweep(

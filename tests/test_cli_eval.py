@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import zipfile
 from pathlib import Path
 
@@ -126,11 +127,13 @@ def test_compare_writes_a_plot_and_a_table(smoke_run, tmp_path, capsys):
     assert main(["eval", str(smoke_run)]) == 0
     out = tmp_path / "cmp.png"
     capsys.readouterr()
-    assert main(["compare", str(smoke_run), str(smoke_run), "--out", str(out)]) == 0
+    copy = tmp_path / "copy"  # the same run named twice would count twice: a copy is another
+    shutil.copytree(smoke_run, copy)
+    assert main(["compare", str(smoke_run), str(copy), "--out", str(out)]) == 0
     table = capsys.readouterr().out
     assert "smoke" in table and "%" in table
     assert out.read_bytes()[:8] == PNG_SIGNATURE
-    labelled = ["compare", str(smoke_run), str(smoke_run), "--out", str(out), "--labels", "a", "b"]
+    labelled = ["compare", str(smoke_run), str(copy), "--out", str(out), "--labels", "a", "b"]
     assert main(labelled) == 0
     out_lines = capsys.readouterr().out.splitlines()
     table = out_lines[: out_lines.index("")]  # the per-run table, before the over-seeds part

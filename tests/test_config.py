@@ -201,3 +201,10 @@ def test_quoted_set_values_stay_text_and_bare_exponents_are_numbers():
         assert config_from_dict({}, overrides=[f'name="{name}"']).name == name
     config = config_from_dict({}, overrides=["phases.0.learning_rate=1e-4"])
     assert config.phases[0].learning_rate == 1e-4
+
+
+def test_learning_starts_at_or_past_the_runs_end_is_refused():
+    phases = "phases: [{name: only, timesteps: 500}]"
+    with pytest.raises(ConfigError, match=r"algo.learning_starts: 500 is not below the run's 500"):
+        config_from_dict(yaml.safe_load(f"algo: {{learning_starts: 500}}\n{phases}"))
+    assert config_from_dict(yaml.safe_load(f"algo: {{learning_starts: 499}}\n{phases}"))

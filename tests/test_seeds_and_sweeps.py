@@ -573,3 +573,16 @@ def test_compare_refuses_a_run_named_twice(tmp_path, capsys):
         assert err.startswith("harness: error:") and "run-seed" in err
         assert "is compared twice" in err and "\n" not in err
     assert not (tmp_path / "cmp.png").exists()
+
+
+@pytest.mark.parametrize("study", ["../../x", "/tmp/abs", "a/b", ".hidden"])
+def test_a_study_is_a_name_not_a_path(tiny, tmp_path, capsys, study):
+    space = tmp_path / "space.yaml"
+    space.write_text(SPACE)
+    sweeps = tmp_path / "sweeps"
+    args = ["sweep", str(tiny), "--space", str(space), "--trials", "1", "--sweeps-dir",
+            str(sweeps), "--study", study]  # fmt: skip
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("harness: error: --study") and "a study name must be" in err
+    assert "\n" not in err and not sweeps.exists()

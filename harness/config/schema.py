@@ -469,6 +469,21 @@ class CheckpointConfig(_Section):
 _NAME_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9_.-]{0,63}")
 
 
+def check_name(value: str) -> str:
+    """``value`` if it is a name a folder can take (a run's, a study's): 1-64 letters, digits,
+    ``_``, ``.`` or ``-``, starting with a letter or digit; no separators, no ``..``.
+
+    Raises:
+        ValueError: saying what a name may hold.
+    """
+    if not _NAME_RE.fullmatch(value):  # fullmatch: `$` would let a trailing newline through
+        raise ValueError(
+            "must be 1-64 characters of letters, digits, '_', '.', '-', starting with a "
+            "letter or digit"
+        )
+    return value
+
+
 class ExperimentConfig(_Section):
     """A whole experiment: everything ``harness run`` needs."""
 
@@ -485,12 +500,7 @@ class ExperimentConfig(_Section):
     @classmethod
     def _safe_name(cls, v: str) -> str:
         # The name becomes a folder under runs/: no separators, no "..", no hidden names.
-        if not _NAME_RE.fullmatch(v):  # fullmatch: `$` would let a trailing newline through
-            raise ValueError(
-                "must be 1-64 characters of letters, digits, '_', '.', '-', starting with a "
-                "letter or digit"
-            )
-        return v
+        return check_name(v)
 
     @model_validator(mode="after")
     def _agent_indication(self) -> ExperimentConfig:
@@ -536,6 +546,17 @@ class ExperimentConfig(_Section):
                 f"algo.policy {self.algo.policy} is for observation {wanted!r}, but "
                 f"env.observation is {self.env.observation_kind!r} (use one of "
                 f"{', '.join(fitting)})"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _something_trains(self) -> ExperimentConfig:
+        # Learning starts after learning_starts transitions: at or past the run's end nothing
+        # would train, and the run would still say "done".
+        if self.algo.learning_starts >= self.total_timesteps:
+            raise ValueError(
+                f"algo.learning_starts: {self.algo.learning_starts:,} is not below the run's "
+                f"{self.total_timesteps:,} transitions (the phases' timesteps): nothing would train"
             )
         return self
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import io
+import json
 import math
 import os
 import shutil
@@ -453,8 +454,15 @@ def _write_reference(run: Path, out: Path, model: str, policy: Any) -> None:
         # reference keeps the sweep of the model it holds, as its tune.json.
         tune = result_filename("tune", [])
         origin = name if name != tune or model == "model" else result_filename("tune", [], model)
-        if RunDir(run).result(origin).is_file():
-            RunDir(out).result(name).write_bytes(RunDir(run).result(origin).read_bytes())
+        source = RunDir(run).result(origin)
+        if source.is_file():
+            data = source.read_bytes()
+            if source.suffix == ".json":
+                try:  # a reference is read by others: no damaged file goes into one
+                    json.loads(data)
+                except ValueError:
+                    raise TargetError(f"{source}: not JSON; run harness tune again") from None
+            RunDir(out).result(name).write_bytes(data)
     if model != "model":
         # The run's command made model.zip too; say which of its models this folder holds.
         RunDir(out).note_command(f"exported: {model}.zip (harness export --model {model})")

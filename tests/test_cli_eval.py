@@ -202,6 +202,17 @@ def test_export_makes_a_compact_reference_that_evaluates_the_same(
     assert "already exists" in capsys.readouterr().err
 
 
+def test_export_refuses_a_tune_file_that_is_not_json(smoke_run, tmp_path, capsys):
+    run = tmp_path / "run"
+    shutil.copytree(smoke_run, run)
+    (run / "tune.json").write_text("{not json")
+    out = tmp_path / "reference" / "smoke"
+    assert main(["export", str(run), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("harness: error:") and "tune.json: not JSON" in err and "\n" not in err
+    assert not out.exists() and not list(out.parent.glob(".smoke.*"))  # nothing half-made
+
+
 def test_export_of_best_model_keeps_its_own_tune_sweep(smoke_run, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)  # a reference's results go to runs/evals/ under the cwd
     (smoke_run / "tune.json").write_text('{"policy": "model.zip"}')

@@ -208,3 +208,17 @@ def test_learning_starts_at_or_past_the_runs_end_is_refused():
     with pytest.raises(ConfigError, match=r"algo.learning_starts: 500 is not below the run's 500"):
         config_from_dict(yaml.safe_load(f"algo: {{learning_starts: 500}}\n{phases}"))
     assert config_from_dict(yaml.safe_load(f"algo: {{learning_starts: 499}}\n{phases}"))
+
+
+def test_a_map_file_is_held_to_the_cell_limit_of_generated_maps(tmp_path, monkeypatch):
+    import harness.config.schema as schema
+
+    monkeypatch.setattr(schema, "MAX_MAP_CELLS", 20)
+    small, large = tmp_path / "small.txt", tmp_path / "large.txt"
+    small.write_text("....\n....\n" * 2)  # 16 cells
+    large.write_text("....\n" * 6)  # 24 cells
+    assert config_from_dict({"env": {"map": str(small), "n_agents": 1}}).env.map.endswith(
+        "small.txt"
+    )
+    with pytest.raises(ConfigError, match=r"large.txt' has more than the 20 cells"):
+        config_from_dict({"env": {"map": str(large), "n_agents": 1}})

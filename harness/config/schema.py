@@ -96,6 +96,23 @@ class RewardsConfig(_Section):
     step: float = DEFAULT_REWARDS["step"]
 
 
+def _check_map_file_size(path: Path) -> None:
+    """Refuse a map file of more than :data:`MAX_MAP_CELLS` cells, the bound generated maps obey
+    (counted line by line, stopping at the bound: no huge file is read whole)."""
+    cells = 0
+    try:
+        with path.open("rb") as f:
+            for line in f:
+                cells += len(line.rstrip(b"\r\n"))
+                if cells > MAX_MAP_CELLS:
+                    raise ValueError(
+                        f"map file {str(path)!r} has more than the {MAX_MAP_CELLS:,} cells this "
+                        "harness handles"
+                    )
+    except OSError as exc:
+        raise ValueError(f"cannot read map file {str(path)!r} ({exc.strerror})") from None
+
+
 class EnvConfig(_Section):
     """Arguments of ``coverage_v0.parallel_env`` (see ``envs/coverage_v0.py``)."""
 
@@ -199,6 +216,8 @@ class EnvConfig(_Section):
                 f"{v!r} is not 'random', a shipped map ({', '.join(shipped_maps())}) "
                 "or an existing map file"
             )
+        if Path(v).is_file() and v not in shipped_maps():
+            _check_map_file_size(Path(v))
         return v
 
     @field_validator("test_maps")

@@ -256,6 +256,8 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], str]] = [
      "a reference is read-only"),
     # ---- compare
     ("compare-window-zero", ["compare", "{done}", "--window", "0"], {}, "argument --window"),
+    ("compare-reps-endless", ["compare", "{done}", "--reps", "100000000"], {},
+     "--reps must be in [1, 200000], got 100000000"),
     ("compare-not-a-run", ["compare", "{tmp}/emptydir"], {"emptydir/.keep": ""},
      "not a run folder with episodes.csv"),
     ("compare-empty-csv", ["compare", "{tmp}/c"], {"c/episodes.csv": ""}, "episodes.csv: empty"),

@@ -554,7 +554,13 @@ def _eval_group(args: argparse.Namespace) -> int:
         cmd_eval(argparse.Namespace(**{**vars(args), "target": run, "json": False}))
 
     standard = not args.overrides and args.episodes == DEFAULT_EPISODES and args.seed is None
-    result, saved = evaluate_group(Path(args.target), evaluate_run, standard)
+    result, saved, missing = evaluate_group(Path(args.target), evaluate_run, standard)
+    if missing:
+        print(
+            f"harness: no group-eval.json: the group lacks {', '.join(missing)} (finish the "
+            "missing seeds, then evaluate the group again)",
+            file=sys.stderr,
+        )
     if saved is not None:
         from harness.results.stats import with_ci
 

@@ -526,22 +526,25 @@ def evaluate(target: Target, episodes: int, overrides: Sequence[str]) -> tuple[d
 
 def evaluate_group(
     group: Path, evaluate_run: Any, standard: bool
-) -> tuple[dict[str, Any] | None, Path | None]:
+) -> tuple[dict[str, Any] | None, Path | None, list[str]]:
     """``harness eval GROUP``: ``evaluate_run(run)`` for every run, then, for the standard
-    evaluation (no ``--set``, 100 episodes), the numbers over seeds in ``GROUP/group-eval.json``.
+    evaluation (no ``--set``, 100 episodes), the numbers over seeds in ``GROUP/group-eval.json``;
+    not when a seed's run is missing (their names are returned: numbers over the others would
+    read as the group's).
     """
-    from harness.results.groups import GROUP_EVAL_FILE, group_runs
+    from harness.results.groups import GROUP_EVAL_FILE, group_members, group_runs
     from harness.results.stats import describe, seed_statistics
 
     runs = group_runs(group)
+    missing = [run.name for run in group_members(group) if run not in runs]
     summaries = {}
     for run in runs:
         evaluate_run(run)
         data = read_eval_json(run) if standard else None
         if data is not None:
             summaries[run.name] = data
-    if len(summaries) != len(runs):
-        return None, None
+    if missing or len(summaries) != len(runs):
+        return None, None, missing
     stats = seed_statistics({"group": [s["coverage_mean"] for s in summaries.values()]})
     keys = ("seed", "coverage_mean", "coverage_median", "wall_hits_mean")
     result = {
@@ -549,7 +552,7 @@ def evaluate_group(
         "runs": {name: {k: s[k] for k in keys} for name, s in summaries.items()},
         "coverage_mean_over_seeds": describe(stats["group"]),
     }
-    return result, write_json(group / GROUP_EVAL_FILE, result)
+    return result, write_json(group / GROUP_EVAL_FILE, result), []
 
 
 def tune(

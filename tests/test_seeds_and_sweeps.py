@@ -586,3 +586,21 @@ def test_a_study_is_a_name_not_a_path(tiny, tmp_path, capsys, study):
     err = capsys.readouterr().err.strip()
     assert err.startswith("harness: error: --study") and "a study name must be" in err
     assert "\n" not in err and not sweeps.exists()
+
+
+def test_a_group_missing_a_seed_gets_no_group_eval(tmp_path):
+    from harness.commands import evaluate_group
+
+    group = _fake_group(tmp_path / "g", [0.1, 0.2, 0.3], [{100: 0.1}] * 3)
+    for k in range(3):  # the keys group-eval.json keeps of each run's evaluation
+        path = group / f"run-seed{k}" / "eval.json"
+        path.write_text(json.dumps({**json.loads(path.read_text()), "seed": 1_000_003}))
+    evaluated = []
+    result, saved, missing = evaluate_group(group, evaluated.append, standard=True)
+    assert missing == [] and saved == group / "group-eval.json" and len(evaluated) == 3
+    assert result["coverage_mean_over_seeds"]["seeds"] == 3
+    saved.unlink()
+    shutil.rmtree(group / "run-seed1")
+    result, saved, missing = evaluate_group(group, evaluated.append, standard=True)
+    assert (result, saved, missing) == (None, None, ["run-seed1"])
+    assert not (group / "group-eval.json").exists()

@@ -66,19 +66,28 @@ def is_group(folder: Path) -> bool:
     return (Path(folder) / GROUP_FILE).is_file()
 
 
+def group_members(folder: Path) -> list[Path]:
+    """Every run folder ``group.json`` names, in seed order, whether it exists or not.
+
+    Raises:
+        GroupError: when ``group.json`` cannot be read.
+    """
+    folder = Path(folder)
+    try:
+        data = json.loads((folder / GROUP_FILE).read_text(encoding="utf-8"))
+        return [folder / entry["run"] for entry in data["runs"]]
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise GroupError(f"{folder / GROUP_FILE}: not a readable group file ({exc})") from None
+
+
 def group_runs(folder: Path) -> list[Path]:
-    """The run folders of a group, in seed order.
+    """The run folders of a group that exist, in seed order.
 
     Raises:
         GroupError: when ``group.json`` cannot be read or names no run that exists.
     """
     folder = Path(folder)
-    try:
-        data = json.loads((folder / GROUP_FILE).read_text(encoding="utf-8"))
-        runs = [folder / entry["run"] for entry in data["runs"]]
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise GroupError(f"{folder / GROUP_FILE}: not a readable group file ({exc})") from None
-    found = [run for run in runs if RunDir(run).config.is_file()]
+    found = [run for run in group_members(folder) if RunDir(run).config.is_file()]
     if not found:
         raise GroupError(f"{folder}: the group has no run folder yet")
     return found

@@ -391,7 +391,7 @@ class CoordinatedPlanner(FrontierPlanner):
         in place when cells became passable: no graph is built again during an episode."""
         passable, s = self.passable_np, self.stride
         n = passable.size
-        if self._grid is None or self._grid.shape[0] != n:
+        if self._grid is None:  # a new episode (_rebuild) or the first step
             inner = np.arange(s, n - s)
             self._nbr = inner[:, None] + np.array(self.offsets)  # (inner cells, 4)
             indptr = np.zeros(n + 1, dtype=np.int32)

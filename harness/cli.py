@@ -1,5 +1,5 @@
 """The ``harness`` command: ``harness run CONFIG.yaml`` and friends (README "Quick start" and
-the sections after it). This module parses arguments and prints; the work of each subcommand is
+"Commands", docs/ for each). This module parses arguments and prints; the work of each subcommand is
 elsewhere:
 
 ========  ==========================================================================

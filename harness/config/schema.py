@@ -298,7 +298,7 @@ class ImitationConfig(_Section):
     a planner in ``env.frontier``, the planner's move) unless the TD term holds another
     move's value higher. The weight decides how hard that is: a move becomes greedy only when
     its advantage exceeds about ``weight / (its share of the samples)``, never when the weight
-    is above that share (README "Imitating the planner"). The step is computed by the env in
+    is above that share (docs/training.md). The step is computed by the env in
     every state, so the "demonstrations" are every transition the agents collect."""
 
     margin: Annotated[float, Field(ge=0.0)] = 0.8

@@ -188,8 +188,8 @@ class DoubleDQN(DQN):
       :func:`harness.sb3.targets.large_margin_loss`) towards action ``a`` to every sample's TD loss,
       ``margin_weight * max_a [Q(s, a) + margin * (a != a_E)] - Q(s, a_E)``: the greedy policy
       follows the expert's action (for the coverage env, its frontier step) unless the TD targets
-      hold another action's value higher (how strongly depends on ``margin_weight``: README
-      "Imitating the planner"). The priorities stay ``|TD error|``.
+      hold another action's value higher (how strongly depends on ``margin_weight``:
+      docs/training.md). The priorities stay ``|TD error|``.
     * The names of :data:`harness.sb3.registry.POLICIES` select the harness's policies
       (``"DuelingMlpPolicy"``, ``"TeamMapPolicy"``, ``"DuelingTeamMapPolicy"``), and
       ``"MultiInputPolicy"`` is SB3's with the mask left out of the network's input.

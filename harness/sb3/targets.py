@@ -137,7 +137,7 @@ def large_margin_loss(
     and 0 for the expert's action ``a_E``. It is 0 once the expert's action leads every other
     action by at least ``margin``, and otherwise pulls the expert's value up and the best rival's
     down: the greedy policy then copies the expert unless the TD loss holds another action's
-    value higher (how strongly depends on the loss's weight, see README "Imitating the planner").
+    value higher (how strongly depends on the loss's weight, see docs/training.md).
 
     With ``expert_set`` (actions that do what the expert's action does), ``l`` is 0 on the whole
     set and the expert's value is the set's best: ``max_a [Q(s, a) + margin * (a not in E)] -

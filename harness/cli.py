@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import shutil
 import signal
 import sys
 import warnings
@@ -55,7 +56,13 @@ from harness.results.rundir import (
     check_output_file,
 )
 from harness.results.stats import REPS
-from harness.training.checkpoints import CheckpointError, complete_checkpoints, read_state
+from harness.training.checkpoints import (
+    CheckpointError,
+    ConfigChangedError,
+    check_config,
+    complete_checkpoints,
+    read_state,
+)
 from harness.training.sweep import BEST_CONFIG, PRUNERS, SweepError
 
 EXIT_USAGE = 2
@@ -386,12 +393,43 @@ def cmd_run(args: argparse.Namespace) -> int:
     if args.jobs != 1:
         raise HarnessError("--jobs goes with --seeds")
     run = RunDir.create_at(args.into) if args.into else RunDir.create(args.runs_dir, config.name)
-    with run.lock():
-        # Before the folder is announced (and before the slow torch import): from here on a
-        # kill leaves a folder that `--resume` can start again.
-        atomic_write_text(run.config, config.to_yaml())
-        print(f"run folder: {run.path}", file=sys.stderr)
-        return _train(config, run, args, mode="new")
+    try:
+        with run.lock():
+            # Before the folder is announced (and before the slow torch import): from here on a
+            # kill leaves a folder that `--resume` can start again.
+            atomic_write_text(run.config, config.to_yaml())
+            print(f"run folder: {run.path}", file=sys.stderr)
+            return _train(config, run, args, mode="new")
+    except OSError as exc:  # e.g. a full disk before anything was trained
+        if not _remove_unstarted(run):
+            raise
+        raise HarnessError(
+            f"{os_error_text(exc)}; removed the run folder {run.path} (nothing was trained)"
+        ) from None
+
+
+#: What ``harness run`` writes into a new run folder before it trains.
+_START_FILES = frozenset({".lock", "config.yaml", "command.txt", "tb", "checkpoints"})
+
+
+def _remove_unstarted(run: RunDir) -> bool:
+    """Remove the folder of a new run that failed before its first checkpoint, if it holds only
+    what the start wrote (no episode logged, no checkpoint); whether it was removed."""
+    try:
+        if not {p.name for p in run.path.iterdir()} <= _START_FILES:
+            return False
+        if complete_checkpoints(run.checkpoints):
+            return False
+        shutil.rmtree(run.path)
+    except OSError:
+        return False
+    return True
+
+
+def os_error_text(exc: OSError) -> str:
+    """An ``OSError`` in words, with the file it names (for the one-line error)."""
+    where = f": {exc.filename}" if exc.filename else ""
+    return f"{exc.strerror or exc}{where}"
 
 
 def _run_group(args: argparse.Namespace, config: ExperimentConfig) -> int:
@@ -451,6 +489,11 @@ def _resume(args: argparse.Namespace) -> int:
     with run.lock():  # a second resume of a live run stops here
         config = load_config(run.config)
         found = complete_checkpoints(run.checkpoints)
+        if not found and run.model.is_file():  # model.zip is written once all phases are done
+            raise HarnessError(
+                f"{run.path}: this run is finished (it has its model.zip) and has no checkpoint to "
+                "resume from; nothing was trained and its model.zip is kept"
+            )
         if not found:
             print(
                 f"{run.path}: no checkpoint yet (stopped before the first one): starting the run "
@@ -468,6 +511,12 @@ def _resume(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
             return 0
+        try:
+            check_config(found[-1], config)  # before the slow start: one line, nothing changed
+        except ConfigChangedError:
+            raise
+        except CheckpointError:
+            pass  # its copy is unreadable: train() falls back to the older checkpoint
         print(f"resuming {run.path}", file=sys.stderr)
         return _train(config, run, args, mode="resume")
 
@@ -745,8 +794,7 @@ def _main(argv: list[str]) -> int:
         print(f"harness: error: {exc}", file=sys.stderr)
         return EXIT_USAGE
     except OSError as exc:  # a file the command had to read or write (full disk, permissions)
-        where = f": {exc.filename}" if exc.filename else ""
-        print(f"harness: error: {exc.strerror or exc}{where}", file=sys.stderr)
+        print(f"harness: error: {os_error_text(exc)}", file=sys.stderr)
         return EXIT_USAGE
     except KeyboardInterrupt:  # Ctrl-C outside training (which stops cleanly by itself)
         print("harness: interrupted", file=sys.stderr)

@@ -54,6 +54,35 @@ class TargetError(ValueError):
     """A model, run folder or baseline that cannot be used, with a one-line message."""
 
 
+#: Most bytes the files of a model zip may unpack to, together. SB3 reads each file of the zip
+#: into memory (and torch then builds the tensors from it), so a small zip that declares huge
+#: files, such as a few MB of deflated zeros, would take gigabytes of memory before any error.
+#: The largest model of this project unpacks to under 5 MB: 1 GiB leaves two hundred times that.
+MAX_MODEL_UNPACKED = 1 << 30
+
+
+def check_model_zip(model: Path | bytes, name: Path | str) -> None:
+    """Refuse a model zip (a file, or its bytes) whose files unpack to more than
+    :data:`MAX_MODEL_UNPACKED` bytes, from the sizes its directory declares, before anything is
+    unpacked (Python's ``zipfile``, which SB3 uses, never unpacks past a declared size).
+
+    Raises:
+        TargetError: naming ``name`` and the sizes, or the zip's damage when it cannot be read.
+    """
+    try:
+        with zipfile.ZipFile(io.BytesIO(model) if isinstance(model, bytes) else model) as archive:
+            items = archive.infolist()
+    except Exception as exc:  # a damaged zip raises zipfile, OSError, EOFError or struct errors
+        raise TargetError(f"{name}: cannot load model ({type(exc).__name__}: {exc})") from None
+    total = sum(item.file_size for item in items)
+    if total > MAX_MODEL_UNPACKED:
+        largest = max(items, key=lambda item: item.file_size)
+        raise TargetError(
+            f"{name}: its files unpack to {total:,} bytes (largest {largest.filename!r}: "
+            f"{largest.file_size:,}), over the {MAX_MODEL_UNPACKED:,} a model may take; not loaded"
+        )
+
+
 @dataclass
 class Target:
     """A policy with the config it is evaluated under."""
@@ -106,6 +135,7 @@ def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) ->
     else:
         raise TargetError(f"{path}: no such run folder or model file")
     config = load_config(config_path, overrides)
+    check_model_zip(model_path, model_path)
     from harness.sb3.dqn import DoubleDQN  # torch and SB3 only when a model is used
 
     try:
@@ -424,6 +454,7 @@ def export_reference(run: Path, out: Path, model: str = "model") -> Path:
         raise TargetError(f"{source}: no such model")
     if out.exists():
         raise TargetError(f"{out}: already exists (a reference is never overwritten)")
+    check_model_zip(source, source)
     from harness.sb3.dqn import DoubleDQN
 
     try:
@@ -477,6 +508,7 @@ def _without_target_network(model_zip: bytes) -> bytes:
     it from the online network), halving the size of the weights."""
     import torch
 
+    check_model_zip(model_zip, "the exported model")
     out = io.BytesIO()
     with (
         zipfile.ZipFile(io.BytesIO(model_zip)) as zin,

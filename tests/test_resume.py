@@ -1,10 +1,12 @@
 """Resuming survives damage: a kill before the first checkpoint, a second process on the same
-run, an unreadable newest checkpoint, tampered or torn files. Each case either resumes correctly
-or stops with one line and exit code 2, changing nothing."""
+run, an unreadable newest checkpoint, tampered or torn files, an edited config.yaml, a finished
+run without its checkpoints. Each case either resumes correctly or stops with one line and exit
+code 2, changing nothing."""
 
 from __future__ import annotations
 
 import csv
+import errno
 import hashlib
 import json
 import os
@@ -14,6 +16,7 @@ import signal
 from pathlib import Path
 
 import pytest
+import yaml
 
 from harness.cli import main
 from harness.config.loading import load_config
@@ -228,3 +231,96 @@ def test_rng_file_round_trip_checks_its_content(run_copy):
         pickle.dump({"numpy": "nonsense"}, f)
     with pytest.raises(CheckpointError, match=r"rng\.pkl: unreadable"):
         read_rng(latest)
+
+
+# ---------------------------------------------------------------------- what is in the folder
+def edit_config(run: Path, key: str, value: object) -> None:
+    """Set ``key`` (dotted, phases by name) in the run's config.yaml, as a person would."""
+    path = run / "config.yaml"
+    data = yaml.safe_load(path.read_text())
+    *parents, last = key.split(".")
+    node = data
+    for part in parents:
+        node = next(p for p in node if p["name"] == part) if isinstance(node, list) else node[part]
+    node[last] = value
+    path.write_text(yaml.safe_dump(data, sort_keys=False))
+
+
+def only_line(capsys: pytest.CaptureFixture[str]) -> str:
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("harness: error:"), err
+    return err[0]
+
+
+@pytest.mark.parametrize(
+    ("key", "value", "shown"),
+    [
+        ("env.n_agents", 3, "env.n_agents: 2 -> 3"),
+        ("algo.net_arch", [32], "algo.net_arch: [64, 64] -> [32]"),
+        ("vec.copies", 3, "vec.copies: 2 -> 3"),
+        ("algo.buffer_size", 4000, "algo.buffer_size: 5000 -> 4000"),
+        ("phases.initial.timesteps", 600, "phases.initial.timesteps: 1200 -> 600"),
+    ],
+)
+def test_an_edited_config_is_refused_naming_the_keys(run_copy, capsys, key, value, shown):
+    edit_config(run_copy, key, value)
+    before = snapshot(run_copy)
+    assert resume(run_copy) == 2
+    err = only_line(capsys)
+    assert f"{run_copy / 'config.yaml'}: changed since {newest(run_copy).name}" in err
+    assert shown in err, err
+    assert snapshot(run_copy) == before
+
+
+def test_settings_of_the_machine_may_change(run_copy):
+    edit_config(run_copy, "algo.threads", 1)
+    edit_config(run_copy, "checkpoint.every", 300)
+    assert resume(run_copy) == 0
+
+
+def test_checkpoints_without_their_config_still_resume(run_copy):
+    for checkpoint in complete_checkpoints(run_copy / "checkpoints"):
+        (checkpoint / "config.yaml").unlink()  # as written before checkpoints kept it
+    assert resume(run_copy) == 0
+    stored = yaml.safe_load((newest(run_copy) / "config.yaml").read_text())
+    assert stored == yaml.safe_load((run_copy / "config.yaml").read_text())
+
+
+def test_checkpoints_without_their_config_still_refuse_another_team_size(run_copy, capsys):
+    for checkpoint in complete_checkpoints(run_copy / "checkpoints"):
+        (checkpoint / "config.yaml").unlink()
+    edit_config(run_copy, "env.n_agents", 3)
+    before = snapshot(run_copy)
+    assert resume(run_copy) == 2
+    assert "env.n_agents x vec.copies is 6" in one_line_error(capsys)
+    assert snapshot(run_copy) == before
+
+
+def test_a_finished_run_without_checkpoints_is_refused_and_keeps_its_model(run_copy, capsys):
+    assert resume(run_copy) == 0
+    capsys.readouterr()
+    shutil.rmtree(run_copy / "checkpoints")
+    model = (run_copy / "model.zip").read_bytes()
+    before = snapshot(run_copy)
+    assert resume(run_copy) == 2
+    err = only_line(capsys)
+    assert "this run is finished" in err and "no checkpoint to resume from" in err
+    assert "model.zip is kept" in err
+    assert (run_copy / "model.zip").read_bytes() == model
+    assert snapshot(run_copy) == before
+
+
+@pytest.mark.parametrize(
+    "fails", ["harness.cli.atomic_write_text", "harness.training.train.make_vec_env"]
+)
+def test_a_full_disk_at_start_removes_the_new_run_folder(tmp_path, capsys, monkeypatch, fails):
+    def full_disk(path, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(fails, full_disk)
+    runs = tmp_path / "runs"
+    assert main(["run", str(SMOKE), "--runs-dir", str(runs), "--no-progress"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("harness: error: No space left on device"), err
+    assert "; removed the run folder " in err[-1] and "(nothing was trained)" in err[-1]
+    assert list(runs.iterdir()) == []

@@ -41,3 +41,10 @@ def test_credit_new_cells_changes_only_the_cells_it_credits():
     changed = np.argwhere(cells != before).tolist()
     assert changed == [[2, 3]] and cells[2, 3] == CELL_VISITED
     assert np.argwhere(credited_by >= 0).tolist() == [[1, 2]] and credited_by[1, 2] == 0
+
+
+def test_team_share_pays_every_agent_for_the_team_cells():
+    credited, hit = [1, 0, 1], [0, 1, 0]
+    # team 1: every agent is paid for the team's 2 cells; team 0.5: half own, half the team's.
+    assert thesis_reward(credited, hit, 2.0, -10.0, -1.0, team=1.0) == [3.0, -7.0, 3.0]
+    assert thesis_reward(credited, hit, 2.0, -10.0, -1.0, team=0.5) == [2.0, -9.0, 2.0]

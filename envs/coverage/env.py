@@ -30,7 +30,12 @@ from envs.coverage.types import (
     GridState,
 )
 
-DEFAULT_REWARDS: dict[str, float] = {"new_cell": 2.0, "wall_hit": -10.0, "step": -1.0}
+DEFAULT_REWARDS: dict[str, float] = {
+    "new_cell": 2.0,
+    "wall_hit": -10.0,
+    "step": -1.0,
+    "team": 0.0,
+}
 #: Attempts at drawing a random map with at least ``n_agents`` free cells before giving up.
 _MAX_MAP_DRAWS = 100
 
@@ -130,9 +135,9 @@ class CoverageEnv(ParallelEnv):
         space = self._observer.space()
         self._obs_space = agent_id_space(space, self.n_agents) if self.agent_id else space
         # Actions 0..4 move (up, down, left, right, stay); a planner-backed action kind of the
-        # frontier option adds its actions after them (the frontier step: 5).
-        extra = self.frontier.extra_actions if self.frontier is not None else 0
-        self._act_space = spaces.Discrete(5 + extra)
+        # frontier option adds its actions after them (the frontier step: 5), or replaces them
+        # (the goal action: one action per candidate slot).
+        self._act_space = spaces.Discrete(self.frontier.n_actions if self.frontier else 5)
         self._np_random: np.random.Generator | None = None
         self._state: GridState | None = None
         self._walls = np.zeros((self.height, self.width), dtype=bool)
@@ -431,6 +436,8 @@ def _check_rewards(rewards: Mapping[str, float] | None) -> dict[str, float]:
                 f"unknown reward key(s) {sorted(unknown)}; known: {sorted(DEFAULT_REWARDS)}"
             )
         merged.update({k: float(v) for k, v in rewards.items()})
+    if not 0.0 <= merged["team"] <= 1.0:
+        raise ValueError(f"rewards.team must be in [0, 1], got {merged['team']}")
     return merged
 
 

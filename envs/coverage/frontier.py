@@ -15,10 +15,11 @@ from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, fields
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 
+from envs.coverage.goals import Candidates, Goal, gather_candidates
 from envs.coverage.planners import (
     FrontierPlanner,
     HungarianPlanner,
@@ -33,7 +34,9 @@ __all__ = [
     "ActionKind",
     "Frontier",
     "FrontierOptions",
+    "Goal",
     "PlannerEntry",
+    "Step",
 ]
 
 
@@ -66,36 +69,76 @@ PLANNERS: dict[str, PlannerEntry] = {
 
 
 @dataclass(frozen=True)
-class ActionKind:
-    """A planner-backed action kind of the registry :data:`ACTIONS`: actions numbered from
-    ``FRONTIER_STEP`` (after the five moves) that the env turns into moves by asking
-    :class:`Frontier`."""
+class Step:
+    """Options of the frontier step (``frontier: {action: step}``): a sixth action after the
+    five moves, one step along the compass (the planner's move when the options name one).
+    None to set."""
 
-    n_actions: int
-    """Actions it adds to the five moves."""
-    resolve: Callable[[Frontier, list[int], np.random.Generator], list[int]]
-    """``(frontier, actions, rng) -> moves``: every action of this kind replaced by a move."""
+    name: ClassVar[str] = "step"
+    #: The step is added after the five moves.
+    replaces_moves: ClassVar[bool] = False
+    #: The action a policy that follows the planner takes.
+    expert_action: ClassVar[int] = FRONTIER_STEP
+    needs_planner: ClassVar[bool] = False
+    n_actions: ClassVar[int] = 1
+
+    def config(self) -> str:
+        """The config form of these options."""
+        return self.name
+
+    def resolve(
+        self, frontier: Frontier, actions: list[int], rng: np.random.Generator
+    ) -> list[int]:
+        """The frontier step: one of the moves the current compass marks (drawn from ``rng``
+        when several tie, so teammates at one spot may part), stay when it marks none."""
+        compass = frontier.compass
+        out = list(actions)
+        for i, a in enumerate(actions):
+            if a == FRONTIER_STEP:
+                moves = np.flatnonzero(compass[i, :4])
+                if moves.size == 0:
+                    out[i] = STAY
+                elif moves.size == 1:
+                    out[i] = int(moves[0])
+                else:
+                    out[i] = int(moves[rng.integers(moves.size)])
+        return out
 
 
-def _step_moves(frontier: Frontier, actions: list[int], rng: np.random.Generator) -> list[int]:
-    """The frontier step: one of the moves the current compass marks (drawn from ``rng`` when
-    several tie, so teammates at one spot may part), stay when it marks none."""
-    compass = frontier.compass
-    out = list(actions)
-    for i, a in enumerate(actions):
-        if a == FRONTIER_STEP:
-            moves = np.flatnonzero(compass[i, :4])
-            if moves.size == 0:
-                out[i] = STAY
-            elif moves.size == 1:
-                out[i] = int(moves[0])
-            else:
-                out[i] = int(moves[rng.integers(moves.size)])
-    return out
+#: A planner-backed action kind's options.
+ActionKind = Step | Goal
+
+#: Planner-backed action kinds by the name ``frontier.action`` takes: their options classes
+#: (``action: NAME`` or ``action: {NAME: {option: value}}``).
+ACTIONS: dict[str, type[Step] | type[Goal]] = {"step": Step, "goal": Goal}
 
 
-#: Planner-backed action kinds by the name ``frontier.action`` takes.
-ACTIONS: dict[str, ActionKind] = {"step": ActionKind(1, _step_moves)}
+def _action(value: Any) -> ActionKind | None:
+    """The action kind's options from their config form (a name, ``{name: {options}}``, or
+    options already made)."""
+    if value is None or isinstance(value, (Step, Goal)):
+        return value
+    if isinstance(value, str):
+        name, given = value, {}
+    elif isinstance(value, Mapping) and len(value) == 1:
+        name, given = next(iter(value.items()))
+        given = {} if given is None else given
+        if not isinstance(given, Mapping):
+            raise ValueError(f"frontier.action.{name}: options must be a mapping, got {given!r}")
+    else:
+        raise ValueError(
+            f"frontier.action must be a kind's name or {{name: {{options}}}}, got {value!r}"
+        )
+    _choice(name, ACTIONS, "action")
+    cls = ACTIONS[name]
+    known = [f.name for f in fields(cls)]
+    unknown = sorted(set(given) - set(known))
+    if unknown:
+        known_list = ", ".join(known) or "none"
+        raise ValueError(
+            f"frontier.action.{name}: unknown option(s) {unknown}; known: {known_list}"
+        )
+    return cls(**given)
 
 
 def _choice(value: Any, registry: Mapping[str, Any], key: str) -> None:
@@ -117,12 +160,18 @@ class FrontierOptions:
             shortest path to the nearest known unvisited cell (and the step draws among them).
     """
 
-    action: str | None = None
+    action: ActionKind | None = None
     planner: str | None = None
 
     def __post_init__(self) -> None:
-        _choice(self.action, ACTIONS, "action")
+        object.__setattr__(self, "action", _action(self.action))
         _choice(self.planner, PLANNERS, "planner")
+        if self.action is not None and self.action.needs_planner and self.planner is None:
+            raise ValueError(
+                f"frontier.action: {self.action.name!r} needs frontier.planner (the planner's "
+                f"choice is its first candidate); known: "
+                f"{', '.join(n for n, p in PLANNERS.items() if p.in_env)}"
+            )
         if self.planner is not None and not PLANNERS[self.planner].in_env:
             raise ValueError(
                 f"frontier.planner: {self.planner!r} draws its ties from a generator: it is a "
@@ -175,14 +224,22 @@ class FrontierOptions:
 
     @property
     def expert_action(self) -> int | None:
-        """The first planner-backed action (the planner's own move, which imitation learns
-        from), ``None`` without one."""
-        return FRONTIER_STEP if self.action is not None else None
+        """The action that follows the planner (the frontier step; the goal action's slot 0),
+        which imitation learns from; ``None`` without a planner-backed action."""
+        return self.action.expert_action if self.action is not None else None
 
     @property
-    def extra_actions(self) -> int:
-        """Actions added to the five moves."""
-        return ACTIONS[self.action].n_actions if self.action is not None else 0
+    def n_actions(self) -> int:
+        """Size of the env's action space: the five moves and the kind's actions after them,
+        or the kind's actions alone when it replaces the moves (the goal action)."""
+        if self.action is None:
+            return 5
+        return self.action.n_actions + (0 if self.action.replaces_moves else 5)
+
+    def config(self) -> dict[str, Any]:
+        """These options in their config form (``{"action": ..., "planner": ...}``)."""
+        action = self.action.config() if self.action is not None else None
+        return {"action": action, "planner": self.planner}
 
 
 class Frontier:
@@ -203,6 +260,15 @@ class Frontier:
         )
         #: ``(agents, 5)``: the compass of the last observation (see the team-map observation).
         self.compass = np.zeros((0, 5), dtype=np.float32)
+        self.height, self.width = height, width
+        #: The goal action's candidates of the last observation (``None`` without it).
+        self.candidates: Candidates | None = None
+
+    @property
+    def goal(self) -> Goal | None:
+        """The goal action's options, when that is the action kind."""
+        action = self.options.action
+        return action if isinstance(action, Goal) else None
 
     def planned_moves(self, state: GridState) -> list[int]:
         """Each agent's move by the planner on the team's map of ``state`` (needs a planner)."""
@@ -213,7 +279,12 @@ class Frontier:
             state.positions,
             lambda: (interior == CELL_WALL, interior == CELL_VISITED),
         )
-        return self.planner.act()
+        moves = self.planner.act()
+        if self.goal is not None:
+            self.candidates = gather_candidates(
+                self.planner, moves, self.goal.k, self.height, self.width
+            )
+        return moves
 
     def resolve(self, actions: Sequence[int], rng: np.random.Generator) -> list[int]:
         """``actions`` with every planner-backed action replaced by its move (rules: the kind's
@@ -221,4 +292,4 @@ class Frontier:
         acts = list(actions)
         if self.options.action is None:
             return acts
-        return ACTIONS[self.options.action].resolve(self, acts, rng)
+        return self.options.action.resolve(self, acts, rng)

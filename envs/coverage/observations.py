@@ -23,6 +23,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
 from envs.coverage.frontier import Frontier
+from envs.coverage.goals import ACTION_MASK_KEY, GOAL_FEATURES, GOALS_KEY
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL, GridState
 
 COORD_MODES = ("normalized", "raw")
@@ -303,6 +304,10 @@ class TeamMapObservation(ObservationBuilder):
         views["vector"] = spaces.Box(0.0, 1.0, (3,), np.float32)
         if self.frontier:
             views["frontier"] = spaces.Box(0.0, 1.0, (5,), np.float32)
+        goal = self._frontier_ext.goal if self._frontier_ext is not None else None
+        if goal is not None:
+            views[GOALS_KEY] = spaces.Box(-1.0, 1.0, (goal.k, len(GOAL_FEATURES)), np.float32)
+            views[ACTION_MASK_KEY] = spaces.Box(0.0, 1.0, (goal.k,), np.float32)
         return spaces.Dict(views)
 
     # ------------------------------------------------------------------ per-episode arrays
@@ -405,6 +410,9 @@ class TeamMapObservation(ObservationBuilder):
         if ext is not None:
             views["frontier"] = compass
             ext.compass = compass  # what planner-backed actions of the next env step follow
+            if ext.candidates is not None:  # the goal action's (made by planned_moves above)
+                views[GOALS_KEY] = ext.candidates.features
+                views[ACTION_MASK_KEY] = ext.candidates.mask
         return views
 
     def _frontier_views(self, state: GridState) -> tuple[np.ndarray, np.ndarray]:
@@ -530,6 +538,8 @@ def blocked_moves(obs: np.ndarray | dict[str, np.ndarray], n_actions: int = 5) -
             team-map arrays (``"local"`` of shape ``(batch, 5, crop, crop)``).
         n_actions: Columns of the result (5, or 6 with the frontier step).
     """
+    if isinstance(obs, dict) and GOALS_KEY in obs:  # the goal action: slots, no moves
+        return np.zeros((len(obs[GOALS_KEY]), n_actions), dtype=bool)
     if isinstance(obs, dict):
         local = np.asarray(obs["local"])
         c = local.shape[-1] // 2

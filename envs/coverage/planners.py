@@ -94,6 +94,8 @@ class FrontierPlanner:
         self.window = tuple(dr * s + dc for dr in (-1, 0, 1) for dc in (-1, 0, 1))
         self.steps = -1
         self.positions: list[int] = []
+        #: Per agent: the padded cell of its target at the last :meth:`act` (-1: none).
+        self.goals: list[int] = []
         #: Per agent: its last target was far, so its next search goes straight to SciPy (the
         #: distance shrinks by one a step, and the Python search would only hit its budget).
         self.far: list[bool] = []
@@ -144,9 +146,10 @@ class FrontierPlanner:
         self.seen = seen.ravel().tolist()
         self.passable = passable.tolist()
         self.target = target.tolist()
-        # numpy mirrors of the two lists the compiled search needs whole.
+        # numpy mirrors of the lists the compiled searches (and the goal candidates) need whole.
         self.passable_np = passable
         self.target_np = target
+        self.seen_np = seen.ravel()
         self.n_targets = int(target.sum())
         self.graph_version = 0  # bumped whenever a cell becomes passable
         self.far = [False] * len(self.positions)
@@ -160,7 +163,7 @@ class FrontierPlanner:
         for d in self.window:
             q = p + d
             if not self.seen[q]:
-                self.seen[q] = True
+                self.seen[q] = self.seen_np[q] = True
                 if self.free[q]:
                     self.passable[q] = self.passable_np[q] = True
                     self.graph_version += 1
@@ -178,6 +181,7 @@ class FrontierPlanner:
         if self.tie_break == "random" and rng is None:
             raise ValueError('tie_break="random" needs a generator: act(rng=...)')
         self.rng = rng
+        self.goals = [-1] * len(self.positions)
         if self.n_targets == 0:  # everything seen is visited: nothing left to walk to
             return [STAY] * len(self.positions)
         claimed: set[int] = set()
@@ -194,8 +198,29 @@ class FrontierPlanner:
                 continue
             goal, step = found
             claimed.add(goal)
+            self.goals[i] = goal
             actions.append(self.action_of[step - start])
         return actions
+
+    def distance_fields(self) -> tuple[np.ndarray, np.ndarray]:
+        """Every agent's shortest path lengths through the seen free cells to every padded cell
+        and the predecessors on those paths, ``(agents, cells)`` each (SciPy's compiled search
+        from all agents in one call; ``inf`` and -9999 where a cell cannot be reached)."""
+        return dijkstra(
+            self._graph_now(),
+            indices=self.positions,
+            return_predecessors=True,
+            unweighted=True,
+        )
+
+    def first_move(self, pred: np.ndarray, agent: int, goal: int) -> int:
+        """The move (0-3) that starts the path to ``goal`` in agent ``agent``'s predecessors
+        ``pred`` (one row of :meth:`distance_fields`); ``goal`` must be reachable and not the
+        agent's own cell."""
+        start, step = self.positions[agent], goal
+        while (prev := int(pred[step])) != start:
+            step = prev
+        return self.action_of[step - start]
 
     def _search(self, start: int, claimed: set[int], agent: int) -> tuple[int, int] | None:
         """Nearest unclaimed target from ``start`` and the first cell of a shortest path to it,
@@ -381,8 +406,6 @@ class CoordinatedPlanner(FrontierPlanner):
         if horizon is not None and not horizon >= 1:
             raise ValueError(f"horizon must be >= 1 or None, got {horizon!r}")
         self.candidates, self.horizon = candidates, horizon
-        #: Per agent: the padded cell of its target this step (-1: none), for tests and pictures.
-        self.goals: list[int] = []
         self._grid: csr_matrix | None = None
 
     def _weighted_grid(self) -> csr_matrix:

@@ -86,8 +86,21 @@ def credit_new_cells(
 
 
 def thesis_reward(
-    credited: Sequence[int], hit: Sequence[int], new_cell: float, wall_hit: float, step: float
+    credited: Sequence[int],
+    hit: Sequence[int],
+    new_cell: float,
+    wall_hit: float,
+    step: float,
+    team: float = 0.0,
 ) -> list[float]:
     """Per-agent reward of eq. 3.1: ``new_cell * n_new + wall_hit * hit + step`` (pure: a new
-    list)."""
+    list), where with a team share ``team`` > 0 ``n_new`` is ``(1 - team) * own + team * all``:
+    the agent's own new cells and the whole team's, so that at ``team=1`` every agent is paid
+    for every cell the team finds (a team reward)."""
+    if team:
+        total = sum(credited)
+        return [
+            new_cell * ((1.0 - team) * n + team * total) + wall_hit * h + step
+            for n, h in zip(credited, hit)
+        ]
     return [new_cell * n + wall_hit * h + step for n, h in zip(credited, hit)]

@@ -94,6 +94,9 @@ class RewardsConfig(_Section):
     new_cell: float = DEFAULT_REWARDS["new_cell"]
     wall_hit: float = DEFAULT_REWARDS["wall_hit"]
     step: float = DEFAULT_REWARDS["step"]
+    team: Fraction = DEFAULT_REWARDS["team"]
+    """Share of the team's new cells in each agent's ``new_cell`` reward (0: its own cells, the
+    thesis's; 1: every cell the team finds)."""
 
 
 def _check_map_file_size(path: Path) -> None:
@@ -136,8 +139,9 @@ class EnvConfig(_Section):
     env's ``TeamMap``)."""
     frontier: dict[str, Any] | None = None
     """The planner extension (``envs.coverage.frontier``, which checks it): ``null`` (off), or
-    ``{action: step | null, planner: <a planner of the registry> | null}``: the field and compass
-    in the team map, a planner-backed action, and the planner the compass follows."""
+    ``{action: step | {goal: {k: 8}} | null, planner: <a planner of the registry> | null}``: the
+    field and compass in the team map, a planner-backed action (the frontier step, or the goal
+    action's ``k`` candidate targets), and the planner the compass follows."""
     coords: Literal["normalized", "raw"] = "normalized"
     rewards: RewardsConfig = RewardsConfig()
     starts: list[tuple[int, int]] | None = None
@@ -184,7 +188,7 @@ class EnvConfig(_Section):
     @classmethod
     def _frontier_options(cls, v: dict[str, Any] | None) -> dict[str, Any] | None:
         options = FrontierOptions.parse(v)
-        return None if options is None else {"action": options.action, "planner": options.planner}
+        return None if options is None else options.config()
 
     @model_validator(mode="after")
     def _frontier_fits_observation(self) -> EnvConfig:
@@ -361,7 +365,8 @@ class AlgoConfig(_Section):
         if isinstance(data, dict) and "net_arch" not in data:
             entry = POLICIES.get(str(data.get("policy", "")))
             if entry is not None and entry.observation == "teammap":
-                return {**data, "net_arch": []}
+                # A slot scorer needs a hidden layer to weigh a slot against the map.
+                return {**data, "net_arch": [128] if entry.slots else []}
         return data
 
     @field_validator("policy")
@@ -565,6 +570,23 @@ class ExperimentConfig(_Section):
                 f"algo.policy {self.algo.policy} is for observation {wanted!r}, but "
                 f"env.observation is {self.env.observation_kind!r} (use one of "
                 f"{', '.join(fitting)})"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _policy_fits_actions(self) -> ExperimentConfig:
+        entry = POLICIES[self.algo.policy]
+        options = self.env.frontier_options
+        goal = options is not None and options.action is not None and options.action.name == "goal"
+        if entry.slots and not goal:
+            raise ValueError(
+                f"algo.policy {self.algo.policy} scores the goal action's candidates: it needs "
+                "env.frontier.action: {goal: {k: K}} (with a planner)"
+            )
+        if self.algo.sharing == "per_agent" and not entry.per_agent:
+            raise ValueError(
+                f"algo.sharing: per_agent: {self.algo.policy} has no per-agent version "
+                "(use shared or shared_id)"
             )
         return self
 

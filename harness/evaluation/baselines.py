@@ -44,7 +44,7 @@ import numpy as np
 from envs.coverage import CoverageEnv
 from envs.coverage.frontier import PLANNERS, FrontierOptions
 from envs.coverage.planners import FrontierPlanner
-from envs.coverage.types import CELL_UNVISITED, CELL_WALL, FRONTIER_STEP
+from envs.coverage.types import CELL_UNVISITED, CELL_WALL
 from harness.evaluation.episodes import BatchPolicy, batch_len, episode_draws, sample_categorical
 
 #: The baselines by the name ``--policy`` takes (the one list of them), each made from the
@@ -89,19 +89,20 @@ class FrontierStepPolicy:
     must beat to show it learned more than "always take it"."""
 
     @staticmethod
-    def check(options: FrontierOptions | None) -> None:
-        """Raise ``ValueError`` unless the env's planner extension has the frontier step."""
-        if options is None or options.action != "step":
+    def check(options: FrontierOptions | None) -> int:
+        """The action that follows the planner (the frontier step; the goal action's slot 0,
+        the planner's own choice); ``ValueError`` unless the env has a planner-backed action."""
+        if options is None or options.expert_action is None:
             raise ValueError(
-                "the frontier_step baseline needs env.frontier.action: step (with the teammap "
-                "observation)"
+                "the frontier_step baseline needs env.frontier.action (step, or goal with a "
+                "planner; with the teammap observation)"
             )
+        return options.expert_action
 
     def __call__(self, obs: Any, envs: Sequence[CoverageEnv]) -> np.ndarray:
-        """The frontier step for every agent of every env copy."""
-        for env in envs:
-            self.check(env.frontier)
-        return np.full(batch_len(obs), FRONTIER_STEP, dtype=np.int64)
+        """The planner-backed action for every agent of every env copy."""
+        actions = {self.check(env.frontier) for env in envs}
+        return np.full(batch_len(obs), actions.pop(), dtype=np.int64)
 
 
 class RandomPolicy:

@@ -69,15 +69,42 @@ def is_group(folder: Path) -> bool:
 def group_members(folder: Path) -> list[Path]:
     """Every run folder ``group.json`` names, in seed order, whether it exists or not.
 
+    Members live inside the group folder: ``harness eval`` and ``tune`` of a group load their
+    models (pickles) and write into them, so a ``group.json`` naming an absolute path, a ``..``
+    path or a link leading out of the group is refused, never followed.
+
     Raises:
-        GroupError: when ``group.json`` cannot be read.
+        GroupError: when ``group.json`` cannot be read or names a run outside the group.
     """
     folder = Path(folder)
     try:
         data = json.loads((folder / GROUP_FILE).read_text(encoding="utf-8"))
-        return [folder / entry["run"] for entry in data["runs"]]
+        names = [entry["run"] for entry in data["runs"]]
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise GroupError(f"{folder / GROUP_FILE}: not a readable group file ({exc})") from None
+    return [_member(folder, name) for name in names]
+
+
+def _member(folder: Path, name: Any) -> Path:
+    """``folder / name`` when that is a path inside the group folder (links resolved).
+
+    Raises:
+        GroupError: for anything else, in one line naming the group file and the entry.
+    """
+    where = f"{folder / GROUP_FILE}: run {name!r}"
+    if not isinstance(name, str) or not Path(name).parts:
+        raise GroupError(f"{where} is not the name of a run folder in the group")
+    relative = Path(name)
+    if relative.is_absolute() or ".." in relative.parts:
+        raise GroupError(f"{where} is outside the group folder (a group's runs live inside it)")
+    member = folder / relative
+    try:
+        inside = member.resolve().is_relative_to(folder.resolve())
+    except (OSError, ValueError, RuntimeError) as exc:  # a NUL byte, a link loop
+        raise GroupError(f"{where}: not a usable path ({exc})") from None
+    if not inside:
+        raise GroupError(f"{where} leads outside the group folder (a group's runs live inside it)")
+    return member
 
 
 def group_runs(folder: Path) -> list[Path]:

@@ -31,6 +31,7 @@ import math
 import os
 import re
 import shlex
+import shutil
 import tempfile
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
@@ -181,6 +182,12 @@ class CheckpointDir:
     @property
     def state(self) -> Path:
         return self.path / "state.json"
+
+    @property
+    def config(self) -> Path:
+        """The run's config as it was when the checkpoint was written (none in checkpoints
+        written before checkpoints kept it)."""
+        return self.path / "config.yaml"
 
 
 def unique_folder(root: str | Path, name: str, now: datetime | None = None) -> Path:
@@ -357,7 +364,10 @@ class RunDir:
             run.tb.mkdir()
             run.checkpoints.mkdir()
         except OSError as exc:
-            raise RunDirError(f"{run.path}: cannot create a run folder ({exc.strerror})") from None
+            shutil.rmtree(run.path, ignore_errors=True)  # made just now: nothing else is in it
+            raise RunDirError(
+                f"{run.path}: cannot create a run folder ({exc.strerror}); removed it"
+            ) from None
         return run
 
     @property

@@ -246,11 +246,15 @@ class DoubleDQN(DQN):
     """
 
     # Every name of the harness's policy registry (MlpPolicy, DuelingMlpPolicy, TeamMapPolicy,
-    # DuelingTeamMapPolicy), beside SB3's own aliases.
+    # DuelingTeamMapPolicy, SlotTeamMapPolicy), beside SB3's own aliases.
     policy_aliases: ClassVar[dict[str, type[BasePolicy]]] = {
         **DQN.policy_aliases,
         **{name: entry.load() for name, entry in POLICIES.items()},
-        **{entry.per_agent_name: entry.load(per_agent=True) for entry in POLICIES.values()},
+        **{
+            entry.per_agent_name: entry.load(per_agent=True)
+            for entry in POLICIES.values()
+            if entry.per_agent
+        },
         "MultiInputPolicy": MultiInputPolicy,
     }
     beta_schedule: Schedule

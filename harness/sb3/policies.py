@@ -31,6 +31,7 @@ __all__ = [
     "ACTION_MASK_KEY",
     "AGENT_KEY",
     "AGGREGATORS",
+    "SLOTS_KEY",
     "DuelingDQNPolicy",
     "DuelingHead",
     "DuelingQNetwork",
@@ -41,6 +42,8 @@ __all__ = [
     "PerAgentMlpPolicy",
     "PerAgentQNetwork",
     "PerAgentTeamMapPolicy",
+    "SlotQNetwork",
+    "SlotTeamMapPolicy",
     "TeamMapExtractor",
     "TeamMapPolicy",
 ]
@@ -391,6 +394,126 @@ class DuelingTeamMapPolicy(DuelingDQNPolicy):
             optimizer_kwargs=optimizer_kwargs,
             aggregator=aggregator,
         )
+
+
+#: Default key of the per-slot feature block that :class:`SlotQNetwork` scores: the key under
+#: which the coverage env puts its goal candidates (``envs.coverage.goals.GOALS_KEY``).
+SLOTS_KEY = "goals"
+
+
+class SlotQNetwork(QNetwork):
+    """A Q-network whose actions are *slots*, each described by a row of features: one shared
+    scorer (an MLP) maps ``[slot features, observation features]`` to the slot's value, so the
+    values follow the slots when they are reordered (permutation-equivariant), and any number of
+    slots shares the same weights (a pointer-network style head, as in learned frontier
+    selection). The observation's other keys go through the features extractor as usual.
+
+    Args:
+        observation_space, action_space, features_extractor, features_dim, activation_fn,
+        normalize_images: As SB3's ``QNetwork``; ``features_extractor`` reads neither the slots
+            nor the action mask.
+        net_arch: Hidden layers of the scorer (default ``[128]``).
+        slots_key: The ``(n_actions, F)`` float ``Box`` of slot features in the observation.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        action_space: spaces.Discrete,
+        features_extractor: BaseFeaturesExtractor,
+        features_dim: int,
+        net_arch: list[int] | None = None,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        normalize_images: bool = True,
+        slots_key: str = SLOTS_KEY,
+    ) -> None:
+        super().__init__(
+            observation_space,
+            action_space,
+            features_extractor=features_extractor,
+            features_dim=features_dim,
+            net_arch=[],
+            activation_fn=activation_fn,
+            normalize_images=normalize_images,
+        )
+        slots = observation_space.spaces.get(slots_key)
+        n = int(action_space.n)
+        if slots is None or slots.shape is None or len(slots.shape) != 2 or slots.shape[0] != n:
+            raise ValueError(
+                f"a slot Q-network needs a {slots_key!r} Box of shape ({n}, features) in the "
+                f"observation, one row per action; got {slots}"
+            )
+        self.slots_key = slots_key
+        self.net_arch = [128] if net_arch is None else list(net_arch)
+        layers = create_mlp(features_dim + int(slots.shape[1]), 1, self.net_arch, activation_fn)
+        self.q_net = nn.Sequential(*layers)
+
+    def forward(self, obs: PyTorchObs) -> th.Tensor:
+        features = self.extract_features(obs, self.features_extractor)  # (batch, features_dim)
+        slots = obs[self.slots_key].float()  # type: ignore[index]  (batch, slots, F)
+        shared = features.unsqueeze(1).expand(-1, slots.shape[1], -1)
+        return self.q_net(th.cat([slots, shared], dim=-1)).squeeze(-1)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(slots_key=self.slots_key)
+        return data
+
+
+class SlotTeamMapPolicy(DQNPolicy):
+    """DQN policy that scores candidate slots (:class:`SlotQNetwork`) with the team map's
+    features (:class:`TeamMapExtractor` on every key but the slots and the action mask).
+    Registered as ``"SlotTeamMapPolicy"``; the coverage env's goal action
+    (``frontier: {action: {goal: {k: K}}}``) is what it is for.
+
+    Args:
+        net_arch: Hidden layers of the shared scorer (default ``[128]``).
+        slots_key: The slot features' key (default :data:`SLOTS_KEY`).
+        Others: as :class:`TeamMapPolicy`.
+    """
+
+    def __init__(
+        self,
+        observation_space: spaces.Dict,
+        action_space: spaces.Discrete,
+        lr_schedule: Schedule,
+        net_arch: list[int] | None = None,
+        activation_fn: type[nn.Module] = nn.ReLU,
+        features_extractor_class: type[BaseFeaturesExtractor] = TeamMapExtractor,
+        features_extractor_kwargs: dict[str, Any] | None = None,
+        normalize_images: bool = True,
+        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
+        optimizer_kwargs: dict[str, Any] | None = None,
+        slots_key: str = SLOTS_KEY,
+    ) -> None:
+        self.slots_key = slots_key
+        super().__init__(
+            observation_space,
+            action_space,
+            lr_schedule,
+            net_arch=[128] if net_arch is None else net_arch,
+            activation_fn=activation_fn,
+            features_extractor_class=features_extractor_class,
+            features_extractor_kwargs=features_extractor_kwargs,
+            normalize_images=normalize_images,
+            optimizer_class=optimizer_class,
+            optimizer_kwargs=optimizer_kwargs,
+        )
+
+    def make_features_extractor(self) -> BaseFeaturesExtractor:
+        space = without_action_mask(self.observation_space)
+        assert isinstance(space, spaces.Dict)
+        rest = spaces.Dict({k: v for k, v in space.spaces.items() if k != self.slots_key})
+        return self.features_extractor_class(rest, **self.features_extractor_kwargs)
+
+    def make_q_net(self) -> SlotQNetwork:
+        net_args = self._update_features_extractor(self.net_args, features_extractor=None)
+        return SlotQNetwork(**net_args, slots_key=self.slots_key).to(self.device)
+
+    def _get_constructor_parameters(self) -> dict[str, Any]:
+        data = super()._get_constructor_parameters()
+        data.update(slots_key=self.slots_key)
+        return data
 
 
 class MultiInputPolicy(_IgnoresActionMask, SB3MultiInputPolicy):

@@ -26,7 +26,11 @@ class PolicyEntry:
     """Value and advantage streams (takes ``algo.dueling_aggregator``)."""
     per_agent: str = ""
     """``module:attribute`` of the same policy with one parameter set per agent
-    (``algo.sharing: per_agent``); its class name is also a ``DoubleDQN`` policy alias."""
+    (``algo.sharing: per_agent``; empty: none); its class name is also a ``DoubleDQN`` policy
+    alias."""
+    slots: bool = False
+    """Its actions are candidate slots scored from a feature block of the observation (takes
+    ``slots_key``; the env's goal action)."""
 
     def load(self, per_agent: bool = False) -> Any:
         """The policy class, or its per-agent version."""
@@ -62,5 +66,8 @@ POLICIES: dict[str, PolicyEntry] = {
         "teammap",
         dueling=True,
         per_agent="harness.sb3.policies:PerAgentDuelingTeamMapPolicy",
+    ),
+    "SlotTeamMapPolicy": PolicyEntry(
+        "harness.sb3.policies:SlotTeamMapPolicy", "teammap", slots=True
     ),
 }

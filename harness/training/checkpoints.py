@@ -5,7 +5,10 @@ A checkpoint is a folder ``checkpoints/step-<num_timesteps>/`` holding:
 * ``model.zip``: the SB3 model (weights, optimizer state, step counters, ``ep_info_buffer``);
 * ``replay_buffer.pkl``: the replay buffer with its priorities;
 * ``rng.pkl``: the numpy, Python and torch random states;
-* ``state.json``: the harness's own position (:class:`TrainingState`).
+* ``state.json``: the harness's own position (:class:`TrainingState`);
+* ``config.yaml``: the run's config it was made with; a resume refuses a run whose
+  ``config.yaml`` has been edited since (:func:`check_config`). Checkpoints written before
+  checkpoints kept it have none and are not compared.
 
 It is written into a hidden temporary folder and renamed into place only when complete, and older
 checkpoints are deleted only after that, so the last good checkpoint survives a crash or a
@@ -18,13 +21,16 @@ import json
 import pickle
 import random
 import shutil
+import warnings
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from harness.results.rundir import CheckpointDir
+from harness.config.loading import config_from_dict, parse_yaml
+from harness.config.schema import ConfigError, ExperimentConfig
+from harness.results.rundir import CheckpointDir, RunDir
 
 STEP_PREFIX = "step-"
 KEEP = 2  # checkpoints kept: the newest and the one before it
@@ -32,6 +38,11 @@ KEEP = 2  # checkpoints kept: the newest and the one before it
 
 class CheckpointError(RuntimeError):
     """A missing or unreadable checkpoint, with a one-line message."""
+
+
+class ConfigChangedError(CheckpointError):
+    """The run's config is not the one its checkpoint was made with: no checkpoint of the run
+    can be resumed with it (an older one is no fallback)."""
 
 
 @dataclass
@@ -104,8 +115,11 @@ def set_rng_states(states: dict[str, Any]) -> None:
     torch.set_rng_state(states["torch"])
 
 
-def save_checkpoint(model: Any, folder: Path, state: TrainingState) -> Path:
-    """Write a complete checkpoint of ``model`` and ``state`` under ``folder`` (``checkpoints/``).
+def save_checkpoint(
+    model: Any, folder: Path, state: TrainingState, config: str | None = None
+) -> Path:
+    """Write a complete checkpoint of ``model`` and ``state`` under ``folder`` (``checkpoints/``),
+    with ``config`` (the run's config as YAML, :meth:`ExperimentConfig.to_yaml`) when given.
 
     Returns:
         The new checkpoint's folder.
@@ -126,6 +140,8 @@ def save_checkpoint(model: Any, folder: Path, state: TrainingState) -> Path:
         with files.rng.open("wb") as f:
             pickle.dump(rng_states(), f)
         files.state.write_text(state.to_json(), encoding="utf-8")
+        if config is not None:
+            files.config.write_text(config, encoding="utf-8")
         if final.exists():  # same step written twice (e.g. a periodic and a phase-end checkpoint)
             shutil.rmtree(final)
         tmp.rename(final)
@@ -192,3 +208,88 @@ def read_rng(checkpoint: Path) -> dict[str, Any]:
         return states
     except Exception as exc:  # a damaged pickle raises many kinds
         raise CheckpointError(f"{CheckpointDir(checkpoint).rng}: unreadable ({exc})") from None
+
+
+#: Keys of a run's config that may change between a checkpoint and its resume: how the run uses
+#: this machine, not what it trains.
+MAY_CHANGE = frozenset({"algo.device", "algo.threads", "vec.num_cpus", "checkpoint.every"})
+
+
+def read_checkpoint_config(checkpoint: Path) -> dict[str, Any] | None:
+    """The config a checkpoint was made with, defaults filled in as today's schema fills them
+    (as written when today's schema no longer takes it); ``None`` for a checkpoint written
+    before checkpoints kept their config.
+
+    Raises:
+        CheckpointError: when the file is there but unreadable.
+    """
+    path = CheckpointDir(checkpoint).config
+    if not path.is_file():
+        return None
+    try:
+        raw = parse_yaml(path.read_text(encoding="utf-8"), str(path))
+    except (OSError, ValueError) as exc:  # ConfigError and UnicodeDecodeError are ValueErrors
+        raise CheckpointError(f"{path}: unreadable ({exc})") from None
+    if not isinstance(raw, dict):
+        raise CheckpointError(f"{path}: unreadable (not a mapping)")
+    try:
+        with warnings.catch_warnings():  # the run's own config.yaml has said them already
+            warnings.simplefilter("ignore")
+            return config_from_dict(raw, str(path)).model_dump(mode="json")
+    except ConfigError:
+        return raw
+
+
+def config_changes(old: Any, new: Any, key: str = "") -> list[tuple[str, Any, Any]]:
+    """``(key, old value, new value)`` for each key of two config dumps that differs, dotted as
+    ``--set`` writes it (phases by name); keys of :data:`MAY_CHANGE` are left out. Phases added,
+    removed, renamed or reordered are one change of ``phases`` (their names)."""
+    named = [
+        isinstance(v, list) and all(isinstance(i, dict) and "name" in i for i in v)
+        for v in (old, new)
+    ]
+    if all(named):
+        old_names, new_names = [i["name"] for i in old], [i["name"] for i in new]
+        if old_names != new_names:
+            return [(key, old_names, new_names)]
+        return [
+            change
+            for o, n in zip(old, new, strict=True)
+            for change in config_changes(o, n, f"{key}.{o['name']}")
+        ]
+    if isinstance(old, dict) and isinstance(new, dict):
+        changes = []
+        for name in dict.fromkeys([*old, *new]):
+            sub = f"{key}.{name}" if key else str(name)
+            if sub not in MAY_CHANGE:
+                changes += config_changes(old.get(name), new.get(name), sub)
+        return changes
+    return [] if old == new else [(key, old, new)]
+
+
+def _short(value: Any, limit: int = 40) -> str:
+    text = "(none)" if value is None else json.dumps(value, separators=(", ", ": "))
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def check_config(checkpoint: Path, config: ExperimentConfig) -> None:
+    """Refuse ``config`` (the run's ``config.yaml`` now) unless it is the one ``checkpoint`` was
+    made with, but for :data:`MAY_CHANGE`; a checkpoint without its config passes.
+
+    Raises:
+        ConfigChangedError: one line naming the keys that differ, with both values.
+        CheckpointError: when the checkpoint's copy of the config is unreadable.
+    """
+    stored = read_checkpoint_config(checkpoint)
+    if stored is None:
+        return
+    changes = config_changes(stored, config.model_dump(mode="json"))
+    if not changes:
+        return
+    shown = "; ".join(f"{key}: {_short(old)} -> {_short(new)}" for key, old, new in changes[:6])
+    more = f"; and {len(changes) - 6} more" if len(changes) > 6 else ""
+    run = RunDir(checkpoint.parent.parent)
+    raise ConfigChangedError(
+        f"{run.config}: changed since {checkpoint.name} was written ({shown}{more}); a run "
+        "resumes only with the config it was made with: put it back, or start a new run"
+    )

@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch as th
 
+from envs.coverage.goals import GOALS_KEY
 from harness.config.schema import ConfigError
 from harness.sb3.buffers import replay_memory_bytes
 from harness.sb3.dqn import resolve_optimizer_class
@@ -49,6 +50,8 @@ def network_kwargs(algo: Any, n_agents: int) -> dict[str, Any]:
             "features_dim": algo.features_dim,
             "channels": list(algo.cnn_channels),
         }
+    if entry.slots:
+        kwargs["slots_key"] = GOALS_KEY
     return kwargs
 
 

@@ -57,7 +57,9 @@ from harness.training.callbacks import (
 )
 from harness.training.checkpoints import (
     CheckpointError,
+    ConfigChangedError,
     TrainingState,
+    check_config,
     complete_checkpoints,
     read_rng,
     read_state,
@@ -289,12 +291,19 @@ class StopOnSignal(BaseCallback):
 
 
 class Checkpointer:
-    """Writes checkpoints with the live training state (episode counter, best evaluation)."""
+    """Writes checkpoints with the live training state (episode counter, best evaluation) and,
+    when given, the run's config (YAML) that a resume compares the run's ``config.yaml`` with."""
 
     def __init__(
-        self, run: RunDir, state: TrainingState, evaluator: Evaluator, stopper: StopOnSignal
+        self,
+        run: RunDir,
+        state: TrainingState,
+        evaluator: Evaluator,
+        stopper: StopOnSignal,
+        config: str | None = None,
     ) -> None:
         self.run, self.state, self.evaluator, self.stopper = run, state, evaluator, stopper
+        self.config = config
         self.episode_log: EpisodeLogCallback | None = None
 
     def __call__(self, model: DoubleDQN) -> Path:
@@ -302,7 +311,7 @@ class Checkpointer:
             self.state.next_episode = self.episode_log.next_episode
         self.state.best_eval = self.evaluator.best
         with self.stopper.saving():
-            return save_checkpoint(model, self.run.checkpoints, self.state)
+            return save_checkpoint(model, self.run.checkpoints, self.state, self.config)
 
 
 class TrainingInterrupted(Exception):
@@ -441,7 +450,7 @@ def train(
         model.set_logger(logger)
         evaluator = Evaluator(config, run, state.best_eval, on_evaluation)
         stopper = StopOnSignal()
-        checkpointer = Checkpointer(run, state, evaluator, stopper)
+        checkpointer = Checkpointer(run, state, evaluator, stopper, config.to_yaml())
         with stop_on_signals(stopper):
             for index in range(state.phase, len(config.phases)):
                 _run_phase(
@@ -522,6 +531,8 @@ def find_resume_point(run: RunDir, config: ExperimentConfig) -> ResumePoint:
 
     Raises:
         CheckpointError: when no checkpoint reads back whole (the reasons of each).
+        ConfigChangedError: when the run's config is not the one a checkpoint was made with
+            (at once: an older checkpoint is no fallback for an edited ``config.yaml``).
     """
     found = complete_checkpoints(run.checkpoints)
     if not found:
@@ -530,6 +541,8 @@ def find_resume_point(run: RunDir, config: ExperimentConfig) -> ResumePoint:
     for checkpoint in reversed(found):
         try:
             point = load_resume_point(checkpoint, config)
+        except ConfigChangedError:
+            raise
         except CheckpointError as exc:
             problems.append(str(exc))
             continue
@@ -548,10 +561,12 @@ def load_resume_point(checkpoint: Path, config: ExperimentConfig) -> ResumePoint
     belong together.
 
     Raises:
+        ConfigChangedError: when ``config`` is not the one the checkpoint was made with.
         CheckpointError: naming the file that cannot be used.
     """
     files = CheckpointDir(checkpoint)
     state = read_state(checkpoint)
+    check_config(checkpoint, config)  # before the slow loads
     rng = read_rng(checkpoint)
     try:
         model = DoubleDQN.load(files.model, device=config.algo.device)
@@ -562,6 +577,12 @@ def load_resume_point(checkpoint: Path, config: ExperimentConfig) -> ResumePoint
             model.load_replay_buffer(f)
     except Exception as exc:  # a damaged pickle raises many kinds
         raise CheckpointError(f"{files.replay_buffer}: unreadable ({exc})") from None
+    if model.n_envs != config.n_slots:  # a checkpoint without its config: what it can tell
+        raise ConfigChangedError(
+            f"{RunDir(checkpoint.parent.parent).config}: env.n_agents x vec.copies is "
+            f"{config.n_slots}, but {files.model} was made with {model.n_envs} (changed since "
+            "the checkpoint was written); put them back, or start a new run"
+        )
     if model.num_timesteps != state.num_timesteps or not 0 <= state.phase <= len(config.phases):
         raise CheckpointError(
             f"{files.state}: says step {state.num_timesteps}, phase "

@@ -1,0 +1,216 @@
+"""The goal action of the planner extension: each agent chooses one of ``k`` candidate targets,
+and the env walks it one step along a shortest path to the chosen one.
+
+One network decision per env step (so SB3's DQN, double Q, dueling, prioritized replay and per-slot
+ε work unchanged), the planner does the walking: the design that the multi-robot exploration
+literature's wins over written planners share (ACE, Yu et al. 2023; ARiADNE, Cao et al. 2023).
+
+**The candidates** of agent ``i`` at a step, in slot order:
+
+* slot 0: the target the env's planner (``frontier.planner``) chose for the agent this step, and
+  its move (the planner's own first step), so that a policy that always takes slot 0 *is* the
+  planner, step for step (the imitation target, ``expert_action`` 0);
+* slots 1..k-1: one target per *frontier cluster* (a 4-connected group of known free unvisited
+  cells), the cluster's cell nearest to the agent (ties: the lower row-major cell), clusters by
+  their distance (ties: the lower cell), leaving out slot 0's cluster and clusters the agent
+  cannot reach;
+* fewer candidates than ``k``: the remaining slots are empty, shown by the ``action_mask`` (0)
+  and by all-zero features; an empty slot the policy takes anyway keeps the agent in place.
+
+Distances are shortest paths through the cells the team has seen (as the planners plan), from
+one search per step for all agents
+(:meth:`envs.coverage.planners.FrontierPlanner.distance_fields`).
+
+**The features** of a candidate (a row of the observation's ``"goals"`` block, each in [-1, 1]),
+in the order of :data:`GOAL_FEATURES`:
+
+==============  ==========================================================================
+``valid``       1 for a candidate, 0 for an empty slot
+``planner``     1 for the planner's choice (slot 0)
+``distance``    the agent's path length to it over ``H + W`` (at most 1)
+``teammate``    the nearest teammate's path length to it over ``H + W`` (1: no teammate
+                reaches it, or a lone agent)
+``heading``     1 if a teammate's planner target lies in its cluster
+``cluster``     ``log(1 + cells of its cluster) / log(1 + H * W)``
+``unknown``     share of unknown cells in the 5x5 window around it
+``row``, ``col``  its offset from the agent over ``H`` and ``W``
+==============  ==========================================================================
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, ClassVar
+
+import numpy as np
+from scipy.ndimage import label, uniform_filter
+
+from envs.coverage.types import STAY
+
+if TYPE_CHECKING:
+    from envs.coverage.planners import FrontierPlanner
+
+__all__ = [
+    "ACTION_MASK_KEY",
+    "GOALS_KEY",
+    "GOAL_FEATURES",
+    "Candidates",
+    "Goal",
+    "gather_candidates",
+]
+
+#: Key of the candidates' feature block in the observation (``(k, len(GOAL_FEATURES))``).
+GOALS_KEY = "goals"
+#: Key of the slots' mask in the observation (PettingZoo's convention): 1 where a slot holds a
+#: candidate.
+ACTION_MASK_KEY = "action_mask"
+#: Names of the candidate features, in column order (see the module docstring).
+GOAL_FEATURES = (
+    "valid",
+    "planner",
+    "distance",
+    "teammate",
+    "heading",
+    "cluster",
+    "unknown",
+    "row",
+    "col",
+)
+#: 4-connectivity of frontier clusters.
+_CROSS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], dtype=bool)
+#: Most slots a goal action may have (the candidate block is an observation of this width).
+MAX_K = 64
+
+
+@dataclass(frozen=True)
+class Goal:
+    """Options of the goal action (``frontier: {action: {goal: {k: 8}}, planner: ...}``).
+
+    Attributes:
+        k: Candidate slots per agent (the action space is ``Discrete(k)``), 2..64.
+    """
+
+    k: int = 8
+    name: ClassVar[str] = "goal"
+    #: The action space is the slots alone: no primitive moves beside them.
+    replaces_moves: ClassVar[bool] = True
+    #: The slot a policy that follows the planner takes.
+    expert_action: ClassVar[int] = 0
+    #: The goal action needs a planner (its choice is slot 0).
+    needs_planner: ClassVar[bool] = True
+
+    def __post_init__(self) -> None:
+        k = self.k
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 2 <= k <= MAX_K:
+            raise ValueError(f"frontier.action.goal.k must be an integer in 2..{MAX_K}, got {k!r}")
+
+    @property
+    def n_actions(self) -> int:
+        return int(self.k)
+
+    def config(self) -> dict[str, Any]:
+        """The config form of these options."""
+        return {self.name: {"k": int(self.k)}}
+
+    def resolve(self, frontier: Any, actions: list[int], rng: np.random.Generator) -> list[int]:
+        """Each agent's move: the first step towards its chosen slot's candidate (stay for an
+        empty slot), from the candidates of the last observation (``frontier.candidates``)."""
+        moves = frontier.candidates.moves
+        return [int(moves[i, a]) for i, a in enumerate(actions)]
+
+
+@dataclass
+class Candidates:
+    """The candidates of every agent at one step (see the module docstring)."""
+
+    cells: np.ndarray
+    """``(agents, k)`` padded flat cell of each slot's candidate (-1: empty)."""
+    moves: np.ndarray
+    """``(agents, k)`` the move (0-3) towards it, ``STAY`` for an empty slot."""
+    features: np.ndarray
+    """``(agents, k, len(GOAL_FEATURES))`` float32."""
+    mask: np.ndarray = field(init=False)
+    """``(agents, k)`` float32, 1 where a slot holds a candidate."""
+
+    def __post_init__(self) -> None:
+        self.mask = (self.cells >= 0).astype(np.float32)
+
+    @classmethod
+    def empty(cls, n_agents: int, k: int) -> Candidates:
+        return cls(
+            np.full((n_agents, k), -1, dtype=np.int64),
+            np.full((n_agents, k), STAY, dtype=np.int64),
+            np.zeros((n_agents, k, len(GOAL_FEATURES)), dtype=np.float32),
+        )
+
+
+def gather_candidates(
+    planner: FrontierPlanner, planned: Sequence[int], k: int, height: int, width: int
+) -> Candidates:
+    """The candidates of every agent (module docstring), for a planner that has just planned.
+
+    Args:
+        planner: The env's planner, synced to this step, after :meth:`act` (its ``goals``).
+        planned: Its moves this step (one per agent), slot 0's moves.
+        k: Slots per agent.
+        height, width: The map's size (for the features' scales).
+    """
+    n = len(planner.positions)
+    out = Candidates.empty(n, k)
+    targets = np.flatnonzero(planner.target_np)
+    if targets.size == 0:
+        return out
+    dist, pred = planner.distance_fields()
+    stride = planner.stride
+    labels, _ = label(planner.target_np.reshape(-1, stride), structure=_CROSS)
+    labels = labels.ravel()
+    ids = labels[targets]
+    sizes = np.bincount(ids)
+    unseen = (~planner.seen_np).reshape(-1, stride).astype(np.float32)
+    unknown = uniform_filter(unseen, 5, mode="constant").ravel()
+    scale = 1.0 / (height + width)
+    costs = dist[:, targets]  # (agents, targets)
+    goals = planner.goals
+    goal_cluster = np.array([labels[g] if g >= 0 else 0 for g in goals])
+    column = np.full(labels.size, -1, dtype=np.int64)  # each target cell's column in costs
+    column[targets] = np.arange(targets.size)
+    for i in range(n):
+        cost = costs[i]
+        # Per cluster its nearest cell (lexsort: cluster, then cost, then the cell: the first
+        # entry of each cluster is its nearest cell, ties to the lower cell).
+        order = np.lexsort((targets, cost, ids))
+        first = np.concatenate(([True], ids[order][1:] != ids[order][:-1]))
+        picks = order[first]
+        picks = picks[np.isfinite(cost[picks]) & (ids[picks] != goal_cluster[i])]
+        picks = picks[np.lexsort((targets[picks], cost[picks]))]
+        cells, moves = [], []
+        if goals[i] >= 0:  # slot 0: the planner's choice and its own move
+            cells.append(goals[i])
+            moves.append(int(planned[i]))
+        for j in picks[: k - len(cells)].tolist():
+            cells.append(int(targets[j]))
+            moves.append(planner.first_move(pred[i], i, cells[-1]))
+        m = len(cells)
+        if m == 0:
+            continue
+        chosen = np.asarray(cells)
+        out.cells[i, :m], out.moves[i, :m] = chosen, moves
+        cols = column[chosen]
+        mates = np.delete(costs, i, axis=0)[:, cols]  # (teammates, m)
+        mate = mates.min(axis=0) if mates.size else np.full(m, np.inf)
+        others = np.delete(goal_cluster, i)
+        rows_c, cols_c = np.divmod(chosen, stride)
+        row_i, col_i = divmod(planner.positions[i], stride)
+        f = out.features[i, :m]
+        f[:, 0] = 1.0
+        f[0, 1] = float(goals[i] >= 0)
+        f[:, 2] = np.minimum(cost[cols] * scale, 1.0)
+        f[:, 3] = np.minimum(mate * scale, 1.0)
+        f[:, 4] = np.isin(labels[chosen], others)
+        f[:, 5] = np.log1p(sizes[labels[chosen]]) / np.log1p(height * width)
+        f[:, 6] = unknown[chosen]
+        f[:, 7] = (rows_c - row_i) / height
+        f[:, 8] = (cols_c - col_i) / width
+    out.mask = (out.cells >= 0).astype(np.float32)
+    return out

@@ -153,7 +153,7 @@ def test_compare_writes_a_plot_and_a_table(smoke_run, tmp_path, capsys):
         (["eval", "--policy", "random"], "needs --config"),
         (
             ["eval", "--policy", "frontier_step", "--config", str(SMOKE)],
-            "--policy frontier_step: the frontier_step baseline needs env.frontier.action: step",
+            "--policy frontier_step: the frontier_step baseline needs env.frontier.action",
         ),
         (["eval"], "give a run folder or model zip"),
         (["eval", "--policy", "random", "--config", str(SMOKE), "--episodes", "0"], "--episodes"),

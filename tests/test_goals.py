@@ -66,6 +66,8 @@ def test_candidates_of_one_agent_in_a_corridor() -> None:
     assert f[:2, F["cluster"]] == pytest.approx([np.log(2) / np.log(14)] * 2)
     # The 5x5 window around column 1 holds one unseen cell (column 0); likewise column 11.
     assert f[:2, F["unknown"]] == pytest.approx([1 / 25, 1 / 25])
+    # Of column 1's four neighbours only column 0 (unseen) is open; likewise column 11.
+    assert f[:2, F["open"]] == pytest.approx([1 / 4, 1 / 4])
     assert f[:2, F["row"]].tolist() == [0, 0]
     assert f[:2, F["col"]] == pytest.approx([-4 / 13, 6 / 13])
     assert not f[2:].any()  # empty slots: all-zero features
@@ -107,6 +109,23 @@ def test_clusters_come_nearest_first_at_their_nearest_cell() -> None:
     assert c.cells[0].tolist() == [cell(4, 6), cell(0, 1), cell(0, 8), -1]
     assert c.features[0, :3, F["distance"]] * (5 + 9) == pytest.approx([4, 5, 6])
     assert c.features[0, :3, F["cluster"]] == pytest.approx(np.log1p([1, 2, 1]) / np.log1p(5 * 9))
+
+
+def test_nearest_gathering_offers_the_nearest_other_cells() -> None:
+    # The room of the previous test: the nearest targets but slot 0's are (0, 1) (5), then
+    # (0, 0) and (0, 8) (6 each; the lower cell first), whatever their clusters.
+    walls = np.zeros((5, 9), dtype=bool)
+    visited = np.ones((5, 9), dtype=bool)
+    for r, col in [(0, 0), (0, 1), (4, 6), (0, 8)]:
+        visited[r, col] = False
+    planner = FrontierPlanner(5, 9)
+    planner.sync(0, np.array([[2, 4]]), lambda: (walls, visited))
+    moves = planner.act()
+    c = gather_candidates(planner, moves, k=4, height=5, width=9, gather="nearest")
+    stride = 9 + 2
+    cell = lambda r, col: (r + 1) * stride + col + 1  # noqa: E731
+    assert c.cells[0].tolist() == [cell(4, 6), cell(0, 1), cell(0, 0), cell(0, 8)]
+    assert c.mask[0].tolist() == [1, 1, 1, 1]
 
 
 def goal_env(k: int = 4, planner: str = "order"):
@@ -168,7 +187,14 @@ def test_always_taking_slot_0_is_the_planner(n_agents: int, planner: str, baseli
     [
         ({"action": "goal"}, "frontier.action: 'goal' needs frontier.planner"),
         ({"action": {"goal": {"k": 1}}, "planner": "order"}, "goal.k must be an integer in 2..64"),
-        ({"action": {"goal": {"n": 3}}, "planner": "order"}, "unknown option(s) ['n']; known: k"),
+        (
+            {"action": {"goal": {"n": 3}}, "planner": "order"},
+            "unknown option(s) ['n']; known: k, gather",
+        ),
+        (
+            {"action": {"goal": {"gather": "all"}}, "planner": "order"},
+            "goal.gather must be one of clusters, nearest",
+        ),
         ({"action": {"goal": 3}, "planner": "order"}, "options must be a mapping"),
         ({"action": {"walk": {}}, "planner": "order"}, "unknown action 'walk'"),
     ],
@@ -180,7 +206,8 @@ def test_goal_options_errors_name_the_key(frontier: dict, message: str) -> None:
 
 def test_config_form_round_trips() -> None:
     options = FrontierOptions.parse({"action": {"goal": {"k": 5}}, "planner": "minpos"})
-    assert options.config() == {"action": {"goal": {"k": 5}}, "planner": "minpos"}
+    config = {"action": {"goal": {"k": 5, "gather": "clusters"}}, "planner": "minpos"}
+    assert options.config() == config
     assert options.n_actions == 5 and options.expert_action == 0
     step = FrontierOptions.parse({"action": "step"})
     assert step.config() == {"action": "step", "planner": None} and step.n_actions == 6

@@ -6,7 +6,11 @@ end."""
 
 from __future__ import annotations
 
+import importlib.util
+import json
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -324,3 +328,22 @@ def test_a_goal_run_trains_and_evaluates_end_to_end(tmp_path: Path) -> None:
     assert saved.is_file()
     env = make_env(load_config(run / "config.yaml").env)
     assert env.action_space("agent_0").n == 4
+    # The validation comparison against the planner (scripts/goal_validation.py) runs on it.
+    done = subprocess.run(
+        [sys.executable, str(ROOT / "scripts" / "goal_validation.py"), str(run), "--episodes", "2"],
+        capture_output=True,
+        text=True,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    result = json.loads(done.stdout.splitlines()[-1])[str(run)]
+    assert 0 < result["coverage_mean"] <= 1 and len(result["over_planner"]) == 3
+
+
+def test_paired_difference_and_its_interval() -> None:
+    spec = importlib.util.spec_from_file_location("gv", ROOT / "scripts" / "goal_validation.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    mean, low, high = module.paired(np.array([1.0, 2.0, 3.0]), np.zeros(3))
+    assert mean == 2.0 and 1.0 <= low <= 2.0 <= high <= 3.0
+    assert module.paired(np.ones(4), np.ones(4)) == (0.0, 0.0, 0.0)

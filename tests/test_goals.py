@@ -23,7 +23,7 @@ from envs.coverage.goals import ACTION_MASK_KEY, GOAL_FEATURES, GOALS_KEY, gathe
 from envs.coverage.planners import FrontierPlanner, HungarianPlanner
 from harness import DoubleDQN
 from harness.cli import main
-from harness.config.loading import load_config
+from harness.config.loading import config_from_dict, load_config
 from harness.config.schema import ConfigError, EnvConfig, ExperimentConfig
 from harness.evaluation.baselines import make_baseline
 from harness.evaluation.episodes import run_episodes
@@ -115,23 +115,6 @@ def test_clusters_come_nearest_first_at_their_nearest_cell() -> None:
     assert c.features[0, :3, F["cluster"]] == pytest.approx(np.log1p([1, 2, 1]) / np.log1p(5 * 9))
 
 
-def test_nearest_gathering_offers_the_nearest_other_cells() -> None:
-    # The room of the previous test: the nearest targets but slot 0's are (0, 1) (5), then
-    # (0, 0) and (0, 8) (6 each; the lower cell first), whatever their clusters.
-    walls = np.zeros((5, 9), dtype=bool)
-    visited = np.ones((5, 9), dtype=bool)
-    for r, col in [(0, 0), (0, 1), (4, 6), (0, 8)]:
-        visited[r, col] = False
-    planner = FrontierPlanner(5, 9)
-    planner.sync(0, np.array([[2, 4]]), lambda: (walls, visited))
-    moves = planner.act()
-    c = gather_candidates(planner, moves, k=4, height=5, width=9, gather="nearest")
-    stride = 9 + 2
-    cell = lambda r, col: (r + 1) * stride + col + 1  # noqa: E731
-    assert c.cells[0].tolist() == [cell(4, 6), cell(0, 1), cell(0, 0), cell(0, 8)]
-    assert c.mask[0].tolist() == [1, 1, 1, 1]
-
-
 def goal_env(k: int = 4, planner: str = "order"):
     """A 3x7 corridor (row 1 free, rows 0 and 2 wall), one agent at (1, 3)."""
     grid = np.ones((3, 7), dtype=bool)
@@ -193,11 +176,7 @@ def test_always_taking_slot_0_is_the_planner(n_agents: int, planner: str, baseli
         ({"action": {"goal": {"k": 1}}, "planner": "order"}, "goal.k must be an integer in 2..64"),
         (
             {"action": {"goal": {"n": 3}}, "planner": "order"},
-            "unknown option(s) ['n']; known: k, gather",
-        ),
-        (
-            {"action": {"goal": {"gather": "all"}}, "planner": "order"},
-            "goal.gather must be one of clusters, nearest",
+            "unknown option(s) ['n']; known: k",
         ),
         ({"action": {"goal": 3}, "planner": "order"}, "options must be a mapping"),
         ({"action": {"walk": {}}, "planner": "order"}, "unknown action 'walk'"),
@@ -210,11 +189,20 @@ def test_goal_options_errors_name_the_key(frontier: dict, message: str) -> None:
 
 def test_config_form_round_trips() -> None:
     options = FrontierOptions.parse({"action": {"goal": {"k": 5}}, "planner": "minpos"})
-    config = {"action": {"goal": {"k": 5, "gather": "clusters"}}, "planner": "minpos"}
+    config = {"action": {"goal": {"k": 5}}, "planner": "minpos"}
     assert options.config() == config
     assert options.n_actions == 5 and options.expert_action == 0
     step = FrontierOptions.parse({"action": "step"})
     assert step.config() == {"action": "step", "planner": None} and step.n_actions == 6
+
+
+def test_the_retired_gather_option_loads_at_clusters_and_is_refused_otherwise() -> None:
+    data = load_config(ROOT / "configs" / "goals_2agents.yaml").model_dump()
+    data["env"]["frontier"]["action"]["goal"]["gather"] = "clusters"
+    assert config_from_dict(data, "old.yaml").env.frontier["action"] == {"goal": {"k": 8}}
+    data["env"]["frontier"]["action"]["goal"]["gather"] = "nearest"
+    with pytest.raises(ConfigError, match=re.escape("env.frontier.action.goal.gather: 'nearest'")):
+        config_from_dict(data, "old.yaml")
 
 
 def test_slot_policy_needs_the_goal_action_and_has_no_per_agent_version() -> None:

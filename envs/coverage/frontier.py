@@ -282,7 +282,7 @@ class Frontier:
         moves = self.planner.act()
         if self.goal is not None:
             self.candidates = gather_candidates(
-                self.planner, moves, self.goal.k, self.height, self.width, self.goal.gather
+                self.planner, moves, self.goal.k, self.height, self.width
             )
         return moves
 

@@ -10,12 +10,11 @@ literature's wins over written planners share (ACE, Yu et al. 2023; ARiADNE, Cao
 * slot 0: the target the env's planner (``frontier.planner``) chose for the agent this step, and
   its move (the planner's own first step), so that a policy that always takes slot 0 *is* the
   planner, step for step (the imitation target, ``expert_action`` 0);
-* slots 1..k-1, with ``gather: clusters``: one target per *frontier cluster* (a 4-connected
-  group of known free unvisited cells), the cluster's cell nearest to the agent (ties: the lower
-  row-major cell), clusters by their distance (ties: the lower cell), leaving out slot 0's
-  cluster and clusters the agent cannot reach; with ``gather: nearest``: the nearest targets but
-  slot 0's (ties: the lower cell), so the choice is among near alternatives, as the planners'
-  tie-breaks choose;
+* slots 1..k-1: one target per *frontier cluster* (a 4-connected group of known free unvisited
+  cells), the cluster's cell nearest to the agent (ties: the lower row-major cell), clusters by
+  their distance (ties: the lower cell), leaving out slot 0's cluster and clusters the agent
+  cannot reach (the nearest other cells instead were tried and retired:
+  docs/experiment-log.md);
 * fewer candidates than ``k``: the remaining slots are empty, shown by the ``action_mask`` (0)
   and by all-zero features; an empty slot the policy takes anyway keeps the agent in place.
 
@@ -82,8 +81,7 @@ GOAL_FEATURES = (
     "row",
     "col",
 )
-#: How the goal action gathers slots 1..k-1 (see the module docstring).
-GATHERINGS = ("clusters", "nearest")
+
 #: 4-connectivity of frontier clusters.
 _CROSS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], dtype=bool)
 #: Most slots a goal action may have (the candidate block is an observation of this width).
@@ -96,12 +94,9 @@ class Goal:
 
     Attributes:
         k: Candidate slots per agent (the action space is ``Discrete(k)``), 2..64.
-        gather: How slots 1..k-1 are filled (:data:`GATHERINGS`): ``"clusters"``, the nearest
-            cell of each other frontier cluster; ``"nearest"``, the nearest other targets.
     """
 
     k: int = 8
-    gather: str = "clusters"
     name: ClassVar[str] = "goal"
     #: The action space is the slots alone: no primitive moves beside them.
     replaces_moves: ClassVar[bool] = True
@@ -114,11 +109,6 @@ class Goal:
         k = self.k
         if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 2 <= k <= MAX_K:
             raise ValueError(f"frontier.action.goal.k must be an integer in 2..{MAX_K}, got {k!r}")
-        if self.gather not in GATHERINGS:
-            raise ValueError(
-                f"frontier.action.goal.gather must be one of {', '.join(GATHERINGS)}, "
-                f"got {self.gather!r}"
-            )
 
     @property
     def n_actions(self) -> int:
@@ -126,7 +116,7 @@ class Goal:
 
     def config(self) -> dict[str, Any]:
         """The config form of these options."""
-        return {self.name: {"k": int(self.k), "gather": self.gather}}
+        return {self.name: {"k": int(self.k)}}
 
     def resolve(self, frontier: Any, actions: list[int], rng: np.random.Generator) -> list[int]:
         """Each agent's move: the first step towards its chosen slot's candidate (stay for an
@@ -166,7 +156,6 @@ def gather_candidates(
     k: int,
     height: int,
     width: int,
-    gather: str = "clusters",
 ) -> Candidates:
     """The candidates of every agent (module docstring), for a planner that has just planned.
 
@@ -175,7 +164,6 @@ def gather_candidates(
         planned: Its moves this step (one per agent), slot 0's moves.
         k: Slots per agent.
         height, width: The map's size (for the features' scales).
-        gather: One of :data:`GATHERINGS`.
     """
     n = len(planner.positions)
     out = Candidates.empty(n, k)
@@ -206,13 +194,10 @@ def gather_candidates(
         cost = costs[i]
         # Per cluster its nearest cell (lexsort: cluster, then cost, then the cell: the first
         # entry of each cluster is its nearest cell, ties to the lower cell).
-        if gather == "clusters":
-            order = np.lexsort((targets, cost, ids))
-            first = np.concatenate(([True], ids[order][1:] != ids[order][:-1]))
-            picks = order[first]
-            picks = picks[np.isfinite(cost[picks]) & (ids[picks] != goal_cluster[i])]
-        else:  # the nearest targets but slot 0's, ties to the lower cell
-            picks = np.flatnonzero(np.isfinite(cost) & (targets != goals[i]))
+        order = np.lexsort((targets, cost, ids))
+        first = np.concatenate(([True], ids[order][1:] != ids[order][:-1]))
+        picks = order[first]
+        picks = picks[np.isfinite(cost[picks]) & (ids[picks] != goal_cluster[i])]
         picks = picks[np.lexsort((targets[picks], cost[picks]))]
         cells, moves = [], []
         if goals[i] >= 0:  # slot 0: the planner's choice and its own move

@@ -7,7 +7,8 @@ the team-map observation (``observation: {teammap: {crop: 15, ...}}``); ``fronti
 planner extension (``frontier: {action: step, planner: pocket}``).
 
 Retired (docs/experiment-log.md says what each measured and which commit had it): ``env.trail``,
-``eval.step_bonus``, ``algo.imitation.same_moves``, ``algo.action_mask``. A file that leaves
+``eval.step_bonus``, ``algo.imitation.same_moves``, ``algo.action_mask``,
+``env.frontier.action.goal.gather``. A file that leaves
 them at their old defaults (as every saved ``config.yaml`` does) loads; a file that turns one on
 is refused, naming the key, since what it asked for no longer exists.
 """
@@ -27,6 +28,7 @@ RETIRED = {
     ("eval", "step_bonus"): None,
     ("algo", "action_mask"): False,
     ("algo", "imitation", "same_moves"): False,
+    ("env", "frontier", "action", "goal", "gather"): "clusters",
 }
 
 

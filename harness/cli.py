@@ -286,7 +286,11 @@ def _add_render_parser(sub: Any) -> None:
     _add_target(ren)
     ren.add_argument("--out", type=Path, help="paths PNG (default: RUN_DIR/paths.png or paths.png)")
     ren.add_argument("--gif", type=Path, help="also write an animated GIF of the episode")
-    ren.add_argument("--every", type=positive_int, default=2, help="GIF: one frame every N steps")
+    ren.add_argument(
+        "--every",
+        type=positive_int,
+        help="GIF: one frame every N steps (default: ceil(max_steps / 200): at most 20 s)",
+    )
 
 
 def _add_export_parser(sub: Any) -> None:
@@ -723,10 +727,11 @@ def cmd_sweep(args: argparse.Namespace) -> int:
             worker=args.worker,
             report=None if args.quiet else print_trial,
         )
-    except (KeyboardInterrupt, TrainingInterrupted):  # the trial under way is marked failed
-        print("harness: sweep stopped; continue it with the same command and --resume",
-              file=sys.stderr)  # fmt: skip
-        return 130
+    except (KeyboardInterrupt, TrainingInterrupted) as exc:  # the trial under way is marked failed
+        signum = getattr(exc, "signum", signal.SIGINT)  # SweepInterrupted: SIGTERM
+        print(f"harness: sweep stopped by {signal.Signals(signum).name}; continue it with the "
+              "same command and --resume", file=sys.stderr)  # fmt: skip
+        return 128 + signum
     if args.worker:
         return 0
     print(format_best(result))

@@ -616,21 +616,57 @@ def tune(
     return result, RunDir(target.results_dir).write_result(name, result)
 
 
-def render(target: Target, out: Path | None, gif: Path | None, every: int) -> list[Path]:
+def render(target: Target, out: Path | None, gif: Path | None, every: int | None) -> list[Path]:
     """``harness render``'s work: episode 0 of the target's seed as a path picture (``out``, by
     default ``paths.png`` where the target's results go) and, with ``gif``, an animated GIF
-    keeping a frame every ``every`` steps. Returns the files written."""
-    from harness.results.plots import play_episode, plot_paths, write_gif
+    (:func:`harness.results.plots.gif_frames`) keeping a frame every ``every`` steps (``None``:
+    :func:`harness.results.plots.gif_every` of the episode's length). Returns the files written.
 
-    rec = play_episode(target.config.env, target.policy, target.seed, every, gif is not None)
+    Raises:
+        TargetError: for a GIF whose frames would take more than
+            :data:`harness.results.plots.MAX_GIF_BYTES` of memory, before the episode is played.
+    """
+    from harness.results import plots
+
+    env = target.config.env
+    note = sampling_note(target.config.eval.temperature) if target.run_dir else ""
+    if gif is not None:
+        every = every or plots.gif_every(env.max_steps)
+        largest = make_env(env)  # before its first reset: the largest map its source makes
+        widest = plots.gif_title(target.label, target.seed, 1.0, note)  # "100.0%"
+        need, per_frame = plots.gif_bytes(
+            (largest.height, largest.width), env.n_agents, env.max_steps, every, widest
+        )
+        limit = plots.MAX_GIF_BYTES
+        if need > limit:
+            fit = limit // per_frame  # frames that fit: step 0 and one every ``every`` steps
+            advice = (
+                f"use --every {math.ceil(env.max_steps / (fit - 1))} or more"
+                if fit >= 2
+                else "a smaller map or no --gif"
+            )
+            raise TargetError(
+                f"--gif {gif}: {need // per_frame:,} frames of a {largest.height}-row, "
+                f"{largest.width}-column map (one every {every} of {env.max_steps} steps) "
+                f"need about {plots.byte_size(need)} of memory, over the "
+                f"{plots.byte_size(limit)} limit; {advice}"
+            )
+    rec = plots.play_episode(env, target.policy, target.seed, every or 1, gif is not None)
     out = out or RunDir(target.results_dir or Path()).paths_png
     title = f"{target.label}: coverage {rec.coverage:.1%}, seed {target.seed}"
-    ev = target.config.eval
-    note = sampling_note(ev.temperature) if target.run_dir else ""
     title += f", {note}" if note else ""
-    saved = [plot_paths(rec.walls, rec.paths, out, title)]
+    saved = [plots.plot_paths(rec.walls, rec.paths, out, title)]
     if gif is not None:
-        saved.append(write_gif(rec.frames, gif))
+        assert every is not None
+        frames = plots.gif_frames(
+            rec, every, plots.gif_title(target.label, target.seed, rec.coverage, note)
+        )
+        rec.frames = []  # the env's frames: not needed any more
+        saved.append(
+            plots.write_gif(
+                frames, gif, plots.GIF_FPS, hold=plots.GIF_HOLD, palette=plots.gif_palette()
+            )
+        )
     return saved
 
 

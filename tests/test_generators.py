@@ -289,7 +289,8 @@ def test_a_map_file_source_is_stored_with_its_absolute_path(tmp_path, monkeypatc
     (tmp_path / "room.txt").write_text("....\n....\n")
     monkeypatch.chdir(tmp_path)
     config = config_from_dict({"env": {"n_agents": 2, "map": {"file": {"path": "room.txt"}}}})
-    assert config.env.map == {"file": {"path": str(tmp_path / "room.txt")}}
+    digest = hashlib.sha256(b"....\n....\n").hexdigest()  # kept: a changed file is refused
+    assert config.env.map == {"file": {"path": str(tmp_path / "room.txt"), "sha256": digest}}
 
 
 @pytest.mark.parametrize(

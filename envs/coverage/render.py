@@ -22,6 +22,8 @@ WALL_COLOUR = np.array([45, 45, 45], dtype=np.uint8)
 FREE_COLOUR = np.array([240, 240, 240], dtype=np.uint8)
 #: How far a visited cell's tint goes from white towards its agent's colour.
 TINT = 0.45
+#: Colour of a cell visited by agent ``i`` (row ``i % 8``): its colour tinted towards white.
+VISITED_COLOURS = (255 * (1 - TINT) + AGENT_COLOURS.astype(np.float64) * TINT).astype(np.uint8)
 CELL_PIXELS = 8
 
 
@@ -36,9 +38,8 @@ def cell_image(walls: np.ndarray, credited_by: np.ndarray, positions: np.ndarray
     img = np.empty((*walls.shape, 3), dtype=np.uint8)
     img[:] = FREE_COLOUR
     img[walls] = WALL_COLOUR
-    tints = (255 * (1 - TINT) + AGENT_COLOURS.astype(np.float64) * TINT).astype(np.uint8)
     visited = credited_by >= 0
-    img[visited] = tints[credited_by[visited] % len(AGENT_COLOURS)]
+    img[visited] = VISITED_COLOURS[credited_by[visited] % len(AGENT_COLOURS)]
     for i, (r, c) in enumerate(positions.tolist()):
         img[r, c] = agent_colour(i)
     return img

@@ -14,6 +14,7 @@ from typing import Any
 import yaml
 from pydantic import ValidationError
 
+from harness.config.maps import SHA256
 from harness.config.migrate import migrate
 from harness.config.schema import MAX_CONFIG_BYTES, ConfigError, ExperimentConfig
 
@@ -190,23 +191,40 @@ def config_from_dict(
 ) -> ExperimentConfig:
     """Validate a config mapping, then apply overrides (on the validated, defaults-filled form so
     that ``--set phases.initial.timesteps=...`` works even when the file leaves phases out).
-    A file of an older layout is migrated first (:func:`harness.config.migrate.migrate`)."""
+    A file of an older layout is migrated first (:func:`harness.config.migrate.migrate`).
+
+    Overrides of the map keys (``env.map...``, ``env.test_maps``) are also applied before the
+    first validation: the map they replace is never checked, so ``harness eval RUN --set
+    env.map=random`` works when the run's map file is gone."""
+    parsed: list[tuple[list[str], Any, str]] = []
+    given: set[str] = set()
+    for text in overrides:
+        keys, value = parse_override(text)
+        key = ".".join(keys)
+        if key in given:
+            raise ConfigError(f"--set {key} is given twice: give each key once")
+        given.add(key)
+        parsed.append((keys, value, text))
+    early = [item for item in parsed if _replaces_a_map(item[0])]
     try:
-        config = ExperimentConfig.model_validate(migrate(raw))
+        data = migrate(raw)
     except ValueError as err:  # a retired knob turned on
+        raise ConfigError(f"{source}: {err}") from None
+    first = source
+    if early:
+        for keys, value, text in early:
+            _apply(data, keys, value, text)
+        first = f"{source} with --set {' '.join(text for _, _, text in early)}"
+    try:
+        config = ExperimentConfig.model_validate(data)
+    except ValueError as err:
         if not isinstance(err, ValidationError):
-            raise ConfigError(f"{source}: {err}") from None
-        raise ConfigError(_format_error(source, err)) from None
+            raise ConfigError(f"{first}: {err}") from None
+        raise ConfigError(_format_error(first, err)) from None
     if overrides:
         data = config.model_dump(mode="json")
-        given: set[str] = set()
-        for text in overrides:
-            keys, value = parse_override(text)
-            key = ".".join(keys)
-            if key in given:
-                raise ConfigError(f"--set {key} is given twice: give each key once")
-            given.add(key)
-            apply_override(data, keys, value, text)
+        for keys, value, text in parsed:
+            _apply(data, keys, value, text)
         source = f"{source} with --set {' '.join(overrides)}"
         try:  # an old key given with --set migrates as in a file
             config = ExperimentConfig.model_validate(migrate(data))
@@ -215,3 +233,22 @@ def config_from_dict(
         except ValueError as err:
             raise ConfigError(f"{source}: {err}") from None
     return config
+
+
+def _replaces_a_map(keys: Sequence[str]) -> bool:
+    """Whether an override's key sets (part of) ``env.map`` or ``env.test_maps``."""
+    return len(keys) >= 2 and keys[0] == "env" and keys[1] in ("map", "test_maps")
+
+
+def _apply(data: dict[str, Any], keys: list[str], value: Any, text: str) -> None:
+    """:func:`apply_override`, and the hash of a map file an override names anew (or moves away
+    from) forgotten: it is the replaced file's, and the new file's is taken when validating."""
+    apply_override(data, keys, value, text)
+    env = data.get("env")
+    if keys[:2] == ["env", "map"] and isinstance(env, dict):
+        env.pop("map_sha256", None)
+    if len(keys) >= 2 and keys[-2:] == ["file", "path"]:
+        node: Any = data
+        for key in keys[:-1]:
+            node = node[_list_index(node, key)] if isinstance(node, list) else node[key]
+        node.pop(SHA256, None)

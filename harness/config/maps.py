@@ -13,10 +13,16 @@ The kinds and their parameters are not listed here: each kind of
 signature (names, types, defaults), so the registry stays the one owner of the names and a new
 generator is configurable as soon as it is registered. Unknown kinds and keys are rejected; a
 source's ``height`` and ``width`` default to ``env.height`` and ``env.width``.
+
+A ``file`` source (alone or in a mix) is stored with its absolute path and the SHA-256 of its
+content (``{file: {path: /abs/room.txt, sha256: ...}}``, filled in when the config is loaded, as
+``env.map_sha256`` is for a map file named by a string): loading the saved config again refuses
+a file that changed since. A config saved without the hash gets it then.
 """
 
 from __future__ import annotations
 
+import hashlib
 import inspect
 import typing
 from pathlib import Path
@@ -38,6 +44,8 @@ from envs.coverage import generators
 MIX = "mix"
 #: Size of the placeholder maps a source is built for when checking its parameters alone.
 _CHECK_SIZE = 50
+#: A ``file`` source's key for its content's hash (not an argument of the generator).
+SHA256 = "sha256"
 
 
 class _Strict(BaseModel):
@@ -55,6 +63,8 @@ def _parameters_model(kind: str, cls: type[generators.MapGenerator]) -> type[_St
         else:
             default = ... if param.default is inspect.Parameter.empty else param.default
             fields[name] = (hints[name], default)
+    if issubclass(cls, generators.FileMap):
+        fields[SHA256] = (str | None, None)
     return create_model(f"{kind.title()}Source", __base__=_Strict, **fields)
 
 
@@ -104,7 +114,7 @@ class _OneKind(_Strict):
                 except ValueError as exc:
                     raise ValueError(f"{MIX}.{i}.{exc}") from None
             return generators.MixGenerator(sources)
-        values = params.model_dump()
+        values = params.model_dump(exclude={SHA256})
         if "height" in values:
             values["height"] = values["height"] or height
             values["width"] = values["width"] or width
@@ -138,11 +148,48 @@ def parse_source(data: dict[str, Any]) -> dict[str, Any]:
         loc = ".".join(str(p) for p in first["loc"])
         msg = first["msg"].removeprefix("Value error, ")
         raise ValueError(f"{loc}: {msg}" if loc else msg) from None
-    for item in [source] if source.mix is None else source.mix:
+    for i, item in enumerate([source] if source.mix is None else source.mix):
         if item.file is not None:
-            item.file.path = str(Path(item.file.path).expanduser().resolve())
+            _pin_file(item.file, "file" if source.mix is None else f"{MIX}.{i}.file")
     source.build(_CHECK_SIZE, _CHECK_SIZE)  # the generators' own checks of their parameters
     return source.model_dump(mode="json", exclude_none=True)
+
+
+def file_sha256(path: Path) -> str:
+    """SHA-256 of a file's content (read in blocks).
+
+    Raises:
+        OSError: when it cannot be read.
+    """
+    digest = hashlib.sha256()
+    with path.open("rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _pin_file(params: Any, where: str) -> None:
+    """Store a ``file`` source's path absolute with its content's hash; refuse a file whose hash
+    differs from the one the config already holds (the map changed since it was saved).
+
+    Raises:
+        ValueError: naming ``where`` and the file.
+    """
+    path = Path(params.path).expanduser().resolve()
+    params.path = str(path)
+    if not path.is_file():
+        return  # the generator names the problem
+    try:
+        digest = file_sha256(path)
+    except OSError as exc:
+        raise ValueError(f"{where}: cannot read map file {str(path)!r} ({exc.strerror})") from None
+    given = getattr(params, SHA256)
+    if given is not None and given != digest:
+        raise ValueError(
+            f"{where}: map file {str(path)!r} has changed since this config was written "
+            f"(sha256 {digest[:12]}..., the config says {str(given)[:12]}...)"
+        )
+    setattr(params, SHA256, digest)
 
 
 def build_source(data: dict[str, Any], height: int, width: int) -> generators.MapGenerator:

@@ -13,6 +13,7 @@ Every run is a separate ``harness run`` process, so a group is no more than the 
 from __future__ import annotations
 
 import json
+import math
 import os
 import subprocess
 import sys
@@ -226,8 +227,8 @@ def seed_progress(job: Job) -> str:
     """``seed k: N transitions, validation M %`` from the run's logs so far (the last finished
     episode's transition count and the last in-training validation's median coverage)."""
     parts = [f"seed {job.seed}"]
-    steps = _last_value(job.run.episodes_csv, "timesteps")
-    parts.append(f"{int(float(steps)):,} transitions" if steps is not None else "starting")
+    steps = _number(_last_value(job.run.episodes_csv, "timesteps"))
+    parts.append(f"{int(steps):,} transitions" if steps is not None else "starting")
     coverage = seed_progress_value(job.run)
     if coverage is not None:
         parts.append(f"validation {coverage:.1%}")
@@ -236,8 +237,17 @@ def seed_progress(job: Job) -> str:
 
 def seed_progress_value(run: RunDir) -> float | None:
     """The last in-training validation's median coverage of ``run`` (``None``: none yet)."""
-    value = _last_value(run.evaluations_csv, "coverage_median")
-    return None if value is None else float(value)
+    return _number(_last_value(run.evaluations_csv, "coverage_median"))
+
+
+def _number(text: str | None) -> float | None:
+    """A log cell as a finite number; ``None`` for none, or one that is not (a damaged log must
+    not end the seeds' training with a traceback)."""
+    try:
+        value = float(text) if text is not None else None
+    except ValueError:
+        return None
+    return value if value is not None and math.isfinite(value) else None
 
 
 def _last_value(path: Path, column: str) -> str | None:

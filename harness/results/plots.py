@@ -10,6 +10,8 @@ tell apart; map colours are the env's own, so figures and ``rgb_array`` frames m
 
 from __future__ import annotations
 
+import functools
+import math
 import warnings
 from collections.abc import Iterator, Mapping, Sequence
 from contextlib import contextmanager
@@ -640,7 +642,13 @@ def episode_frames(
     return play_episode(env_cfg, policy, seed, every=every).frames
 
 
-def write_gif(frames: Sequence[np.ndarray], out: str | Path, fps: int = 10) -> Path:
+def write_gif(
+    frames: Sequence[np.ndarray],
+    out: str | Path,
+    fps: int = 10,
+    hold: float = 0.0,
+    palette: np.ndarray | None = None,
+) -> Path:
     """Write ``uint8 (H, W, 3)`` frames as an animated GIF that loops forever.
 
     Pillow merges identical consecutive frames into one longer frame, so the file can hold
@@ -650,6 +658,10 @@ def write_gif(frames: Sequence[np.ndarray], out: str | Path, fps: int = 10) -> P
         frames: RGB images, all the same size.
         out: GIF file to write (folders are created).
         fps: Frames per second.
+        hold: Seconds the last frame stays on screen beyond its own before the loop restarts.
+        palette: ``uint8 (k, 3)`` colours (k <= 256) every pixel is mapped to, the nearest
+            without dithering: for frames whose colours are known (:func:`gif_palette`), far
+            faster than Pillow's own palette for each frame. ``None``: Pillow's.
 
     Returns:
         The path of the GIF.
@@ -660,17 +672,286 @@ def write_gif(frames: Sequence[np.ndarray], out: str | Path, fps: int = 10) -> P
         raise ValueError("write_gif needs at least one frame")
     if fps < 1:
         raise ValueError(f"fps must be >= 1, got {fps}")
+    if not hold >= 0:
+        raise ValueError(f"hold must be >= 0, got {hold}")
     images = [Image.fromarray(np.asarray(f, dtype=np.uint8)) for f in frames]
+    if palette is not None:
+        colours = np.asarray(palette, dtype=np.uint8).reshape(-1, 3)
+        if not 1 <= len(colours) <= 256:
+            raise ValueError(f"a GIF palette has 1 to 256 colours, got {len(colours)}")
+        table = Image.new("P", (1, 1))
+        table.putpalette(np.resize(colours, (256, 3)).ravel().tolist())
+        images = [im.quantize(palette=table, dither=Image.Dither.NONE) for im in images]
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
+    duration = max(20, round(1000 / fps))  # browsers treat < 20 ms as 100 ms
     images[0].save(
         out,
         format="GIF",
         save_all=True,
         append_images=images[1:],
-        duration=max(20, round(1000 / fps)),  # browsers treat < 20 ms as 100 ms
+        duration=[duration] * (len(images) - 1) + [duration + round(1000 * hold)],
         loop=0,
     )
+    return out
+
+
+# ---------------------------------------------------------------------- the render GIF
+#: Frames per second of ``harness render --gif``.
+GIF_FPS = 10
+#: Longest a GIF of ``harness render`` lasts without ``--every``: :func:`gif_every` keeps at
+#: most ``GIF_FPS * GIF_SECONDS`` steps of the episode (plus its first frame).
+GIF_SECONDS = 20
+#: Seconds the last frame (the final coverage) stays before the GIF starts again.
+GIF_HOLD = 2.0
+#: Most bytes the frames of a ``harness render`` GIF may take in memory (:func:`gif_bytes`).
+#: An episode's frames are all held until the GIF is written: a 20,000-step episode of a big map
+#: at one frame per step would need ~19 GB; 2 GiB holds 1,000 frames of a 100x50 map.
+MAX_GIF_BYTES = 2 << 30
+#: A map drawn smaller than this many pixels (its longer side) is enlarged by a whole factor.
+GIF_MIN_MAP_PIXELS = 400
+_GIF_FONT_SIZE = 13
+_GIF_MARGIN = 8
+_GIF_SWATCH = 11  # legend squares and circles, pixels
+_GIF_TEXT = (0, 0, 0)
+_GIF_BACKGROUND = (255, 255, 255)
+_GIF_RULE = (160, 160, 160)  # the line between the header and the map
+_MARKER_OUTLINE = (0, 0, 0)
+
+
+def gif_palette() -> np.ndarray:
+    """``uint8 (k, 3)``: the colours of :func:`gif_frames`' frames, for :func:`write_gif`: the
+    map's, the agents', and 32 greys for the header's text (smoothed at its edges)."""
+    greys = np.repeat(np.linspace(0, 255, 32).round()[:, None], 3, axis=1)
+    colours = [
+        render.WALL_COLOUR[None],
+        render.FREE_COLOUR[None],
+        render.VISITED_COLOURS,
+        render.AGENT_COLOURS,
+        np.array([_GIF_RULE, _GIF_TEXT, _GIF_BACKGROUND, _MARKER_OUTLINE]),
+        greys,
+    ]
+    return np.unique(np.concatenate(colours).astype(np.uint8), axis=0)
+
+
+def gif_every(steps: int, fps: int = GIF_FPS, seconds: float = GIF_SECONDS) -> int:
+    """The frame spacing that makes an episode of ``steps`` steps last at most ``seconds`` at
+    ``fps``: ``ceil(steps / (fps * seconds))`` (1 for a short episode). An episode at least
+    half that long then lasts between ``seconds / 2`` and ``seconds`` (10-20 s by default)."""
+    return max(1, math.ceil(steps / (fps * seconds)))
+
+
+def frame_steps(steps: int, every: int) -> list[int]:
+    """The steps that :func:`play_episode` keeps a frame of: 0, every ``every``-th and the last."""
+    if every < 1:
+        raise ValueError(f"every must be >= 1, got {every}")
+    return [*range(0, steps + 1, every), *([steps] if steps % every else [])]
+
+
+def gif_title(label: str, seed: int, coverage: float, note: str = "") -> str:
+    """The GIF's title: the policy (a baseline's name or the model), the seed, the final
+    coverage and, for a model sampling its actions, how (``sampling_note``)."""
+    title = f"{label}, seed {seed}: final coverage {coverage:.1%}"
+    return f"{title} ({note})" if note else title
+
+
+def gif_status(step: int, steps: int, coverage: float) -> str:
+    """The line of a frame under the title: the step counter and the coverage so far."""
+    return f"step {step} / {steps}    coverage {coverage:.1%}"
+
+
+def coverage_by_step(rec: EpisodeResult) -> np.ndarray:
+    """``float (steps + 1,)``: the team's coverage after each step of a recorded episode (its
+    ``paths`` and ``walls``): the free cells some agent has stood on, start cells included."""
+    if rec.walls is None or not rec.paths:
+        raise ValueError("coverage_by_step needs an episode played with its paths recorded")
+    first = np.full(rec.walls.shape, rec.steps + 1, dtype=np.int64)
+    for path in rec.paths:
+        np.minimum.at(first, (path[:, 0], path[:, 1]), np.arange(len(path)))
+    counts = np.bincount(first.ravel(), minlength=rec.steps + 2)[: rec.steps + 1]
+    return np.cumsum(counts) / rec.free_cells if rec.free_cells else np.zeros(rec.steps + 1)
+
+
+@dataclass(frozen=True)
+class GifLayout:
+    """Where things go on a frame of :func:`gif_frames`: a white header band (title, step
+    counter and coverage, legend) above the map, whose pixels are the env's ``rgb_array``
+    frame enlarged by ``scale`` (nearest neighbour) with the agents' markers drawn on them."""
+
+    scale: int
+    """Whole factor the env's frames are enlarged by (1 unless the map is small)."""
+    width: int
+    height: int
+    band: int
+    """Height of the header band; the map starts on this row."""
+    map_x: int
+    """Left column of the map (it is centred when the header is wider)."""
+    status_y: int
+    legend: tuple[tuple[str, int, int], ...]
+    """Legend entries: (kind, x, y) of each entry's first swatch."""
+    n_agents: int
+
+
+@functools.cache
+def _gif_font(bold: bool = False) -> Any:
+    """DejaVu Sans, which matplotlib ships, at :data:`_GIF_FONT_SIZE`; Pillow's own font where
+    that cannot be read (a Pillow built without FreeType)."""
+    import matplotlib
+    from PIL import ImageFont
+
+    name = "DejaVuSans-Bold.ttf" if bold else "DejaVuSans.ttf"
+    try:
+        return ImageFont.truetype(
+            str(Path(matplotlib.get_data_path(), "fonts", "ttf", name)), _GIF_FONT_SIZE
+        )
+    except (OSError, ImportError):
+        return ImageFont.load_default()
+
+
+def _text_size(font: Any, text: str) -> tuple[int, int]:
+    """Width and height of ``text`` drawn at (0, 0): its box's right and bottom edges."""
+    box = font.getbbox(text)
+    return int(box[2]), int(box[3])
+
+
+def _legend_entries(n_agents: int) -> list[tuple[str, str, int]]:
+    """(kind, label, swatches) of the legend: walls, unvisited cells, visited cells in each
+    agent's tint, the agents' markers."""
+    shown = min(n_agents, len(render.AGENT_COLOURS))
+    return [
+        ("wall", "wall", 1),
+        ("free", "unvisited", 1),
+        ("visited", "visited (by agent)", shown),
+        ("agent", "agents", shown),
+    ]
+
+
+def gif_layout(map_pixels: tuple[int, int], n_agents: int, steps: int, title: str) -> GifLayout:
+    """The layout of a GIF frame for an env frame of ``map_pixels`` (rows, columns) pixels.
+
+    The frame is as wide as the (enlarged) map or the header's text, whichever is wider; the
+    legend wraps onto more rows when it does not fit on one.
+    """
+    bold, font = _gif_font(bold=True), _gif_font()
+    longest = max(map_pixels)
+    scale = max(1, GIF_MIN_MAP_PIXELS // longest) if longest else 1
+    map_h, map_w = map_pixels[0] * scale, map_pixels[1] * scale
+    m, gap = _GIF_MARGIN, _GIF_SWATCH + 3
+    title_w, title_h = _text_size(bold, title)
+    status_w, status_h = _text_size(font, gif_status(steps, steps, 1.0))
+    entries = [
+        (kind, n * gap + 3 + _text_size(font, label)[0])
+        for kind, label, n in _legend_entries(n_agents)
+    ]
+    width = max(map_w, title_w + 2 * m, status_w + 2 * m, max(w for _, w in entries) + 2 * m)
+    row_h = max(_GIF_SWATCH, _text_size(font, "Ag")[1]) + 4
+    status_y = m + title_h + 4
+    x, y = m, status_y + status_h + 6
+    legend = []
+    for kind, w in entries:
+        if x > m and x + w > width - m:
+            x, y = m, y + row_h
+        legend.append((kind, x, y))
+        x += w + 16
+    band = y + row_h + m
+    return GifLayout(
+        scale, width, band + map_h, band, (width - map_w) // 2, status_y, tuple(legend), n_agents
+    )
+
+
+def gif_bytes(
+    map_shape: tuple[int, int], n_agents: int, steps: int, every: int, title: str
+) -> tuple[int, int]:
+    """Memory the frames of a render GIF take, before the episode is played: ``(total, per
+    frame)`` bytes for a map of ``map_shape`` cells (the largest its source makes). A frame
+    counts the env's ``rgb_array`` image and the GIF's frame made from it (3 bytes a pixel);
+    all of them are held until the GIF is written."""
+    pixels = (map_shape[0] * render.CELL_PIXELS, map_shape[1] * render.CELL_PIXELS)
+    layout = gif_layout(pixels, n_agents, steps, title)
+    per_frame = 3 * (pixels[0] * pixels[1] + layout.height * layout.width)
+    return len(frame_steps(steps, every)) * per_frame, per_frame
+
+
+def byte_size(n: int) -> str:
+    """``n`` bytes for a message: ``"2.1 GiB"``, ``"480.0 MiB"``, ``"12.0 KiB"``."""
+    for unit, size in (("GiB", 1 << 30), ("MiB", 1 << 20), ("KiB", 1 << 10)):
+        if n >= size:
+            return f"{n / size:.1f} {unit}"
+    return f"{n} bytes"
+
+
+def _draw_header(layout: GifLayout, title: str) -> np.ndarray:
+    """The parts of the header band that every frame shares: title, legend, the rule."""
+    from PIL import Image, ImageDraw
+
+    img = Image.new("RGB", (layout.width, layout.band), _GIF_BACKGROUND)
+    draw = ImageDraw.Draw(img)
+    bold, font = _gif_font(bold=True), _gif_font()
+    m, s = _GIF_MARGIN, _GIF_SWATCH
+    draw.text((m, m), title, fill=_GIF_TEXT, font=bold)
+    labels = {kind: (label, n) for kind, label, n in _legend_entries(layout.n_agents)}
+    for kind, x, y in layout.legend:
+        label, n = labels[kind]
+        for i in range(n):
+            box = (x + i * (s + 3), y, x + i * (s + 3) + s - 1, y + s - 1)
+            if kind == "agent":
+                colour = tuple(int(v) for v in render.agent_colour(i))
+                draw.ellipse(box, fill=colour, outline=_MARKER_OUTLINE)
+            else:
+                colour = {
+                    "wall": render.WALL_COLOUR,
+                    "free": render.FREE_COLOUR,
+                    "visited": render.VISITED_COLOURS[i % len(render.VISITED_COLOURS)],
+                }[kind]
+                draw.rectangle(box, fill=tuple(int(v) for v in colour), outline=_GIF_RULE)
+        text_y = y + s // 2 - _text_size(font, "Ag")[1] // 2
+        draw.text((x + n * (s + 3) + 3, text_y), label, fill=_GIF_TEXT, font=font)
+    draw.line((0, layout.band - 1, layout.width, layout.band - 1), fill=_GIF_RULE)
+    return np.asarray(img)
+
+
+def gif_frames(rec: EpisodeResult, every: int, title: str) -> list[np.ndarray]:
+    """The frames of ``harness render --gif`` from an episode that :func:`play_episode` played
+    with ``every`` (its paths and frames recorded): under a header band with ``title``, the step
+    counter, the coverage so far and a legend, the map (enlarged when small) with each agent
+    drawn as a disc in its colour with a dark outline, about three cells across on a big map.
+    """
+    from PIL import Image, ImageDraw
+
+    steps = frame_steps(rec.steps, every)
+    if len(rec.frames) != len(steps) or rec.walls is None:
+        raise ValueError(
+            f"gif_frames needs the episode's frames every {every} steps ({len(steps)}) and its "
+            f"paths, got {len(rec.frames)} frames"
+        )
+    map_pixels = rec.frames[0].shape[:2]
+    layout = gif_layout(map_pixels, len(rec.paths), rec.steps, title)
+    header = _draw_header(layout, title)
+    coverage = coverage_by_step(rec)
+    font = _gif_font()
+    cell = map_pixels[0] // rec.walls.shape[0] * layout.scale
+    radius = max(0.75 * cell, 10.0)
+    out = []
+    for step, frame in zip(steps, rec.frames, strict=True):
+        k = layout.scale
+        enlarged = np.repeat(np.repeat(frame, k, axis=0), k, axis=1) if k > 1 else frame
+        picture = Image.fromarray(np.ascontiguousarray(enlarged))
+        draw = ImageDraw.Draw(picture)  # on the map alone: a disc at its edge is cut there
+        # The lowest index on top where agents meet (as in the env's ansi picture).
+        for i in range(len(rec.paths) - 1, -1, -1):
+            r, c = rec.paths[i][step]
+            x, y = (c + 0.5) * cell, (r + 0.5) * cell
+            box = (x - radius, y - radius, x + radius, y + radius)
+            colour = tuple(int(v) for v in render.agent_colour(i))
+            draw.ellipse(box, fill=colour, outline=_MARKER_OUTLINE, width=2)
+        canvas = np.empty((layout.height, layout.width, 3), dtype=np.uint8)
+        canvas[:] = _GIF_BACKGROUND
+        canvas[: layout.band] = header
+        canvas[layout.band :, layout.map_x : layout.map_x + enlarged.shape[1]] = np.asarray(picture)
+        img = Image.fromarray(canvas)
+        status = gif_status(step, rec.steps, float(coverage[step]))
+        ImageDraw.Draw(img).text((_GIF_MARGIN, layout.status_y), status, fill=_GIF_TEXT, font=font)
+        out.append(np.asarray(img))
     return out
 
 

@@ -316,7 +316,9 @@ class RunDir:
         if not path.is_file():
             return None
         try:
-            data = json.loads(path.read_text(encoding="utf-8"))
+            data = json.loads(path.read_text(encoding="utf-8"), parse_int=_float_sized_int)
+        except _NumberTooLarge as exc:
+            raise RunDirError(f"{path}: the number {exc} is too large for an evaluation") from None
         except (OSError, ValueError) as exc:
             raise RunDirError(f"{path}: not a readable eval JSON ({exc})") from None
         if not isinstance(data, dict):
@@ -629,6 +631,10 @@ def read_evaluations_csv(path: str | Path) -> Curve:
     return _read_columns(path, "timesteps", "coverage_median")
 
 
+#: The range of a curve's ``x`` column (int64, as numpy stores it).
+_INT64_MIN, _INT64_MAX = -(2**63), 2**63 - 1
+
+
 def _read_columns(path: str | Path, x: str, y: str) -> Curve:
     """Columns ``x`` (int64) and ``y`` (float64) of a CSV file, sorted stably by ``x``."""
     path = Path(path)
@@ -649,6 +655,8 @@ def _read_columns(path: str | Path, x: str, y: str) -> Curve:
                 ys.append(float(row[y]))
             except (TypeError, ValueError, OverflowError):
                 raise ValueError(f"{path}, line {reader.line_num}: {x}/{y} not a number") from None
+            if not _INT64_MIN <= xs[-1] <= _INT64_MAX:  # 1e300 is a float, but no step count
+                raise ValueError(f"{path}, line {reader.line_num}: {x} {row[x]} is out of range")
             if not math.isfinite(ys[-1]):
                 raise ValueError(f"{path}, line {reader.line_num}: {y} is {row[y]}")
     except csv.Error as exc:
@@ -656,6 +664,25 @@ def _read_columns(path: str | Path, x: str, y: str) -> Curve:
     xa = np.asarray(xs, dtype=np.int64)
     order = np.argsort(xa, kind="stable")
     return xa[order], np.asarray(ys, dtype=np.float64)[order]
+
+
+class _NumberTooLarge(ValueError):
+    """A JSON integer beyond the float range (every number of a result is used as a float)."""
+
+
+def _float_sized_int(text: str) -> int:
+    """``json.loads``'s ``parse_int``: the integer, if a float can hold it.
+
+    Raises:
+        _NumberTooLarge: with the number shortened (``1000000000...`` (401 digits)).
+    """
+    value = int(text)
+    try:
+        float(value)
+    except OverflowError:
+        shown = text if len(text) <= 20 else f"{text[:12]}... ({len(text.lstrip('-'))} digits)"
+        raise _NumberTooLarge(shown) from None
+    return value
 
 
 def write_json(path: Path, data: dict[str, Any]) -> Path:

@@ -26,18 +26,28 @@ process left running are marked failed and queued again with the same parameters
 ``RetryHeartbeatStaleTrialCallback``; with a database, a live worker does this by heartbeat). The
 best trial is written out as ``best.yaml`` (a config that ``harness run best.yaml`` trains) and
 ``best.json`` (its parameters and value).
+
+Ctrl-C or SIGTERM stops a sweep as it stops ``harness run``: a trial in training finishes its
+collection round, writes a checkpoint and is marked failed; elsewhere (between trials, while a
+trial is evaluated) the sweep stops at once. Either way the command ends with one line (no
+Optuna traceback) and exit code 130 or 143; ``--resume`` continues it. With ``--jobs N`` a SIGTERM
+is passed on to the workers.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
+import logging
 import math
 import os
+import signal
 import subprocess
 import sys
+import threading
 import time
 import warnings
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -64,6 +74,73 @@ HEARTBEAT_S, GRACE_S = 30, 120
 
 class SweepError(ValueError):
     """A space file, study or storage that cannot be used, with a one-line message."""
+
+
+class SweepInterrupted(KeyboardInterrupt):
+    """A SIGTERM that reached the sweep outside a trial's training (which stops on its own:
+    ``TrainingInterrupted``). A ``KeyboardInterrupt``, so that it stops the sweep wherever it
+    lands, as Ctrl-C does, and Optuna marks the trial under way failed."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+
+class _SignalState:
+    """Whether the sweep is stopping on a signal already (a further SIGTERM is then ignored, so
+    that it cannot break the trial's checkpoint or its FAIL state being written)."""
+
+    stopping = False
+
+
+@contextlib.contextmanager
+def _stop_on_sigterm(state: _SignalState) -> Iterator[None]:
+    """SIGTERM stops the sweep as Ctrl-C does (:class:`SweepInterrupted`); a trial's training
+    puts its own handler in place meanwhile (``harness.training.train.stop_on_signals``)."""
+    if threading.current_thread() is not threading.main_thread():  # signals: main thread only
+        yield
+        return
+
+    def handler(signum: int, frame: Any) -> None:
+        if state.stopping:
+            return
+        state.stopping = True
+        raise SweepInterrupted(signum)
+
+    previous = signal.signal(signal.SIGTERM, handler)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
+class _QuietInterrupts(logging.Filter):
+    """Leaves out Optuna's "Trial N failed ... because of the following error" warning (with the
+    traceback) of a trial stopped by a signal, and its warnings after it: the command says what
+    happened in one line."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.quiet = False
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        from harness.training.train import TrainingInterrupted
+
+        error = record.exc_info[1] if record.exc_info else None
+        if isinstance(error, (KeyboardInterrupt, TrainingInterrupted)):
+            self.quiet = True
+        return not self.quiet
+
+
+@contextlib.contextmanager
+def _quiet_interrupts() -> Iterator[None]:
+    logger = logging.getLogger("optuna.study._optimize")  # where Optuna logs a failed trial
+    quiet = _QuietInterrupts()
+    logger.addFilter(quiet)
+    try:
+        yield
+    finally:
+        logger.removeFilter(quiet)
 
 
 @dataclass(frozen=True)
@@ -248,7 +325,31 @@ def run_sweep(
         SweepError: for a bad space file, a study that exists without ``--resume`` (embedded
             storage), or a storage that cannot be opened.
         ConfigError: for a bad config.
+        TrainingInterrupted: on SIGINT/SIGTERM during a trial's training, after its checkpoint
+            (the trial is marked failed).
+        SweepInterrupted: on SIGTERM elsewhere (``KeyboardInterrupt`` on SIGINT).
     """
+    state = _SignalState()
+    with _stop_on_sigterm(state), _quiet_interrupts():
+        return _run_sweep(config_path, overrides, space_path, trials, study_name, sweeps_dir,
+                          storage_url, resume, pruner, jobs, worker, report, state)  # fmt: skip
+
+
+def _run_sweep(
+    config_path: Path,
+    overrides: Sequence[str],
+    space_path: Path,
+    trials: int,
+    study_name: str,
+    sweeps_dir: Path,
+    storage_url: str | None,
+    resume: bool,
+    pruner: str,
+    jobs: int,
+    worker: bool,
+    report: Callable[[str], None] | None,
+    state: _SignalState,
+) -> dict[str, Any] | None:
     import optuna
 
     dims = load_space(space_path)
@@ -288,13 +389,20 @@ def run_sweep(
         _run_workers(jobs, folder, config_path, overrides, space_path, trials, study_name,
                      sweeps_dir, storage_url, pruner)  # fmt: skip
     else:
-        from harness.training.train import TrainingFailed
+        from harness.training.train import TrainingFailed, TrainingInterrupted
+
+        def objective(trial: Any) -> float:
+            try:
+                return _objective(trial, config_path, overrides, dims, folder, trials)
+            except TrainingInterrupted:
+                state.stopping = True  # its checkpoint is written; now the trial is marked failed
+                raise
 
         counted = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED)
         left = trials - len(study.get_trials(deepcopy=False, states=counted))
         if left > 0:
             study.optimize(
-                lambda trial: _objective(trial, config_path, overrides, dims, folder, trials),
+                objective,
                 n_trials=left,
                 callbacks=[
                     optuna.study.MaxTrialsCallback(trials, states=counted),
@@ -334,13 +442,18 @@ def _run_workers(
     for item in (*overrides, f"algo.threads={threads}"):
         cmd += ["--set", item]
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
-    processes = []
-    for k in range(jobs):
-        with (folder / f"worker-{k}.log").open("wb") as log:
-            processes.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env))
+    processes: list[subprocess.Popen[bytes]] = []
     try:
+        for k in range(jobs):
+            with (folder / f"worker-{k}.log").open("wb") as log:
+                processes.append(
+                    subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
+                )
         codes = [p.wait() for p in processes]
-    except KeyboardInterrupt:  # Ctrl-C reached the workers too: let them end their trials
+    except KeyboardInterrupt as exc:  # Ctrl-C reached the workers too: let them end their trials
+        if isinstance(exc, SweepInterrupted):  # a SIGTERM reached this process alone
+            for p in processes:
+                p.send_signal(exc.signum)
         for p in processes:
             p.wait()
         raise

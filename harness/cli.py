@@ -48,7 +48,7 @@ from harness.commands import (
 )
 from harness.config.loading import load_config
 from harness.config.schema import MAX_SEED, ConfigError, ExperimentConfig, check_name
-from harness.results.groups import GroupError
+from harness.results.groups import GroupError, GroupInterrupted, Job
 from harness.results.rundir import (
     RunDir,
     RunDirError,
@@ -191,8 +191,8 @@ def _add_run_parser(sub: Any) -> None:
     run.add_argument(
         "--jobs",
         type=positive_int,
-        default=1,
-        help="with --seeds: seeds trained at a time, each on its share of the cores",
+        help="with --seeds (or --resume GROUP): seeds trained at a time, each on its share of "
+        "the cores (default 1; a resumed group: its own)",
     )
     run.add_argument(
         "--into",
@@ -394,7 +394,7 @@ def cmd_run(args: argparse.Namespace) -> int:
     config = resolve_run_config(args)
     if args.seeds is not None:
         return _run_group(args, config)
-    if args.jobs != 1:
+    if args.jobs not in (None, 1):
         raise HarnessError("--jobs goes with --seeds")
     run = RunDir.create_at(args.into) if args.into else RunDir.create(args.runs_dir, config.name)
     try:
@@ -438,22 +438,43 @@ def os_error_text(exc: OSError) -> str:
 
 def _run_group(args: argparse.Namespace, config: ExperimentConfig) -> int:
     """``harness run CONFIG --seeds ...``: one run per seed in a group folder."""
-    from harness.results.groups import parse_seeds, run_group, seed_progress_value
+    from harness.results.groups import parse_seeds, run_group
 
     if args.seed is not None or args.into is not None:
         raise HarnessError("--seeds makes its own seeds and folders; drop --seed and --into")
     seeds = parse_seeds(args.seeds, MAX_SEED)
     overrides = list(args.overrides) + ([f"name={json.dumps(args.name)}"] if args.name else [])
-    group, jobs = run_group(
-        args.config,
-        config.name,
-        overrides,
-        seeds,
-        args.jobs,
-        args.runs_dir,
-        args.argv,
-        report=None if args.no_progress else print_progress,
+    try:
+        group, jobs = run_group(
+            args.config,
+            config.name,
+            overrides,
+            seeds,
+            args.jobs or 1,
+            args.runs_dir,
+            args.argv,
+            report=None if args.no_progress else print_progress,
+        )
+    except GroupInterrupted as exc:
+        return _group_stopped(exc)
+    return _group_done(group, jobs)
+
+
+def _group_stopped(exc: GroupInterrupted) -> int:
+    """The one line of a seed group stopped by a signal (``GroupInterrupted``); its exit code."""
+    print(
+        f"harness: seed group stopped by {exc} ({exc.summary()}); continue it with: "
+        f"harness run --resume {exc.group}",
+        file=sys.stderr,
     )
+    return 128 + exc.signum
+
+
+def _group_done(group: Path, jobs: Sequence[Job]) -> int:
+    """The end of a seed group's command: each seed's state, the last validations; 0 when every
+    seed is done."""
+    from harness.results.groups import seed_progress_value
+
     print(f"group folder: {group}", file=sys.stderr)
     for job in jobs:
         state = "done" if job.returncode == 0 else f"failed (exit {job.returncode}, see its log)"
@@ -467,7 +488,10 @@ def _run_group(args: argparse.Namespace, config: ExperimentConfig) -> int:
             + f" (mean {sum(finals) / len(finals):.1%}); test them: harness eval {group}",
             file=sys.stderr,
         )
-    return 0 if all(job.returncode == 0 for job in jobs) else 1
+    if any(job.returncode != 0 for job in jobs):
+        print(f"  finish the failed seeds with: harness run --resume {group}", file=sys.stderr)
+        return 1
+    return 0
 
 
 def print_progress(line: str) -> None:
@@ -476,6 +500,8 @@ def print_progress(line: str) -> None:
 
 
 def _resume(args: argparse.Namespace) -> int:
+    from harness.results.groups import is_group
+
     if (
         args.config is not None
         or args.overrides
@@ -487,9 +513,15 @@ def _resume(args: argparse.Namespace) -> int:
         raise HarnessError(
             "--resume continues a run with its own config.yaml; drop the other options"
         )
+    if is_group(args.resume):
+        return _resume_group(args)
+    if args.jobs is not None:
+        raise HarnessError("--jobs goes with --seeds or a seed group's --resume")
     run = RunDir(args.resume)
     if not run.config.is_file():
-        raise HarnessError(f"{run.path}: not a run folder (no config.yaml)")
+        raise HarnessError(
+            f"{run.path}: not a run folder (no config.yaml) nor a seed group (no group.json)"
+        )
     with run.lock():  # a second resume of a live run stops here
         config = load_config(run.config)
         found = complete_checkpoints(run.checkpoints)
@@ -523,6 +555,42 @@ def _resume(args: argparse.Namespace) -> int:
             pass  # its copy is unreadable: train() falls back to the older checkpoint
         print(f"resuming {run.path}", file=sys.stderr)
         return _train(config, run, args, mode="resume")
+
+
+def _resume_group(args: argparse.Namespace) -> int:
+    """``harness run --resume GROUP``: resume the seeds that stopped, start those never started,
+    leave the finished ones alone (one line per seed says which)."""
+    from harness.results.groups import resume_group
+
+    group = Path(args.resume)
+    try:
+        jobs = resume_group(
+            group,
+            seed_state,
+            args.jobs,
+            say=print_progress,
+            report=None if args.no_progress else print_progress,
+        )
+    except GroupInterrupted as exc:
+        return _group_stopped(exc)
+    return _group_done(group, jobs)
+
+
+def seed_state(run: RunDir) -> str:
+    """How a seed's run (with its ``config.yaml``) stands for ``--resume GROUP``: ``finished``
+    (as ``--resume RUN`` would say), or how it stopped (``stopped at step 1,200``)."""
+    found = complete_checkpoints(run.checkpoints)
+    if run.model.is_file() and not found:
+        return "finished"  # `--resume RUN` refuses it: nothing to resume from, model kept
+    if not found:
+        return "stopped before its first checkpoint"
+    try:
+        newest = read_state(found[-1])
+    except CheckpointError:
+        return "stopped (its newest checkpoint is unreadable)"
+    if newest.finished and run.model.is_file():
+        return "finished"
+    return f"stopped at step {newest.num_timesteps:,}"
 
 
 def _train(config: ExperimentConfig, run: RunDir, args: argparse.Namespace, mode: str) -> int:

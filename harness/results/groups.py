@@ -8,17 +8,28 @@ Every run is a separate ``harness run`` process, so a group is no more than the 
 
 ``--jobs N`` runs N seeds at a time, each with ``cores // N`` torch threads (and the matching
 ``OMP_NUM_THREADS``/``MKL_NUM_THREADS``), so the jobs do not fight over the cores.
+
+Ctrl-C or SIGTERM to the group's command is passed on to the seeds in training (each in a
+process group of its own, so a terminal's Ctrl-C reaches it once), which write a checkpoint and
+stop; no further seed starts, and the command ends with one line and exit code 130 or 143.
+``harness run --resume GROUP`` then finishes the group: it resumes each seed that stopped, starts
+those never started and leaves the finished ones alone. The group folder is locked while its
+command or a resume runs (``.lock``, as a run folder is).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
+import shutil
+import signal
 import subprocess
 import sys
+import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -129,6 +140,32 @@ class Job:
     run: RunDir
     process: subprocess.Popen[bytes] | None = None
     returncode: int | None = None
+    cmd: list[str] | None = None
+    """The command that trains it; ``None``: nothing to do (a finished seed of a resumed group)."""
+
+
+class GroupInterrupted(Exception):
+    """A seed group stopped by SIGINT or SIGTERM: the signal was passed on to the seeds in
+    training, which wrote a checkpoint and stopped; the seeds after them were not started.
+    ``harness run --resume GROUP`` continues it."""
+
+    def __init__(self, signum: int, group: Path, jobs: list[Job]) -> None:
+        super().__init__(signal.Signals(signum).name)
+        self.signum, self.group, self.jobs = signum, group, jobs
+
+    def summary(self) -> str:
+        """``seed 0 stopped, seeds 1, 2 not started`` (the seeds done too, if any)."""
+        states: dict[str, list[int]] = {"done": [], "stopped": [], "not started": []}
+        for job in self.jobs:
+            if job.returncode is None:
+                states["not started"].append(job.seed)
+            else:
+                states["done" if job.returncode == 0 else "stopped"].append(job.seed)
+        return ", ".join(
+            f"seed{'s' if len(seeds) > 1 else ''} {', '.join(map(str, seeds))} {state}"
+            for state, seeds in states.items()
+            if seeds
+        )
 
 
 def available_cores() -> int:
@@ -165,6 +202,9 @@ def run_group(
 
     Returns:
         The group folder and the jobs with their exit codes.
+
+    Raises:
+        GroupInterrupted: on SIGINT/SIGTERM, once the seeds in training have stopped.
     """
     group = unique_folder(runs_dir, name)
     threads = threads_per_job(jobs)
@@ -179,48 +219,261 @@ def run_group(
         "command": ["harness", *argv],
         "runs": [{"seed": job.seed, "run": job.run.path.name} for job in pending],
     }
-    atomic_write_text(group / GROUP_FILE, json.dumps(data, indent=2) + "\n")
+    with RunDir(group).lock():  # a `--resume` of the group waits for this command to end
+        atomic_write_text(group / GROUP_FILE, json.dumps(data, indent=2) + "\n")
+        for job in pending:
+            job.cmd = _start_command(job, config_path, overrides, threads)
+        return group, _run_jobs(group, pending, jobs, threads, report, every)
+
+
+def _run_jobs(
+    group: Path,
+    jobs: list[Job],
+    at_once: int,
+    threads: int,
+    report: Callable[[str], None] | None,
+    every: float,
+) -> list[Job]:
+    """Run the jobs that have a command, ``at_once`` at a time; those without one count as done.
+
+    A SIGINT or SIGTERM to this process is passed on to every seed in training (each runs in a
+    process group of its own, so a terminal's Ctrl-C reaches it once, through here); no seed
+    starts after it, and once the running ones have ended (each writes a checkpoint and stops,
+    as ``harness run`` does), :class:`GroupInterrupted` is raised.
+
+    Returns:
+        Every job with its exit code, in the order given.
+    """
     env = {
         **os.environ,
         "OMP_NUM_THREADS": str(threads),
         "MKL_NUM_THREADS": str(threads),
     }
+    queue = [job for job in jobs if job.cmd is not None]
+    for job in jobs:
+        if job.cmd is None:
+            job.returncode = 0
     running: list[Job] = []
-    done: list[Job] = []
-    queue = list(pending)
     said: dict[int, str] = {}
+    received: list[int] = []
+    forwarded = 0
     next_report = time.monotonic() + every
-    try:
-        while queue or running:
-            while queue and len(running) < jobs:
+    with _received_signals(received), _stop_on_error(running):
+        while running or (queue and not received):
+            while queue and not received and len(running) < at_once:
                 job = queue.pop(0)
-                job.process = _start(job, config_path, overrides, threads, env)
+                job.process = _start(job, env)
                 running.append(job)
+            forwarded = _forward(received, forwarded, running)
             time.sleep(0.2)
+            forwarded = _forward(received, forwarded, running)
             for job in list(running):
                 assert job.process is not None
                 if job.process.poll() is not None:
                     job.returncode = job.process.returncode
                     running.remove(job)
-                    done.append(job)
-                    if report is not None:
+                    if report is not None and not received:
                         state = "done" if job.returncode == 0 else f"failed (exit {job.returncode})"
                         report(f"{seed_progress(job)}: {state}")
-            if report is not None and time.monotonic() >= next_report:
+            if report is not None and not received and time.monotonic() >= next_report:
                 next_report = time.monotonic() + every
                 for job in running:
                     line = seed_progress(job)
                     if said.get(job.seed) != line:
                         said[job.seed] = line
                         report(line)
-    except KeyboardInterrupt:  # pass Ctrl-C on: each child checkpoints and stops cleanly
+    if received:
+        raise GroupInterrupted(received[0], group, jobs)
+    return jobs
+
+
+@contextlib.contextmanager
+def _received_signals(received: list[int]) -> Iterator[None]:
+    """SIGINT and SIGTERM are noted in ``received`` (for the jobs loop to pass on) instead of
+    ending this process while its seeds train."""
+    if threading.current_thread() is not threading.main_thread():  # signals: main thread only
+        yield
+        return
+    signals = (signal.SIGINT, signal.SIGTERM)
+    previous = {sig: signal.signal(sig, lambda signum, frame: received.append(signum))
+                for sig in signals}  # fmt: skip
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+
+
+@contextlib.contextmanager
+def _stop_on_error(running: list[Job]) -> Iterator[None]:
+    """On an error of this process (a log it cannot open), stop the seeds in training as a
+    SIGTERM would, rather than leave them without their group command."""
+    try:
+        yield
+    except BaseException:
         for job in running:
             assert job.process is not None
-            job.process.wait()
-            job.returncode = job.process.returncode
-            done.append(job)
+            with contextlib.suppress(ProcessLookupError):
+                job.process.send_signal(signal.SIGTERM)
+        for job in running:
+            assert job.process is not None
+            job.returncode = job.process.wait()
         raise
-    return group, sorted(done, key=lambda j: seeds.index(j.seed))
+
+
+def _forward(received: list[int], forwarded: int, running: list[Job]) -> int:
+    """Pass the signals received since the last call on to the running seeds; the count passed."""
+    for signum in received[forwarded:]:
+        for job in running:
+            assert job.process is not None
+            with contextlib.suppress(ProcessLookupError):
+                job.process.send_signal(signum)
+    return len(received)
+
+
+def read_group(folder: Path) -> dict[str, Any]:
+    """``group.json`` of a group folder, with the keys a resume needs checked.
+
+    Raises:
+        GroupError: when it cannot be read or lacks them.
+    """
+    path = Path(folder) / GROUP_FILE
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        ok = (
+            isinstance(data["config"], str)
+            and isinstance(data["overrides"], list)
+            and all(isinstance(o, str) for o in data["overrides"])
+            and all(isinstance(r["seed"], int) for r in data["runs"])
+        )
+    except (OSError, ValueError, KeyError, TypeError) as exc:
+        raise GroupError(f"{path}: not a readable group file ({exc})") from None
+    if not ok:
+        raise GroupError(f"{path}: not a group file harness run --seeds wrote")
+    return data
+
+
+#: How a seed's run stands: ``finished``, or how it stopped (``stopped at step 1,200``).
+SeedState = Callable[[RunDir], str]
+
+
+def plan_resume(folder: Path, jobs: int, state_of: SeedState) -> tuple[list[Job], list[str]]:
+    """What ``harness run --resume GROUP`` does for each seed, and a line saying it per seed.
+
+    A seed that ``state_of`` calls ``finished`` is left alone; one with a run folder
+    (``config.yaml``) is resumed (``harness run --resume RUN``: from its checkpoint, or from
+    step 0 when it stopped before the first); one never started is started as the group's
+    command would have.
+
+    Raises:
+        GroupError: for a group file that cannot be used, a seed's folder that is neither a run
+            nor empty, or a seed still in training (its folder is locked by a live process).
+    """
+    folder = Path(folder)
+    data = read_group(folder)
+    members = group_members(folder)
+    threads = threads_per_job(jobs)
+    config_path = Path(data["config"])
+    plan: list[Job] = []
+    lines: list[str] = []
+    for entry, member in zip(data["runs"], members, strict=True):
+        job = Job(entry["seed"], RunDir(member))
+        run, name = job.run, member.name
+        state = state_of(run) if run.config.is_file() else "start"
+        if state == "finished":
+            lines.append(f"seed {job.seed}: finished ({name}), left alone")
+        elif state == "start":
+            if not config_path.is_file():
+                raise GroupError(
+                    f"{folder / GROUP_FILE}: seed {job.seed} was never started and its config "
+                    f"{config_path} is gone"
+                )
+            _clear_unstarted(run, job.seed)
+            job.cmd = _start_command(job, config_path, data["overrides"], threads)
+            lines.append(f"seed {job.seed}: never started, starting it ({name})")
+        else:
+            _check_not_running(run, job.seed)
+            job.cmd = [sys.executable, "-m", "harness.cli", "run", "--resume", str(run.path),
+                       "--no-progress"]  # fmt: skip
+            lines.append(f"seed {job.seed}: {state}, resuming it ({name})")
+        plan.append(job)
+    return plan, lines
+
+
+def resume_group(
+    folder: Path,
+    state_of: SeedState,
+    jobs: int | None = None,
+    say: Callable[[str], None] | None = None,
+    report: Callable[[str], None] | None = None,
+    every: float = 30.0,
+) -> list[Job]:
+    """``harness run --resume GROUP``: finish what a stopped group left, ``jobs`` seeds at a time
+    (default: the group's own ``--jobs``), as :func:`run_group` does. ``say`` receives one line
+    per seed saying what is done with it (:func:`plan_resume`, with ``state_of``) before
+    anything starts.
+
+    Returns:
+        Every seed's job with its exit code (0 for those finished before).
+
+    Raises:
+        GroupInterrupted: on SIGINT/SIGTERM, once the seeds in training have stopped.
+        GroupError: see :func:`plan_resume`.
+        RunDirError: when another process holds the group (its command, or another resume).
+    """
+    folder = Path(folder)
+    with RunDir(folder).lock():
+        if jobs is None:
+            saved = read_group(folder).get("jobs")
+            jobs = saved if isinstance(saved, int) and saved >= 1 else 1
+        plan, lines = plan_resume(folder, jobs, state_of)
+        for line in lines:
+            if say is not None:
+                say(line)
+        return _run_jobs(folder, plan, jobs, threads_per_job(jobs), report, every)
+
+
+#: What ``harness run --into`` makes in a seed's folder before its ``config.yaml``.
+_START_ENTRIES = frozenset({".lock", "tb", "checkpoints"})
+
+
+def _clear_unstarted(run: RunDir, seed: int) -> None:
+    """Remove a seed's folder that a kill left before its ``config.yaml`` (nothing trained), so
+    that the seed can start in it again.
+
+    Raises:
+        GroupError: when the folder holds anything else.
+    """
+    if not run.path.exists():
+        return
+    try:
+        entries = list(run.path.iterdir())
+        empty = all(
+            p.name.endswith(".tmp")
+            or (p.name in _START_ENTRIES and (not p.is_dir() or not any(p.iterdir())))
+            for p in entries
+        )
+        if empty:
+            _check_not_running(run, seed)
+            shutil.rmtree(run.path)
+            return
+    except OSError as exc:
+        raise GroupError(f"{run.path}: cannot clear it for seed {seed} ({exc.strerror})") from None
+    raise GroupError(
+        f"{run.path}: seed {seed}'s folder has no config.yaml but holds files; move it away to "
+        "start the seed again"
+    )
+
+
+def _check_not_running(run: RunDir, seed: int) -> None:
+    """Raises GroupError when a live process holds the seed's run folder."""
+    if not run.path.is_dir():
+        return
+    try:
+        with run.lock():
+            pass
+    except RunDirError as exc:
+        raise GroupError(f"seed {seed}: {exc}") from None
 
 
 def seed_progress(job: Job) -> str:
@@ -269,16 +522,25 @@ def _last_value(path: Path, column: str) -> str | None:
     return None
 
 
-def _start(
-    job: Job, config_path: Path, overrides: Sequence[str], threads: int, env: dict[str, str]
-) -> subprocess.Popen[bytes]:
+def _start_command(
+    job: Job, config_path: Path, overrides: Sequence[str], threads: int
+) -> list[str]:
+    """``harness run CONFIG --set ... --set seed=k --into RUN``: a seed's first start."""
     cmd = [sys.executable, "-m", "harness.cli", "run", str(config_path), "--no-progress"]
     for override in (*overrides, f"seed={job.seed}", f"algo.threads={threads}"):
         cmd += ["--set", override]
-    cmd += ["--into", str(job.run.path)]
+    return [*cmd, "--into", str(job.run.path)]
+
+
+def _start(job: Job, env: dict[str, str]) -> subprocess.Popen[bytes]:
+    """Start a seed's command, its output appended to ``<run>.log`` beside its folder, in a
+    process group of its own (a terminal's Ctrl-C is passed on by the group's command, once)."""
+    assert job.cmd is not None
     try:
-        log = (job.run.path.parent / f"{job.run.path.name}.log").open("wb")
+        log = (job.run.path.parent / f"{job.run.path.name}.log").open("ab")
     except OSError as exc:
         raise RunDirError(f"{job.run.path.parent}: cannot write a log ({exc.strerror})") from None
     with log:
-        return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
+        return subprocess.Popen(
+            job.cmd, stdout=log, stderr=subprocess.STDOUT, env=env, start_new_session=True
+        )

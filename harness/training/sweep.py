@@ -23,15 +23,19 @@ machines: each runs the same command with the same ``--storage`` and ``--study``
 out the trials, and the trial count is global). ``--jobs N`` starts N worker processes on this
 machine, each with its share of the cores. ``--resume`` continues a killed sweep; trials the dead
 process left running are marked failed and queued again with the same parameters (Optuna's
-``RetryHeartbeatStaleTrialCallback``; with a database, a live worker does this by heartbeat). The
+``RetryHeartbeatStaleTrialCallback``; with a database, a live worker does this by heartbeat). On a
+grid, a failed trial (stopped by a signal, or whose training failed) does not use up its grid
+point, and ``--resume`` queues every point that has no complete (or pruned) trial and none
+running or queued, so a grid ends with each point trained exactly once. The
 best trial is written out as ``best.yaml`` (a config that ``harness run best.yaml`` trains) and
 ``best.json`` (its parameters and value).
 
 Ctrl-C or SIGTERM stops a sweep as it stops ``harness run``: a trial in training finishes its
 collection round, writes a checkpoint and is marked failed; elsewhere (between trials, while a
 trial is evaluated) the sweep stops at once. Either way the command ends with one line (no
-Optuna traceback) and exit code 130 or 143; ``--resume`` continues it. With ``--jobs N`` a SIGTERM
-is passed on to the workers.
+Optuna traceback) and exit code 130 or 143; ``--resume`` continues it (a stopped trial of a grid
+is queued again and trained from step 0 in a new trial folder). With ``--jobs N`` a SIGTERM is
+passed on to the workers.
 """
 
 from __future__ import annotations
@@ -368,13 +372,7 @@ def _run_sweep(
     optuna.logging.set_verbosity(optuna.logging.WARNING)
     storage = _storage(storage_url, folder)  # before any folder is made for a database
     folder.mkdir(parents=True, exist_ok=True)
-    sampler = (
-        # One fixed shuffle on every worker: trial k takes grid point k, so workers sharing a
-        # study never draw the same point (Optuna's advice for distributed grids).
-        optuna.samplers.GridSampler({d.key: list(d.values) for d in dims}, seed=0)
-        if grid
-        else optuna.samplers.TPESampler(seed=None)
-    )
+    sampler = _grid_sampler(dims) if grid else optuna.samplers.TPESampler(seed=None)
     study = optuna.create_study(
         study_name=study_name,
         storage=storage,
@@ -385,6 +383,8 @@ def _run_sweep(
     )
     if resume and not worker:
         _fail_dead_trials(study, embedded=storage_url is None)
+        if grid:
+            _requeue_grid(study, sampler, trials)
     if jobs > 1:
         _run_workers(jobs, folder, config_path, overrides, space_path, trials, study_name,
                      sweeps_dir, storage_url, pruner)  # fmt: skip
@@ -476,6 +476,91 @@ def _fail_dead_trials(study: Any, embedded: bool) -> None:
     for trial in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)):
         study._storage.set_trial_state_values(trial._trial_id, optuna.trial.TrialState.FAIL)
         retry(study, study._storage.get_trial(trial._trial_id))
+
+
+#: The trials that settle a grid point: trained to the end, or stopped by the pruner.
+_DONE = ("COMPLETE", "PRUNED")
+#: The trials that hold a grid point for now: in training, or queued.
+_HELD = ("RUNNING", "WAITING")
+
+
+def _grid_sampler(dims: Sequence[Dimension]) -> Any:
+    """Optuna's ``GridSampler`` of an all-grid space, with one fixed shuffle on every worker:
+    trial k takes grid point k, so workers sharing a study never draw the same point (Optuna's
+    advice for distributed grids).
+
+    Unlike Optuna's own, a *failed* trial does not use up its grid point (Optuna counts every
+    finished trial, a failed one too): a trial stopped by Ctrl-C or SIGTERM, or whose training
+    failed, leaves its point to be trained again, and a queued (``WAITING``) trial holds its
+    point as a running one does. Otherwise a sweep interrupted in a trial would never train that
+    point, and take another one twice instead.
+    """
+    import optuna
+
+    class GridSampler(optuna.samplers.GridSampler):
+        def before_trial(self, study: Any, trial: Any) -> None:
+            number, attrs = trial.number, trial.system_attrs
+            if number < len(self._all_grids) and not {"grid_id", "fixed_params"} & set(attrs):
+                # Trial k takes point k, unless a queued trial of a resume took that one.
+                states = _grid_states(study, self).get(number, set())
+                free = self._get_unvisited_grid_ids(study)
+                if states & {*_DONE, *_HELD} and free:
+                    grid_id = int(self._rng.rng.choice(free))
+                    study._storage.set_trial_system_attr(
+                        trial._trial_id, "search_space", self._search_space
+                    )
+                    study._storage.set_trial_system_attr(trial._trial_id, "grid_id", grid_id)
+                    return
+            super().before_trial(study, trial)
+
+        def _get_unvisited_grid_ids(self, study: Any) -> list[int]:
+            states = _grid_states(study, self)
+            done = {g for g, names in states.items() if names & set(_DONE)}
+            held = {g for g, names in states.items() if names & set(_HELD)}
+            unvisited = set(range(len(self._all_grids))) - done
+            # Every point started already: those not settled (as Optuna's does).
+            return sorted(unvisited - held or unvisited)
+
+    return GridSampler({d.key: list(d.values) for d in dims}, seed=0)
+
+
+def _grid_states(study: Any, sampler: Any) -> dict[int, set[str]]:
+    """The states (names) of the trials on each grid point of ``sampler``'s grid."""
+    states: dict[int, set[str]] = {}
+    for trial in study._storage.get_all_trials(study._study_id, deepcopy=False):
+        attrs = trial.system_attrs
+        if "grid_id" in attrs and sampler._same_search_space(attrs.get("search_space", {})):
+            states.setdefault(attrs["grid_id"], set()).add(trial.state.name)
+    return states
+
+
+def _requeue_grid(study: Any, sampler: Any, trials: int) -> list[int]:
+    """On ``--resume`` of a grid sweep, queue every grid point that has no complete (or pruned)
+    trial and none running or queued, in grid order, as many as the sweep still needs: a trial
+    that a signal stopped (marked failed) is trained again, and never a point that has its
+    trial already. Returns the queued grid points.
+    """
+    import optuna
+
+    states = _grid_states(study, sampler)
+    done = {g for g, names in states.items() if names & set(_DONE)}
+    held = {g for g, names in states.items() if names & set(_HELD)} - done
+    counted = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED)
+    room = trials - len(study.get_trials(deepcopy=False, states=counted)) - len(held)
+    missing = [g for g in range(len(sampler._all_grids)) if g not in done | held][: max(0, room)]
+    for grid_id in missing:
+        params = dict(zip(sampler._param_names, sampler._all_grids[grid_id], strict=True))
+        study.add_trial(
+            optuna.trial.create_trial(
+                state=optuna.trial.TrialState.WAITING,
+                system_attrs={
+                    "grid_id": grid_id,
+                    "search_space": sampler._search_space,
+                    "fixed_params": params,
+                },
+            )
+        )
+    return missing
 
 
 class StudyFull(Exception):

@@ -14,14 +14,54 @@ test, ``tests/test_architecture.py``, keeps it so):
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+import contextlib  # (already loaded by Python's start)
+import os
+import signal
+import sys
+
+TYPE_CHECKING = False  # not typing's: nothing is imported before the Ctrl-C handler below
 
 if TYPE_CHECKING:
+    from typing import Any
+
     from harness.sb3.buffers import PrioritizedReplayBuffer
     from harness.sb3.dqn import DoubleDQN
     from harness.sb3.policies import DuelingDQNPolicy
 
 __all__ = ["DoubleDQN", "DuelingDQNPolicy", "PrioritizedReplayBuffer"]
+
+
+def _interrupted_while_loading(signum: int, frame: object) -> None:
+    """SIGINT while the ``harness`` command loads its modules (seconds on a busy machine): one
+    line and exit code 130, as a Ctrl-C anywhere else gives, instead of the traceback of the
+    import under way. Nothing has been written yet."""
+    sys.stderr.write("harness: interrupted\n")
+    sys.stderr.flush()
+    os._exit(128 + signal.SIGINT)
+
+
+def _started_as_command() -> bool:
+    """Whether this process is the ``harness`` command: its console script, or ``python -m
+    harness.cli`` (whose ``sys.argv[0]`` is still ``-m`` while this package loads)."""
+    if os.path.basename(sys.argv[0]) == "harness":
+        return True
+    argv = list(getattr(sys, "orig_argv", []))
+    return "-m" in argv and argv[argv.index("-m") + 1 :][:1] == ["harness.cli"]
+
+
+def end_of_loading() -> None:
+    """Give Ctrl-C back to Python (``KeyboardInterrupt``, which each command handles); called
+    by ``harness.cli.main`` once the modules are loaded."""
+    if signal.getsignal(signal.SIGINT) is _interrupted_while_loading:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+# First thing the command runs (the package loads before any of its modules): a library that
+# imports harness keeps Python's own Ctrl-C, and so does a command started with SIGINT ignored.
+if _started_as_command() and signal.getsignal(signal.SIGINT) is signal.default_int_handler:
+    # (ValueError: imported from another thread than the main one, not at the command's start)
+    with contextlib.suppress(ValueError):
+        signal.signal(signal.SIGINT, _interrupted_while_loading)
 
 
 def __getattr__(name: str) -> Any:

@@ -30,6 +30,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, NoReturn
 
+from harness import end_of_loading
 from harness.commands import (
     DEFAULT_EPISODES,
     DEFAULT_TEMPERATURES,
@@ -611,8 +612,9 @@ def _train(config: ExperimentConfig, run: RunDir, args: argparse.Namespace, mode
             command=args.argv,
         )
     except TrainingInterrupted as exc:
+        during = f" {exc.note}" if exc.note else ""
         print(
-            f"harness: stopped by {exc} after writing {exc.checkpoint}; "
+            f"harness: stopped by {exc}{during} after writing {exc.checkpoint}; "
             f"resume with: harness run --resume {run.path}",
             file=sys.stderr,
         )
@@ -835,7 +837,14 @@ COMMANDS = {
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``harness`` console script."""
-    code = _main(list(sys.argv[1:] if argv is None else argv))
+    try:
+        # The modules are loaded: from here on a Ctrl-C is a KeyboardInterrupt, which each
+        # command handles (harness/__init__.py turned it into one line while they loaded).
+        end_of_loading()
+        code = _main(list(sys.argv[1:] if argv is None else argv))
+    except KeyboardInterrupt:  # Ctrl-C before a command's own handling (parsing the arguments)
+        print("harness: interrupted", file=sys.stderr)
+        code = 128 + signal.SIGINT
     if argv is None and code in (128 + signal.SIGINT, 128 + signal.SIGTERM):
         # Stopped by a signal, the message printed: the process only has to exit now. A further
         # Ctrl-C (a terminal sends one to the whole group, and people press it twice) would

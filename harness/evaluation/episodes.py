@@ -33,6 +33,10 @@ CHECKPOINT_FRACTIONS = (0.33, 0.66, 1.0)
 COVERAGE_TARGETS = (0.90, 0.99)
 
 
+class EpisodesStopped(Exception):
+    """:func:`run_episodes` gave up on its episodes because ``should_stop()`` said so."""
+
+
 @dataclass
 class EpisodeResult:
     """Metrics of one finished episode."""
@@ -157,6 +161,7 @@ def run_episodes(
     copies: int = 8,
     record_paths: bool = False,
     frames_every: int = 0,
+    should_stop: Callable[[], bool] | None = None,
 ) -> list[EpisodeResult]:
     """Run ``episodes`` seeded episodes with ``policy`` and return their metrics in order.
 
@@ -172,6 +177,11 @@ def run_episodes(
         record_paths: Keep each agent's positions and the map (``paths``, ``walls``).
         frames_every: Render ``rgb_array`` frames every this many steps, plus the first and last
             (0: none).
+        should_stop: Asked before every step of the copies side by side: when it returns True,
+            the episodes are abandoned (training's evaluation stops so on SIGINT/SIGTERM).
+
+    Raises:
+        EpisodesStopped: when ``should_stop()`` returned True.
     """
     if frames_every < 0:
         raise ValueError(f"frames_every must be >= 0, got {frames_every}")
@@ -192,6 +202,8 @@ def run_episodes(
         ]
         infos: list[dict[str, Any]] = []
         for t in range(1, max_steps + 1):
+            if should_stop is not None and should_stop():
+                raise EpisodesStopped(f"stopped at step {t - 1} of episode {first}")
             actions = np.asarray(policy(stack_observations(obs), batch))
             actions = actions.reshape(len(batch), n_agents).tolist()
             obs, infos = [], []

@@ -176,6 +176,12 @@ class CheckpointDir:
         return self.path / "replay_buffer.pkl"
 
     @property
+    def replay_buffer_sha256(self) -> Path:
+        """The SHA-256 of ``replay_buffer.pkl`` as written (none in checkpoints written before
+        checkpoints kept it), in ``sha256sum``'s format."""
+        return self.path / "replay_buffer.pkl.sha256"
+
+    @property
     def rng(self) -> Path:
         return self.path / "rng.pkl"
 

@@ -39,10 +39,16 @@ def _make_copy(
     worker ignore SIGINT and SIGTERM: a Ctrl-C in a terminal reaches the whole process group, and
     a worker that died of it would break the training process's clean stop (a checkpoint at the
     end of the round). The training process closes its workers when it ends.
+
+    A worker also ends quietly when the training process is gone (a SIGKILL): its next write to
+    the closed pipe ends it by SIGPIPE (the signal's default action), where Python would raise
+    ``BrokenPipeError`` and SuperSuit's worker loop would print two tracebacks.
     """
     if owner is not None and os.getpid() != owner:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        if hasattr(signal, "SIGPIPE"):  # POSIX
+            signal.signal(signal.SIGPIPE, signal.SIG_DFL)
     vec = ss.pettingzoo_env_to_vec_env_v1(make_env(env))
     if seed is not None:
         vec.reset(seed=seed)

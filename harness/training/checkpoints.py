@@ -3,7 +3,10 @@
 A checkpoint is a folder ``checkpoints/step-<num_timesteps>/`` holding:
 
 * ``model.zip``: the SB3 model (weights, optimizer state, step counters, ``ep_info_buffer``);
-* ``replay_buffer.pkl``: the replay buffer with its priorities;
+* ``replay_buffer.pkl``: the replay buffer with its priorities, and
+  ``replay_buffer.pkl.sha256``, its SHA-256 as written: a resume refuses a buffer that changed
+  since (:func:`check_replay_buffer`; a flipped byte could otherwise load as NaN observations).
+  Checkpoints written before checkpoints kept it have none and are not checked;
 * ``rng.pkl``: the numpy, Python and torch random states;
 * ``state.json``: the harness's own position (:class:`TrainingState`);
 * ``config.yaml``: the run's config it was made with; a resume refuses a run whose
@@ -17,6 +20,7 @@ checkpoints are deleted only after that, so the last good checkpoint survives a 
 
 from __future__ import annotations
 
+import hashlib
 import json
 import pickle
 import random
@@ -45,6 +49,10 @@ class ConfigChangedError(CheckpointError):
     can be resumed with it (an older one is no fallback)."""
 
 
+#: Fields of ``state.json`` that checkpoints written before them lack, with their value then.
+OPTIONAL_STATE_FIELDS: dict[str, Any] = {"pending_eval": None}
+
+
 @dataclass
 class TrainingState:
     """Where a run stands, beyond what the SB3 model knows."""
@@ -63,6 +71,9 @@ class TrainingState:
     """How often the run was resumed (new env seeds each time)."""
     num_timesteps: int = 0
     """The model's step counter when the checkpoint was written (for reading only)."""
+    pending_eval: int | None = None
+    """The step of an in-training evaluation that a signal abandoned (a resume runs it first);
+    ``None`` when none was. Optional in ``state.json`` (older checkpoints lack it)."""
 
     def to_json(self) -> str:
         data = asdict(self)
@@ -71,7 +82,8 @@ class TrainingState:
 
     @classmethod
     def from_json(cls, text: str) -> TrainingState:
-        """Parse ``state.json``; every field must be there with its type.
+        """Parse ``state.json``; every field must be there with its type (but those of
+        :data:`OPTIONAL_STATE_FIELDS`, which older checkpoints lack).
 
         Raises:
             ValueError: naming the field.
@@ -81,13 +93,16 @@ class TrainingState:
             raise ValueError("not a JSON object")
         if data.get("best_eval") is None:
             data["best_eval"] = float("-inf")
-        types = {"best_eval": (int, float), "finished": (bool,)}
+        for name, default in OPTIONAL_STATE_FIELDS.items():
+            data.setdefault(name, default)
+        types = {"best_eval": (int, float), "finished": (bool,), "pending_eval": (int, type(None))}
         for name in cls.__dataclass_fields__:
             value = data.get(name)
             expected = types.get(name, (int,))
             if name not in data or not isinstance(value, expected):
                 raise ValueError(f"{name} is {value!r}")
-            if expected == (int,) and (isinstance(value, bool) or value < 0):
+            counter = int in expected and float not in expected and value is not None
+            if counter and (isinstance(value, bool) or value < 0):
                 raise ValueError(f"{name} is {value!r}")
         extra = set(data) - set(cls.__dataclass_fields__)
         if extra:
@@ -137,6 +152,9 @@ def save_checkpoint(
             model.save(f)
         with files.replay_buffer.open("wb") as f:
             model.save_replay_buffer(f)
+        files.replay_buffer_sha256.write_text(
+            f"{file_sha256(files.replay_buffer)}  {files.replay_buffer.name}\n", encoding="utf-8"
+        )
         with files.rng.open("wb") as f:
             pickle.dump(rng_states(), f)
         files.state.write_text(state.to_json(), encoding="utf-8")
@@ -151,6 +169,41 @@ def save_checkpoint(
     for old in complete_checkpoints(folder)[:-KEEP]:
         shutil.rmtree(old, ignore_errors=True)
     return final
+
+
+def file_sha256(path: Path) -> str:
+    """The SHA-256 of a file's bytes, in hex (read in 1 MiB pieces: a buffer may be gigabytes)."""
+    digest = hashlib.sha256()
+    with path.open("rb") as f:
+        while piece := f.read(1 << 20):
+            digest.update(piece)
+    return digest.hexdigest()
+
+
+def check_replay_buffer(checkpoint: Path) -> None:
+    """Check ``replay_buffer.pkl`` against the SHA-256 stored beside it when the checkpoint was
+    written; a checkpoint without the stored hash (written before checkpoints kept it) passes.
+
+    Raises:
+        CheckpointError: one line naming the file, when the hash differs or cannot be read.
+    """
+    files = CheckpointDir(checkpoint)
+    stored_file = files.replay_buffer_sha256
+    if not stored_file.exists():
+        return
+    try:
+        fields = stored_file.read_text(encoding="utf-8").split()
+        actual = file_sha256(files.replay_buffer)
+    except (OSError, ValueError) as exc:  # UnicodeDecodeError is a ValueError
+        raise CheckpointError(f"{files.replay_buffer}: unreadable ({exc})") from None
+    stored = fields[0].lower() if fields else ""
+    if len(stored) != 64 or any(c not in "0123456789abcdef" for c in stored):
+        raise CheckpointError(f"{stored_file}: unreadable (not a SHA-256)")
+    if actual != stored:
+        raise CheckpointError(
+            f"{files.replay_buffer}: unreadable (damaged: its SHA-256 is not the one stored in "
+            f"{stored_file.name} when the checkpoint was written)"
+        )
 
 
 def complete_checkpoints(folder: Path) -> list[Path]:

@@ -34,7 +34,13 @@ from stable_baselines3.common.utils import set_random_seed
 from stable_baselines3.common.vec_env import VecEnv
 
 from harness.config.schema import ExperimentConfig, PhaseConfig
-from harness.evaluation.episodes import model_policy, run_episodes, selection_score, summarize
+from harness.evaluation.episodes import (
+    EpisodesStopped,
+    model_policy,
+    run_episodes,
+    selection_score,
+    summarize,
+)
 from harness.results.rundir import (
     EVALUATION_COLUMNS,
     CheckpointDir,
@@ -60,6 +66,7 @@ from harness.training.checkpoints import (
     ConfigChangedError,
     TrainingState,
     check_config,
+    check_replay_buffer,
     complete_checkpoints,
     read_rng,
     read_state,
@@ -208,6 +215,10 @@ class Evaluator:
     ``best_model.zip`` is chosen without seeing the test maps. The same maps and start cells are
     used at every evaluation, so the curve is comparable over training. "Best": see
     :func:`harness.evaluation.episodes.selection_score`.
+
+    ``should_stop`` (training's: a signal arrived) is asked at every step of the evaluation's
+    episodes: when it says so, the evaluation is abandoned, nothing of it is logged, and
+    :attr:`pending` keeps its step, which the checkpoint stores and a resume evaluates first.
     """
 
     def __init__(
@@ -216,29 +227,47 @@ class Evaluator:
         run: RunDir,
         best: float = -np.inf,
         on_evaluation: Callable[[int, dict[str, Any]], None] | None = None,
+        should_stop: Callable[[], bool] | None = None,
+        pending: int | None = None,
     ) -> None:
         self.config, self.run = config, run
         self.best = best
         # Called with (timesteps, summary) after each evaluation: a sweep reports to Optuna here
         # (and may raise optuna.TrialPruned to stop the run).
         self.on_evaluation = on_evaluation
+        self.should_stop = should_stop
+        self.pending = pending
 
-    def __call__(self, model: DoubleDQN) -> None:
+    def __call__(self, model: DoubleDQN, timesteps: int | None = None) -> None:
+        """Evaluate ``model`` and log it at ``timesteps`` (default: the model's step counter; a
+        resume passes the step of the evaluation it runs again)."""
+        step = int(model.num_timesteps) if timesteps is None else int(timesteps)
         cfg = self.config.eval
         policy = model_policy(model, cfg.temperature, cfg.shield)
-        results = run_episodes(policy, self.config.env, cfg.episodes, cfg.validation_seed)
+        try:
+            results = run_episodes(
+                policy,
+                self.config.env,
+                cfg.episodes,
+                cfg.validation_seed,
+                should_stop=self.should_stop,
+            )
+        except EpisodesStopped:
+            self.pending = step
+            return
+        self.pending = None
         summary = summarize(results)
         model.logger.record("eval/coverage_median", summary["coverage_median"])
         model.logger.record("eval/coverage_mean", summary["coverage_mean"])
         model.logger.record("eval/wall_hits_mean", summary["wall_hits_mean"])
-        model.logger.dump(model.num_timesteps)
-        self._append_row(model.num_timesteps, summary)
+        model.logger.dump(step)
+        self._append_row(step, summary)
         score = selection_score(summary)
         if score > self.best:
             self.best = score
             save_model(model, self.run.best_model)
         if self.on_evaluation is not None:
-            self.on_evaluation(int(model.num_timesteps), summary)
+            self.on_evaluation(step, summary)
 
     def _append_row(self, timesteps: int, summary: dict[str, Any]) -> None:
         # The test policy's learning curve, next to episodes.csv (the training episodes'):
@@ -271,12 +300,31 @@ class StopOnSignal(BaseCallback):
 
     While :meth:`saving` is active (a checkpoint or model being written), a further Ctrl-C is
     ignored with a note, so that it cannot tear a save in two.
+
+    A training call (``gradient_steps`` updates after a round) does not wait for the end of the
+    round either: :meth:`before_gradient_step`, an optimizer step pre-hook, ends it before its
+    next update (:class:`GradientStepsStopped`) once a signal arrived.
     """
 
     def __init__(self) -> None:
         super().__init__()
         self.signum: int | None = None
         self.saving_now = False
+        self.gradient_steps_done = 0  # of the training call under way
+
+    def stop_requested(self) -> bool:
+        """Whether SIGINT or SIGTERM arrived."""
+        return self.signum is not None
+
+    def before_gradient_step(self, optimizer: Any, args: Any, kwargs: Any) -> None:
+        """A torch optimizer step pre-hook: raise :class:`GradientStepsStopped` before the
+        update once a signal arrived, so that the model holds whole gradient steps only."""
+        if self.signum is not None:
+            raise GradientStepsStopped(self.gradient_steps_done)
+        self.gradient_steps_done += 1
+
+    def _on_rollout_end(self) -> None:
+        self.gradient_steps_done = 0  # SB3 calls the training after the rollout's end
 
     @contextlib.contextmanager
     def saving(self) -> Iterator[None]:
@@ -290,9 +338,18 @@ class StopOnSignal(BaseCallback):
         return self.signum is None or not self.model.at_round_boundary()
 
 
+class GradientStepsStopped(Exception):
+    """A signal ended a training call before its next gradient step (``done`` were made)."""
+
+    def __init__(self, done: int) -> None:
+        super().__init__(f"stopped after {done} gradient steps")
+        self.done = done
+
+
 class Checkpointer:
-    """Writes checkpoints with the live training state (episode counter, best evaluation) and,
-    when given, the run's config (YAML) that a resume compares the run's ``config.yaml`` with."""
+    """Writes checkpoints with the live training state (episode counter, best evaluation, an
+    abandoned evaluation) and, when given, the run's config (YAML) that a resume compares the
+    run's ``config.yaml`` with."""
 
     def __init__(
         self,
@@ -310,16 +367,18 @@ class Checkpointer:
         if self.episode_log is not None:
             self.state.next_episode = self.episode_log.next_episode
         self.state.best_eval = self.evaluator.best
+        self.state.pending_eval = self.evaluator.pending
         with self.stopper.saving():
             return save_checkpoint(model, self.run.checkpoints, self.state, self.config)
 
 
 class TrainingInterrupted(Exception):
-    """Training stopped on a signal after writing a checkpoint."""
+    """Training stopped on a signal after writing a checkpoint; ``note`` says what the signal
+    cut short, if anything (an evaluation, a training call), else it is empty."""
 
-    def __init__(self, signum: int, checkpoint: Path) -> None:
+    def __init__(self, signum: int, checkpoint: Path, note: str = "") -> None:
         super().__init__(signal.Signals(signum).name)
-        self.signum, self.checkpoint = signum, checkpoint
+        self.signum, self.checkpoint, self.note = signum, checkpoint, note
 
 
 class TrainingFailed(Exception):
@@ -448,10 +507,14 @@ def train(
             model = build_model(config, venv)
             model.action_space.seed(config.seed)
         model.set_logger(logger)
-        evaluator = Evaluator(config, run, state.best_eval, on_evaluation)
         stopper = StopOnSignal()
+        evaluator = Evaluator(
+            config, run, state.best_eval, on_evaluation, stopper.stop_requested, state.pending_eval
+        )
         checkpointer = Checkpointer(run, state, evaluator, stopper, config.to_yaml())
         with stop_on_signals(stopper):
+            if evaluator.pending is not None:
+                _evaluate_pending(model, evaluator, checkpointer, stopper)
             for index in range(state.phase, len(config.phases)):
                 _run_phase(
                     model, config, run, index, state, evaluator, checkpointer, stopper, progress_bar
@@ -464,6 +527,35 @@ def train(
     finally:
         logger.close()
         venv.close()
+
+
+def _evaluate_pending(
+    model: DoubleDQN, evaluator: Evaluator, checkpointer: Checkpointer, stopper: StopOnSignal
+) -> None:
+    """Run the evaluation that a signal abandoned before the checkpoint a run resumes from: the
+    model is the one it was to evaluate (no training call came between), logged at its step."""
+    step = evaluator.pending
+    print(f"evaluating step {step} again (abandoned when the run stopped)", file=sys.stderr)
+    evaluator(model, timesteps=step)
+    if stopper.signum is not None:
+        raise TrainingInterrupted(stopper.signum, checkpointer(model), _stop_note(evaluator))
+
+
+def _stop_note(
+    evaluator: Evaluator, cut: GradientStepsStopped | None = None, planned: int = 0
+) -> str:
+    """What a signal cut short, for the line that says the run stopped ("" when nothing)."""
+    notes = []
+    if evaluator.pending is not None:
+        notes.append(
+            f"during the evaluation at step {evaluator.pending} (abandoned; the resume runs it)"
+        )
+    if cut is not None:
+        notes.append(
+            f"during a training call (cut short after {cut.done:,} of its {planned:,} gradient "
+            "steps)"
+        )
+    return "; ".join(notes)
 
 
 def _run_phase(
@@ -494,22 +586,32 @@ def _run_phase(
         if progress_bar:
             bar = PhaseProgressBar(phase.name, phase.timesteps - done, config.env.n_agents)
             callbacks.append(bar)
+        callback = CallbackList(callbacks)
+        cut: GradientStepsStopped | None = None
+        # A signal ends a long training call (a large epochs table) before its next update.
+        hook = model.policy.optimizer.register_step_pre_hook(stopper.before_gradient_step)
         try:
             model.learn(
                 total_timesteps=phase.timesteps - done,
-                callback=CallbackList(callbacks),
+                callback=callback,
                 log_interval=config.n_slots,  # dump logs once per round of finished episodes
                 reset_num_timesteps=False,
             )
+        except GradientStepsStopped as exc:  # at a round's end: the training call after it
+            cut = exc
+            callback.on_training_end()  # what learn() skipped: closes the progress bar
         except NonFiniteLossError as exc:
             found = complete_checkpoints(run.checkpoints)
             kept = f"the last good checkpoint is {found[-1]}" if found else "no checkpoint yet"
             raise TrainingFailed(
                 f"{exc}; training stopped, {kept} (try a lower learning rate or max_grad_norm)"
             ) from None
+        finally:
+            hook.remove()
         state.next_episode = episode_log.next_episode
         if stopper.signum is not None:
-            raise TrainingInterrupted(stopper.signum, checkpointer(model))
+            note = _stop_note(evaluator, cut, int(model.gradient_steps))
+            raise TrainingInterrupted(stopper.signum, checkpointer(model), note)
     state.phase, state.phase_start = index + 1, int(model.num_timesteps)
     checkpointer(model)
 
@@ -572,6 +674,7 @@ def load_resume_point(checkpoint: Path, config: ExperimentConfig) -> ResumePoint
         model = DoubleDQN.load(files.model, device=config.algo.device)
     except Exception as exc:  # SB3 raises many kinds on a damaged zip
         raise CheckpointError(f"{files.model}: unreadable ({exc})") from None
+    check_replay_buffer(checkpoint)  # a flipped byte could load as NaN observations
     try:
         with files.replay_buffer.open("rb") as f:
             model.load_replay_buffer(f)
@@ -589,6 +692,11 @@ def load_resume_point(checkpoint: Path, config: ExperimentConfig) -> ResumePoint
             f"{state.phase}, but the model is at step {model.num_timesteps} of a "
             f"{len(config.phases)}-phase run"
         )
-    if not 0 <= state.phase_start <= state.num_timesteps or state.next_episode < 0:
+    pending = state.pending_eval
+    if (
+        not 0 <= state.phase_start <= state.num_timesteps
+        or state.next_episode < 0
+        or (pending is not None and not 0 < pending <= state.num_timesteps)
+    ):
         raise CheckpointError(f"{files.state}: inconsistent counters")
     return ResumePoint(checkpoint, state, rng, model)

@@ -741,6 +741,7 @@ def _over_seeds(
 ) -> tuple[str, list[Path]]:
     """The over-seeds part of ``compare``: a Markdown table, P(X > Y) per pair, two PNGs."""
     from harness.results.stats import (
+        group_colours,
         markdown_table,
         percent,
         plot_curves_with_ci,
@@ -777,10 +778,12 @@ def _over_seeds(
             lines += ["", f"P({x} > {y}) = {percent(p)} ({where})"]
             if ci is not None:
                 pairs[x, y] = (p, ci)
-    saved = [plot_intervals(stats, out.with_name(f"{out.stem}-intervals.png"))]
+    # One colour per group across every figure of this comparison.
+    colours = group_colours(list(dict.fromkeys([*names, *evaluations])))
+    saved = [plot_intervals(stats, out.with_name(f"{out.stem}-intervals.png"), colours)]
     if pairs:
         saved.append(plot_improvement(pairs, out.with_name(f"{out.stem}-improvement.png")))
     if evaluations:
         curves_png = out.with_name(f"{out.stem}-curves-ci.png")
-        saved.append(plot_curves_with_ci(evaluations, curves_png, reps))
+        saved.append(plot_curves_with_ci(evaluations, curves_png, reps, colours))
     return "\n".join(lines), saved

@@ -383,10 +383,15 @@ REFERENCES = sorted(p for p in (ROOT / "runs" / "reference").iterdir() if p.is_d
 @pytest.mark.parametrize("ref", REFERENCES, ids=lambda p: p.name)
 def test_reference_numbers_are_made_with_its_tuned_test_policy(ref: Path) -> None:
     cfg = load_config(ref / "config.yaml")
-    tune = json.loads((ref / "tune.json").read_text())
-    assert tune["chosen"] == cfg.eval.temperature
-    assert tune["seed"] == cfg.eval.validation_seed != cfg.eval.seed  # chosen off the test maps
-    assert tune["chosen"] == choose_temperature(tune["rows"])["temperature"]
+    if (ref / "tune.json").exists():
+        tune = json.loads((ref / "tune.json").read_text())
+        assert tune["chosen"] == cfg.eval.temperature
+        assert tune["seed"] == cfg.eval.validation_seed != cfg.eval.seed  # off the test maps
+        assert tune["chosen"] == choose_temperature(tune["rows"])["temperature"]
+    else:
+        # Greedy by its config (harness tune chooses among Boltzmann temperatures only): the
+        # goal action walks a planner's paths, so there are no loops for noise to break.
+        assert cfg.eval.temperature == 0 and cfg.env.frontier["action"].keys() == {"goal"}
     standard = json.loads((ref / "eval.json").read_text())
     assert standard["temperature"] == cfg.eval.temperature
     assert standard["seed"] == cfg.eval.seed and standard["episodes"] == 100
@@ -398,7 +403,8 @@ def test_config_tests_with_its_references_tuned_temperature(ref: Path) -> None:
     # use the config's temperature: it must be the one its reference was tuned to.
     config = ROOT / "configs" / f"{ref.name}.yaml"
     assert config.is_file(), f"no config for reference {ref.name}"
-    tuned = json.loads((ref / "tune.json").read_text())["chosen"]
+    tune = ref / "tune.json"
+    tuned = json.loads(tune.read_text())["chosen"] if tune.exists() else 0.0  # greedy (above)
     assert load_config(config).eval.temperature == tuned
 
 

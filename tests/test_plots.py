@@ -229,3 +229,38 @@ def test_play_episode_is_episode_zero_of_run_episodes() -> None:
     for a, b in zip(rec.paths, result.paths):
         np.testing.assert_array_equal(a, b)
     assert len(rec.frames) == 6
+
+
+def test_a_group_has_one_colour_in_every_figure_of_a_comparison(
+    tmp_path: Path, monkeypatch
+) -> None:
+    from rliable import plot_utils
+
+    from harness.results import stats
+
+    seen: dict[str, dict] = {}
+    real_intervals = plot_utils.plot_interval_estimates
+    real_curve = plot_utils.plot_sample_efficiency_curve
+
+    def intervals(*args, **kwargs):
+        seen["intervals"] = dict(kwargs["colors"])
+        return real_intervals(*args, **kwargs)
+
+    def curve(*args, **kwargs):
+        seen.setdefault("curves", {}).update(kwargs["colors"])
+        return real_curve(*args, **kwargs)
+
+    monkeypatch.setattr(plot_utils, "plot_interval_estimates", intervals)
+    monkeypatch.setattr(plot_utils, "plot_sample_efficiency_curve", curve)
+    scores = {"b": [0.5, 0.6, 0.7], "a": [0.4, 0.5, 0.6]}
+    steps = np.array([100, 200])
+    curves = {name: [(steps, np.array(v[:2])) for _ in v] for name, v in scores.items()}
+    colours = stats.group_colours(["b", "a"])
+    stats.plot_intervals(stats.seed_statistics(scores, reps=200), tmp_path / "i.png", colours)
+    stats.plot_curves_with_ci(curves, tmp_path / "c.png", reps=200, colours=colours)
+    # Labels carry the seed count ("b (3 seeds)"); each group's colour is the same in both.
+    for name in scores:
+        (i_colour,) = [c for label, c in seen["intervals"].items() if label.startswith(name)]
+        (c_colour,) = [c for label, c in seen["curves"].items() if label.startswith(name)]
+        assert i_colour == c_colour == colours[name]
+    assert colours["a"] != colours["b"]

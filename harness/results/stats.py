@@ -148,15 +148,28 @@ def _label(name: str, seeds: int) -> str:
     return f"{name} (1 seed: no interval)" if seeds == 1 else f"{name} ({seeds} seeds)"
 
 
-def plot_intervals(stats: Mapping[str, SeedStats], out: Path) -> Path:
+def group_colours(names: Sequence[str]) -> dict[str, Any]:
+    """One colour per group (matplotlib's ``tab10`` in the groups' order), the same in every
+    figure of one comparison."""
+    from matplotlib import colormaps
+
+    return {name: colormaps["tab10"](i % 10) for i, name in enumerate(names)}
+
+
+def plot_intervals(
+    stats: Mapping[str, SeedStats], out: Path, colours: Mapping[str, Any] | None = None
+) -> Path:
     """rliable's interval plot (``plot_utils.plot_interval_estimates``) of mean and IQM test
-    coverage per group; a group of one seed is drawn as its point alone, labelled so."""
+    coverage per group; a group of one seed is drawn as its point alone, labelled so.
+    ``colours``: per group (default :func:`group_colours` of these groups)."""
     import matplotlib.pyplot as plt
     from rliable import plot_utils
 
-    points, intervals = {}, {}
+    points, intervals, colours = {}, {}, {}
+    palette = colours or group_colours(list(stats))
     for name, s in stats.items():
         label = _label(name, s.seeds)
+        colours[label] = palette[name]
         points[label] = 100 * np.array([s.mean, s.iqm])
         # Zero width for one seed: the bar vanishes and only the point is drawn.
         mean_ci, iqm_ci = s.mean_ci or (s.mean, s.mean), s.iqm_ci or (s.iqm, s.iqm)
@@ -166,6 +179,7 @@ def plot_intervals(stats: Mapping[str, SeedStats], out: Path) -> Path:
         points,
         intervals,
         metric_names=["Mean", "IQM"],
+        colors=colours,
         xlabel="test coverage (% of free cells), 95 % stratified-bootstrap CIs",
         subfigure_width=4.0,
         row_height=row_height,
@@ -238,17 +252,20 @@ def curve_with_ci(
 
 
 def plot_curves_with_ci(
-    groups: Mapping[str, Sequence[tuple[np.ndarray, np.ndarray]]], out: Path, reps: int = REPS
+    groups: Mapping[str, Sequence[tuple[np.ndarray, np.ndarray]]],
+    out: Path,
+    reps: int = REPS,
+    colours: Mapping[str, Any] | None = None,
 ) -> Path:
     """Validation coverage during training, IQM over seeds with 95 % bands, one line per group
-    (rliable's ``plot_utils.plot_sample_efficiency_curve``; one seed: its line, no band)."""
-    from matplotlib import colormaps
+    (rliable's ``plot_utils.plot_sample_efficiency_curve``; one seed: its line, no band).
+    ``colours``: per group (default :func:`group_colours` of these groups)."""
     from matplotlib.figure import Figure
     from rliable import plot_utils
 
     fig = Figure(figsize=(7.0, 4.0), dpi=120)
     ax = fig.add_subplot()
-    colors = {name: colormaps["tab10"](i % 10) for i, name in enumerate(groups)}
+    colors = colours or group_colours(list(groups))
     for name, curves in groups.items():
         steps, iqm, band = curve_with_ci(curves, reps)
         if not len(steps):

@@ -179,7 +179,7 @@ def test_always_taking_slot_0_is_the_planner(n_agents: int, planner: str, baseli
             "unknown option(s) ['n']; known: k",
         ),
         ({"action": {"goal": 3}, "planner": "order"}, "options must be a mapping"),
-        ({"action": {"walk": {}}, "planner": "order"}, "unknown action 'walk'"),
+        ({"action": {"walk": {}}, "planner": "order"}, "unknown frontier.action 'walk'"),
     ],
 )
 def test_goal_options_errors_name_the_key(frontier: dict, message: str) -> None:

@@ -615,7 +615,7 @@ TEAM_MAP_DEFAULTS = {"crop": 15, "global_size": 13, "ego_size": 0, "ego_block": 
         ({"crop": 5}, {}, "crop must be an odd integer in 7..2000 with the frontier field, got 5"),
         ({}, 1, "frontier must be null or a mapping with action and planner, got 1"),
         ({}, True, "frontier must be null or a mapping with action and planner, got True"),
-        ({}, {"action": "yes"}, "frontier.action: unknown action 'yes'"),
+        ({}, {"action": "yes"}, "unknown frontier.action 'yes'"),
         ({}, {"claims": True}, r"frontier: unknown key\(s\) \['claims'\]"),
         ({"trail": 3}, None, r"observation 'teammap': unknown option\(s\) \['trail'\]"),
     ],

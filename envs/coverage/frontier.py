@@ -26,7 +26,14 @@ from envs.coverage.planners import (
     MinPosPlanner,
     UtilityPlanner,
 )
-from envs.coverage.types import CELL_VISITED, CELL_WALL, FRONTIER_STEP, STAY, GridState
+from envs.coverage.types import (
+    CELL_VISITED,
+    CELL_WALL,
+    FRONTIER_STEP,
+    STAY,
+    GridState,
+    kind_options,
+)
 
 __all__ = [
     "ACTIONS",
@@ -118,27 +125,7 @@ def _action(value: Any) -> ActionKind | None:
     options already made)."""
     if value is None or isinstance(value, (Step, Goal)):
         return value
-    if isinstance(value, str):
-        name, given = value, {}
-    elif isinstance(value, Mapping) and len(value) == 1:
-        name, given = next(iter(value.items()))
-        given = {} if given is None else given
-        if not isinstance(given, Mapping):
-            raise ValueError(f"frontier.action.{name}: options must be a mapping, got {given!r}")
-    else:
-        raise ValueError(
-            f"frontier.action must be a kind's name or {{name: {{options}}}}, got {value!r}"
-        )
-    _choice(name, ACTIONS, "action")
-    cls = ACTIONS[name]
-    known = [f.name for f in fields(cls)]
-    unknown = sorted(set(given) - set(known))
-    if unknown:
-        known_list = ", ".join(known) or "none"
-        raise ValueError(
-            f"frontier.action.{name}: unknown option(s) {unknown}; known: {known_list}"
-        )
-    return cls(**given)
+    return kind_options(value, ACTIONS, "frontier.action")
 
 
 def _choice(value: Any, registry: Mapping[str, Any], key: str) -> None:

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from abc import ABC, abstractmethod
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any, ClassVar
 
 import numpy as np
@@ -24,7 +24,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from envs.coverage.frontier import Frontier
 from envs.coverage.goals import ACTION_MASK_KEY, GOAL_FEATURES, GOALS_KEY
-from envs.coverage.types import CELL_UNVISITED, CELL_WALL, GridState
+from envs.coverage.types import CELL_UNVISITED, CELL_WALL, GridState, kind_options
 
 COORD_MODES = ("normalized", "raw")
 
@@ -656,25 +656,4 @@ def observation_options(value: str | Mapping[str, Any] | ObservationOptions) -> 
     """
     if isinstance(value, (Thesis, TeamMap)):
         return value
-    if isinstance(value, str):
-        name, given = value, {}
-    elif isinstance(value, Mapping) and len(value) == 1:
-        name, given = next(iter(value.items()))
-        given = {} if given is None else given
-        if not isinstance(given, Mapping):
-            raise ValueError(f"observation {name!r}: options must be a mapping, got {given!r}")
-    else:
-        raise ValueError(
-            f"observation must be a kind's name or {{name: {{options}}}}, got {value!r}"
-        )
-    if name not in OBSERVATIONS:
-        raise ValueError(f"unknown observation {name!r}; known: {', '.join(OBSERVATIONS)}")
-    cls = OBSERVATIONS[name]
-    known = [f.name for f in fields(cls)]
-    unknown = sorted(set(given) - set(known))
-    if unknown:
-        raise ValueError(
-            f"observation {name!r}: unknown option(s) {unknown}; "
-            f"known: {', '.join(known) or 'none'}"
-        )
-    return cls(**given)
+    return kind_options(value, OBSERVATIONS, "observation")

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from typing import Any
 
 import numpy as np
 
@@ -46,3 +48,37 @@ class GridState:
         """View of ``cells`` without the padding."""
         p = self.pad
         return self.cells[p:-p, p:-p]
+
+
+def kind_options(value: str | Mapping[str, Any], registry: Mapping[str, type], what: str) -> Any:
+    """The options object of a registry's kind from its config form: the kind's name (its
+    defaults) or ``{name: {option: value, ...}}`` (the form of ``observation`` and
+    ``frontier.action``).
+
+    Args:
+        value: The config form.
+        registry: Kind names to their options classes (dataclasses).
+        what: The option's name in messages (``"observation"``, ``"frontier.action"``).
+
+    Raises:
+        ValueError: naming ``what``, the kind or the option that is wrong.
+    """
+    if isinstance(value, str):
+        name, given = value, {}
+    elif isinstance(value, Mapping) and len(value) == 1:
+        name, given = next(iter(value.items()))
+        given = {} if given is None else given
+        if not isinstance(given, Mapping):
+            raise ValueError(f"{what} {name!r}: options must be a mapping, got {given!r}")
+    else:
+        raise ValueError(f"{what} must be a kind's name or {{name: {{options}}}}, got {value!r}")
+    if name not in registry:
+        raise ValueError(f"unknown {what} {name!r}; known: {', '.join(registry)}")
+    cls = registry[name]
+    known = [f.name for f in fields(cls)]
+    unknown = sorted(set(given) - set(known))
+    if unknown:
+        raise ValueError(
+            f"{what} {name!r}: unknown option(s) {unknown}; known: {', '.join(known) or 'none'}"
+        )
+    return cls(**given)

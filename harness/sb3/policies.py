@@ -460,7 +460,7 @@ class SlotQNetwork(QNetwork):
         return data
 
 
-class SlotTeamMapPolicy(DQNPolicy):
+class SlotTeamMapPolicy(TeamMapPolicy):
     """DQN policy that scores candidate slots (:class:`SlotQNetwork`) with the team map's
     features (:class:`TeamMapExtractor` on every key but the slots and the action mask).
     Registered as ``"SlotTeamMapPolicy"``; the coverage env's goal action
@@ -474,31 +474,13 @@ class SlotTeamMapPolicy(DQNPolicy):
 
     def __init__(
         self,
-        observation_space: spaces.Dict,
-        action_space: spaces.Discrete,
-        lr_schedule: Schedule,
+        *args: Any,
         net_arch: list[int] | None = None,
-        activation_fn: type[nn.Module] = nn.ReLU,
-        features_extractor_class: type[BaseFeaturesExtractor] = TeamMapExtractor,
-        features_extractor_kwargs: dict[str, Any] | None = None,
-        normalize_images: bool = True,
-        optimizer_class: type[th.optim.Optimizer] = th.optim.Adam,
-        optimizer_kwargs: dict[str, Any] | None = None,
         slots_key: str = SLOTS_KEY,
+        **kwargs: Any,
     ) -> None:
-        self.slots_key = slots_key
-        super().__init__(
-            observation_space,
-            action_space,
-            lr_schedule,
-            net_arch=[128] if net_arch is None else net_arch,
-            activation_fn=activation_fn,
-            features_extractor_class=features_extractor_class,
-            features_extractor_kwargs=features_extractor_kwargs,
-            normalize_images=normalize_images,
-            optimizer_class=optimizer_class,
-            optimizer_kwargs=optimizer_kwargs,
-        )
+        self.slots_key = slots_key  # read by make_features_extractor during SB3's _build
+        super().__init__(*args, net_arch=[128] if net_arch is None else net_arch, **kwargs)
 
     def make_features_extractor(self) -> BaseFeaturesExtractor:
         space = without_action_mask(self.observation_space)

@@ -26,19 +26,13 @@ from harness.cli import main
 from harness.sb3.dqn import DoubleDQN
 from harness.training import train as train_module
 from harness.training.checkpoints import TrainingState, complete_checkpoints
+from tests.test_resume import TINY as RESUME_TINY
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "smoke.yaml"
 # A tiny run on one thread (a tiny net's second thread only waits): checkpoints at 400 and 800,
 # evaluations at 600 and 1200.
-TINY = [
-    "phases.initial.timesteps=1200",
-    "phases.optimizing.timesteps=400",
-    "checkpoint.every=400",
-    "eval.every=600",
-    "eval.episodes=2",
-    "algo.threads=1",
-]
+TINY = [*RESUME_TINY, "algo.threads=1"]
 #: An epochs table whose training call never ends on its own (10^8 gradient steps).
 ENDLESS_EPOCHS = "phases.initial.epochs=[[0.0, 100000000]]"
 

@@ -23,17 +23,9 @@ from harness.results.rundir import RunDir
 from harness.training import sweep
 from harness.training.checkpoints import TrainingState
 from harness.training.train import TrainingInterrupted
+from tests.test_seeds_and_sweeps import TINY
 
 ROOT = Path(__file__).resolve().parents[1]
-TINY = (
-    "name: tiny\n"
-    "env: {height: 8, width: 8, n_agents: 2, max_steps: 20}\n"
-    "vec: {copies: 1}\n"
-    "algo: {net_arch: [16], buffer_size: 1000, learning_starts: 50}\n"
-    "phases: [{name: only, timesteps: 240, exploration: {start: 1.0, end: 0.1, steps: 160}}]\n"
-    "eval: {every: 80, episodes: 2}\n"
-    "checkpoint: {every: 0}\n"
-)
 #: Long enough to be stopped in the middle of a run.
 LONGER = ["--set", "phases.only.timesteps=1200", "--set", "eval.every=400"]
 

@@ -202,23 +202,12 @@ def test_sigterm_during_a_long_evaluation_stops_in_seconds_and_resumes(tmp_path)
     cmd = [sys.executable, "-m", "harness.cli"]
     cmd += run_args(tmp_path, "eval.every=800", "eval.episodes=300")
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
-    try:
-        deadline = time.monotonic() + 600
-        while True:  # the episodes of step 800 are logged just before its evaluation starts
-            assert proc.poll() is None, "the run ended before it could be stopped"
-            assert time.monotonic() < deadline, "the run never reached its evaluation"
-            if any(max(logged_steps(run), default=0) >= 800 for run in tmp_path.iterdir()):
-                break
-            time.sleep(0.1)
-        time.sleep(0.5)
-        proc.send_signal(signal.SIGTERM)
-        sent = time.monotonic()
-        _, err = proc.communicate(timeout=120)
-        took = time.monotonic() - sent
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    # The episodes of step 800 are logged just before its evaluation starts.
+    err, took = sigterm_when(
+        proc,
+        lambda: any(max(logged_steps(run), default=0) >= 800 for run in tmp_path.iterdir()),
+        settle=0.5,
+    )
     assert proc.returncode == 128 + signal.SIGTERM, err
     assert took < 10, f"stopping took {took:.1f} s"
     (run,) = tmp_path.iterdir()
@@ -263,25 +252,36 @@ def test_a_signal_cuts_a_long_training_call_short_and_the_checkpoint_resumes(tmp
 def test_sigterm_during_an_endless_training_call_stops_in_seconds(tmp_path):
     cmd = [sys.executable, "-m", "harness.cli", *run_args(tmp_path, ENDLESS_EPOCHS)]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
-    try:
-        deadline = time.monotonic() + 600
-        # The first episodes end at step 200; the first training call comes at 208.
-        while not any(logged_steps(run) for run in tmp_path.iterdir()):
-            assert proc.poll() is None and time.monotonic() < deadline, "no episode ended"
-            time.sleep(0.1)
-        time.sleep(1)
-        proc.send_signal(signal.SIGTERM)
-        sent = time.monotonic()
-        _, err = proc.communicate(timeout=120)
-        took = time.monotonic() - sent
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait()
+    # The first episodes end at step 200; the first training call comes at 208.
+    err, took = sigterm_when(
+        proc, lambda: any(logged_steps(run) for run in tmp_path.iterdir()), settle=1.0
+    )
     assert proc.returncode == 128 + signal.SIGTERM, err
     assert took < 10, f"stopping took {took:.1f} s"
     (line,) = harness_lines(err)
     assert "during a training call (cut short after" in line and "Traceback" not in err
+
+
+def sigterm_when(
+    proc: subprocess.Popen, ready: Callable[[], bool], settle: float
+) -> tuple[str, float]:
+    """Send SIGTERM to ``proc`` ``settle`` seconds after ``ready()`` first holds (at most 600 s
+    of waiting); its stderr and the seconds it took to stop. A process left running is killed."""
+    try:
+        deadline = time.monotonic() + 600
+        while not ready():
+            assert proc.poll() is None, "the run ended before it could be stopped"
+            assert time.monotonic() < deadline, "the run never got there"
+            time.sleep(0.1)
+        time.sleep(settle)
+        proc.send_signal(signal.SIGTERM)
+        sent = time.monotonic()
+        _, err = proc.communicate(timeout=120)
+        return err, time.monotonic() - sent
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
 
 
 # ------------------------------------------------------------------ 3. a damaged replay buffer

@@ -43,7 +43,7 @@ in the order of :data:`GOAL_FEATURES`:
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
@@ -135,11 +135,11 @@ class Candidates:
     """``(agents, k)`` the move (0-3) towards it, ``STAY`` for an empty slot."""
     features: np.ndarray
     """``(agents, k, len(GOAL_FEATURES))`` float32."""
-    mask: np.ndarray = field(init=False)
-    """``(agents, k)`` float32, 1 where a slot holds a candidate."""
 
-    def __post_init__(self) -> None:
-        self.mask = (self.cells >= 0).astype(np.float32)
+    @property
+    def mask(self) -> np.ndarray:
+        """``(agents, k)`` float32, 1 where a slot holds a candidate."""
+        return (self.cells >= 0).astype(np.float32)
 
     @classmethod
     def empty(cls, n_agents: int, k: int) -> Candidates:
@@ -228,5 +228,4 @@ def gather_candidates(
         f[:, 7] = open_[chosen]
         f[:, 8] = (rows_c - row_i) / height
         f[:, 9] = (cols_c - col_i) / width
-    out.mask = (out.cells >= 0).astype(np.float32)
     return out

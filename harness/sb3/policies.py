@@ -157,7 +157,33 @@ class DuelingHead(nn.Module):
         return value + advantage - baseline
 
 
-class DuelingQNetwork(QNetwork):
+class _HeadlessQNetwork(QNetwork):
+    """SB3's ``QNetwork`` for subclasses that replace its head (``q_net``) in their
+    ``__init__``: ``QNetwork`` feeds its ``net_arch`` to ``create_mlp``, so it is built with
+    none (one cheap ``Linear``, replaced right after); feature extraction, ``forward`` (when
+    the subclass keeps it) and greedy ``_predict`` stay SB3's."""
+
+    def __init__(
+        self,
+        observation_space: spaces.Space,
+        action_space: spaces.Discrete,
+        features_extractor: BaseFeaturesExtractor,
+        features_dim: int,
+        activation_fn: type[nn.Module],
+        normalize_images: bool,
+    ) -> None:
+        super().__init__(
+            observation_space,
+            action_space,
+            features_extractor=features_extractor,
+            features_dim=features_dim,
+            net_arch=[],
+            activation_fn=activation_fn,
+            normalize_images=normalize_images,
+        )
+
+
+class DuelingQNetwork(_HeadlessQNetwork):
     """SB3 ``QNetwork`` whose head is a :class:`DuelingHead`.
 
     ``QNetwork.forward`` computes ``self.q_net(features)``, so only ``q_net`` is swapped for the
@@ -185,16 +211,13 @@ class DuelingQNetwork(QNetwork):
         normalize_images: bool = True,
         aggregator: str = "mean",
     ) -> None:
-        # QNetwork would feed a dict net_arch to create_mlp; give it an empty one (one cheap
-        # Linear layer) and replace its head right after.
         super().__init__(
             observation_space,
             action_space,
-            features_extractor=features_extractor,
-            features_dim=features_dim,
-            net_arch=[],
-            activation_fn=activation_fn,
-            normalize_images=normalize_images,
+            features_extractor,
+            features_dim,
+            activation_fn,
+            normalize_images,
         )
         self.net_arch = [64, 64] if net_arch is None else net_arch  # type: ignore[assignment]
         self.aggregator = _check_aggregator(aggregator)
@@ -401,7 +424,7 @@ class DuelingTeamMapPolicy(DuelingDQNPolicy):
 SLOTS_KEY = "goals"
 
 
-class SlotQNetwork(QNetwork):
+class SlotQNetwork(_HeadlessQNetwork):
     """A Q-network whose actions are *slots*, each described by a row of features: one shared
     scorer (an MLP) maps ``[slot features, observation features]`` to the slot's value, so the
     values follow the slots when they are reordered (permutation-equivariant), and any number of
@@ -430,11 +453,10 @@ class SlotQNetwork(QNetwork):
         super().__init__(
             observation_space,
             action_space,
-            features_extractor=features_extractor,
-            features_dim=features_dim,
-            net_arch=[],
-            activation_fn=activation_fn,
-            normalize_images=normalize_images,
+            features_extractor,
+            features_dim,
+            activation_fn,
+            normalize_images,
         )
         slots = observation_space.spaces.get(slots_key)
         n = int(action_space.n)

@@ -335,20 +335,46 @@ def run_sweep(
     """
     state = _SignalState()
     with _stop_on_sigterm(state), _quiet_interrupts():
-        return _run_sweep(config_path, overrides, space_path, trials, study_name, sweeps_dir,
-                          storage_url, resume, pruner, jobs, worker, report, state)  # fmt: skip
+        spec = _Study(config_path, tuple(overrides), space_path, trials, study_name,
+                      Path(sweeps_dir), storage_url, pruner)  # fmt: skip
+        return _run_sweep(spec, resume, jobs, worker, report, state)
+
+
+@dataclass(frozen=True)
+class _Study:
+    """What defines a sweep, which every process working on it shares (``run_sweep``'s
+    arguments of the same names)."""
+
+    config_path: Path
+    overrides: tuple[str, ...]
+    space_path: Path
+    trials: int
+    study_name: str
+    sweeps_dir: Path
+    storage_url: str | None
+    pruner: str
+
+    @property
+    def folder(self) -> Path:
+        """The sweep's folder (its journal, worker logs and trial runs)."""
+        return self.sweeps_dir / self.study_name
+
+    def worker_command(self, threads: int) -> list[str]:
+        """The ``harness sweep ... --worker`` command of one worker with ``threads`` threads."""
+        cmd = [sys.executable, "-m", "harness.cli", "sweep", str(self.config_path),
+               "--space", str(self.space_path), "--trials", str(self.trials),
+               "--study", self.study_name, "--sweeps-dir", str(self.sweeps_dir),
+               "--pruner", self.pruner, "--worker"]  # fmt: skip
+        if self.storage_url is not None:
+            cmd += ["--storage", self.storage_url]
+        for item in (*self.overrides, f"algo.threads={threads}"):
+            cmd += ["--set", item]
+        return cmd
 
 
 def _run_sweep(
-    config_path: Path,
-    overrides: Sequence[str],
-    space_path: Path,
-    trials: int,
-    study_name: str,
-    sweeps_dir: Path,
-    storage_url: str | None,
+    spec: _Study,
     resume: bool,
-    pruner: str,
     jobs: int,
     worker: bool,
     report: Callable[[str], None] | None,
@@ -356,75 +382,65 @@ def _run_sweep(
 ) -> dict[str, Any] | None:
     import optuna
 
-    dims = load_space(space_path)
+    dims = load_space(spec.space_path)
     from harness.training.checks import checked_config
 
-    checked_config(load_config(config_path, overrides), str(config_path))
-    check_space(config_path, overrides, dims)
+    checked_config(load_config(spec.config_path, spec.overrides), str(spec.config_path))
+    check_space(spec.config_path, spec.overrides, dims)
     grid = all(d.kind == "grid" for d in dims)
     points = math.prod(len(d.values) for d in dims)
-    if grid and trials > points:
-        raise SweepError(f"--trials {trials}: the grid of {space_path} has only {points}")
-    folder = Path(sweeps_dir) / study_name
+    if grid and spec.trials > points:
+        raise SweepError(f"--trials {spec.trials}: the grid of {spec.space_path} has only {points}")
+    folder = spec.folder
     exists = (folder / "journal.log").exists()
-    if storage_url is None and exists and not resume and not worker:
+    if spec.storage_url is None and exists and not resume and not worker:
         raise SweepError(f"{folder}: a sweep of this study exists; add --resume to continue it")
     optuna.logging.set_verbosity(optuna.logging.WARNING)
-    storage = _storage(storage_url, folder)  # before any folder is made for a database
+    storage = _storage(spec.storage_url, folder)  # before any folder is made for a database
     folder.mkdir(parents=True, exist_ok=True)
     sampler = _grid_sampler(dims) if grid else optuna.samplers.TPESampler(seed=None)
     study = optuna.create_study(
-        study_name=study_name,
+        study_name=spec.study_name,
         storage=storage,
         direction="maximize",
         sampler=sampler,
-        pruner=make_pruner(pruner),
+        pruner=make_pruner(spec.pruner),
         load_if_exists=True,
     )
     if resume and not worker:
-        _fail_dead_trials(study, embedded=storage_url is None)
+        _fail_dead_trials(study, embedded=spec.storage_url is None)
         if grid:
-            _requeue_grid(study, sampler, trials)
+            _requeue_grid(study, sampler, spec.trials)
     if jobs > 1:
-        _run_workers(jobs, folder, config_path, overrides, space_path, trials, study_name,
-                     sweeps_dir, storage_url, pruner)  # fmt: skip
+        _run_workers(spec, jobs)
     else:
         from harness.training.train import TrainingFailed, TrainingInterrupted
 
         def objective(trial: Any) -> float:
             try:
-                return _objective(trial, config_path, overrides, dims, folder, trials)
+                return _objective(
+                    trial, spec.config_path, spec.overrides, dims, folder, spec.trials
+                )
             except TrainingInterrupted:
                 state.stopping = True  # its checkpoint is written; now the trial is marked failed
                 raise
 
         counted = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED)
-        left = trials - len(study.get_trials(deepcopy=False, states=counted))
+        left = spec.trials - len(study.get_trials(deepcopy=False, states=counted))
         if left > 0:
             study.optimize(
                 objective,
                 n_trials=left,
                 callbacks=[
-                    optuna.study.MaxTrialsCallback(trials, states=counted),
-                    *([_Reporter(report, trials)] if report is not None else []),
+                    optuna.study.MaxTrialsCallback(spec.trials, states=counted),
+                    *([_Reporter(report, spec.trials)] if report is not None else []),
                 ],
                 catch=(StudyFull, TrainingFailed),
             )
-    return None if worker else write_best(study, config_path, overrides, folder)
+    return None if worker else write_best(study, spec.config_path, spec.overrides, folder)
 
 
-def _run_workers(
-    jobs: int,
-    folder: Path,
-    config_path: Path,
-    overrides: Sequence[str],
-    space_path: Path,
-    trials: int,
-    study_name: str,
-    sweeps_dir: Path,
-    storage_url: str | None,
-    pruner: str,
-) -> None:
+def _run_workers(spec: _Study, jobs: int) -> None:
     """``jobs`` worker processes on the study, each on its share of the cores; their output goes
     to ``worker-<k>.log`` in the sweep folder.
 
@@ -434,18 +450,12 @@ def _run_workers(
     from harness.results.groups import threads_per_job
 
     threads = threads_per_job(jobs)
-    cmd = [sys.executable, "-m", "harness.cli", "sweep", str(config_path), "--space",
-           str(space_path), "--trials", str(trials), "--study", study_name, "--sweeps-dir",
-           str(sweeps_dir), "--pruner", pruner, "--worker"]  # fmt: skip
-    if storage_url is not None:
-        cmd += ["--storage", storage_url]
-    for item in (*overrides, f"algo.threads={threads}"):
-        cmd += ["--set", item]
+    cmd = spec.worker_command(threads)
     env = {**os.environ, "OMP_NUM_THREADS": str(threads), "MKL_NUM_THREADS": str(threads)}
     processes: list[subprocess.Popen[bytes]] = []
     try:
         for k in range(jobs):
-            with (folder / f"worker-{k}.log").open("wb") as log:
+            with (spec.folder / f"worker-{k}.log").open("wb") as log:
                 processes.append(
                     subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
                 )
@@ -459,7 +469,7 @@ def _run_workers(
         raise
     failed = [k for k, code in enumerate(codes) if code != 0]
     if failed:
-        log = folder / f"worker-{failed[0]}.log"
+        log = spec.folder / f"worker-{failed[0]}.log"
         raise SweepError(f"sweep worker {failed[0]} failed; see {log}")
 
 

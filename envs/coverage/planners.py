@@ -428,6 +428,10 @@ class CoordinatedPlanner(FrontierPlanner):
             # the reverse of direction k is direction 3 - k).
             self._back = 4 * (self._nbr - s) + (3 - np.arange(4))
             self._known = np.zeros(n, dtype=bool)
+            self._grid_version = -1
+        if self._grid_version == self.graph_version:  # no cell became passable since
+            return self._grid
+        self._grid_version = self.graph_version
         changed = np.flatnonzero(passable != self._known)
         if changed.size:
             self._known = passable.copy()

@@ -498,13 +498,15 @@ def test_two_workers_share_one_postgresql_study(tiny, tmp_path):
         for worker in workers:
             _, err = worker.communicate(timeout=600)
             assert worker.returncode == 0, err.decode()[-2000:]
-        study = optuna.load_study(study_name="shared", storage=url)
-        complete = [t for t in study.trials if t.state.name == "COMPLETE"]
+        storage = optuna.storages.RDBStorage(url)
+        trials = optuna.load_study(study_name="shared", storage=storage).trials
+        storage.engine.dispose()  # its connections closed before the server stops
+        complete = [t for t in trials if t.state.name == "COMPLETE"]
         assert len(complete) == 4  # exactly what was asked, over both workers
-        runs = [t.user_attrs["run"] for t in study.trials if "run" in t.user_attrs]
+        runs = [t.user_attrs["run"] for t in trials if "run" in t.user_attrs]
         assert len(runs) == 4 and len(set(runs)) == 4  # no trial ran twice
         # A worker that found the study full marked its extra trial skipped, without training.
-        others = [t for t in study.trials if t.state.name != "COMPLETE"]
+        others = [t for t in trials if t.state.name != "COMPLETE"]
         assert all(t.state.name == "FAIL" and "skipped" in t.user_attrs for t in others)
         folder = tmp_path / "sweeps" / "shared"
         assert load_config(folder / "best.yaml").name == "tiny"

@@ -19,14 +19,7 @@ from harness import DoubleDQN
 from harness.config.loading import load_config
 from harness.evaluation.baselines import make_baseline
 from harness.evaluation.episodes import model_policy, run_episodes
-
-
-def paired(a: np.ndarray, b: np.ndarray, reps: int = 10_000, seed: int = 0) -> tuple[float, ...]:
-    """Mean of ``a - b`` and its 95 % percentile-bootstrap interval over episodes."""
-    diff = a - b
-    rng = np.random.default_rng(seed)
-    means = diff[rng.integers(0, diff.size, (reps, diff.size))].mean(axis=1)
-    return float(diff.mean()), float(np.quantile(means, 0.025)), float(np.quantile(means, 0.975))
+from harness.results.stats import paired_difference
 
 
 def main() -> None:
@@ -47,7 +40,7 @@ def main() -> None:
         model = DoubleDQN.load(run / "model.zip", device="cpu")
         policy = model_policy(model, config.eval.temperature, config.eval.shield)
         cov = np.array([r.coverage for r in run_episodes(policy, env, args.episodes, seed)])
-        mean, low, high = paired(cov, planner[key])
+        mean, low, high = paired_difference(cov, planner[key])
         out[str(run)] = {"coverage_mean": float(cov.mean()), "over_planner": [mean, low, high]}
         print(
             f"{run.name}: {cov.mean():.2%} (planner {planner[key].mean():.2%}); "

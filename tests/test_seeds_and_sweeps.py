@@ -19,7 +19,12 @@ import pytest
 from harness.cli import main
 from harness.config.loading import load_config
 from harness.results.groups import GroupError, parse_seeds, threads_per_job
-from harness.results.stats import curve_with_ci, probability_of_improvement, seed_statistics
+from harness.results.stats import (
+    curve_with_ci,
+    paired_difference,
+    probability_of_improvement,
+    seed_statistics,
+)
 from harness.training.sweep import SweepError, load_space
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -170,6 +175,17 @@ def test_statistics_over_seeds_hand_checked():
     assert p == 1.0 and ci is not None and ci[0] == pytest.approx(1.0)
     p, _ = probability_of_improvement([0.3, 0.3], [0.3, 0.3], reps=500)
     assert p == pytest.approx(0.5)
+
+
+def test_paired_difference_is_the_mean_difference_with_a_bootstrap_interval():
+    # Differences 1, 2, 3: mean 2; a resampled mean lies within [1, 3] and the interval around 2.
+    mean, low, high = paired_difference([1.0, 2.0, 3.0], [0.0, 0.0, 0.0])
+    assert mean == 2.0 and 1.0 <= low < 2.0 < high <= 3.0
+    # A constant difference has a zero-width interval; the sign follows a - b.
+    assert paired_difference([0.5, 0.75], [1.5, 1.75]) == (-1.0, -1.0, -1.0)
+    # Reproducible from its seed.
+    x, y = np.arange(10.0), np.arange(10.0)[::-1]
+    assert paired_difference(x, y) == paired_difference(x, y)
 
 
 def _fake_run(folder: Path, coverage_mean: float, curve: dict[int, float]) -> Path:

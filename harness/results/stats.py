@@ -120,6 +120,19 @@ def probability_of_improvement(
     return float(points["x,y"]), (float(ci[0, 0]), float(ci[1, 0]))
 
 
+def paired_difference(
+    a: Sequence[float], b: Sequence[float], reps: int = 10_000, seed: int = 0
+) -> tuple[float, float, float]:
+    """Mean of ``a - b`` over paired episodes (the same maps and starts) and its 95 %
+    percentile-bootstrap interval over the episodes: how a policy and a baseline, or two
+    policies, are compared episode by episode (``scripts/goal_validation.py``,
+    ``scripts/goal_oracle.py``)."""
+    diff = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    means = diff[rng.integers(0, diff.size, (reps, diff.size))].mean(axis=1)
+    return float(diff.mean()), float(np.quantile(means, 0.025)), float(np.quantile(means, 0.975))
+
+
 def percent(x: float) -> str:
     return f"{100 * x:.1f} %"
 

@@ -1,22 +1,29 @@
-"""How much the goal action's candidates could give: a clairvoyant rollout oracle against the
-planner, paired on the same episodes (docs/experiment-log.md, "The room in the candidates").
+"""How much the goal action's candidates could give: a rollout oracle against the planner,
+paired on the same episodes (docs/experiment-log.md, "The room in the candidates").
 
 At every step each agent that is not walking to a chosen target tries each of its candidate
-slots (docs/goals.md) on a copy of the planner's map, which holds the *true* walls: it walks a
-shortest path to the candidate, teammates keep to what they are doing, then everybody follows
-the planner (``frontier.planner``) to the episode's end. The slot whose rollout ends with the
-most visited cells wins (ties keep slot 0, the planner's own choice); the agent then walks to
-that candidate without deciding again until it is visited, by it or by a teammate. Committing
-matters: re-deciding every step, with rollouts that assume the walk is finished, lets two
-targets take turns and an agent stall (one validation episode lost 30 points that way).
+slots (docs/goals.md) on a copy of the planner's map: it walks a shortest path to the
+candidate, teammates keep to what they are doing, then everybody follows the planner
+(``frontier.planner``) to the episode's end (``--horizon``: for so many steps). The slot whose
+rollout ends with the most visited cells wins (ties, and gains of at most ``--margin`` cells,
+keep slot 0, the planner's own choice); the agent then walks to that candidate without
+deciding again until it is visited, by it or by a teammate. Committing matters: re-deciding
+every step, with rollouts that assume the walk is finished, lets two targets take turns and an
+agent stall (one validation episode lost 30 points that way).
 
-This is one step of policy improvement over the planner with a perfect model of the map, an
-estimate of the room in the candidate set rather than a policy anyone can run: it sees ground
-no agent has seen. ``--save`` writes every decision's candidate features and each slot's
-advantage (its rollout's cells minus slot 0's), the data a learned selector can be fitted to.
+With ``--belief true`` (the default) the copies hold the *true* walls: one step of policy
+improvement over the planner with a perfect model of the map, an estimate of the room in the
+candidate set rather than a policy anyone can run. With ``--belief sampled`` the cells nobody
+has seen are drawn (free with the share of free cells among the seen ones), ``--samples`` maps
+per decision: a rollout planner that sees only what the agents see.
+
+``--model`` plays a trained goal policy the same way (a slot other than 0 is walked to until
+visited). ``--save`` writes every decision's candidate features and each slot's advantage (its
+rollout's cells minus slot 0's), the data a learned selector can be fitted to.
 
     python scripts/goal_oracle.py [--config configs/goals_2agents.yaml] [--episodes 10]
-        [--seed 2000003] [--set KEY=VALUE ...] [--save DECISIONS.npz]
+        [--seed 2000003] [--set KEY=VALUE ...] [--horizon H] [--belief true|sampled]
+        [--samples M] [--margin CELLS] [--model RUN/model.zip] [--save DECISIONS.npz]
 """
 
 from __future__ import annotations
@@ -28,16 +35,20 @@ from pathlib import Path
 import numpy as np
 
 from envs.coverage.planners import FrontierPlanner
+from harness import DoubleDQN
 from harness.config.loading import load_config
 from harness.factory import make_env
 from harness.results.stats import paired_difference
 
 
-def clone(planner: FrontierPlanner) -> FrontierPlanner:
-    """A copy of the planner's map that can be stepped on its own (its true ``free`` list and
-    cached graph are shared read-only; every per-cell state it changes is copied)."""
+def clone(planner: FrontierPlanner, free: list[bool] | None = None) -> FrontierPlanner:
+    """A copy of the planner's map that can be stepped on its own (its ``free`` list and cached
+    graph are shared read-only; every per-cell state it changes is copied). ``free`` replaces
+    the true free cells (a sampled map) for the cells nobody has seen."""
     copy = object.__new__(type(planner))
     copy.__dict__.update(planner.__dict__)
+    if free is not None:
+        copy.free = free
     for name in ("visited", "seen", "passable", "target", "positions", "goals", "far"):
         setattr(copy, name, list(getattr(planner, name)))
     for name in ("passable_np", "target_np", "seen_np"):
@@ -83,10 +94,39 @@ def path_to(pred: np.ndarray, start: int, goal: int) -> list[int]:
     return cells[::-1]
 
 
-def play(env, seed: int, oracle: bool, records: list | None = None) -> tuple[float, int]:
-    """One episode; with ``oracle`` the rollout oracle chooses, otherwise slot 0 throughout.
-    Returns the coverage and the number of deviations from slot 0."""
-    env.reset(seed=seed)
+def sampled_free(planner: FrontierPlanner, rng: np.random.Generator) -> list[bool]:
+    """The free cells as the team can guess them: the true ones where a cell has been seen,
+    elsewhere free with the share of free cells among the seen ones (the outer ring stays
+    wall)."""
+    seen = planner.seen_np.reshape(-1, planner.stride)[1:-1, 1:-1]  # inside the wall ring
+    free = np.asarray(planner.free, dtype=bool).reshape(-1, planner.stride)
+    inner = free[1:-1, 1:-1]
+    share = inner[seen].sum() / max(seen.sum(), 1)
+    guess = free.copy()
+    guess[1:-1, 1:-1] = np.where(seen, inner, rng.random(inner.shape) < share)
+    return guess.ravel().tolist()
+
+
+def play(
+    env,
+    seed: int,
+    oracle: bool,
+    records: list | None = None,
+    belief: str = "true",
+    samples: int = 1,
+    margin: float = 0.0,
+    horizon: int | None = None,
+    model: DoubleDQN | None = None,
+) -> tuple[float, int]:
+    """One episode; with ``oracle`` the rollout oracle chooses, with ``model`` a trained goal
+    policy (greedy, committed like the oracle), otherwise slot 0 throughout.
+    ``belief``: the rollouts' map, the ``"true"`` one or ``samples`` maps ``"sampled"`` per
+    decision (:func:`sampled_free`), the options scored by their mean; an option replaces
+    slot 0 when it scores more than ``margin`` cells above it. Returns the coverage and the
+    number of deviations from slot 0. ``horizon``: rollouts end after so many steps (``None``:
+    at the episode's end)."""
+    obs, _ = env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
     n = env.n_agents
     walk: list[list[int]] = [[] for _ in range(n)]  # each agent's committed path
     deviations = 0
@@ -107,32 +147,52 @@ def play(env, seed: int, oracle: bool, records: list | None = None) -> tuple[flo
         if oracle and deciding:
             pred = planner.distance_fields()[1]
             left = env.max_steps - env.steps - 1
+            if horizon is not None:
+                left = min(left, horizon - 1)
             for i in deciding:
                 slots = np.flatnonzero(cand.cells[i] >= 0)
                 options = [[cells[i]]] + [
                     path_to(pred[i], planner.positions[i], int(cand.cells[i, j])) for j in slots[1:]
                 ]
-                scores = []
-                for path in options:
-                    sim = clone(planner)
-                    first = list(cells)
-                    first[i] = path[0]
-                    new = advance(sim, first)
-                    scores.append(new + rollout(sim, left, {**rests, i: path[1:]}))
+                scores = np.zeros(len(options))
+                for _ in range(samples if belief == "sampled" else 1):
+                    # One map for every option of a sample: their differences are paired.
+                    free = sampled_free(planner, rng) if belief == "sampled" else None
+                    for o, path in enumerate(options):
+                        sim = clone(planner, free)
+                        first = list(cells)
+                        first[i] = path[0]
+                        new = advance(sim, first)
+                        scores[o] += new + rollout(sim, left, {**rests, i: path[1:]})
+                scores /= samples if belief == "sampled" else 1
                 if records is not None:
                     adv = np.full(cand.cells.shape[1], np.nan)
-                    adv[slots] = np.asarray(scores, dtype=float) - scores[0]
+                    adv[slots] = scores - scores[0]
                     records.append((cand.features[i].copy(), adv, env.steps / env.max_steps))
                 best = int(np.argmax(scores))
-                if scores[best] > scores[0]:
+                if scores[best] > scores[0] + margin:
                     cells[i], rests[i], walk[i] = options[best][0], options[best][1:], options[best]
+                    deviations += 1
+        elif model is not None and deciding:
+            batch = {
+                key: np.stack([obs[agent][key] for agent in env.agents])
+                for key in obs[env.agents[0]]
+            }
+            slots = model.policy.predict(batch, deterministic=True)[0]
+            pred = None
+            for i in deciding:
+                if slots[i] != 0:
+                    if pred is None:
+                        pred = planner.distance_fields()[1]
+                    walk[i] = path_to(pred[i], planner.positions[i], int(cand.cells[i, slots[i]]))
+                    cells[i] = walk[i][0]
                     deviations += 1
         for a in range(n):
             # Slot 0 carries each agent's move (the goal action resolves slots to moves).
             cand.moves[a, 0] = move_of[cells[a] - planner.positions[a]]
             if walk[a]:
                 walk[a] = walk[a][1:]
-        env.step({agent: 0 for agent in env.agents})
+        obs = env.step({agent: 0 for agent in env.agents})[0]
     return env.coverage, deviations
 
 
@@ -142,18 +202,46 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--seed", type=int, default=2000003, help="first episode's seed")
     parser.add_argument("--set", action="append", default=["env.map=random"], dest="overrides")
+    parser.add_argument(
+        "--belief",
+        choices=("true", "sampled"),
+        default="true",
+        help="the rollouts' map: the true one (clairvoyant) or one sampled per decision",
+    )
+    parser.add_argument("--samples", type=int, default=1, help="sampled maps per decision")
+    parser.add_argument(
+        "--margin", type=float, default=0.0, help="cells an option must gain over slot 0"
+    )
+    parser.add_argument(
+        "--horizon", type=int, help="steps a rollout looks ahead (default: to the episode's end)"
+    )
+    parser.add_argument(
+        "--model", type=Path, help="play this goal model (committed) instead of the oracle"
+    )
     parser.add_argument("--save", type=Path, help="write the decisions' features and advantages")
     args = parser.parse_args()
     env = make_env(load_config(args.config, args.overrides).env)
+    model = DoubleDQN.load(args.model, device="cpu") if args.model else None
+    label = "model" if model is not None else "oracle"
     records: list | None = [] if args.save else None
     rows = []
     start = time.perf_counter()
     for seed in range(args.seed, args.seed + args.episodes):
         planner, _ = play(env, seed, oracle=False)
-        oracle, deviations = play(env, seed, oracle=True, records=records)
+        oracle, deviations = play(
+            env,
+            seed,
+            oracle=model is None,
+            records=records,
+            belief=args.belief,
+            samples=args.samples,
+            margin=args.margin,
+            horizon=args.horizon,
+            model=model,
+        )
         rows.append((planner, oracle))
         print(
-            f"seed {seed}: planner {100 * planner:.2f} %  oracle {100 * oracle:.2f} %  "
+            f"seed {seed}: planner {100 * planner:.2f} %  {label} {100 * oracle:.2f} %  "
             f"({100 * (oracle - planner):+.2f}, {deviations} deviations; "
             f"{time.perf_counter() - start:.0f} s)",
             flush=True,
@@ -168,7 +256,7 @@ def main() -> None:
     p, o = (100 * np.array(c) for c in zip(*rows))
     mean, low, high = paired_difference(o, p)
     print(
-        f"{len(rows)} episodes: planner {p.mean():.2f} %, oracle {o.mean():.2f} %, "
+        f"{len(rows)} episodes: planner {p.mean():.2f} %, {label} {o.mean():.2f} %, "
         f"difference {mean:+.2f} [{low:+.2f}, {high:+.2f}] points"
     )
 

@@ -360,6 +360,20 @@ def test_the_oracles_rollouts_replay_the_planner_and_leave_the_env_alone() -> No
     for features, advantages, t in records:
         assert advantages[0] == 0 and 0 <= t < 1
         assert (np.isnan(advantages) == (features[:, 0] == 0)).all()
+    # A goal policy played with commitment: one that always takes its last candidate deviates,
+    # walks its paths through seen free cells (no wall hit) and keeps covering ground.
+
+    class LastSlot:
+        policy = None
+
+        def predict(self, obs, deterministic=True):
+            mask = obs[ACTION_MASK_KEY]
+            return mask.shape[1] - 1 - np.argmax(mask[:, ::-1], axis=1), None
+
+    chooser = LastSlot()
+    chooser.policy = chooser
+    coverage_m, deviations = oracle.play(env, 5, oracle=False, model=chooser)
+    assert deviations > 0 and env._wall_hits == [0, 0] and 0 < coverage_m <= 1
 
 
 def test_the_oracle_walks_the_shortest_path_of_the_predecessors() -> None:

@@ -201,7 +201,13 @@ def main() -> None:
     parser.add_argument("--config", default="configs/goals_2agents.yaml")
     parser.add_argument("--episodes", type=int, default=10)
     parser.add_argument("--seed", type=int, default=2000003, help="first episode's seed")
-    parser.add_argument("--set", action="append", default=["env.map=random"], dest="overrides")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        dest="overrides",
+        help="config overrides (env.map defaults to random, 50x50 maps, not the training mix)",
+    )
     parser.add_argument(
         "--belief",
         choices=("true", "sampled"),
@@ -220,6 +226,8 @@ def main() -> None:
     )
     parser.add_argument("--save", type=Path, help="write the decisions' features and advantages")
     args = parser.parse_args()
+    if not any(o.startswith("env.map=") for o in args.overrides):
+        args.overrides.insert(0, "env.map=random")
     env = make_env(load_config(args.config, args.overrides).env)
     model = DoubleDQN.load(args.model, device="cpu") if args.model else None
     label = "model" if model is not None else "oracle"

@@ -34,6 +34,7 @@ from pathlib import Path
 
 import numpy as np
 
+from envs.coverage.env import CoverageEnv
 from envs.coverage.planners import FrontierPlanner
 from harness import DoubleDQN
 from harness.config.loading import load_config
@@ -108,7 +109,7 @@ def sampled_free(planner: FrontierPlanner, rng: np.random.Generator) -> list[boo
 
 
 def play(
-    env,
+    env: CoverageEnv,
     seed: int,
     oracle: bool,
     records: list | None = None,

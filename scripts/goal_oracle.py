@@ -69,22 +69,30 @@ def advance(planner: FrontierPlanner, cells: list[int]) -> int:
     return new
 
 
-def rollout(planner: FrontierPlanner, steps: int, paths: dict[int, list[int]]) -> int:
+def rollout(
+    planner: FrontierPlanner, steps: int, paths: dict[int, list[int]], reach: int | None = None
+) -> tuple[int, int | None]:
     """Steps the planner's map ``steps`` times, the agents in ``paths`` walking them first and
-    everybody following the planner after; returns the cells newly visited."""
+    everybody following the planner after. Returns the cells newly visited and, when ``reach``
+    (a number of newly visited cells) is given, the step (1-based) on which they reached it
+    (``None``: not within ``steps``; with ``reach <= 0``, 0); the rollout then ends."""
     offset = {0: -planner.stride, 1: planner.stride, 2: -1, 3: 1, 4: 0}
     paths = {a: list(p) for a, p in paths.items() if p}
     new = 0
-    for _ in range(steps):
+    if reach is not None and reach <= 0:
+        return 0, 0
+    for step in range(1, steps + 1):
         moves = planner.act()
         cells = [
             paths[a].pop(0) if paths.get(a) else pos + offset[m]
             for a, (pos, m) in enumerate(zip(planner.positions, moves))
         ]
         new += advance(planner, cells)
+        if reach is not None and new >= reach:
+            return new, step
         if planner.n_targets == 0 and not any(paths.values()):
             break
-    return new
+    return new, None
 
 
 def path_to(pred: np.ndarray, start: int, goal: int) -> list[int]:
@@ -118,19 +126,23 @@ def play(
     margin: float = 0.0,
     horizon: int | None = None,
     model: DoubleDQN | None = None,
-) -> tuple[float, int]:
+    reach: float | None = None,
+) -> tuple[float, int, int | None]:
     """One episode; with ``oracle`` the rollout oracle chooses, with ``model`` a trained goal
     policy (greedy, committed like the oracle), otherwise slot 0 throughout.
     ``belief``: the rollouts' map, the ``"true"`` one or ``samples`` maps ``"sampled"`` per
     decision (:func:`sampled_free`), the options scored by their mean; an option replaces
-    slot 0 when it scores more than ``margin`` cells above it. Returns the coverage and the
-    number of deviations from slot 0. ``horizon``: rollouts end after so many steps (``None``:
-    at the episode's end)."""
+    slot 0 when it scores more than ``margin`` cells above it. ``reach`` (a coverage, e.g.
+    0.99): the options are scored by the steps their rollout takes to reach it instead (fewer
+    is better, ties by cells; ``margin`` then counts steps). Returns the coverage, the number
+    of deviations from slot 0 and the steps to ``reach`` (``None`` when not reached or not
+    asked). ``horizon``: rollouts end after so many steps (``None``: at the episode's end)."""
     obs, _ = env.reset(seed=seed)
     rng = np.random.default_rng(seed)
     n = env.n_agents
     walk: list[list[int]] = [[] for _ in range(n)]  # each agent's committed path
     deviations = 0
+    reached: int | None = None
     while env.agents:
         frontier = env._frontier  # the env's planner extension (its planner and candidates)
         planner, cand = frontier.planner, frontier.candidates
@@ -156,6 +168,10 @@ def play(
                     path_to(pred[i], planner.positions[i], int(cand.cells[i, j])) for j in slots[1:]
                 ]
                 scores = np.zeros(len(options))
+                # Cells still to find for ``reach`` (the env counts visited free cells).
+                goal = None
+                if reach is not None:
+                    goal = int(np.ceil(reach * sum(planner.free))) - sum(planner.visited)
                 for _ in range(samples if belief == "sampled" else 1):
                     # One map for every option of a sample: their differences are paired.
                     free = sampled_free(planner, rng) if belief == "sampled" else None
@@ -164,14 +180,21 @@ def play(
                         first = list(cells)
                         first[i] = path[0]
                         new = advance(sim, first)
-                        scores[o] += new + rollout(sim, left, {**rests, i: path[1:]})
+                        if goal is None:
+                            scores[o] += new + rollout(sim, left, {**rests, i: path[1:]})[0]
+                            continue
+                        more, step = rollout(sim, left, {**rests, i: path[1:]}, goal - new)
+                        # Steps first (not reached: one more than the rollout had), then cells.
+                        steps = 1 + (left + 1 if step is None else step)
+                        scores[o] += -steps * (len(planner.free) + 1) + new + more
                 scores /= samples if belief == "sampled" else 1
                 if records is not None:
                     adv = np.full(cand.cells.shape[1], np.nan)
                     adv[slots] = scores - scores[0]
                     records.append((cand.features[i].copy(), adv, env.steps / env.max_steps))
                 best = int(np.argmax(scores))
-                if scores[best] > scores[0] + margin:
+                unit = 1 if reach is None else len(planner.free) + 1  # a cell, or a step
+                if scores[best] > scores[0] + margin * unit:
                     cells[i], rests[i], walk[i] = options[best][0], options[best][1:], options[best]
                     deviations += 1
         elif model is not None and deciding:
@@ -194,7 +217,9 @@ def play(
             if walk[a]:
                 walk[a] = walk[a][1:]
         obs = env.step({agent: 0 for agent in env.agents})[0]
-    return env.coverage, deviations
+        if reach is not None and reached is None and env.coverage >= reach:
+            reached = env.steps
+    return env.coverage, deviations, reached
 
 
 def main() -> None:
@@ -226,6 +251,11 @@ def main() -> None:
         "--model", type=Path, help="play this goal model (committed) instead of the oracle"
     )
     parser.add_argument("--save", type=Path, help="write the decisions' features and advantages")
+    parser.add_argument(
+        "--reach",
+        type=float,
+        help="score by the steps to this coverage (e.g. 0.99) instead of the cells at the end",
+    )
     args = parser.parse_args()
     if not any(o.startswith("env.map=") for o in args.overrides):
         args.overrides.insert(0, "env.map=random")
@@ -233,11 +263,11 @@ def main() -> None:
     model = DoubleDQN.load(args.model, device="cpu") if args.model else None
     label = "model" if model is not None else "oracle"
     records: list | None = [] if args.save else None
-    rows = []
+    rows, steps = [], []
     start = time.perf_counter()
     for seed in range(args.seed, args.seed + args.episodes):
-        planner, _ = play(env, seed, oracle=False)
-        oracle, deviations = play(
+        planner, _, planner_steps = play(env, seed, oracle=False, reach=args.reach)
+        oracle, deviations, oracle_steps = play(
             env,
             seed,
             oracle=model is None,
@@ -247,11 +277,19 @@ def main() -> None:
             margin=args.margin,
             horizon=args.horizon,
             model=model,
+            reach=args.reach,
         )
         rows.append((planner, oracle))
+        steps.append((planner_steps, oracle_steps))
+        reached = ""
+        if args.reach is not None:
+            reached = (
+                f"steps to {100 * args.reach:g} %: planner {planner_steps}, "
+                f"{label} {oracle_steps}; "
+            )
         print(
             f"seed {seed}: planner {100 * planner:.2f} %  {label} {100 * oracle:.2f} %  "
-            f"({100 * (oracle - planner):+.2f}, {deviations} deviations; "
+            f"({100 * (oracle - planner):+.2f}, {reached}{deviations} deviations; "
             f"{time.perf_counter() - start:.0f} s)",
             flush=True,
         )
@@ -268,6 +306,16 @@ def main() -> None:
         f"{len(rows)} episodes: planner {p.mean():.2f} %, {label} {o.mean():.2f} %, "
         f"difference {mean:+.2f} [{low:+.2f}, {high:+.2f}] points"
     )
+    both = [(a, b) for a, b in steps if a is not None and b is not None]
+    if args.reach is not None and both:
+        ps, os_ = (np.array(c, dtype=float) for c in zip(*both))
+        mean, low, high = paired_difference(os_, ps)
+        print(
+            f"steps to {100 * args.reach:g} % ({len(both)} episodes where both reach it): "
+            f"planner {ps.mean():.1f}, {label} {os_.mean():.1f} "
+            f"(ratio {os_.mean() / ps.mean():.3f}), "
+            f"difference {mean:+.1f} [{low:+.1f}, {high:+.1f}] steps"
+        )
 
 
 if __name__ == "__main__":

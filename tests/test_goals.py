@@ -346,16 +346,29 @@ def test_the_oracles_rollouts_replay_the_planner_and_leave_the_env_alone() -> No
     planner = env._frontier.planner
     before = (list(planner.visited), list(planner.positions), planner.target_np.copy())
     # Everybody on the planner from the reset: the copy's cells are the planner episode's.
-    new = oracle.rollout(oracle.clone(planner), env.max_steps, {})
+    new, _ = oracle.rollout(oracle.clone(planner), env.max_steps, {})
     assert (list(planner.visited), list(planner.positions)) == before[:2]
     assert (planner.target_np == before[2]).all()
     start = int(env.visited.sum())
-    coverage, deviations = oracle.play(env, 5, oracle=False)
+    coverage, deviations, _ = oracle.play(env, 5, oracle=False)
     assert deviations == 0 and coverage == pytest.approx((start + new) / env.free_cells)
+    # Steps to a coverage: the rollout's count (cells still to find) is the played episode's.
+    goal = int(np.ceil(0.6 * env.free_cells)) - start
+    env.reset(seed=5)
+    found, step = oracle.rollout(oracle.clone(env._frontier.planner), env.max_steps, {}, goal)
+    assert found == goal or found == goal + 1  # agents moving together may pass it by one
+    _, _, reached = oracle.play(env, 5, oracle=False, reach=0.6)
+    assert reached == step and 0 < step < env.max_steps
+    curve = []
+    env.reset(seed=5)
+    while env.agents and env.coverage < 0.6:
+        env.step(dict.fromkeys(env.agents, 0))
+        curve.append(env.coverage)
+    assert len(curve) == reached
     # The oracle plays the same episode; every decision it records scores slot 0 at 0 and
     # leaves empty slots without a score.
     records: list = []
-    coverage_o, _ = oracle.play(env, 5, oracle=True, records=records)
+    coverage_o, _, _ = oracle.play(env, 5, oracle=True, records=records)
     assert 0 < coverage_o <= 1 and records
     for features, advantages, t in records:
         assert advantages[0] == 0 and 0 <= t < 1
@@ -372,8 +385,24 @@ def test_the_oracles_rollouts_replay_the_planner_and_leave_the_env_alone() -> No
 
     chooser = LastSlot()
     chooser.policy = chooser
-    coverage_m, deviations = oracle.play(env, 5, oracle=False, model=chooser)
+    coverage_m, deviations, _ = oracle.play(env, 5, oracle=False, model=chooser)
     assert deviations > 0 and env._wall_hits == [0, 0] and 0 < coverage_m <= 1
+
+
+def test_one_agents_oracle_scored_by_steps_is_never_slower_than_the_planner() -> None:
+    # Alone on the true map, the oracle's slot 0 at each decision continues the rollout it
+    # committed to (everybody on the planner after the walk), and it leaves slot 0 only for a
+    # strictly better rollout: its steps to the coverage can only fall below the planner's.
+    oracle = _script("goal_oracle")
+    cfg = load_config(
+        ROOT / "configs" / "goals_2agents.yaml",
+        ["env.map=random", "env.height=15", "env.width=15", "env.max_steps=300", "env.n_agents=1"],
+    )
+    env = make_env(cfg.env)
+    _, _, planner_steps = oracle.play(env, 5, oracle=False, reach=0.9)
+    _, deviations, oracle_steps = oracle.play(env, 5, oracle=True, reach=0.9)
+    assert planner_steps is not None and oracle_steps is not None
+    assert deviations > 0 and oracle_steps <= planner_steps
 
 
 def test_the_oracle_walks_the_shortest_path_of_the_predecessors() -> None:

@@ -316,6 +316,25 @@ def test_selection_score_puts_zero_wall_hits_before_coverage():
     )
 
 
+def test_selection_score_breaks_coverage_ties_by_speed_and_only_ties():
+    from harness.evaluation.episodes import selection_score
+
+    def score(median: float, steps: float | None, walls: float = 0.0) -> float:
+        return selection_score(
+            {"coverage_median": median, "wall_hits_mean": walls, "steps_to_99": steps}
+        )
+
+    # A whole-map team: the same median, the faster one first; never reaching 99 % is last.
+    assert score(1.0, 540) > score(1.0, 648) > score(1.0, None)
+    assert score(1.0, 648) - score(1.0, 649) == pytest.approx(1e-12, rel=1e-3)
+    # Speed never outweighs the smallest coverage difference (half a cell of 500,000) ...
+    assert score(0.99 + 1 / 1_000_000, None) > score(0.99, 1)
+    # ... nor a wall hit.
+    assert score(0.5, None) > score(1.0, 1, walls=1 / 999)
+    # A summary without the key (older rows) counts as never reaching 99 %.
+    assert selection_score({"coverage_median": 1.0, "wall_hits_mean": 0.0}) == score(1.0, None)
+
+
 def _row(t: float, median: float, walls: float) -> dict:
     return {"temperature": t, "coverage_median": median, "wall_hits_mean": walls}
 

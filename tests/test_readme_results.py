@@ -358,3 +358,21 @@ def test_planner_evaluations_report_the_physical_bound() -> None:
             assert 0 < d["bound"] <= 1 and d["efficiency"] == d["coverage_mean"] / d["bound"]
             low, high = d["coverage_mean_ci"]
             assert low <= d["coverage_mean"] <= high
+
+
+def test_goal_table_is_made_from_the_stored_evaluations() -> None:
+    # docs/results.md holds exactly the learned goal selection's table, made from the three
+    # seeds' 100-episode evaluations on the same test episodes as the planners'.
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("goal_table", ROOT / "scripts" / "goal_table.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    assert module.table() in (ROOT / "docs" / "results.md").read_text()
+    for _, planner_config, config, suffix, _ in module.SETTINGS:
+        planner = module.planners.load(planner_config, "frontier")
+        for d in module.learned(config, suffix):
+            assert d["episodes"] == 100 and d["seed"] == planner["seed"]
+            for key in ("map", "n_agents", "max_steps", "height", "width", "wall_fraction"):
+                assert d["env"][key] == planner["env"][key], key
+            assert d["bound"] == pytest.approx(planner["bound"])

@@ -169,12 +169,14 @@ def play(
                 ]
                 scores = np.zeros(len(options))
                 # Cells still to find for ``reach`` (the env counts visited free cells).
-                goal = None
-                if reach is not None:
-                    goal = int(np.ceil(reach * sum(planner.free))) - sum(planner.visited)
+                visited = sum(planner.visited)
                 for _ in range(samples if belief == "sampled" else 1):
                     # One map for every option of a sample: their differences are paired.
                     free = sampled_free(planner, rng) if belief == "sampled" else None
+                    goal = None  # with ``reach``: cells still to find, on the rollouts' map
+                    if reach is not None:
+                        total = sum(planner.free if free is None else free)
+                        goal = int(np.ceil(reach * total)) - visited
                     for o, path in enumerate(options):
                         sim = clone(planner, free)
                         first = list(cells)

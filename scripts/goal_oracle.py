@@ -19,11 +19,15 @@ per decision: a rollout planner that sees only what the agents see.
 
 ``--model`` plays a trained goal policy the same way (a slot other than 0 is walked to until
 visited). ``--save`` writes every decision's candidate features and each slot's advantage (its
-rollout's cells minus slot 0's), the data a learned selector can be fitted to.
+rollout's cells minus slot 0's), the data a learned selector can be fitted to. ``--reach Q``
+scores by speed instead: an option by the steps its rollout takes to coverage ``Q`` (ties by
+cells), an episode by its steps to ``Q`` (a team that covers the whole map, 4 agents on 50x50,
+ends every rollout with the same cells).
 
     python scripts/goal_oracle.py [--config configs/goals_2agents.yaml] [--episodes 10]
         [--seed 2000003] [--set KEY=VALUE ...] [--horizon H] [--belief true|sampled]
         [--samples M] [--margin CELLS] [--model RUN/model.zip] [--save DECISIONS.npz]
+        [--reach Q]
 """
 
 from __future__ import annotations

@@ -172,8 +172,7 @@ def play(
                     path_to(pred[i], planner.positions[i], int(cand.cells[i, j])) for j in slots[1:]
                 ]
                 scores = np.zeros(len(options))
-                # Cells still to find for ``reach`` (the env counts visited free cells).
-                visited = sum(planner.visited)
+                visited = sum(planner.visited)  # the env's count: visited free cells
                 for _ in range(samples if belief == "sampled" else 1):
                     # One map for every option of a sample: their differences are paired.
                     free = sampled_free(planner, rng) if belief == "sampled" else None

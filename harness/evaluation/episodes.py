@@ -253,6 +253,10 @@ def median_steps_to(results: list[EpisodeResult], key: str) -> float | None:
     return None if not np.isfinite(median) else median
 
 
+#: The steps :func:`selection_score` counts for a median episode that never reaches 99 %.
+SLOWEST = 1e5
+
+
 def selection_score(summary: dict[str, Any]) -> float:
     """The project's one rule for picking a policy: fewest wall hits first, then the highest
     median coverage (the thesis's tests show zero wall hits), then the fewest median steps to
@@ -270,10 +274,6 @@ def selection_score(summary: dict[str, Any]) -> float:
     steps = summary.get("steps_to_99")
     speed = -1e-12 * (SLOWEST if steps is None else float(steps))
     return float(summary["coverage_median"]) - 1000.0 * float(summary["wall_hits_mean"]) + speed
-
-
-#: The steps :func:`selection_score` counts for a median episode that never reaches 99 %.
-SLOWEST = 1e5
 
 
 def physical_bound(n_agents: int, steps: int, free_cells: int) -> float:

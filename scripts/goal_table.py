@@ -104,10 +104,6 @@ def _steps(values: list[float | None]) -> float | None:
     return None if any(v is None for v in values) else float(np.mean(values))
 
 
-def _text(value: float | None) -> str:
-    return "–" if value is None else f"{value:g}"
-
-
 def row(words: str, planner_config: str, config: str, suffix: str, goal: tuple) -> str:
     best = planners.strongest(planner_config)
     plan = planners.load(planner_config, best)
@@ -117,10 +113,11 @@ def row(words: str, planner_config: str, config: str, suffix: str, goal: tuple) 
     steps = {k: _steps([r[k] for r in runs]) for k in ("steps_to_90", "steps_to_99")}
     efficiency = float(np.mean([r["efficiency"] for r in runs]))
     hits = sum(r["wall_hits_mean"] for r in runs)
-    mine = (
-        f"{stats.mean:.1%} [{low:.1%}, {high:.1%}]; {efficiency:.3f}; "
-        f"{_text(steps['steps_to_90'])} / {_text(steps['steps_to_99'])}"
-    ).replace("%", " %")
+    # The planners' cell format, with the seeds' mean and interval in the coverage's place.
+    mine = planners.cell(
+        {"coverage_mean": stats.mean, "coverage_mean_ci": (low, high), "efficiency": efficiency}
+        | steps
+    )
     kind, bar = goal
     if kind == "coverage":
         target = plan["coverage_mean"] + bar / 100

@@ -14,6 +14,7 @@ from typing import Any
 
 from envs import coverage_v0
 from envs.coverage import generators
+from envs.coverage.core import CoreSpec
 from envs.coverage.env import CoverageEnv
 from harness.config.maps import build_source
 from harness.config.schema import ConfigError, EnvConfig
@@ -60,6 +61,21 @@ def make_env(env: EnvConfig | Mapping[str, Any], render_mode: str | None = None)
         kwargs["render_mode"] = render_mode
     try:
         return coverage_v0.parallel_env(**kwargs)
+    except ValueError as exc:
+        raise ConfigError(f"env: {exc}") from None
+
+
+def make_core_spec(env: EnvConfig | Mapping[str, Any]) -> CoreSpec:
+    """The batched core's objects (:class:`envs.coverage.core.CoreSpec`) of a config's ``env``
+    section (or of ``parallel_env``'s keyword arguments): the same parse as :func:`make_env`.
+
+    Raises:
+        ConfigError: the env's own ``ValueError``, as one line naming ``env``.
+    """
+    kwargs = env_kwargs(env) if isinstance(env, EnvConfig) else dict(env)
+    kwargs.pop("render_mode", None)
+    try:
+        return CoreSpec.parse(**kwargs)
     except ValueError as exc:
         raise ConfigError(f"env: {exc}") from None
 

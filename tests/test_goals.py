@@ -386,7 +386,7 @@ def test_the_oracles_rollouts_replay_the_planner_and_leave_the_env_alone() -> No
     chooser = LastSlot()
     chooser.policy = chooser
     coverage_m, deviations, _ = oracle.play(env, 5, oracle=False, model=chooser)
-    assert deviations > 0 and env._wall_hits == [0, 0] and 0 < coverage_m <= 1
+    assert deviations > 0 and env.core.wall_hits[0].tolist() == [0, 0] and 0 < coverage_m <= 1
 
 
 def test_one_agents_oracle_scored_by_steps_is_never_slower_than_the_planner() -> None:

@@ -24,6 +24,7 @@ from scipy.sparse.csgraph import dijkstra
 
 from envs.coverage.frontier import Frontier
 from envs.coverage.goals import ACTION_MASK_KEY, GOAL_FEATURES, GOALS_KEY
+from envs.coverage.step import thesis_observation
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL, GridState, kind_options
 
 COORD_MODES = ("normalized", "raw")
@@ -90,9 +91,8 @@ class ThesisObservation(ObservationBuilder):
 
     name = "thesis"
     padding = 1
-    # Row and column offsets of the 3x3 window in row-major order.
-    _DR = np.repeat(np.arange(-1, 2), 3)
-    _DC = np.tile(np.arange(-1, 2), 3)
+    #: Built for a whole batch of copies at once by the core (:mod:`envs.coverage.core`).
+    batched = True
 
     def space(self) -> spaces.Box:
         high_xy = self._coords_high()
@@ -101,50 +101,12 @@ class ThesisObservation(ObservationBuilder):
         return spaces.Box(low=low, high=high, shape=(13,), dtype=np.float32)
 
     def build(self, state: GridState) -> np.ndarray:
-        pos = state.positions
-        n = pos.shape[0]
-        p = state.pad
-        width = state.cells.shape[1]
-        if self._width != width:  # flat offsets of the 3x3 window in the padded grid
-            self._offsets = self._DR * width + self._DC
-            self._width = width
-        obs = np.empty((n, 13), dtype=np.float32)
-        # One gather from the padded grid for all agents: no copy of the grid, no bounds checks.
-        centre = (pos[:, 0] + p) * width + (pos[:, 1] + p)
-        obs[:, :9] = state.cells.ravel().take(centre[:, None] + self._offsets)
-        own = pos * self._scale
-        obs[:, 9:11] = own
-        obs[:, 11:13] = own[nearest_teammate(pos)]
-        return obs
-
-    _width = -1
-    _offsets: np.ndarray
-
-
-def nearest_teammate(positions: np.ndarray) -> list[int] | np.ndarray:
-    """Index of each agent's nearest other agent (Euclidean distance, ties to the lower index).
-
-    A lone agent is its own nearest teammate.
-    """
-    n = positions.shape[0]
-    if n == 1:
-        return [0]
-    if n <= 8:  # plain Python beats numpy's call overhead for a few agents
-        pts = positions.tolist()
-        out = []
-        for i, (r, c) in enumerate(pts):
-            best, best_j = -1, i
-            for j, (r2, c2) in enumerate(pts):
-                if j != i:
-                    d = (r - r2) * (r - r2) + (c - c2) * (c - c2)
-                    if best < 0 or d < best:  # strict: the first (lowest index) minimum wins
-                        best, best_j = d, j
-            out.append(best_j)
-        return out
-    diff = positions[:, None, :] - positions[None, :, :]
-    d2 = (diff * diff).sum(axis=-1)
-    np.fill_diagonal(d2, np.iinfo(d2.dtype).max)
-    return d2.argmin(axis=1)  # argmin returns the first (lowest index) minimum
+        # The batched core's compiled kernel on a batch of one: one implementation of the rule.
+        obs = np.empty((1, state.positions.shape[0], 13), dtype=np.float32)
+        thesis_observation(
+            state.cells[None], state.pad, state.positions[None], self._scale[None], obs
+        )
+        return obs[0]
 
 
 def _is_int(value: object) -> bool:
@@ -520,7 +482,8 @@ def add_agent_id(
     makes them) with its one-hot index added, in the layout of :func:`agent_id_space`."""
     if isinstance(obs, dict):
         return {**obs, AGENT_ID_KEY: np.eye(n_agents, dtype=np.float32)}
-    return np.concatenate([obs, np.eye(n_agents, dtype=obs.dtype)], axis=1)
+    eye = np.eye(n_agents, dtype=obs.dtype)  # leading batch axes, if any, get the same one-hot
+    return np.concatenate([obs, np.broadcast_to(eye, (*obs.shape[:-2], n_agents, n_agents))], -1)
 
 
 def blocked_moves(obs: np.ndarray | dict[str, np.ndarray], n_actions: int = 5) -> np.ndarray:

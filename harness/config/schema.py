@@ -286,12 +286,31 @@ class EnvConfig(_Section):
                 )
 
 
+#: How the env is vectorised (``vec.backend``): the batched core's own VecEnv, or SuperSuit
+#: over the PettingZoo env (the same episodes, one copy at a time; ``harness.training.adapters``).
+VEC_BACKENDS = ("core", "supersuit")
+
+
 class VecConfig(_Section):
-    """How the env is vectorised (SuperSuit): copies of the env, and processes that run them."""
+    """How the env is vectorised: copies of the env, the VecEnv that steps them, and (SuperSuit)
+    processes that run them."""
 
     copies: PositiveInt = 4
+    backend: Literal["core", "supersuit"] = "core"
+    """``core``: the batched core steps every copy in one call (the default); ``supersuit``:
+    SuperSuit over the PettingZoo env, copy by copy. Both give the same episodes."""
     num_cpus: NonNegativeInt = 0
-    """Processes that step the copies; 0 steps them in the training process."""
+    """Processes that step the copies (``backend: supersuit`` only); 0 steps them in the
+    training process."""
+
+    @model_validator(mode="after")
+    def _processes_need_supersuit(self) -> VecConfig:
+        if self.num_cpus > 1 and self.backend != "supersuit":
+            raise ValueError(
+                "vec.num_cpus > 1 needs vec.backend: supersuit (the core steps every copy in "
+                "the training process)"
+            )
+        return self
 
 
 class ImitationConfig(_Section):

@@ -1,7 +1,11 @@
-"""PettingZoo → SB3 VecEnv, through SuperSuit. The one module that calls SuperSuit.
+"""The coverage env → SB3 VecEnv: the batched core's own VecEnv (the default), or SuperSuit over
+the PettingZoo env (``vec.backend: supersuit``, the path for PettingZoo envs in general and the
+check on the core's). The one module that calls SuperSuit.
 
 Parameter sharing: every agent of every env copy is one slot of one SB3 VecEnv, so one Q-network
-acts for all of them. Slot ``k`` is agent ``k % n_agents`` of copy ``k // n_agents``.
+acts for all of them. Slot ``k`` is agent ``k % n_agents`` of copy ``k // n_agents``. Both
+backends give the same observations, rewards, dones and infos for the same seeds and actions
+(``tests/test_core_equality.py``).
 
 Seeding: SuperSuit's SB3 VecEnv has no ``seed()`` and its multi-process reset hands out seeds
 ``seed + process + copy``, which collide across processes. So each copy is built by its own
@@ -18,13 +22,16 @@ import warnings
 from collections.abc import Mapping
 from typing import Any
 
+import numpy as np
 import supersuit as ss
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor
+from stable_baselines3.common.vec_env.base_vec_env import VecEnvIndices, VecEnvStepReturn
 from supersuit.vector import MakeCPUAsyncConstructor
 from supersuit.vector.sb3_vector_wrapper import SB3VecEnvWrapper
 
-from harness.config.schema import EnvConfig
-from harness.factory import make_env
+from envs.coverage.core import CoverageCore
+from harness.config.schema import VEC_BACKENDS, EnvConfig
+from harness.factory import make_core_spec, make_env
 
 #: Env info keys that VecMonitor copies into each finished episode's ``info["episode"]``.
 EPISODE_INFO_KEYS = ("coverage", "new_cells", "wall_hits")
@@ -55,12 +62,116 @@ def _make_copy(
     return vec
 
 
+class CoreVecEnv(VecEnv):
+    """SB3's VecEnv over the batched core (:mod:`envs.coverage.core`): ``copies`` copies stepped
+    by one call, every agent of every copy one slot (slot ``k`` is agent ``k % n_agents`` of copy
+    ``k // n_agents``). A copy whose episode ends is reset on its own, from its own generator,
+    and its slots' infos hold ``terminal_observation`` and ``TimeLimit.truncated``, as
+    SuperSuit's Markov VecEnv does.
+
+    Args:
+        core: The core to step (its ``copies`` make ``copies * n_agents`` slots).
+        seed: Copy ``i`` is seeded with ``seed + i`` at once, as
+            :func:`make_vec_env`'s SuperSuit copies are, so that both backends draw the same
+            episodes; later resets continue each copy's generator.
+    """
+
+    def __init__(self, core: CoverageCore, seed: int | None = None) -> None:
+        self.core = core
+        self.n_agents = core.n_agents
+        if seed is not None:
+            for copy in range(core.copies):
+                core.reset(copy, seed + copy)
+        self._actions: np.ndarray | None = None
+        super().__init__(core.copies * core.n_agents, core.observation_space, core.action_space)
+        self._last = int(core.action_space.n) - 1
+
+    # ------------------------------------------------------------------ SB3 API
+    def seed(self, seed: int | None = None) -> list[int | None]:
+        """Seeds each copy's next reset with ``seed + copy`` (a copy's agents share a map)."""
+        if seed is None:
+            return [None] * self.num_envs
+        self._seeds = [seed + k // self.n_agents for k in range(self.num_envs)]
+        return list(self._seeds)
+
+    def reset(self) -> np.ndarray | dict[str, np.ndarray]:
+        core = self.core
+        for copy in range(core.copies):
+            slot = copy * self.n_agents
+            core.reset(copy, self._seeds[slot], self._options[slot] or None)
+        self._reset_seeds()
+        self._reset_options()
+        self.reset_infos = [{} for _ in range(self.num_envs)]
+        return self._flat(core.observe())
+
+    def step_async(self, actions: np.ndarray) -> None:
+        self._actions = np.asarray(actions)
+
+    def step_wait(self) -> VecEnvStepReturn:
+        core, n = self.core, self.n_agents
+        actions = self._actions
+        if actions is None:
+            raise RuntimeError("step_wait() without step_async()")
+        self._actions = None
+        if actions.size and (actions.min() < 0 or actions.max() > self._last):
+            raise ValueError(f"actions must be in 0..{self._last}, got {actions.tolist()}")
+        rewards, done = core.step(actions)
+        obs = core.observe()
+        infos = [info for copy in range(core.copies) for info in core.infos(copy)]
+        for copy in np.flatnonzero(done).tolist():
+            for i in range(n):  # the slot's own last observation, as SuperSuit gives it
+                infos[copy * n + i]["terminal_observation"] = _row(obs, copy, i)
+            core.reset(copy)
+            fresh = core.observe(slice(copy, copy + 1))
+            if isinstance(obs, dict):
+                for key, value in obs.items():
+                    value[copy] = fresh[key][0]
+            else:
+                obs[copy] = fresh[0]
+        dones = np.repeat(done, n)
+        return self._flat(obs), rewards.reshape(-1).astype(np.float32), dones, infos
+
+    def close(self) -> None:
+        pass
+
+    def get_attr(self, attr_name: str, indices: VecEnvIndices = None) -> list[Any]:
+        if attr_name == "render_mode":  # training never renders
+            return [None] * len(self._get_indices(indices))
+        raise AttributeError(f"CoreVecEnv has no per-slot attribute {attr_name!r}")
+
+    def set_attr(self, attr_name: str, value: Any, indices: VecEnvIndices = None) -> None:
+        raise AttributeError(f"CoreVecEnv has no per-slot attribute {attr_name!r}")
+
+    def env_method(
+        self, method_name: str, *method_args: Any, indices: VecEnvIndices = None, **kwargs: Any
+    ) -> list[Any]:
+        raise AttributeError(f"CoreVecEnv has no per-slot method {method_name!r}")
+
+    def env_is_wrapped(self, wrapper_class: type, indices: VecEnvIndices = None) -> list[bool]:
+        return [False] * len(self._get_indices(indices))
+
+    # ------------------------------------------------------------------ helpers
+    def _flat(self, obs: np.ndarray | dict[str, np.ndarray]) -> Any:
+        """``(copies, n_agents, ...)`` to SB3's ``(slots, ...)`` (a view)."""
+        if isinstance(obs, dict):
+            return {key: value.reshape(-1, *value.shape[2:]) for key, value in obs.items()}
+        return obs.reshape(-1, *obs.shape[2:])
+
+
+def _row(obs: np.ndarray | dict[str, np.ndarray], copy: int, agent: int) -> Any:
+    """One agent's observation (a fresh array, or a dict of them) from a batch."""
+    if isinstance(obs, dict):
+        return {key: value[copy, agent].copy() for key, value in obs.items()}
+    return obs[copy, agent].copy()
+
+
 def make_vec_env(
     env: EnvConfig | Mapping[str, Any],
     copies: int = 1,
     num_cpus: int = 0,
     seed: int | None = None,
     monitor: bool = True,
+    backend: str = "core",
 ) -> VecEnv:
     """Build the SB3 VecEnv of ``copies × n_agents`` slots.
 
@@ -68,14 +179,29 @@ def make_vec_env(
         env: The env section of a config, or ``parallel_env`` keyword arguments (built by
             :func:`harness.factory.make_env`).
         copies: Env copies.
-        num_cpus: Processes stepping the copies (0 or 1: in this process).
+        num_cpus: Processes stepping the copies (SuperSuit only; 0 or 1: in this process).
         seed: Copy ``i`` is seeded with ``seed + i``; ``None`` leaves them unseeded.
         monitor: Wrap in ``VecMonitor`` so finished episodes carry return, length and the
             coverage keys of :data:`EPISODE_INFO_KEYS` (SB3's ``ep_info_buffer`` then holds them).
+        backend: One of :data:`harness.config.schema.VEC_BACKENDS`: ``"core"`` (the batched
+            core, one call steps every copy) or ``"supersuit"`` (SuperSuit over the PettingZoo
+            env, one copy at a time, in ``num_cpus`` processes).
 
     Returns:
         The VecEnv. Its ``num_envs`` is ``copies * n_agents``.
     """
+    if backend not in VEC_BACKENDS:
+        raise ValueError(f"unknown vec backend {backend!r}; known: {', '.join(VEC_BACKENDS)}")
+    if backend == "core":
+        venv: VecEnv = CoreVecEnv(CoverageCore(make_core_spec(env), copies), seed)
+        return VecMonitor(venv, info_keywords=EPISODE_INFO_KEYS) if monitor else venv
+    return _supersuit_vec_env(env, copies, num_cpus, seed, monitor)
+
+
+def _supersuit_vec_env(
+    env: EnvConfig | Mapping[str, Any], copies: int, num_cpus: int, seed: int | None, monitor: bool
+) -> VecEnv:
+    """SuperSuit's VecEnv: one seeded function per copy (see the module docstring)."""
     fns = [
         functools.partial(_make_copy, env, None if seed is None else seed + i, os.getpid())
         for i in range(copies)
@@ -89,7 +215,7 @@ def make_vec_env(
         # SuperSuit's inner VecEnv has no get_attr("render_mode"); SB3 warns and uses None,
         # which is right: training never renders.
         warnings.filterwarnings("ignore", message="The `render_mode` attribute is not defined")
-        venv: VecEnv = SB3VecEnvWrapper(inner)
+        venv = SB3VecEnvWrapper(inner)
         if monitor:
             venv = VecMonitor(venv, info_keywords=EPISODE_INFO_KEYS)
     return venv

@@ -265,7 +265,9 @@ def read_rng(checkpoint: Path) -> dict[str, Any]:
 
 #: Keys of a run's config that may change between a checkpoint and its resume: how the run uses
 #: this machine, not what it trains.
-MAY_CHANGE = frozenset({"algo.device", "algo.threads", "vec.num_cpus", "checkpoint.every"})
+MAY_CHANGE = frozenset(
+    {"algo.device", "algo.threads", "vec.backend", "vec.num_cpus", "checkpoint.every"}
+)
 
 
 def read_checkpoint_config(checkpoint: Path) -> dict[str, Any] | None:

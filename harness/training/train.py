@@ -497,7 +497,11 @@ def train(
         file=sys.stderr,
     )
     venv = make_vec_env(
-        config.env, config.vec.copies, config.vec.num_cpus, seed=_env_seed(config, state)
+        config.env,
+        config.vec.copies,
+        config.vec.num_cpus,
+        seed=_env_seed(config, state),
+        backend=config.vec.backend,
     )
     logger = make_logger(run, state, restart=restart)
     try:

@@ -121,6 +121,12 @@ planner's move for the agent: a team that always steps is the planner (``"pocket
 ``reset(seed=None, options=None)``: ``options={"grid": bool_array, "starts": [(r, c), ...]}`` fixes
 that episode's map and/or start cells. Bad input raises ``ValueError`` naming the problem.
 
+**The batched core.** The env is the batch-of-one view of
+:class:`envs.coverage.core.CoverageCore`, which steps B copies of the episode in one compiled
+call (``envs/coverage/step.py``); Stable-Baselines3's VecEnv over it is
+``harness.training.adapters.CoreVecEnv``. ``env.core`` is the env's core;
+``CoverageEnv.copy_of(core, b)`` is a read-only view of copy ``b`` of a larger one.
+
 **State for baselines, rendering and tests** (read-only): ``env.walls``, ``env.visited``,
 ``env.known`` (the team's known cells, under any observation kind), ``env.positions``,
 ``env.credited_by``, ``env.free_cells``, ``env.coverage``, ``env.steps``.

@@ -4,14 +4,16 @@ Benchmarks, not tests: they print figures and ratios measured in the same proces
 busy machine shifts all of them together. Nothing here asserts a time.
 
 * ``env``: agent-steps per second of the bare ``parallel_env`` loop (thesis and team-map
-  observations), of the SuperSuit VecEnv used in training with 1, 4 and 16 copies, and of 8
+  observations), of the training VecEnv with 1, 4, 16 and 64 copies on both backends (the
+  batched core's and SuperSuit's over the PettingZoo env, alternately), and of 8 SuperSuit
   copies stepped by 1 or 2 processes;
 * ``train``: gradient steps and transitions per second of ``DoubleDQN`` + PER against SB3's
   ``DQN`` + ``ReplayBuffer`` (same network, batch and train_freq), run alternately;
   gradient steps per second over batch sizes, network widths and torch thread counts;
 * ``sharing``: gradient steps per second of each ``algo.sharing`` mode (one network, one with
   the agent's index, one parameter set per agent), same network and batch;
-* ``eval``: episodes per second of ``harness eval`` for an MLP policy and the frontier baselines;
+* ``eval``: episodes per second of ``harness eval`` for the random policy, an MLP policy and the
+  frontier baselines;
 * ``memory``: peak resident memory of a training process with a full 100,000-transition buffer.
 """
 
@@ -33,6 +35,8 @@ from harness.config.schema import EnvConfig
 #: The thesis's setting: 50x50 random maps, 4 agents, 1000 steps.
 THESIS_ENV = EnvConfig(n_agents=4, max_steps=1000)
 THESIS_NET = [512, 512, 512]
+#: Env copies of the VecEnv figures (the batched core pays off with many).
+VEC_COPIES = (1, 4, 16, 64)
 
 
 def _rate(count: float, fn: Callable[[], Any]) -> float:
@@ -107,8 +111,8 @@ def bench_env(episodes: int = 3) -> dict[str, Any]:
     # distance layer to see every tied cell instead of stopping at the first.
     out["env_bare_teammap_pocket_agent_steps_per_s"] = bare_rate("teammap", {"planner": "pocket"})
 
-    def vec_rate(copies: int, num_cpus: int = 0) -> float:
-        venv = make_vec_env(THESIS_ENV, copies, num_cpus, seed=0)
+    def vec_rate(copies: int, num_cpus: int = 0, backend: str = "core") -> float:
+        venv = make_vec_env(THESIS_ENV, copies, num_cpus, seed=0, backend=backend)
         try:
             venv.reset()
             n_steps = max(200, (episodes * steps * n) // venv.num_envs)
@@ -122,10 +126,17 @@ def bench_env(episodes: int = 3) -> dict[str, Any]:
         finally:
             venv.close()
 
-    out["env_vec_by_copies"] = {c: vec_rate(c) for c in (1, 4, 16)}
-    out["env_vec_agent_steps_per_s"] = out["env_vec_by_copies"][4]
+    # Both backends, alternately per size, so that machine load shifts both together.
+    by: dict[str, dict[int, float]] = {"core": {}, "supersuit": {}}
+    for c in VEC_COPIES:
+        for backend in by:
+            by[backend][c] = vec_rate(c, backend=backend)
+    out["env_vec_by_copies"] = by["core"]
+    out["env_vec_supersuit_by_copies"] = by["supersuit"]
+    out["env_vec_core_over_supersuit"] = {c: by["core"][c] / by["supersuit"][c] for c in by["core"]}
+    out["env_vec_agent_steps_per_s"] = by["core"][4]
     out["env_vec_over_bare"] = out["env_vec_agent_steps_per_s"] / out["env_bare_agent_steps_per_s"]
-    out["env_vec_8_copies_by_processes"] = {p: vec_rate(8, p) for p in (0, 2)}
+    out["env_vec_8_copies_by_processes"] = {p: vec_rate(8, p, backend="supersuit") for p in (0, 2)}
     return out
 
 
@@ -288,6 +299,9 @@ def bench_eval(episodes: int = 8) -> dict[str, Any]:
     model = DoubleDQN("MlpPolicy", venv, policy_kwargs={"net_arch": THESIS_NET}, device="cpu")
     venv.close()
     mlp = _rate(episodes, lambda: run_episodes(model_policy(model), THESIS_ENV, episodes, 0))
+    random = make_baseline("random", 0)
+    # `harness eval --policy random`: 100 episodes, 8 copies side by side (the command's default).
+    rand = _rate(4 * episodes, lambda: run_episodes(random, THESIS_ENV, 4 * episodes, 0))
 
     def planner_rate(name: str) -> float:
         return _rate(
@@ -295,7 +309,11 @@ def bench_eval(episodes: int = 8) -> dict[str, Any]:
         )
 
     rates = {entry.baseline: planner_rate(entry.baseline) for entry in PLANNERS.values()}
-    out = {"eval_episodes_per_s": mlp, "eval_100_episodes_s": 100 / mlp}
+    out = {
+        "eval_episodes_per_s": mlp,
+        "eval_100_episodes_s": 100 / mlp,
+        "eval_random_episodes_per_s": rand,
+    }
     for name, rate in rates.items():
         out[f"eval_{name}_episodes_per_s"] = rate
         if name != "frontier":
@@ -387,13 +405,17 @@ def format_bench(r: dict[str, Any]) -> str:
         if "env_bare_teammap_pocket_agent_steps_per_s" in r:
             po = r["env_bare_teammap_pocket_agent_steps_per_s"]
             lines.append(f"  ... + pocket tie-break     {n(po)}   {po / bare:5.2f} x thesis")
+        ss = r.get("env_vec_supersuit_by_copies", {})
         for c, v in r["env_vec_by_copies"].items():
-            lines.append(f"  VecEnv, {c:>2} copies           {n(v)}   {v / bare:5.2f} x bare")
+            tail = ""
+            if c in ss:
+                tail = f"   SuperSuit {ss[c]:>9,.0f}   core {v / ss[c]:5.1f} x SuperSuit"
+            lines.append(f"  VecEnv, {c:>2} copies           {n(v)}   {v / bare:5.2f} x bare{tail}")
         lines.append(
             f"  VecEnv / bare (4 copies)   {r['env_vec_over_bare']:>12.2f}   target >= 0.50"
         )
         for p, v in r["env_vec_8_copies_by_processes"].items():
-            lines.append(f"  VecEnv, 8 copies, num_cpus={p}  {n(v)}")
+            lines.append(f"  SuperSuit, 8 copies, num_cpus={p}  {n(v)}")
     if "train_grad_steps_per_s" in r:
         lines += [
             "",
@@ -426,6 +448,8 @@ def format_bench(r: dict[str, Any]) -> str:
             f"100 episodes in {r['eval_100_episodes_s']:.0f} s (target < 60 s)",
             f"  frontier episodes/s        {r['eval_frontier_episodes_per_s']:>12.2f}",
         ]
+        if "eval_random_episodes_per_s" in r:
+            lines.append(f"  random episodes/s          {r['eval_random_episodes_per_s']:>12.2f}")
         for key, rate in r.items():
             name = key.removeprefix("eval_").removesuffix("_episodes_per_s")
             if key.endswith("_episodes_per_s") and name.startswith("frontier_"):

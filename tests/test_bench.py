@@ -23,7 +23,9 @@ def test_bench_env_json_has_the_documented_keys(capsys):
         "env_vec_over_bare",
     ):
         assert out[key] > 0
-    assert set(out["env_vec_by_copies"]) == {"1", "4", "16"}
+    assert set(out["env_vec_by_copies"]) == {"1", "4", "16", "64"}
+    assert set(out["env_vec_supersuit_by_copies"]) == set(out["env_vec_by_copies"])
+    assert all(v > 0 for v in out["env_vec_core_over_supersuit"].values())
     assert out["torch_threads"] >= 1 and out["python"]
 
 
@@ -36,7 +38,8 @@ def test_bench_report_shows_every_section_with_targets():
         "env_bare_teammap_frontier_agent_steps_per_s": 6_000.0,
         "env_bare_teammap_claims_agent_steps_per_s": 4_800.0,
         "env_bare_teammap_pocket_agent_steps_per_s": 3_600.0,
-        "env_vec_by_copies": {1: 40_000.0, 4: 50_000.0, 16: 52_000.0},
+        "env_vec_by_copies": {1: 40_000.0, 4: 50_000.0, 16: 520_000.0},
+        "env_vec_supersuit_by_copies": {1: 40_000.0, 4: 50_000.0, 16: 52_000.0},
         "env_vec_agent_steps_per_s": 50_000.0,
         "env_vec_over_bare": 50_000 / 120_000,
         "env_vec_8_copies_by_processes": {0: 51_000.0, 2: 33_000.0},
@@ -73,6 +76,8 @@ def test_bench_report_shows_every_section_with_targets():
     ):
         assert expected in text, expected
     assert "2x64" in text and "450" in text
+    (line,) = [line for line in text.splitlines() if "VecEnv, 16 copies" in line]
+    assert "520,000" in line and "SuperSuit    52,000" in line and "10.0 x SuperSuit" in line
     (line,) = [line for line in text.splitlines() if "teammap + frontier field" in line]
     assert "6,000" in line and "0.05 x thesis" in line
     (line,) = [line for line in text.splitlines() if "frontier claims" in line]

@@ -117,19 +117,12 @@ def test_negative_temperature_is_rejected():
         model_policy(_FixedQ(), temperature=-1.0)
 
 
-def test_stack_observations_is_copy_major_for_arrays_and_dicts() -> None:
-    from harness.evaluation.episodes import stack_observations
-
-    flat = [{"agent_0": np.array([0.0]), "agent_1": np.array([1.0])}, {"agent_0": np.array([2.0])}]
-    np.testing.assert_array_equal(stack_observations(flat), [[0.0], [1.0], [2.0]])
-    dicts = [
-        {"agent_0": {"a": np.zeros((2, 2)), "v": np.array([0.0])}},
-        {"agent_0": {"a": np.ones((2, 2)), "v": np.array([1.0])}},
-    ]
-    stacked = stack_observations(dicts)
-    assert set(stacked) == {"a", "v"}
-    assert stacked["a"].shape == (2, 2, 2)
-    np.testing.assert_array_equal(stacked["v"], [[0.0], [1.0]])
+def _batch(obs: dict) -> np.ndarray | dict:
+    """A batch of one env's per-agent observations, in agent order (as a policy gets them)."""
+    rows = list(obs.values())
+    if isinstance(rows[0], dict):
+        return {key: np.stack([r[key] for r in rows]) for key in rows[0]}
+    return np.stack(rows)
 
 
 def test_steps_to_90_and_99_percent_are_medians_with_none_for_not_reached() -> None:
@@ -178,7 +171,6 @@ SHIELD_ROOM = """
 def test_blocked_moves_read_the_walls_next_to_the_agent_from_its_observation(observation):
     from envs import coverage_v0
     from envs.coverage.observations import blocked_moves
-    from harness.evaluation.episodes import stack_observations
     from tests.conftest import grid_from
 
     grid = grid_from(SHIELD_ROOM)
@@ -191,13 +183,13 @@ def test_blocked_moves_read_the_walls_next_to_the_agent_from_its_observation(obs
         else {"teammap": {"crop": 5, "global_size": 6}},
     )
     obs, _ = env.reset(seed=0, options={"grid": grid, "starts": [(1, 1), (1, 2)]})
-    blocked = blocked_moves(stack_observations([obs]))
+    blocked = blocked_moves(_batch(obs))
     # (1, 1): wall above and left, (2, 1) below and (1, 2) right free.
     # (1, 2): wall above and below (2, 2), (1, 1) and (1, 3) free. Stay is never blocked.
     up, down, left, right, stay = True, False, True, False, False
     assert blocked.tolist() == [[up, down, left, right, stay], [True, True, False, False, False]]
     # With the frontier step (a sixth action, only ever through free cells): never blocked.
-    six = blocked_moves(stack_observations([obs]), 6)
+    six = blocked_moves(_batch(obs), 6)
     assert six[:, :5].tolist() == blocked.tolist() and not six[:, 5].any()
 
 

@@ -5,7 +5,9 @@ every episode as it was.
 of everything a seeded episode sequence gives (observations, rewards, terminations, truncations,
 infos) under actions drawn from a separate seeded generator, across several episode ends;
 ``tests/test_core_equality.py`` replays the cases and compares. The file was written by the env
-as it stood before the batched core (commit cdd377b), so the digests are today's env's.
+as it stood before the batched core (commit cdd377b: run from outside the repository with that
+tree first on ``PYTHONPATH``), so the digests are the episodes of the env the core replaced; a
+new case is recorded the same way.
 """
 
 from __future__ import annotations
@@ -84,6 +86,19 @@ CASES: dict[str, tuple[dict[str, Any], int, int]] = {
         },
         2,
         11,
+    ),
+    "teammap_ego_agent_id_3": (
+        {
+            "n_agents": 3,
+            "height": 16,
+            "width": 12,
+            "max_steps": 30,
+            "agent_id": True,
+            "observation": {"teammap": {"crop": 9, "global_size": 7, "ego_size": 7, "ego_block": 3}},
+            "frontier": {"action": "step", "planner": "pocket"},
+        },
+        2,
+        13,
     ),
     "goal_2": (
         {

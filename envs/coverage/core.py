@@ -315,6 +315,11 @@ class CoverageCore:
             self._with_id(self.observers[b].build(self.states[b]))
             for b in range(*sl.indices(self.copies))
         ]
+        if len(per_copy) == 1:  # a batch of one (the PettingZoo env): a view, no copy
+            first = per_copy[0]
+            if isinstance(first, dict):
+                return {key: value[None] for key, value in first.items()}
+            return first[None]
         if isinstance(per_copy[0], dict):
             return {key: np.stack([o[key] for o in per_copy]) for key in per_copy[0]}
         return np.stack(per_copy)

@@ -67,9 +67,26 @@ class CoverageEnv(ParallelEnv):
             agent_id=agent_id,
         )
         # The batched core holds the episode (one copy): the rules are written once, there.
-        self._core = CoverageCore(spec, copies=1)
+        name = spec.map_name if isinstance(map, generators.MapGenerator) else str(map)
+        self._attach(CoverageCore(spec, copies=1), 0, render_mode, name)
+
+    @classmethod
+    def copy_of(cls, core: CoverageCore, copy: int, render_mode: str | None = None) -> CoverageEnv:
+        """A view of copy ``copy`` of a batched core, for code that plays a batch of episodes
+        and hands each copy to readers of an env (the baselines, rendering): its read-only state,
+        ``np_random``, ``render()`` and ``reset()`` are the copy's. Its ``step()`` refuses: the
+        core steps every copy at once (``harness.evaluation.episodes.run_episodes``)."""
+        env = cls.__new__(cls)
+        env._attach(core, copy, render_mode, core.spec.map_name)
+        return env
+
+    def _attach(
+        self, core: CoverageCore, copy: int, render_mode: str | None, map_name: str
+    ) -> None:
+        spec = core.spec
+        self._core, self._copy = core, copy
         self.spec = spec
-        self.map_name = spec.map_name if isinstance(map, generators.MapGenerator) else str(map)
+        self.map_name = map_name
         self.wall_fraction = getattr(spec.source, "wall_fraction", (0.0, 0.0))
         self.rewards = dict(spec.rewards)
         self.frontier = spec.frontier
@@ -78,13 +95,13 @@ class CoverageEnv(ParallelEnv):
         self.agent_id = spec.agent_id
         # The current episode's map size (a mix may draw several); the largest until the first
         # reset, which is the size the observation space is made for.
-        self.height, self.width = self._core.max_shape
+        self.height, self.width = core.max_shape
         self.n_agents, self.max_steps = spec.n_agents, spec.max_steps
         self.render_mode = render_mode
         self.possible_agents = [f"agent_{i}" for i in range(self.n_agents)]
         self.agents: list[str] = []
-        self._obs_space = self._core.observation_space
-        self._act_space = self._core.action_space
+        self._obs_space = core.observation_space
+        self._act_space = core.action_space
 
     # ------------------------------------------------------------------ spaces
     @functools.cache  # noqa: B019 (PettingZoo wants the same object per agent)
@@ -99,7 +116,7 @@ class CoverageEnv(ParallelEnv):
     @property
     def walls(self) -> np.ndarray:
         """``bool (H, W)``, True = wall (read-only view)."""
-        view = self._core.walls[0].view()
+        view = self._core.walls[self._copy].view()
         view.flags.writeable = False
         return view
 
@@ -110,7 +127,7 @@ class CoverageEnv(ParallelEnv):
         The env draws from it only at reset (and for the frontier step's ties); a stochastic test
         policy may draw its action noise from it, so an episode's actions depend on its seed alone.
         """
-        return self._core.rng(0)
+        return self._core.rng(self._copy)
 
     @property
     def visited(self) -> np.ndarray:
@@ -130,18 +147,18 @@ class CoverageEnv(ParallelEnv):
     @property
     def free_cells(self) -> int:
         """Number of free cells of the current map."""
-        return int(self._core.n_free[0])
+        return int(self._core.n_free[self._copy])
 
     @property
     def coverage(self) -> float:
         """The team's coverage: visited free cells / free cells."""
-        return self._core.coverage(0)
+        return self._core.coverage(self._copy)
 
     @property
     def steps(self) -> int:
         """Steps taken in the current episode."""
         self._require_state()
-        return int(self._core.steps[0])
+        return int(self._core.steps[self._copy])
 
     @property
     def known(self) -> np.ndarray:
@@ -164,7 +181,7 @@ class CoverageEnv(ParallelEnv):
     @property
     def _frontier(self) -> Frontier | None:
         """The episode's planner extension (its planner and the goal action's candidates)."""
-        return self._core.frontiers[0]
+        return self._core.frontiers[self._copy]
 
     # ------------------------------------------------------------------ API
     def reset(
@@ -184,11 +201,11 @@ class CoverageEnv(ParallelEnv):
             the last step's infos at an automatic reset, so metrics in them would hide the
             episode's final coverage.
         """
-        core = self._core
-        core.reset(0, seed, options)
-        self.height, self.width = (int(x) for x in core.shapes[0])
+        core, copy = self._core, self._copy
+        core.reset(copy, seed, options)
+        self.height, self.width = (int(x) for x in core.shapes[copy])
         self.agents = self.possible_agents[:]
-        obs = self._per_agent(core.observe())
+        obs = self._per_agent(core.observe(slice(copy, copy + 1)))
         return obs, {a: {} for a in self.agents}
 
     def step(
@@ -204,6 +221,8 @@ class CoverageEnv(ParallelEnv):
         self._require_state()
         if not self.agents:
             raise RuntimeError("step() called on a finished episode; call reset() first")
+        if self._core.copies != 1:
+            raise RuntimeError("a copy of a batched core is stepped by its core, not by step()")
         try:
             acts = [actions[a] for a in self.agents]
         except KeyError as exc:
@@ -229,7 +248,7 @@ class CoverageEnv(ParallelEnv):
         if self.render_mode is None:
             return None
         state = self._require_state()
-        walls = self._core.walls[0]
+        walls = self._core.walls[self._copy]
         if self.render_mode == "ansi":
             return render.ansi(walls, state.interior == CELL_VISITED, state.positions)
         return render.rgb_array(walls, state.credited_by, state.positions)
@@ -248,7 +267,7 @@ class CoverageEnv(ParallelEnv):
         return dict(zip(self.agents, obs[0]))
 
     def _require_state(self) -> GridState:
-        state = self._core.states[0]
+        state = self._core.states[self._copy]
         if state is None:
             raise RuntimeError("call reset() before using the environment")
         return state

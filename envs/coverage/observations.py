@@ -19,12 +19,11 @@ from typing import Any, ClassVar
 
 import numpy as np
 from gymnasium import spaces
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import dijkstra
 
 from envs.coverage.frontier import Frontier
 from envs.coverage.goals import ACTION_MASK_KEY, GOAL_FEATURES, GOALS_KEY
 from envs.coverage.step import thesis_observation
+from envs.coverage.teammap_kernels import ego_views, frontier_views
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL, GridState, kind_options
 
 COORD_MODES = ("normalized", "raw")
@@ -158,17 +157,17 @@ class TeamMapObservation(ObservationBuilder):
       :class:`~envs.coverage.frontier.Frontier`, whose planner-backed actions follow it.
 
     The frontier distances ``d`` are one multi-source breadth-first search per step from every
-    known free unvisited cell (SciPy's compiled ``dijkstra`` with ``min_only``, unit weights) on
-    the graph of *all* free cells, built once per episode. Going through unknown cells never
+    known free unvisited cell through *all* free cells (compiled:
+    :func:`envs.coverage.teammap_kernels.frontier_views`). Going through unknown cells never
     shortens a path, so this equals the search through known cells only: a known free cell next
     to an unknown one is never visited (a visited cell's 3x3 window is known), so a path that
     crosses unknown ground reaches a source before it leaves it.
 
     Built incrementally: each step only the cells of the agents' new 3x3 windows are looked at,
     and only those whose category changed update the images and the per-block counts, so a step
-    costs ``O(agents * (crop^2 + G^2))``, whatever the map's size. The ego view is pooled from
-    one summed-area table of the map's categories per step (``O(H * W)``, a few microseconds on
-    50x50) and ``(E + 1)^2`` look-ups per agent.
+    costs ``O(agents * (crop^2 + G^2))``, whatever the map's size. The ego view counts each
+    agent's ``E^2`` blocks cell by cell in compiled code
+    (:func:`envs.coverage.teammap_kernels.ego_views`, ``O(agents * (E * ego_block)^2)``).
 
     Args:
         height, width, coords, max_steps: As :class:`ObservationBuilder`.
@@ -295,8 +294,6 @@ class TeamMapObservation(ObservationBuilder):
         self._wp = wp
         self._window = (np.arange(-1, 2)[:, None] * wp + np.arange(-1, 2)[None, :]).ravel()
         self._moves = np.array([-wp, wp, -1, 1])  # up, down, left, right on the flat grid
-        if self.frontier:
-            self._free_graph = _free_cell_graph(state.cells != CELL_WALL)
 
     def _update(self, state: GridState) -> None:
         """Make the agents' 3x3 windows known and bring changed cells up to date."""
@@ -379,76 +376,41 @@ class TeamMapObservation(ObservationBuilder):
 
     def _frontier_views(self, state: GridState) -> tuple[np.ndarray, np.ndarray]:
         """The frontier field of every agent's crop ``(agents, crop, crop)`` uint8 and the
-        frontier compass ``(agents, 5)`` float32 (see the class docstring)."""
-        n, c, wp = state.positions.shape[0], self.crop, self._wp
-        p, rows, cols = state.pad, state.positions[:, 0], state.positions[:, 1]
+        frontier compass ``(agents, 5)`` float32 (see the class docstring; compiled:
+        :func:`envs.coverage.teammap_kernels.frontier_views`)."""
+        n, c = state.positions.shape[0], self.crop
         field = np.zeros((n, c, c), dtype=np.uint8)
         compass = np.zeros((n, 5), dtype=np.float32)
-        compass[:, 4] = 1.0
-        sources = np.flatnonzero(self._cat == KNOWN_FREE)
-        if sources.size == 0:  # every known free cell is visited: no frontier left
-            return field, compass
-        dist = dijkstra(self._free_graph, indices=sources, min_only=True)  # unit weights
-        dist[self._cat == UNKNOWN] = np.inf  # unknown cells show nothing
-        dist_2d = dist.reshape(-1, wp)
-        centres = (rows + p) * wp + (cols + p)
-        own = dist[centres]  # (agents,)
-        near = (own[:, None] - dist[centres[:, None] + self._moves]) == 1  # (agents, 4)
-        compass[:, :4] = near
-        compass[:, 4] = np.minimum(own * self._frontier_scale, 1.0)  # inf (none) -> 1
-        # Padded rows r .. r+crop are the crop centred on grid row r (all agents at once).
-        span = np.arange(c)
-        crops = dist_2d[(rows[:, None] + span)[:, :, None], (cols[:, None] + span)[:, None, :]]
-        with np.errstate(invalid="ignore"):  # inf - inf where neither reaches one: masked below
-            value = np.clip(128.0 + 16.0 * (own[:, None, None] - crops), 1.0, 255.0)
-        field[...] = np.where(np.isfinite(crops) & np.isfinite(own)[:, None, None], value, 0.0)
+        cells = state.cells if state.cells.flags.c_contiguous else np.ascontiguousarray(state.cells)
+        frontier_views(
+            cells.ravel(),
+            self._cat,
+            self._wp,
+            state.pad,
+            state.positions,
+            self._frontier_scale,
+            field,
+            compass,
+        )
         return field, compass
 
     def _ego(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        """The ego views of all agents, pooled from a summed-area table of the categories."""
-        h, w, p, b = self.height, self.width, self.padding, self.ego_block
-        n, e = rows.shape[0], self.ego_size
-        cat = self._cat.reshape(h + 2 * p, w + 2 * p)[p : p + h, p : p + w]
-        # table[k, i, j]: cells of category k in rows < i and columns < j of the grid.
-        table = np.zeros((4, h + 1, w + 1), dtype=np.int32)
-        onehot = cat[None] == np.arange(4, dtype=np.int8)[:, None, None]
-        np.cumsum(onehot, axis=1, out=table[:, 1:, 1:])
-        np.cumsum(table[:, 1:, 1:], axis=2, out=table[:, 1:, 1:])
-        # Block edges clipped to the grid: the part of a block outside it counts as wall.
-        row_edges = np.clip(rows[:, None] + self._ego_edges, 0, h)  # (n, e + 1)
-        col_edges = np.clip(cols[:, None] + self._ego_edges, 0, w)
-        corners = table[:, row_edges[:, :, None], col_edges[:, None, :]]  # (4, n, e+1, e+1)
-        counts = corners[..., 1:, 1:] - corners[..., :-1, 1:] - corners[..., 1:, :-1]
-        counts += corners[..., :-1, :-1]  # (4, n, e, e)
-        inside = np.diff(row_edges)[:, :, None] * np.diff(col_edges)[:, None, :]
-        counts[KNOWN_WALL] += b * b - inside
-        ego = np.zeros((n, self.EGO_CHANNELS, e, e), dtype=np.uint8)
-        ego[:, :4] = np.rint(counts[list(self._SHARE_ORDER)].transpose(1, 0, 2, 3) * (255 / b**2))
-        if n > 1:
-            # Teammate j lies in block floor((r_j - r_i + b // 2) / b) + e // 2 of agent i.
-            br = (rows[None, :] - rows[:, None] + b // 2) // b + e // 2  # (agent, teammate)
-            bc = (cols[None, :] - cols[:, None] + b // 2) // b + e // 2
-            seen = (br >= 0) & (br < e) & (bc >= 0) & (bc < e)
-            np.fill_diagonal(seen, False)
-            i, j = np.nonzero(seen)
-            ego[i, 4, br[i, j], bc[i, j]] = 255
+        """The ego views of all agents (compiled: :func:`envs.coverage.teammap_kernels.
+        ego_views`)."""
+        ego = np.zeros((rows.shape[0], self.EGO_CHANNELS, self.ego_size, self.ego_size), np.uint8)
+        positions = np.stack([rows, cols], axis=1)
+        ego_views(
+            self._cat,
+            self._wp,
+            self.padding,
+            self.height,
+            self.width,
+            positions,
+            self._ego_edges,
+            self.ego_block,
+            ego,
+        )
         return ego
-
-
-def _free_cell_graph(free: np.ndarray) -> csr_matrix:
-    """The 4-connected graph of the ``True`` cells of ``free`` (2-D, with a ``False`` border, as
-    the padded grid has, so no edge wraps from one row's end to the next row), nodes numbered
-    row-major; walls are nodes without edges."""
-    width, flat = free.shape[1], free.ravel()
-    heads, tails = [], []
-    for step in (1, width):  # right and down neighbours; edges both ways
-        cells = np.flatnonzero(flat[:-step] & flat[step:])
-        heads += [cells, cells + step]
-        tails += [cells + step, cells]
-    head, tail = np.concatenate(heads), np.concatenate(tails)
-    # float64 weights: the dtype SciPy's searches work in, so no call converts the graph again
-    # (twice as fast as int8 weights on a 50x50 map).
-    return csr_matrix((np.ones(head.size), (head, tail)), shape=(flat.size,) * 2)
 
 
 #: Key of the agent's one-hot index in a ``Dict`` observation (``agent_id=True``).

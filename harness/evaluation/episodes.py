@@ -16,9 +16,10 @@ from typing import Any
 import numpy as np
 
 from envs.coverage import CoverageEnv
+from envs.coverage.core import CoverageCore
 from envs.coverage.observations import blocked_moves
 from harness.config.schema import EnvConfig
-from harness.factory import make_env
+from harness.factory import make_core_spec
 
 #: A batched policy: ``policy(obs, envs)`` maps the observations ``(len(envs) * n_agents, ...)``
 #: of every agent of every env copy in play (copy-major: copy 0's agents first; a dict of such
@@ -143,16 +144,6 @@ def episode_draws(envs: Sequence[CoverageEnv], per_copy: int) -> np.ndarray:
     return np.concatenate([env.np_random.random(per_copy) for env in envs])
 
 
-def stack_observations(per_copy: Sequence[dict[str, Any]]) -> np.ndarray | dict[str, np.ndarray]:
-    """One batch from the per-agent observation dicts of several env copies, copy-major (copy 0's
-    agents first), in each copy's agent order. Dict observations (e.g. ``"teammap"``) become a
-    dict of stacked arrays, as SB3's ``MultiInputPolicy`` takes them."""
-    rows = [o for obs in per_copy for o in obs.values()]
-    if isinstance(rows[0], dict):
-        return {key: np.stack([r[key] for r in rows]) for key in rows[0]}
-    return np.stack(rows)
-
-
 def run_episodes(
     policy: BatchPolicy,
     env: EnvConfig,
@@ -187,48 +178,56 @@ def run_episodes(
         raise ValueError(f"frames_every must be >= 0, got {frames_every}")
     render_mode = "rgb_array" if frames_every else None
     n_copies = max(1, min(copies, episodes))
-    envs = [make_env(env, render_mode) for _ in range(n_copies)]
+    spec = make_core_spec(env)
+    # One batched core per batch size (the last batch may be smaller), each copy handed to the
+    # policy as an env view (baselines read the map from it); all copies step in one call.
+    batches: dict[int, tuple[CoverageCore, list[CoverageEnv]]] = {}
     n_agents, max_steps = env.n_agents, env.max_steps
+    last_action = spec.n_actions - 1
     marks = [max(1, round(f * max_steps)) for f in CHECKPOINT_FRACTIONS]
     results: list[EpisodeResult] = []
     for first in range(0, episodes, n_copies):
-        batch = envs[: min(n_copies, episodes - first)]
-        obs = [e.reset(seed=seed + first + i)[0] for i, e in enumerate(batch)]
+        size = min(n_copies, episodes - first)
+        if size not in batches:
+            core = CoverageCore(spec, size)
+            batches[size] = (core, [CoverageEnv.copy_of(core, b, render_mode) for b in range(size)])
+        core, batch = batches[size]
+        for i, e in enumerate(batch):
+            e.reset(seed=seed + first + i)
+        obs = core.observe()
         paths = [[e.positions] for e in batch] if record_paths else None
         frames: list[list[np.ndarray]] = [[e.render()] if frames_every else [] for e in batch]
         at: list[list[float]] = [[] for _ in batch]
         reached: list[dict[str, int | None]] = [
             {_target_key(f): None for f in COVERAGE_TARGETS} for _ in batch
         ]
-        infos: list[dict[str, Any]] = []
         for t in range(1, max_steps + 1):
             if should_stop is not None and should_stop():
                 raise EpisodesStopped(f"stopped at step {t - 1} of episode {first}")
-            actions = np.asarray(policy(stack_observations(obs), batch))
-            actions = actions.reshape(len(batch), n_agents).tolist()
-            obs, infos = [], []
+            actions = np.asarray(policy(_flat(obs), batch)).reshape(size, n_agents)
+            if actions.min() < 0 or actions.max() > last_action:
+                raise ValueError(f"actions must be in 0..{last_action}, got {actions.tolist()}")
+            core.step(actions)
+            obs = core.observe()
+            coverage = (core.n_visited / core.n_free).tolist()
             for i, e in enumerate(batch):
-                o, _, _, _, info = e.step(dict(zip(e.possible_agents, actions[i])))
-                obs.append(o)
-                infos.append(info)
                 if paths is not None:
                     paths[i].append(e.positions)
                 if frames_every and (t % frames_every == 0 or t == max_steps):
                     frames[i].append(e.render())
                 if t in marks:  # a short episode can hit one step for two marks
-                    at[i].extend([e.coverage] * marks.count(t))
+                    at[i].extend([coverage[i]] * marks.count(t))
                 for f in COVERAGE_TARGETS:
                     key = _target_key(f)
-                    if reached[i][key] is None and e.coverage >= f:
+                    if reached[i][key] is None and coverage[i] >= f:
                         reached[i][key] = t
         for i, e in enumerate(batch):
-            info = infos[i]
             results.append(
                 EpisodeResult(
                     coverage=e.coverage,
                     coverage_at=at[i],
-                    wall_hits=[info[a]["wall_hits"] for a in e.possible_agents],
-                    new_cells=[info[a]["new_cells"] for a in e.possible_agents],
+                    wall_hits=core.wall_hits[i].tolist(),
+                    new_cells=core.new_cells[i].tolist(),
                     steps=max_steps,
                     free_cells=e.free_cells,
                     paths=list(np.stack(paths[i], axis=1)) if paths is not None else [],
@@ -238,6 +237,13 @@ def run_episodes(
                 )
             )
     return results
+
+
+def _flat(obs: np.ndarray | dict[str, np.ndarray]) -> np.ndarray | dict[str, np.ndarray]:
+    """The core's ``(copies, n_agents, ...)`` observations as one copy-major batch."""
+    if isinstance(obs, dict):
+        return {key: value.reshape(-1, *value.shape[2:]) for key, value in obs.items()}
+    return obs.reshape(-1, *obs.shape[2:])
 
 
 def _target_key(fraction: float) -> str:

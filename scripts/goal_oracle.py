@@ -48,16 +48,18 @@ from harness.results.stats import paired_difference
 
 def clone(planner: FrontierPlanner, free: list[bool] | None = None) -> FrontierPlanner:
     """A copy of the planner's map that can be stepped on its own (its ``free`` list and cached
-    graph are shared read-only; every per-cell state it changes is copied). ``free`` replaces
+    graph are shared read-only; every per-cell state it changes is copied, and so are the
+    search's scratch arrays). ``free`` replaces
     the true free cells (a sampled map) for the cells nobody has seen."""
     copy = object.__new__(type(planner))
     copy.__dict__.update(planner.__dict__)
     if free is not None:
         copy.free = free
-    for name in ("visited", "seen", "passable", "target", "positions", "goals", "far"):
+    for name in ("visited", "seen", "passable", "target", "positions", "goals"):
         setattr(copy, name, list(getattr(planner, name)))
     for name in ("passable_np", "target_np", "seen_np"):
         setattr(copy, name, getattr(planner, name).copy())
+    copy._scratch = None
     return copy
 
 

@@ -200,7 +200,7 @@ def test_an_endless_episode_evaluation_stops_on_a_signal(tmp_path, capsys):
 @pytest.mark.slow
 def test_sigterm_during_a_long_evaluation_stops_in_seconds_and_resumes(tmp_path):
     cmd = [sys.executable, "-m", "harness.cli"]
-    cmd += run_args(tmp_path, "eval.every=800", "eval.episodes=300")
+    cmd += run_args(tmp_path, "eval.every=800", "eval.episodes=5000")
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     # The episodes of step 800 are logged just before its evaluation starts.
     err, took = sigterm_when(
@@ -377,7 +377,9 @@ def test_ctrl_c_while_the_modules_load_is_one_line_and_exit_130():
 @pytest.mark.slow
 def test_sigkill_of_the_training_process_leaves_its_env_workers_quiet(tmp_path):
     cmd = [sys.executable, "-m", "harness.cli"]
-    cmd += run_args(tmp_path, "vec.num_cpus=2", "phases.initial.timesteps=100000")
+    cmd += run_args(
+        tmp_path, "vec.backend=supersuit", "vec.num_cpus=2", "phases.initial.timesteps=100000"
+    )
     # A session of its own: the workers left behind can be found (and killed) after the test.
     proc = subprocess.Popen(
         cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT, start_new_session=True

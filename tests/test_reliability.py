@@ -214,7 +214,7 @@ def test_kill_as_soon_as_the_run_folder_exists_then_a_resume_starts_again_alone(
 def test_ctrl_c_twice_in_a_terminal_with_env_worker_processes_stops_without_traceback(tmp_path):
     # A terminal's Ctrl-C goes to the whole process group: the env worker processes too.
     cmd = [sys.executable, "-m", "harness.cli", "run", str(SMOKE), "--runs-dir", str(tmp_path)]
-    cmd += ["--no-progress", *LONGER, "--set", "vec.num_cpus=2"]
+    cmd += ["--no-progress", *LONGER, "--set", "vec.backend=supersuit", "--set", "vec.num_cpus=2"]
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, start_new_session=True)
     run = wait_for_checkpoint(tmp_path, proc, 1000)
     os.killpg(proc.pid, signal.SIGINT)

@@ -94,7 +94,9 @@ CASES: dict[str, tuple[dict[str, Any], int, int]] = {
             "width": 12,
             "max_steps": 30,
             "agent_id": True,
-            "observation": {"teammap": {"crop": 9, "global_size": 7, "ego_size": 7, "ego_block": 3}},
+            "observation": {
+                "teammap": {"crop": 9, "global_size": 7, "ego_size": 7, "ego_block": 3}
+            },
             "frontier": {"action": "step", "planner": "pocket"},
         },
         2,

@@ -20,13 +20,11 @@ Ties between equally near targets (``tie_break``) are frequent, and how they bre
   policy that is right about *how far* but noisy about *which* looks like.
 
 Speed: the team's map only grows, so the planner keeps it incrementally (updated from the
-agents' positions each step, rebuilt when an episode starts). The search is a breadth-first search
-in Python that stops at the first unclaimed target; most of the time that target is a step or two
-away. When a search grows past ``SEARCH_BUDGET`` cells (late in an episode, when the remaining
-ground is far away) it is redone by SciPy's compiled breadth-first search on a graph of the seen
-free cells, rebuilt only when a cell became passable since the last such search; an agent whose
-target was far goes straight to SciPy on the next step. Both searches visit neighbours in the same
-order, so the choice of target does not depend on which one ran.
+agents' positions each step, rebuilt when an episode starts). The search is one compiled
+breadth-first search per agent (:func:`nearest_targets`, numba) that visits neighbours up, left,
+right, down and stops when the nearest distance layer holding an unclaimed target is complete
+(``"order"``: at the first such target it discovers); most of the time that target is a step or
+two away.
 
 **Coordinated planners** (:class:`CoordinatedPlanner`): the team's assignment of targets is
 chosen together, from one distance field per agent per step (SciPy's compiled shortest paths on
@@ -37,14 +35,14 @@ assignment by :func:`scipy.optimize.linear_sum_assignment`).
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Callable
 
 import numpy as np
+from numba import njit
 from scipy.ndimage import label
 from scipy.optimize import linear_sum_assignment
 from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import breadth_first_order, dijkstra
+from scipy.sparse.csgraph import dijkstra
 
 from envs.coverage.types import STAY
 
@@ -58,13 +56,56 @@ __all__ = [
     "UtilityPlanner",
 ]
 
-#: Cells a Python search may reach before the compiled search takes over. Below it the Python
-#: search wins (no graph to build); above it SciPy's search is cheaper even with a fresh graph.
-SEARCH_BUDGET = 128
-#: Path length above which an agent's next search skips the Python search.
-FAR = 8
 #: How :class:`FrontierPlanner` chooses among equally near unclaimed targets (module docstring).
 TIE_BREAKS = ("order", "pocket", "random")
+
+
+@njit(cache=True, nogil=True)
+def nearest_targets(
+    passable: np.ndarray,
+    target: np.ndarray,
+    claimed: np.ndarray,
+    start: int,
+    offsets: np.ndarray,
+    all_ties: bool,
+    first: np.ndarray,
+    queue: np.ndarray,
+    ties: np.ndarray,
+    firsts: np.ndarray,
+) -> int:
+    """Breadth-first search from ``start`` through ``passable`` cells (flat, padded; neighbours
+    in the order of ``offsets``) for unclaimed ``target`` cells.
+
+    Writes the targets of the nearest distance layer that holds any, in the order the search
+    discovers them, to ``ties`` and the first cell of each one's path (the search tree's) to
+    ``firsts``, and returns how many; with ``all_ties`` False it stops at the first (the
+    classical explorer's choice). ``first`` and ``queue`` are scratch arrays of the grid's size.
+    """
+    first[:] = -1
+    first[start] = start
+    queue[0] = start
+    head, tail, layer_end, count = 0, 1, 1, 0
+    while head < tail:
+        c = queue[head]
+        head += 1
+        f = first[c]
+        for d in offsets:
+            m = c + d
+            if passable[m] and first[m] < 0:
+                first[m] = m if c == start else f
+                if target[m] and not claimed[m]:
+                    ties[count] = m
+                    firsts[count] = first[m]
+                    count += 1
+                    if not all_ties:
+                        return count
+                queue[tail] = m
+                tail += 1
+        if head == layer_end:  # a distance layer is complete
+            if count > 0:
+                return count
+            layer_end = tail
+    return count
 
 
 class FrontierPlanner:
@@ -96,9 +137,8 @@ class FrontierPlanner:
         self.positions: list[int] = []
         #: Per agent: the padded cell of its target at the last :meth:`act` (-1: none).
         self.goals: list[int] = []
-        #: Per agent: its last target was far, so its next search goes straight to SciPy (the
-        #: distance shrinks by one a step, and the Python search would only hit its budget).
-        self.far: list[bool] = []
+        self._offsets_np = np.array(self.offsets, dtype=np.int64)
+        self._scratch: tuple[np.ndarray, ...] | None = None
         self._neighbours: np.ndarray | None = None
 
     # ------------------------------------------------------------------ map upkeep
@@ -152,7 +192,6 @@ class FrontierPlanner:
         self.seen_np = seen.ravel()
         self.n_targets = int(target.sum())
         self.graph_version = 0  # bumped whenever a cell becomes passable
-        self.far = [False] * len(self.positions)
         self._graph: tuple[int, csr_matrix] | None = None
 
     def _visit(self, p: int) -> None:
@@ -184,20 +223,15 @@ class FrontierPlanner:
         self.goals = [-1] * len(self.positions)
         if self.n_targets == 0:  # everything seen is visited: nothing left to walk to
             return [STAY] * len(self.positions)
-        claimed: set[int] = set()
+        claimed = np.zeros(len(self.passable), dtype=np.bool_)
         actions = []
         for i, start in enumerate(self.positions):
-            if self.far[i]:
-                found = self._search_compiled(start, claimed, i)
-            elif self.tie_break == "order":
-                found = self._search(start, claimed, i)
-            else:
-                found = self._search_ties(start, claimed, i)
+            found = self._search(start, claimed)
             if found is None:
                 actions.append(STAY)
                 continue
             goal, step = found
-            claimed.add(goal)
+            claimed[goal] = True
             self.goals[i] = goal
             actions.append(self.action_of[step - start])
         return actions
@@ -222,96 +256,41 @@ class FrontierPlanner:
             step = prev
         return self.action_of[step - start]
 
-    def _search(self, start: int, claimed: set[int], agent: int) -> tuple[int, int] | None:
-        """Nearest unclaimed target from ``start`` and the first cell of a shortest path to it,
-        or ``None`` when no unclaimed target is reachable through seen free cells."""
-        passable, target, offsets = self.passable, self.target, self.offsets
-        # Each reached cell remembers the first step of its path, so no back-tracking is needed.
-        first = {start: start}
-        queue = deque()
-        for d in offsets:
-            n = start + d
-            if passable[n]:
-                first[n] = n
-                # Checked on discovery: BFS discovers cells in order of distance, so the first
-                # unclaimed target discovered is a nearest one.
-                if target[n] and n not in claimed:
-                    return n, n
-                queue.append(n)
-        while queue:
-            c = queue.popleft()
-            f = first[c]
-            for d in offsets:
-                n = c + d
-                if passable[n] and n not in first:
-                    first[n] = f
-                    if target[n] and n not in claimed:
-                        return n, f
-                    queue.append(n)
-            if len(first) > SEARCH_BUDGET:
-                return self._search_compiled(start, claimed, agent)
-        return None
-
-    def _search_ties(self, start: int, claimed: set[int], agent: int) -> tuple[int, int] | None:
-        """:meth:`_search` for the tie-breaks other than ``"order"``: the same search, one
-        distance layer at a time, so that every target of the nearest layer is a candidate."""
-        passable, target, offsets = self.passable, self.target, self.offsets
-        first = {start: start}
-        layer = [start]
-        while layer:
-            ties: list[int] = []
-            next_layer = []
-            for c in layer:
-                f = first[c]
-                for d in offsets:
-                    n = c + d
-                    if passable[n] and n not in first:
-                        first[n] = n if c == start else f
-                        if target[n] and n not in claimed:
-                            ties.append(n)
-                        next_layer.append(n)
-            if ties:
-                goal = self._choose(ties)
-                return goal, first[goal]
-            if len(first) > SEARCH_BUDGET:
-                return self._search_compiled(start, claimed, agent)
-            layer = next_layer
-        return None
-
-    def _search_compiled(self, start: int, claimed: set[int], agent: int) -> tuple[int, int] | None:
-        """:meth:`_search` by SciPy's breadth-first search (for far targets). It visits
-        neighbours in the same order, so both searches pick the same target."""
-        order, pred = breadth_first_order(
-            self._graph_now(), start, directed=True, return_predecessors=True
-        )
-
-        def first_step(goal: int) -> tuple[int, int]:
-            step, distance = goal, 1
-            while pred[step] != start:
-                step = int(pred[step])
-                distance += 1
-            return step, distance
-
-        candidates = [g for g in order[self.target_np[order]].tolist() if g not in claimed]
-        if not candidates:
-            # Nothing left for this agent (teammates claimed the last targets): that search saw
-            # the whole reachable map, so the next one goes straight to SciPy too.
-            self.far[agent] = True
+    def _search(self, start: int, claimed: np.ndarray) -> tuple[int, int] | None:
+        """Nearest unclaimed target from ``start`` and the first cell of a shortest path to it
+        (the tie-break's choice among the nearest), or ``None`` when no unclaimed target is
+        reachable through seen free cells."""
+        n = self._nearest(start, claimed)
+        if n == 0:
             return None
-        goal = candidates[0]
-        step, distance = first_step(goal)
-        if self.tie_break != "order":
-            # BFS order lists targets by distance: the nearest layer is a prefix of it.
-            steps = {goal: step}
-            for g in candidates[1:]:
-                s, d = first_step(g)
-                if d > distance:
-                    break
-                steps[g] = s
-            goal = self._choose(list(steps))
-            step = steps[goal]
-        self.far[agent] = distance > FAR
-        return goal, step
+        if n == 1:
+            return int(self._ties[0]), int(self._firsts[0])
+        ties = self._ties[:n].tolist()
+        goal = self._choose(ties)
+        return goal, int(self._firsts[ties.index(goal)])
+
+    def _nearest(self, start: int, claimed: np.ndarray) -> int:
+        size = len(self.passable)
+        if self._scratch is None or self._scratch[0].size != size:
+            self._scratch = (
+                np.empty(size, dtype=np.int64),
+                np.empty(size, dtype=np.int64),
+                np.empty(size, dtype=np.int64),
+                np.empty(size, dtype=np.int64),
+            )
+        first, queue, self._ties, self._firsts = self._scratch
+        return nearest_targets(
+            self.passable_np,
+            self.target_np,
+            claimed,
+            start,
+            self._offsets_np,
+            self.tie_break != "order",
+            first,
+            queue,
+            self._ties,
+            self._firsts,
+        )
 
     def _choose(self, ties: list[int]) -> int:
         """The tie-break among equally near targets, listed in the order the search found them."""

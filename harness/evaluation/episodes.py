@@ -185,6 +185,7 @@ def run_episodes(
     n_agents, max_steps = env.n_agents, env.max_steps
     last_action = spec.n_actions - 1
     marks = [max(1, round(f * max_steps)) for f in CHECKPOINT_FRACTIONS]
+    targets = [(f, _target_key(f)) for f in COVERAGE_TARGETS]
     results: list[EpisodeResult] = []
     for first in range(0, episodes, n_copies):
         size = min(n_copies, episodes - first)
@@ -217,8 +218,7 @@ def run_episodes(
                     frames[i].append(e.render())
                 if t in marks:  # a short episode can hit one step for two marks
                     at[i].extend([coverage[i]] * marks.count(t))
-                for f in COVERAGE_TARGETS:
-                    key = _target_key(f)
+                for f, key in targets:
                     if reached[i][key] is None and coverage[i] >= f:
                         reached[i][key] = t
         for i, e in enumerate(batch):

@@ -59,3 +59,12 @@ def test_reference_repeats_its_first_committed_episode(name: str, tmp_path: Path
     assert saved["temperature"] == committed["temperature"]
     assert saved["coverage"] == committed["coverage"][:1]
     assert saved["wall_hits"] == committed["wall_hits"][:1]
+
+
+def test_check_references_repeats_a_reference_on_all_its_committed_episodes(capsys) -> None:
+    import runpy
+
+    script = runpy.run_path(str(ROOT / "scripts" / "check_references.py"))
+    assert script["main"](["ddqn_15x15"]) == 0
+    (line,) = capsys.readouterr().out.splitlines()
+    assert line.startswith("ddqn_15x15") and "100 episodes" in line and " same " in line

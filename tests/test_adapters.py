@@ -1,4 +1,5 @@
-"""The SuperSuit adapter: slots, seeding, truncation as a time-out, episode info."""
+"""Both VecEnv backends (the batched core's and SuperSuit's): slots, seeding, truncation as a
+time-out, episode info."""
 
 from __future__ import annotations
 
@@ -11,6 +12,11 @@ from harness.training.adapters import make_vec_env
 SMALL = EnvConfig(height=8, width=9, n_agents=2, max_steps=6, coords="raw")
 
 
+@pytest.fixture(params=["core", "supersuit"])
+def backend(request) -> str:
+    return request.param
+
+
 def run_until_done(venv, rng):
     venv.reset()
     for _ in range(SMALL.max_steps):
@@ -19,15 +25,16 @@ def run_until_done(venv, rng):
 
 
 @pytest.mark.parametrize(("copies", "n_agents"), [(1, 1), (3, 2), (2, 4)])
-def test_one_slot_per_agent_per_copy(copies, n_agents):
-    venv = make_vec_env(SMALL.model_copy(update={"n_agents": n_agents}), copies=copies, seed=0)
+def test_one_slot_per_agent_per_copy(copies, n_agents, backend):
+    env = SMALL.model_copy(update={"n_agents": n_agents})
+    venv = make_vec_env(env, copies=copies, seed=0, backend=backend)
     assert venv.num_envs == n_agents * copies
     assert venv.reset().shape == (n_agents * copies, 13)
     venv.close()
 
 
-def test_slots_are_agent_major_within_copies():
-    venv = make_vec_env(SMALL, copies=2, seed=3)
+def test_slots_are_agent_major_within_copies(backend):
+    venv = make_vec_env(SMALL, copies=2, seed=3, backend=backend)
     obs = venv.reset()
     # Slot 2k+1's teammate is slot 2k (two agents per copy): positions cross-reference.
     for copy in range(2):
@@ -37,18 +44,18 @@ def test_slots_are_agent_major_within_copies():
     venv.close()
 
 
-def test_seeded_copies_differ_from_each_other_and_repeat():
-    first = make_vec_env(SMALL, copies=3, seed=11).reset()
-    second = make_vec_env(SMALL, copies=3, seed=11).reset()
+def test_seeded_copies_differ_from_each_other_and_repeat(backend):
+    first = make_vec_env(SMALL, copies=3, seed=11, backend=backend).reset()
+    second = make_vec_env(SMALL, copies=3, seed=11, backend=backend).reset()
     np.testing.assert_array_equal(first, second)
     assert not np.array_equal(first[0:2], first[2:4])  # copies get different episodes
-    other = make_vec_env(SMALL, copies=3, seed=12).reset()
+    other = make_vec_env(SMALL, copies=3, seed=12, backend=backend).reset()
     assert not np.array_equal(first, other)
 
 
 def test_seeding_does_not_depend_on_process_count():
-    in_process = make_vec_env(SMALL, copies=3, seed=5, num_cpus=0)
-    two_procs = make_vec_env(SMALL, copies=3, seed=5, num_cpus=2)
+    in_process = make_vec_env(SMALL, copies=3, seed=5)  # the core
+    two_procs = make_vec_env(SMALL, copies=3, seed=5, num_cpus=2, backend="supersuit")
     try:
         np.testing.assert_array_equal(in_process.reset(), two_procs.reset())
         actions = np.arange(6) % 5
@@ -62,8 +69,8 @@ def test_seeding_does_not_depend_on_process_count():
         two_procs.close()
 
 
-def test_truncation_reaches_sb3_as_a_timeout_with_episode_metrics():
-    venv = make_vec_env(SMALL, copies=2, seed=0)
+def test_truncation_reaches_sb3_as_a_timeout_with_episode_metrics(backend):
+    venv = make_vec_env(SMALL, copies=2, seed=0, backend=backend)
     _, _, dones, infos = run_until_done(venv, np.random.default_rng(0))
     assert dones.all()
     for info in infos:
@@ -76,10 +83,10 @@ def test_truncation_reaches_sb3_as_a_timeout_with_episode_metrics():
     venv.close()
 
 
-def test_final_coverage_is_not_hidden_by_the_automatic_reset():
+def test_final_coverage_is_not_hidden_by_the_automatic_reset(backend):
     # SuperSuit merges reset infos over the last step's infos; the env's reset infos are empty
     # so the episode's final coverage survives.
-    venv = make_vec_env(SMALL, copies=1, seed=0)
+    venv = make_vec_env(SMALL, copies=1, seed=0, backend=backend)
     rng = np.random.default_rng(1)
     venv.reset()
     coverages = []

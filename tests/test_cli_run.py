@@ -218,3 +218,18 @@ def test_console_script_reports_errors_without_traceback(tmp_path):
     assert "Traceback" not in proc.stderr
     assert proc.stderr.strip().startswith("harness: error:")
     assert "invalid YAML" in proc.stderr
+
+
+@pytest.mark.slow
+def test_both_vec_backends_train_the_same_run(tmp_path, smoke_run):
+    # The same seed on SuperSuit's VecEnv: the same episodes, the same learning, the same log.
+    other = run_smoke(tmp_path, "seed=3", "vec.backend=supersuit")
+    assert (other / "episodes.csv").read_text() == smoke_run.episodes_csv.read_text()
+
+
+def test_env_worker_processes_need_the_supersuit_backend(tmp_path, capsys):
+    args = ["run", str(SMOKE), "--runs-dir", str(tmp_path), "--set", "vec.num_cpus=2"]
+    assert main(args) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert "vec.num_cpus > 1 needs vec.backend: supersuit" in line
+    assert not any(tmp_path.iterdir())

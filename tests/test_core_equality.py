@@ -49,6 +49,9 @@ _OBSERVATIONS: list[tuple[Any, Any]] = [
     ({"teammap": {"crop": 7, "global_size": 6}}, {"action": "step"}),
     ({"teammap": {"crop": 7, "global_size": 6}}, {"action": "step", "planner": "pocket"}),
     ({"teammap": {"crop": 7, "global_size": 6}}, {"action": "step", "planner": "minpos"}),
+    ({"teammap": {"crop": 7, "global_size": 6}}, {"action": "step", "planner": "order"}),
+    ({"teammap": {"crop": 7, "global_size": 6}}, {"action": "step", "planner": "hungarian"}),
+    ({"teammap": {"crop": 7, "global_size": 6}}, {"action": "step", "planner": "utility"}),
     ({"teammap": {"crop": 7, "global_size": 6}}, {"action": "goal", "planner": "pocket"}),
 ]
 
@@ -79,7 +82,7 @@ def settings_(draw: st.DrawFn) -> dict[str, Any]:
     return kwargs
 
 
-@settings(max_examples=25, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(max_examples=30, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(kwargs=settings_(), copies=st.integers(1, 3), seed=st.integers(0, 10_000))
 def test_the_core_vecenv_equals_supersuit_over_the_pettingzoo_env(kwargs, copies, seed):
     core = make_vec_env(kwargs, copies, seed=seed, monitor=False, backend="core")

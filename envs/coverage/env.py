@@ -85,7 +85,6 @@ class CoverageEnv(ParallelEnv):
     ) -> None:
         spec = core.spec
         self._core, self._copy = core, copy
-        self.spec = spec
         self.map_name = map_name
         self.wall_fraction = getattr(spec.source, "wall_fraction", (0.0, 0.0))
         self.rewards = dict(spec.rewards)

@@ -23,7 +23,7 @@ from gymnasium import spaces
 from envs.coverage.frontier import Frontier
 from envs.coverage.goals import ACTION_MASK_KEY, GOAL_FEATURES, GOALS_KEY
 from envs.coverage.step import thesis_observation
-from envs.coverage.teammap_kernels import ego_views, frontier_views
+from envs.coverage.teammap_kernels import ego_views, frontier_views, update_known
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL, GridState, kind_options
 
 COORD_MODES = ("normalized", "raw")
@@ -296,27 +296,19 @@ class TeamMapObservation(ObservationBuilder):
         self._moves = np.array([-wp, wp, -1, 1])  # up, down, left, right on the flat grid
 
     def _update(self, state: GridState) -> None:
-        """Make the agents' 3x3 windows known and bring changed cells up to date."""
-        p, wp = state.pad, self._wp
-        centres = (state.positions[:, 0] + p) * wp + (state.positions[:, 1] + p)
-        cells = np.unique((centres[:, None] + self._window).ravel())
-        values = state.cells.ravel().take(cells)
-        new = np.where(
-            values == CELL_WALL, KNOWN_WALL, np.where(values == CELL_UNVISITED, KNOWN_FREE, VISITED)
+        """Make the agents' 3x3 windows known and bring changed cells up to date (compiled:
+        :func:`envs.coverage.teammap_kernels.update_known`)."""
+        update_known(
+            state.cells,
+            state.pad,
+            state.positions,
+            self._cat,
+            self._planes,
+            self._counts,
+            self._block_of,
+            self._block_cells,
+            self._shares,
         )
-        old = self._cat[cells]
-        changed = old != new
-        if not changed.any():
-            return
-        cells, old, new = cells[changed], old[changed], new[changed].astype(np.int8)
-        self._cat[cells] = new
-        self._planes[old, cells] = 0
-        self._planes[new, cells] = 255
-        blocks = self._block_of[cells]
-        inside = blocks >= 0
-        np.add.at(self._counts, (blocks[inside], old[inside]), -1)
-        np.add.at(self._counts, (blocks[inside], new[inside]), 1)
-        self._update_shares(blocks[inside])
 
     def _update_shares(self, blocks: np.ndarray) -> None:
         """Recompute the share channels of ``blocks`` (repeats allowed) from the counts."""

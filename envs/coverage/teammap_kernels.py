@@ -1,7 +1,8 @@
 """Compiled pieces of the team-map observation (:class:`envs.coverage.observations.
-TeamMapObservation`): the frontier field and compass, and the ego view. They were the two
-largest costs of a team-map step in Python (a profile of ``harness eval --policy frontier_step``
-on ``teammap_2agents_pocket``: 32 % and 25 % of the time).
+TeamMapObservation`): the update of the team's knowledge, the frontier field and compass, and
+the ego view. The last two were the two largest costs of a team-map step in Python (a profile
+of ``harness eval --policy frontier_step`` on ``teammap_2agents_pocket``: 32 % and 25 % of the
+time).
 
 Arrays are the builder's: ``cat`` the category of every cell of the padded grid, flat
 (``KNOWN_WALL, VISITED, KNOWN_FREE, UNKNOWN`` = 0..3), ``wp`` the padded width.
@@ -12,10 +13,11 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from envs.coverage.types import CELL_WALL
+from envs.coverage.types import CELL_UNVISITED, CELL_WALL
 
-_KNOWN_WALL, _KNOWN_FREE, _UNKNOWN = 0, 2, 3
+_KNOWN_WALL, _VISITED, _KNOWN_FREE, _UNKNOWN = 0, 1, 2, 3
 _WALL = np.float32(CELL_WALL)
+_UNVISITED = np.float32(CELL_UNVISITED)
 #: Categories in the order of the ego view's share channels (visited, known free, unknown, wall).
 _SHARE_ORDER = np.array([1, 2, 3, 0], dtype=np.int64)
 
@@ -134,3 +136,49 @@ def ego_views(
                 bc = (positions[j, 1] - c + half) // block + mid
                 if 0 <= br < e and 0 <= bc < e:
                     ego[i, 4, br, bc] = 255
+
+
+@njit(cache=True, nogil=True)
+def update_known(
+    cells: np.ndarray,
+    pad: int,
+    positions: np.ndarray,
+    cat: np.ndarray,
+    planes: np.ndarray,
+    counts: np.ndarray,
+    block_of: np.ndarray,
+    block_cells: np.ndarray,
+    shares: np.ndarray,
+) -> None:
+    """Make the agents' 3x3 windows known: each cell of a window whose category changed (from
+    ``cells`` ``(Hp, Wp)``: wall, unvisited free, visited) gets its new category in ``cat`` and
+    in the 0/255 ``planes`` ``(4, Hp * Wp)``, moves between the category counts of its global
+    block (``counts`` ``(G * G, 4)``), and the block's share channels ``shares`` ``(4, G * G)``
+    become ``rint(255 * count / cells of the block)`` again."""
+    wp = cells.shape[1]
+    for i in range(positions.shape[0]):
+        r, c = positions[i, 0] + pad, positions[i, 1] + pad
+        for dr in range(-1, 2):
+            for dc in range(-1, 2):
+                value = cells[r + dr, c + dc]
+                if value == _WALL:
+                    new = _KNOWN_WALL
+                elif value == _UNVISITED:
+                    new = _KNOWN_FREE
+                else:
+                    new = _VISITED
+                k = (r + dr) * wp + (c + dc)
+                old = cat[k]
+                if old == new:
+                    continue
+                cat[k] = new
+                planes[old, k] = 0
+                planes[new, k] = 255
+                b = block_of[k]
+                if b < 0:  # the padding: outside every block
+                    continue
+                counts[b, old] -= 1
+                counts[b, new] += 1
+                n = max(block_cells[b], 1)
+                for ch in range(4):
+                    shares[ch, b] = np.uint8(np.rint(255.0 * (counts[b, _SHARE_ORDER[ch]] / n)))

@@ -25,7 +25,7 @@ import hashlib
 import re
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, get_args
 
 import yaml
 from pydantic import (
@@ -288,7 +288,8 @@ class EnvConfig(_Section):
 
 #: How the env is vectorised (``vec.backend``): the batched core's own VecEnv, or SuperSuit
 #: over the PettingZoo env (the same episodes, one copy at a time; ``harness.training.adapters``).
-VEC_BACKENDS = ("core", "supersuit")
+VecBackend = Literal["core", "supersuit"]
+VEC_BACKENDS: tuple[str, ...] = get_args(VecBackend)
 
 
 class VecConfig(_Section):
@@ -296,7 +297,7 @@ class VecConfig(_Section):
     processes that run them."""
 
     copies: PositiveInt = 4
-    backend: Literal["core", "supersuit"] = "core"
+    backend: VecBackend = "core"
     """``core``: the batched core steps every copy in one call (the default); ``supersuit``:
     SuperSuit over the PettingZoo env, copy by copy. Both give the same episodes."""
     num_cpus: NonNegativeInt = 0

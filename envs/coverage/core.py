@@ -324,6 +324,15 @@ class CoverageCore:
             return {key: np.stack([o[key] for o in per_copy]) for key in per_copy[0]}
         return np.stack(per_copy)
 
+    @staticmethod
+    def flat(obs: np.ndarray | dict[str, np.ndarray]) -> np.ndarray | dict[str, np.ndarray]:
+        """:meth:`observe`'s ``(copies, n_agents, ...)`` as one copy-major batch of agents
+        ``(copies * n_agents, ...)`` (views): slot ``k`` is agent ``k % n_agents`` of copy
+        ``k // n_agents``, the layout of SB3's slots and of a batched policy's input."""
+        if isinstance(obs, dict):
+            return {key: value.reshape(-1, *value.shape[2:]) for key, value in obs.items()}
+        return obs.reshape(-1, *obs.shape[2:])
+
     def _with_id(self, obs: np.ndarray | dict[str, np.ndarray]) -> Any:
         return add_agent_id(obs, self.n_agents) if self.spec.agent_id else obs
 

@@ -205,7 +205,7 @@ def run_episodes(
         for t in range(1, max_steps + 1):
             if should_stop is not None and should_stop():
                 raise EpisodesStopped(f"stopped at step {t - 1} of episode {first}")
-            actions = np.asarray(policy(_flat(obs), batch)).reshape(size, n_agents)
+            actions = np.asarray(policy(CoverageCore.flat(obs), batch)).reshape(size, n_agents)
             if actions.min() < 0 or actions.max() > last_action:
                 raise ValueError(f"actions must be in 0..{last_action}, got {actions.tolist()}")
             core.step(actions)
@@ -237,13 +237,6 @@ def run_episodes(
                 )
             )
     return results
-
-
-def _flat(obs: np.ndarray | dict[str, np.ndarray]) -> np.ndarray | dict[str, np.ndarray]:
-    """The core's ``(copies, n_agents, ...)`` observations as one copy-major batch."""
-    if isinstance(obs, dict):
-        return {key: value.reshape(-1, *value.shape[2:]) for key, value in obs.items()}
-    return obs.reshape(-1, *obs.shape[2:])
 
 
 def _target_key(fraction: float) -> str:

@@ -102,7 +102,7 @@ class CoreVecEnv(VecEnv):
         self._reset_seeds()
         self._reset_options()
         self.reset_infos = [{} for _ in range(self.num_envs)]
-        return self._flat(core.observe())
+        return CoverageCore.flat(core.observe())
 
     def step_async(self, actions: np.ndarray) -> None:
         self._actions = np.asarray(actions)
@@ -129,7 +129,7 @@ class CoreVecEnv(VecEnv):
             else:
                 obs[copy] = fresh[0]
         dones = np.repeat(done, n)
-        return self._flat(obs), rewards.reshape(-1).astype(np.float32), dones, infos
+        return CoverageCore.flat(obs), rewards.reshape(-1).astype(np.float32), dones, infos
 
     def close(self) -> None:
         pass
@@ -149,13 +149,6 @@ class CoreVecEnv(VecEnv):
 
     def env_is_wrapped(self, wrapper_class: type, indices: VecEnvIndices = None) -> list[bool]:
         return [False] * len(self._get_indices(indices))
-
-    # ------------------------------------------------------------------ helpers
-    def _flat(self, obs: np.ndarray | dict[str, np.ndarray]) -> Any:
-        """``(copies, n_agents, ...)`` to SB3's ``(slots, ...)`` (a view)."""
-        if isinstance(obs, dict):
-            return {key: value.reshape(-1, *value.shape[2:]) for key, value in obs.items()}
-        return obs.reshape(-1, *obs.shape[2:])
 
 
 def _row(obs: np.ndarray | dict[str, np.ndarray], copy: int, agent: int) -> Any:

@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 
 from harness.config.schema import EnvConfig
+from harness.processes import python_command
 
 #: The thesis's setting: 50x50 random maps, 4 agents, 1000 steps.
 THESIS_ENV = EnvConfig(n_agents=4, max_steps=1000)
@@ -340,7 +341,7 @@ print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)
 def bench_memory() -> dict[str, Any]:
     """Peak resident memory (MiB) of a training process with a full 100,000-transition buffer."""
     proc = subprocess.run(
-        [sys.executable, "-c", _MEMORY_SCRIPT], capture_output=True, text=True, check=True
+        python_command(_MEMORY_SCRIPT), capture_output=True, text=True, check=True
     )
     kib = int(proc.stdout.strip().splitlines()[-1])
     # ru_maxrss is KiB on Linux, bytes on macOS.

@@ -5,7 +5,8 @@ counts as much as one at the top):
   ``harness``: they work on any Gymnasium env or VecEnv;
 * ``envs`` imports nothing from ``harness``;
 * each ``harness`` package imports only from its own layer and the layers below it, in the order
-  sb3 < config < factory < evaluation < results < training < commands, cli, bench; in particular
+  sb3 < config (and processes, how a child Python is started) < factory < evaluation < results <
+  training < commands, cli, bench; in particular
   configuration imports no training, evaluation or CLI module;
 * only the factory (``harness/factory.py``) calls ``parallel_env``.
 """
@@ -22,6 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 LAYERS = {
     "harness.sb3": 0,
     "harness.config": 1,
+    "harness.processes": 1,
     "harness.factory": 2,
     "harness.evaluation": 3,
     "harness.results": 4,

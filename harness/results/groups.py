@@ -26,7 +26,6 @@ import os
 import shutil
 import signal
 import subprocess
-import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -34,6 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from harness.processes import harness_command
 from harness.results.rundir import RunDir, RunDirError, atomic_write_text, unique_folder
 
 #: The file that marks a folder as a seed group.
@@ -393,8 +393,7 @@ def plan_resume(folder: Path, jobs: int, state_of: SeedState) -> tuple[list[Job]
             lines.append(f"seed {job.seed}: never started, starting it ({name})")
         else:
             _check_not_running(run, job.seed)
-            job.cmd = [sys.executable, "-m", "harness.cli", "run", "--resume", str(run.path),
-                       "--no-progress"]  # fmt: skip
+            job.cmd = harness_command("run", "--resume", str(run.path), "--no-progress")
             lines.append(f"seed {job.seed}: {state}, resuming it ({name})")
         plan.append(job)
     return plan, lines
@@ -526,7 +525,7 @@ def _start_command(
     job: Job, config_path: Path, overrides: Sequence[str], threads: int
 ) -> list[str]:
     """``harness run CONFIG --set ... --set seed=k --into RUN``: a seed's first start."""
-    cmd = [sys.executable, "-m", "harness.cli", "run", str(config_path), "--no-progress"]
+    cmd = harness_command("run", str(config_path), "--no-progress")
     for override in (*overrides, f"seed={job.seed}", f"algo.threads={threads}"):
         cmd += ["--set", override]
     return [*cmd, "--into", str(job.run.path)]

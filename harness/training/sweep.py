@@ -47,7 +47,6 @@ import math
 import os
 import signal
 import subprocess
-import sys
 import threading
 import time
 import warnings
@@ -60,6 +59,7 @@ import yaml
 
 from harness.config.loading import load_config, parse_yaml
 from harness.config.schema import ConfigError
+from harness.processes import harness_command
 from harness.results.rundir import RunDir, atomic_write_text
 
 #: Kinds of distribution a space file may name.
@@ -361,10 +361,10 @@ class _Study:
 
     def worker_command(self, threads: int) -> list[str]:
         """The ``harness sweep ... --worker`` command of one worker with ``threads`` threads."""
-        cmd = [sys.executable, "-m", "harness.cli", "sweep", str(self.config_path),
+        cmd = harness_command("sweep", str(self.config_path),
                "--space", str(self.space_path), "--trials", str(self.trials),
                "--study", self.study_name, "--sweeps-dir", str(self.sweeps_dir),
-               "--pruner", self.pruner, "--worker"]  # fmt: skip
+               "--pruner", self.pruner, "--worker")  # fmt: skip
         if self.storage_url is not None:
             cmd += ["--storage", self.storage_url]
         for item in (*self.overrides, f"algo.threads={threads}"):

@@ -54,6 +54,23 @@ def test_a_group_naming_a_run_outside_its_folder_is_refused(
     assert sorted(p.name for p in outside.iterdir()) == before  # nothing written there
 
 
+@pytest.mark.parametrize("command", ["eval", "tune"])
+@pytest.mark.parametrize("file", ["model.zip", "best_model.zip", "config.yaml"])
+def test_a_member_file_linked_out_of_the_group_is_refused(tmp_path, outside, capsys, command, file):
+    group = _fake_group(tmp_path / "group", [0.4], [{100: 0.4}])
+    (member,) = group_members(group)
+    target = outside / file  # what a hostile group would have unpickled
+    if file == "config.yaml":
+        target.write_text((member / file).read_text())
+    else:
+        target.write_bytes(b"PK not a model")
+    (member / file).unlink(missing_ok=True)
+    (member / file).symlink_to(target)
+    assert main([command, str(group)]) == 2
+    err = one_line_error(capsys)
+    assert str(member / file) in err and "leads outside the group folder" in err
+
+
 @pytest.mark.parametrize("name", ["", ".", 3, None, "a/../../b"])
 def test_group_entries_that_are_not_run_folders_inside_it_are_one_line_errors(tmp_path, name):
     group = _fake_group(tmp_path / "group", [0.4], [{100: 0.4}])
@@ -131,3 +148,23 @@ def test_a_damaged_zip_is_still_one_line(tmp_path, capsys):
     (run / "model.zip").write_bytes(b"not a zip")
     assert main(["eval", str(run)]) == 2
     assert "cannot load model (BadZipFile" in one_line_error(capsys)
+
+
+# ---------------------------------------------------------------------- export --model
+@pytest.mark.parametrize("how", ["dotdot", "absolute", "link"])
+def test_export_loads_only_a_model_of_the_run(tmp_path, outside, capsys, how):
+    run = _fake_run(tmp_path / "run", 0.4, {100: 0.4})
+    elsewhere = outside / "model.zip"
+    elsewhere.write_bytes(b"PK not a model")  # what a hostile name would have unpickled
+    if how == "dotdot":  # from run/ up to tmp_path, then down to the other model
+        name = str(Path("..") / elsewhere.relative_to(tmp_path).with_suffix(""))
+    elif how == "absolute":
+        name = str(elsewhere.with_suffix(""))
+    else:
+        (run / "sneaky.zip").symlink_to(elsewhere)
+        name = "sneaky"
+    out = tmp_path / "ref"
+    assert main(["export", str(run), "--out", str(out), "--model", name]) == 2
+    err = one_line_error(capsys)
+    assert ("not a model of" in err) if how != "link" else ("leads outside the run folder" in err)
+    assert not out.exists()

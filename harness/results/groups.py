@@ -129,7 +129,32 @@ def group_runs(folder: Path) -> list[Path]:
     found = [run for run in group_members(folder) if RunDir(run).config.is_file()]
     if not found:
         raise GroupError(f"{folder}: the group has no run folder yet")
+    for run in found:
+        _check_member_files(folder, RunDir(run))
     return found
+
+
+def _check_member_files(folder: Path, run: RunDir) -> None:
+    """Refuse a member whose config or models (what ``eval`` and ``tune`` of a group read, and
+    unpickle) lead outside the group folder: pickles are loaded only from paths named on the
+    command line, and a link in a downloaded group would name another.
+
+    Raises:
+        GroupError: naming the file, in one line.
+    """
+    root = folder.resolve()
+    for path in (run.config, run.model, run.best_model):
+        if not (path.exists() or path.is_symlink()):
+            continue
+        try:
+            inside = path.resolve().is_relative_to(root)
+        except (OSError, RuntimeError) as exc:  # a link loop
+            raise GroupError(f"{path}: not a usable file ({exc})") from None
+        if not inside:
+            raise GroupError(
+                f"{path} leads outside the group folder {folder} (a group's files live inside "
+                "it; copy the file in instead of linking it)"
+            )
 
 
 @dataclass

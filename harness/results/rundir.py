@@ -278,8 +278,27 @@ class RunDir:
 
     def model_named(self, name: str) -> Path:
         """A model zip of the run by its path without ``.zip`` (``"model"``, ``"best_model"``,
-        ``"checkpoints/step-N/model"``: the names :func:`result_filename` takes)."""
-        return self.path / f"{name}.zip"
+        ``"checkpoints/step-N/model"``: the names :func:`result_filename` takes).
+
+        Raises:
+            RunDirError: for a name that leaves the run folder (absolute, ``..``, or a link out
+                of it): a model zip is a pickle, loaded only from inside the run named.
+        """
+        relative = Path(f"{name}.zip")
+        if relative.is_absolute() or ".." in relative.parts:
+            raise RunDirError(
+                f"model {name!r}: not a model of {self.path} (model, best_model or "
+                "checkpoints/step-N/model)"
+            )
+        path = self.path / relative
+        if path.is_symlink() or path.exists():
+            try:
+                inside = path.resolve().is_relative_to(self.path.resolve())
+            except (OSError, RuntimeError) as exc:  # a link loop
+                raise RunDirError(f"{path}: not a usable file ({exc})") from None
+            if not inside:
+                raise RunDirError(f"{path} leads outside the run folder {self.path}")
+        return path
 
     def progress_csv(self, resumes: int = 0) -> Path:
         """SB3's CSV log of the scalars (beside the TensorBoard events): ``progress.csv``, and

@@ -94,6 +94,35 @@ class _FixedQ:
         return th.tensor([[0.0, 0.1, 0.0, 0.1, 0.05]]).repeat(len(obs), 1)
 
 
+def test_boltzmann_never_picks_an_action_the_mask_rules_out():
+    # The goal action's empty slots are masked for the greedy choice; sampling masks them too.
+    from harness.evaluation.episodes import model_policy
+
+    class DictQ:
+        class policy:
+            @staticmethod
+            def obs_to_tensor(obs):
+                import torch as th
+
+                return {k: th.as_tensor(v) for k, v in obs.items()}, True
+
+        @staticmethod
+        def q_net(obs):
+            import torch as th
+
+            return th.tensor([[5.0, 0.0, 9.0, 0.0]]).repeat(len(obs["action_mask"]), 1)
+
+    class Env:  # one draw per agent from the copy's generator
+        np_random = np.random.default_rng(0)
+
+    mask = np.tile(np.array([[1.0, 1.0, 0.0, 0.0]], dtype=np.float32), (4000, 1))
+    mask[::2] = (0, 0, 0, 0)  # a row that allows nothing allows everything (allowed_actions)
+    obs = {"x": np.zeros((4000, 1), np.float32), "action_mask": mask}
+    picked = model_policy(DictQ(), temperature=2.0)(obs, [Env()])
+    assert set(picked[1::2].tolist()) == {0, 1}  # never slot 2, the best but empty one
+    assert set(picked[::2].tolist()) == {0, 1, 2, 3}
+
+
 def test_boltzmann_evaluation_depends_on_the_seed_not_the_batching():
     from harness.evaluation.episodes import model_policy
 

@@ -90,6 +90,11 @@ def model_policy(model: Any, temperature: float = 0.0, shield: bool = False) -> 
         if shield:
             # stay is never blocked: a row keeps a finite value
             q[blocked_moves(obs, q.shape[1])] = -np.inf
+        from harness.sb3.dqn import allowed_actions
+
+        allowed = allowed_actions(obs, q.shape[1])
+        if allowed is not None:  # the goal action's empty slots: as the greedy choice masks them
+            q[~allowed] = -np.inf
         return q
 
     def greedy(obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:

@@ -62,7 +62,7 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], str]] = [
      "invalid YAML"),
     ("top-level-list", ["run", "{tmp}/bad.yaml"], {"bad.yaml": "- 1\n- 2\n"},
      "the top level must be a mapping"),
-    ("config-endless-stream", ["run", "/dev/zero"], {}, "/dev/zero: more than 1,048,576 bytes"),
+    ("config-endless-stream", ["run", "/dev/zero"], {}, "/dev/zero: not a regular file"),
     ("yaml-int-too-long", ["run", "{tmp}/bad.yaml"], cfg(f"seed: {HUGE_INT}\n"),
      "invalid YAML (Exceeds the limit (4300 digits)"),
     ("override-int-too-long", ["run", "{cfg}", "--set", f"seed={HUGE_INT}"], {},
@@ -400,7 +400,7 @@ def test_bad_input_is_one_line_exit_2_and_changes_nothing(
         (["run", "{cfg}", "--set", "algo.optimizer=LBFGS"], "cannot train"),
         (["eval", "{tmp}/trunc/model.zip"], "cannot load model"),
         (["compare", "{tmp}/c"], "not a run folder"),
-        (["run", "/dev/zero"], "too large for a config file"),
+        (["run", "/dev/zero"], "not a regular file"),
         (["run", "{cfg}", "--set", "algo.net_arch=[1000000, 1000000]"], "algo.net_arch: a policy"),
     ],
     ids=["config", "model", "compare", "endless-config", "network-too-large"],
@@ -443,3 +443,11 @@ def test_the_memory_check_counts_the_networks_weights(policy, weights):
     assert check_network_memory(config, available=8 * weights) == 8 * weights  # 4 bytes, twice
     with pytest.raises(ValueError, match=f"algo.net_arch: a policy of {weights} weights"):
         check_network_memory(config, available=8 * weights - 1)
+
+
+def test_a_config_that_is_a_fifo_is_refused_at_once(tmp_path, capsys):
+    fifo = tmp_path / "config.yaml"
+    os.mkfifo(fifo)  # opening it for reading would wait for a writer forever
+    assert main(["run", str(fifo)]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert f"{fifo}: not a regular file" in line

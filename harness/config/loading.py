@@ -7,6 +7,7 @@ from __future__ import annotations
 import contextlib
 import difflib
 import re
+import stat
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -165,8 +166,11 @@ def load_config(path: str | Path, overrides: Sequence[str] = ()) -> ExperimentCo
     """
     path = Path(path)
     try:
-        # Read at most one byte past the limit: /dev/zero or a pipe never ends, and a size from
-        # stat() says nothing about them.
+        # A FIFO blocks the open until someone writes to it, /dev/zero never ends: only regular
+        # files are configs (as only regular files are map files).
+        if not stat.S_ISREG(path.stat().st_mode):
+            raise ConfigError(f"{path}: not a regular file (a config is a YAML file)")
+        # Read at most one byte past the limit (the file may grow between stat and read).
         with path.open("rb") as f:
             data = f.read(MAX_CONFIG_BYTES + 1)
         if len(data) > MAX_CONFIG_BYTES:

@@ -67,17 +67,13 @@ def make_env(env: EnvConfig | Mapping[str, Any], render_mode: str | None = None)
 
 def make_core_spec(env: EnvConfig | Mapping[str, Any]) -> CoreSpec:
     """The batched core's objects (:class:`envs.coverage.core.CoreSpec`) of a config's ``env``
-    section (or of ``parallel_env``'s keyword arguments): the same parse as :func:`make_env`.
+    section (or of ``parallel_env``'s keyword arguments), parsed as :func:`make_env` parses them
+    (it is that env's spec).
 
     Raises:
         ConfigError: the env's own ``ValueError``, as one line naming ``env``.
     """
-    kwargs = env_kwargs(env) if isinstance(env, EnvConfig) else dict(env)
-    kwargs.pop("render_mode", None)
-    try:
-        return CoreSpec.parse(**kwargs)
-    except ValueError as exc:
-        raise ConfigError(f"env: {exc}") from None
+    return make_env(env).core.spec
 
 
 def check_env(env: EnvConfig) -> CoverageEnv:

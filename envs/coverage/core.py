@@ -75,6 +75,8 @@ class CoreSpec:
         starts: Fixed start cells ``(n_agents, 2)``, or ``None`` (random each reset).
         frontier: The planner extension's options, or ``None``.
         agent_id: Whether each observation holds the agent's one-hot index.
+        map_name: The map as the user named it (``"random"``, a shipped map, a file), or the
+            source's name.
     """
 
     source: generators.MapGenerator
@@ -86,10 +88,11 @@ class CoreSpec:
     starts: np.ndarray | None = None
     frontier: FrontierOptions | None = None
     agent_id: bool = False
+    map_name: str = ""
 
-    @property
-    def map_name(self) -> str:
-        return self.source.name
+    def __post_init__(self) -> None:
+        if not self.map_name:
+            object.__setattr__(self, "map_name", self.source.name)
 
     @property
     def n_actions(self) -> int:
@@ -124,6 +127,7 @@ class CoreSpec:
         frontier = FrontierOptions.parse(frontier)
         FrontierOptions.check_fits(observation, frontier)
         merged_rewards = _check_rewards(rewards)
+        map_name = map.name if isinstance(map, generators.MapGenerator) else str(map)
         if not isinstance(map, generators.MapGenerator):
             if str(map) == "random":
                 _check_int("height", height, 1)
@@ -160,6 +164,7 @@ class CoreSpec:
             starts=fixed,
             frontier=frontier,
             agent_id=bool(agent_id),
+            map_name=map_name,
         )
 
 
@@ -199,7 +204,6 @@ class CoverageCore:
         self.n_visited = np.zeros(b, dtype=np.int64)
         self.new_cells = np.zeros((b, n), dtype=np.int64)
         self.wall_hits = np.zeros((b, n), dtype=np.int64)
-        self.shapes = np.zeros((b, 2), dtype=np.int64)
         self.scale = np.ones((b, 2), dtype=np.float32)
         # Scratch arrays of the step (overwritten each call).
         self._hit = np.zeros((b, n), dtype=np.int64)
@@ -255,7 +259,6 @@ class CoverageCore:
         self.steps[b] = 0
         self.new_cells[b] = 0
         self.wall_hits[b] = 0
-        self.shapes[b] = (h, w)
         self.scale[b] = getattr(observer, "_scale", 1.0)
         self.walls[b] = walls
         self.observers[b], self.frontiers[b] = observer, frontier
@@ -269,14 +272,20 @@ class CoverageCore:
         observer.reset(state)
 
     def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Step every copy with ``actions`` ``(B, N)`` (checked by the caller to lie in the
-        action space); planner-backed actions are replaced by their moves first.
+        """Step every copy with ``actions`` ``(B, N)``; planner-backed actions are replaced by
+        their moves first.
 
         Returns:
             ``(rewards, done)``: float64 ``(B, N)`` and bool ``(B,)`` (the copies whose episode
             reached ``max_steps``: all their agents are truncated).
+
+        Raises:
+            ValueError: for an action outside the action space (nothing is stepped).
         """
         acts = np.array(actions, dtype=np.int64).reshape(self.copies, self.n_agents)
+        last = int(self.action_space.n) - 1
+        if acts.min() < 0 or acts.max() > last:
+            raise ValueError(f"actions must be in 0..{last}, got {acts.ravel().tolist()}")
         if self.spec.frontier is not None and self.spec.frontier.action is not None:
             for b in range(self.copies):
                 acts[b] = self.frontiers[b].resolve(acts[b].tolist(), self.rng(b))
@@ -308,7 +317,7 @@ class CoverageCore:
         reset and step: the team map is built incrementally."""
         sl = copies if copies is not None else slice(0, self.copies)
         if self.batched_observation:
-            out = np.empty((*self.cells[sl].shape[:1], self.n_agents, 13), dtype=np.float32)
+            out = np.empty((len(self.cells[sl]), self.n_agents, 13), dtype=np.float32)
             thesis_observation(self.cells[sl], self.pad, self.positions[sl], self.scale[sl], out)
             return add_agent_id(out, self.n_agents) if self.spec.agent_id else out
         per_copy = [

@@ -4,18 +4,17 @@ documentation page)."""
 from __future__ import annotations
 
 import functools
-from collections.abc import Mapping, Sequence
-from pathlib import Path
+import inspect
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
-from envs.coverage import generators, render
+from envs.coverage import render
 from envs.coverage.core import DEFAULT_REWARDS, CoreSpec, CoverageCore
-from envs.coverage.frontier import Frontier, FrontierOptions
-from envs.coverage.observations import ObservationOptions
+from envs.coverage.frontier import Frontier
 from envs.coverage.types import CELL_VISITED, GridState
 
 __all__ = ["DEFAULT_REWARDS", "CoverageEnv"]
@@ -31,44 +30,16 @@ class CoverageEnv(ParallelEnv):
         "render_fps": 10,
     }
 
-    def __init__(
-        self,
-        map: str | Path | generators.MapGenerator = "random",
-        height: int = 50,
-        width: int = 50,
-        wall_fraction: Sequence[float] = (0.15, 0.20),
-        n_agents: int = 4,
-        max_steps: int = 1000,
-        observation: str | Mapping[str, Any] | ObservationOptions = "thesis",
-        coords: str = "normalized",
-        rewards: Mapping[str, float] | None = None,
-        starts: Sequence[Sequence[int]] | None = None,
-        render_mode: str | None = None,
-        frontier: FrontierOptions | Mapping[str, Any] | None = None,
-        agent_id: bool = False,
-    ) -> None:
+    def __init__(self, render_mode: str | None = None, **kwargs: Any) -> None:
+        # The arguments (``envs/coverage_v0.py``) have one owner, CoreSpec.parse, which turns
+        # them into the objects the core is built from; the signature below shows them.
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(
                 f"render_mode must be one of {self.metadata['render_modes']} or None, "
                 f"got {render_mode!r}"
             )
-        spec = CoreSpec.parse(
-            map=map,
-            height=height,
-            width=width,
-            wall_fraction=wall_fraction,
-            n_agents=n_agents,
-            max_steps=max_steps,
-            observation=observation,
-            coords=coords,
-            rewards=rewards,
-            starts=starts,
-            frontier=frontier,
-            agent_id=agent_id,
-        )
         # The batched core holds the episode (one copy): the rules are written once, there.
-        name = spec.map_name if isinstance(map, generators.MapGenerator) else str(map)
-        self._attach(CoverageCore(spec, copies=1), 0, render_mode, name)
+        self._attach(CoverageCore(CoreSpec.parse(**kwargs), copies=1), 0, render_mode)
 
     @classmethod
     def copy_of(cls, core: CoverageCore, copy: int, render_mode: str | None = None) -> CoverageEnv:
@@ -77,15 +48,13 @@ class CoverageEnv(ParallelEnv):
         ``np_random``, ``render()`` and ``reset()`` are the copy's. Its ``step()`` refuses: the
         core steps every copy at once (``harness.evaluation.episodes.run_episodes``)."""
         env = cls.__new__(cls)
-        env._attach(core, copy, render_mode, core.spec.map_name)
+        env._attach(core, copy, render_mode)
         return env
 
-    def _attach(
-        self, core: CoverageCore, copy: int, render_mode: str | None, map_name: str
-    ) -> None:
+    def _attach(self, core: CoverageCore, copy: int, render_mode: str | None) -> None:
         spec = core.spec
         self._core, self._copy = core, copy
-        self.map_name = map_name
+        self.map_name = spec.map_name
         self.wall_fraction = getattr(spec.source, "wall_fraction", (0.0, 0.0))
         self.rewards = dict(spec.rewards)
         self.frontier = spec.frontier
@@ -202,7 +171,7 @@ class CoverageEnv(ParallelEnv):
         """
         core, copy = self._core, self._copy
         core.reset(copy, seed, options)
-        self.height, self.width = (int(x) for x in core.shapes[copy])
+        self.height, self.width = core.walls[copy].shape
         self.agents = self.possible_agents[:]
         obs = self._per_agent(core.observe(slice(copy, copy + 1)))
         return obs, {a: {} for a in self.agents}
@@ -226,9 +195,6 @@ class CoverageEnv(ParallelEnv):
             acts = [actions[a] for a in self.agents]
         except KeyError as exc:
             raise ValueError(f"no action given for {exc.args[0]}") from exc
-        last = int(self._act_space.n) - 1
-        if not all(0 <= a <= last for a in acts):
-            raise ValueError(f"actions must be in 0..{last}, got {[int(a) for a in acts]}")
         core = self._core
         reward, done = core.step(np.array(acts, dtype=np.int64)[None])
         agents = self.agents
@@ -270,3 +236,18 @@ class CoverageEnv(ParallelEnv):
         if state is None:
             raise RuntimeError("call reset() before using the environment")
         return state
+
+
+def _constructor_signature() -> inspect.Signature:
+    """``CoverageEnv(...)``'s signature as ``help()`` and editors show it: the arguments of
+    :meth:`CoreSpec.parse` (their one owner) and ``render_mode``."""
+    parse = inspect.signature(CoreSpec.parse)
+    render_mode = inspect.Parameter(
+        "render_mode", inspect.Parameter.KEYWORD_ONLY, default=None, annotation="str | None"
+    )
+    params = [inspect.Parameter("self", inspect.Parameter.POSITIONAL_OR_KEYWORD)]
+    params += [p.replace(kind=inspect.Parameter.KEYWORD_ONLY) for p in parse.parameters.values()]
+    return parse.replace(parameters=[*params, render_mode], return_annotation=None)
+
+
+CoverageEnv.__init__.__signature__ = _constructor_signature()  # type: ignore[attr-defined]

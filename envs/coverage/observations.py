@@ -292,8 +292,10 @@ class TeamMapObservation(ObservationBuilder):
         self._shares = np.zeros((4, self.global_size**2), dtype=np.uint8)
         self._update_shares(np.arange(self.global_size**2))
         self._wp = wp
-        self._window = (np.arange(-1, 2)[:, None] * wp + np.arange(-1, 2)[None, :]).ravel()
-        self._moves = np.array([-wp, wp, -1, 1])  # up, down, left, right on the flat grid
+        if self.frontier:
+            # Free cells of the padded grid, flat: walls never change within an episode, so the
+            # frontier field's search reads this copy instead of the (maybe strided) grid.
+            self._free = np.ascontiguousarray(state.cells != CELL_WALL).ravel()
 
     def _update(self, state: GridState) -> None:
         """Make the agents' 3x3 windows known and bring changed cells up to date (compiled:
@@ -373,9 +375,8 @@ class TeamMapObservation(ObservationBuilder):
         n, c = state.positions.shape[0], self.crop
         field = np.zeros((n, c, c), dtype=np.uint8)
         compass = np.zeros((n, 5), dtype=np.float32)
-        cells = state.cells if state.cells.flags.c_contiguous else np.ascontiguousarray(state.cells)
         frontier_views(
-            cells.ravel(),
+            self._free,
             self._cat,
             self._wp,
             state.pad,

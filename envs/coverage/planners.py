@@ -138,7 +138,7 @@ class FrontierPlanner:
         #: Per agent: the padded cell of its target at the last :meth:`act` (-1: none).
         self.goals: list[int] = []
         self._offsets_np = np.array(self.offsets, dtype=np.int64)
-        self._scratch: tuple[np.ndarray, ...] | None = None
+        self._scratch: np.ndarray | None = None
         self._neighbours: np.ndarray | None = None
 
     # ------------------------------------------------------------------ map upkeep
@@ -260,37 +260,22 @@ class FrontierPlanner:
         """Nearest unclaimed target from ``start`` and the first cell of a shortest path to it
         (the tie-break's choice among the nearest), or ``None`` when no unclaimed target is
         reachable through seen free cells."""
-        n = self._nearest(start, claimed)
+        size = len(self.passable)
+        if self._scratch is None or self._scratch.shape[1] != size:
+            self._scratch = np.empty((4, size), dtype=np.int64)  # the search's working arrays
+        first, queue, ties, firsts = self._scratch
+        all_ties = self.tie_break != "order"
+        n = nearest_targets(
+            self.passable_np, self.target_np, claimed, start, self._offsets_np, all_ties,
+            first, queue, ties, firsts,
+        )  # fmt: skip
         if n == 0:
             return None
         if n == 1:
-            return int(self._ties[0]), int(self._firsts[0])
-        ties = self._ties[:n].tolist()
-        goal = self._choose(ties)
-        return goal, int(self._firsts[ties.index(goal)])
-
-    def _nearest(self, start: int, claimed: np.ndarray) -> int:
-        size = len(self.passable)
-        if self._scratch is None or self._scratch[0].size != size:
-            self._scratch = (
-                np.empty(size, dtype=np.int64),
-                np.empty(size, dtype=np.int64),
-                np.empty(size, dtype=np.int64),
-                np.empty(size, dtype=np.int64),
-            )
-        first, queue, self._ties, self._firsts = self._scratch
-        return nearest_targets(
-            self.passable_np,
-            self.target_np,
-            claimed,
-            start,
-            self._offsets_np,
-            self.tie_break != "order",
-            first,
-            queue,
-            self._ties,
-            self._firsts,
-        )
+            return int(ties[0]), int(firsts[0])
+        found = ties[:n].tolist()
+        goal = self._choose(found)
+        return goal, int(firsts[found.index(goal)])
 
     def _choose(self, ties: list[int]) -> int:
         """The tie-break among equally near targets, listed in the order the search found them."""

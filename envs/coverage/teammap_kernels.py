@@ -24,7 +24,7 @@ _SHARE_ORDER = np.array([1, 2, 3, 0], dtype=np.int64)
 
 @njit(cache=True, nogil=True)
 def frontier_views(
-    cells: np.ndarray,
+    free: np.ndarray,
     cat: np.ndarray,
     wp: int,
     pad: int,
@@ -36,7 +36,7 @@ def frontier_views(
     """The frontier field ``(agents, crop, crop)`` uint8 and compass ``(agents, 5)`` float32
     (zeroed by the caller) of every agent.
 
-    ``d`` is the length of a shortest path through free cells (``cells`` flat, padded) to the
+    ``d`` is the length of a shortest path through ``free`` cells (flat, padded) to the
     nearest known free cell not yet visited: one multi-source breadth-first search from every
     such cell, then unknown cells set to infinity (they show nothing). Going through unknown
     cells never shortens a path (see the builder's docstring), so this is the search through
@@ -67,7 +67,7 @@ def frontier_views(
         d = dist[u] + 1.0
         for m in moves:
             v = u + m
-            if cells[v] != _WALL and dist[v] == np.inf:
+            if free[v] and dist[v] == np.inf:
                 dist[v] = d
                 queue[tail] = v
                 tail += 1

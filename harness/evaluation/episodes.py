@@ -188,7 +188,6 @@ def run_episodes(
     # policy as an env view (baselines read the map from it); all copies step in one call.
     batches: dict[int, tuple[CoverageCore, list[CoverageEnv]]] = {}
     n_agents, max_steps = env.n_agents, env.max_steps
-    last_action = spec.n_actions - 1
     marks = [max(1, round(f * max_steps)) for f in CHECKPOINT_FRACTIONS]
     targets = [(f, _target_key(f)) for f in COVERAGE_TARGETS]
     results: list[EpisodeResult] = []
@@ -211,8 +210,6 @@ def run_episodes(
             if should_stop is not None and should_stop():
                 raise EpisodesStopped(f"stopped at step {t - 1} of episode {first}")
             actions = np.asarray(policy(CoverageCore.flat(obs), batch)).reshape(size, n_agents)
-            if actions.min() < 0 or actions.max() > last_action:
-                raise ValueError(f"actions must be in 0..{last_action}, got {actions.tolist()}")
             core.step(actions)
             obs = core.observe()
             coverage = (core.n_visited / core.n_free).tolist()

@@ -84,7 +84,6 @@ class CoreVecEnv(VecEnv):
                 core.reset(copy, seed + copy)
         self._actions: np.ndarray | None = None
         super().__init__(core.copies * core.n_agents, core.observation_space, core.action_space)
-        self._last = int(core.action_space.n) - 1
 
     # ------------------------------------------------------------------ SB3 API
     def seed(self, seed: int | None = None) -> list[int | None]:
@@ -113,8 +112,6 @@ class CoreVecEnv(VecEnv):
         if actions is None:
             raise RuntimeError("step_wait() without step_async()")
         self._actions = None
-        if actions.size and (actions.min() < 0 or actions.max() > self._last):
-            raise ValueError(f"actions must be in 0..{self._last}, got {actions.tolist()}")
         rewards, done = core.step(actions)
         obs = core.observe()
         infos = [info for copy in range(core.copies) for info in core.infos(copy)]

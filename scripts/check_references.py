@@ -1,13 +1,16 @@
 """Re-evaluate every committed reference policy on all the episodes of its committed
-``eval.json`` and compare, episode by episode (coverage and wall hits), with what was stored.
+``eval.json`` and compare, episode by episode (coverage and wall hits), with what was stored;
+with ``--baselines``, every stored written-policy evaluation ``docs/baselines/*.json`` (the
+planner rows of docs/results.md and README's baseline tables), every number of it.
 
-The guard that a change of the simulation path (the batched core) left every reference's
-results as they were: episode ``k`` is seeded with ``seed + k`` and its action noise too, so a
-reference evaluated again on the same episodes must give the same numbers.
+The guard that a change of the simulation path (the batched core, the compiled searches) left
+every published result as it was: episode ``k`` is seeded with ``seed + k`` and its action noise
+too, so a policy evaluated again on the same episodes must give the same numbers.
 
     python scripts/check_references.py [NAME ...]   # default: every runs/reference/*/eval.json
+    python scripts/check_references.py --baselines [PATTERN]  # e.g. '*-frontier_hungarian'
 
-Prints one line per reference and exits 1 when any differs. Evaluates copies in a temporary
+Prints one line per evaluation and exits 1 when any differs. Evaluates copies in a temporary
 folder: the committed files are not touched.
 """
 
@@ -54,7 +57,52 @@ def check(name: str, scratch: Path) -> bool:
     return same
 
 
+def _same_numbers(new: dict, stored: dict) -> bool:
+    """Every stored number equal (fields added to the output since, such as an interval, are
+    not a difference; nor is the form of the env's settings, which older files wrote in an
+    older form: the env is the config's)."""
+
+    def covers(a: object, b: object) -> bool:  # a holds everything b holds
+        if isinstance(a, dict) and isinstance(b, dict):
+            return all(k in a and covers(a[k], v) for k, v in b.items())
+        return a == b
+
+    new.pop("env", None), stored.pop("env", None)
+    return covers(new, stored)
+
+
+def check_baseline(stored: Path) -> bool:
+    """Evaluate a stored baseline again (its config, policy, episodes and max_steps override,
+    as ``scripts/baselines.sh`` named it) and compare every number."""
+    committed = json.loads(stored.read_text())
+    policy = committed["policy"]
+    stem = stored.name.removesuffix(f"-{policy}.json")
+    config, _, max_steps = stem.partition("-env.max_steps-")
+    args = ["eval", "--policy", policy, "--config", str(ROOT / "configs" / f"{config}.yaml")]
+    args += ["--episodes", str(committed["episodes"]), "--json"]
+    if max_steps:
+        args += ["--set", f"env.max_steps={max_steps}"]
+    start = time.perf_counter()
+    out = io.StringIO()
+    with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
+        code = harness(args)
+    same = code == 0 and _same_numbers(json.loads(out.getvalue()), committed)
+    print(
+        f"{stored.stem:<44} {committed['episodes']:>4} episodes  coverage_mean "
+        f"{committed['coverage_mean']:.4f}  {'same' if same else 'DIFFERENT'}  "
+        f"{time.perf_counter() - start:.0f} s",
+        flush=True,
+    )
+    return same
+
+
 def main(names: list[str]) -> int:
+    if names[:1] == ["--baselines"]:
+        patterns = names[1:] or ["*"]
+        stored = sorted(
+            {p for pat in patterns for p in (ROOT / "docs" / "baselines").glob(f"{pat}.json")}
+        )
+        return 0 if all([check_baseline(p) for p in stored]) else 1
     if not names:
         names = sorted(p.parent.name for p in (ROOT / "runs" / "reference").glob("*/eval.json"))
     with tempfile.TemporaryDirectory() as tmp:

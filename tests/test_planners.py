@@ -171,9 +171,7 @@ def test_cluster_candidates_match_a_from_scratch_reference() -> None:
         planner.sync(env.steps, env.positions, lambda: (env.walls, env.visited))
         env.step(dict(zip(env.agents, planner.act())))
     planner.sync(env.steps, env.positions, lambda: (env.walls, env.visited))
-    from scipy.sparse.csgraph import dijkstra
-
-    dist = dijkstra(planner._weighted_grid(), indices=np.asarray(planner.positions))
+    dist, _ = planner.distance_fields()
     cells = np.flatnonzero(planner.target_np)
     cost, goals = planner._candidate_costs(dist[:, cells], cells)
     labels, n = label(planner.target_np.reshape(-1, planner.stride))

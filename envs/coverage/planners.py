@@ -27,10 +27,11 @@ right, down and stops when the nearest distance layer holding an unclaimed targe
 two away.
 
 **Coordinated planners** (:class:`CoordinatedPlanner`): the team's assignment of targets is
-chosen together, from one distance field per agent per step (SciPy's compiled shortest paths on
-the graph of seen free cells, reused for every candidate): :class:`UtilityPlanner` (Burgard et al.
-2005), :class:`MinPosPlanner` (Bautin et al. 2012) and :class:`HungarianPlanner` (an optimal
-assignment by :func:`scipy.optimize.linear_sum_assignment`).
+chosen together, from one distance field per agent per step (a compiled breadth-first search
+through the seen free cells, :mod:`envs.coverage.paths`, reused for every candidate; its rule
+for tied paths is that of SciPy's ``dijkstra``, on which the planners were measured):
+:class:`UtilityPlanner` (Burgard et al. 2005), :class:`MinPosPlanner` (Bautin et al. 2012) and
+:class:`HungarianPlanner` (an optimal assignment by :func:`scipy.optimize.linear_sum_assignment`).
 """
 
 from __future__ import annotations
@@ -41,9 +42,8 @@ import numpy as np
 from numba import njit
 from scipy.ndimage import label
 from scipy.optimize import linear_sum_assignment
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import dijkstra
 
+from envs.coverage.paths import distance_fields
 from envs.coverage.types import STAY
 
 __all__ = [
@@ -139,7 +139,6 @@ class FrontierPlanner:
         self.goals: list[int] = []
         self._offsets_np = np.array(self.offsets, dtype=np.int64)
         self._scratch: np.ndarray | None = None
-        self._neighbours: np.ndarray | None = None
 
     # ------------------------------------------------------------------ map upkeep
     def sync(
@@ -191,8 +190,6 @@ class FrontierPlanner:
         self.target_np = target
         self.seen_np = seen.ravel()
         self.n_targets = int(target.sum())
-        self.graph_version = 0  # bumped whenever a cell becomes passable
-        self._graph: tuple[int, csr_matrix] | None = None
 
     def _visit(self, p: int) -> None:
         self.visited[p] = True
@@ -205,7 +202,6 @@ class FrontierPlanner:
                 self.seen[q] = self.seen_np[q] = True
                 if self.free[q]:
                     self.passable[q] = self.passable_np[q] = True
-                    self.graph_version += 1
                     if not self.visited[q]:
                         self.target[q] = self.target_np[q] = True
                         self.n_targets += 1
@@ -236,16 +232,26 @@ class FrontierPlanner:
             actions.append(self.action_of[step - start])
         return actions
 
-    def distance_fields(self) -> tuple[np.ndarray, np.ndarray]:
+    def distance_fields(self, limit: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
         """Every agent's shortest path lengths through the seen free cells to every padded cell
-        and the predecessors on those paths, ``(agents, cells)`` each (SciPy's compiled search
-        from all agents in one call; ``inf`` and -9999 where a cell cannot be reached)."""
-        return dijkstra(
-            self._graph_now(),
-            indices=self.positions,
-            return_predecessors=True,
-            unweighted=True,
-        )
+        and the predecessors on those paths, ``(agents, cells)`` each (one compiled search per
+        agent, :func:`envs.coverage.paths.distance_fields`: ``inf`` and
+        :data:`~envs.coverage.paths.UNREACHED` where a cell is not reached within ``limit``)."""
+        return self._fields(np.asarray(self.positions, dtype=np.int64), limit)
+
+    def _fields(self, starts: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
+        size = self.passable_np.size
+        dist = np.empty((starts.size, size))
+        pred = np.empty((starts.size, size), dtype=np.int32)
+        queue = self._scratch_arrays(size)[1]
+        distance_fields(self.passable_np, self.stride, starts, limit, dist, pred, queue)
+        return dist, pred
+
+    def _scratch_arrays(self, size: int) -> np.ndarray:
+        """The searches' working arrays (4, cells), made once per map size."""
+        if self._scratch is None or self._scratch.shape[1] != size:
+            self._scratch = np.empty((4, size), dtype=np.int64)
+        return self._scratch
 
     def first_move(self, pred: np.ndarray, agent: int, goal: int) -> int:
         """The move (0-3) that starts the path to ``goal`` in agent ``agent``'s predecessors
@@ -260,10 +266,7 @@ class FrontierPlanner:
         """Nearest unclaimed target from ``start`` and the first cell of a shortest path to it
         (the tie-break's choice among the nearest), or ``None`` when no unclaimed target is
         reachable through seen free cells."""
-        size = len(self.passable)
-        if self._scratch is None or self._scratch.shape[1] != size:
-            self._scratch = np.empty((4, size), dtype=np.int64)  # the search's working arrays
-        first, queue, ties, firsts = self._scratch
+        first, queue, ties, firsts = self._scratch_arrays(len(self.passable))
         all_ties = self.tie_break != "order"
         n = nearest_targets(
             self.passable_np, self.target_np, claimed, start, self._offsets_np, all_ties,
@@ -288,38 +291,6 @@ class FrontierPlanner:
             )  # min keeps the first of equals: "order" breaks the remaining ties
         return ties[0]
 
-    def _graph_now(self) -> csr_matrix:
-        """Adjacency (CSR) of the seen free cells, cached until a cell becomes passable.
-
-        Built straight in CSR form: each cell's neighbours in ascending index order (up, left,
-        right, down), as :meth:`_search` visits them. The padding ring has no edges, so only the
-        rows of the inner cells are computed.
-        """
-        if self._graph is not None and self._graph[0] == self.graph_version:
-            return self._graph[1]
-        p, s = self.passable_np, self.stride
-        n = p.size
-        inner = p[s:-s]
-        mask = np.empty((n - 2 * s, 4), dtype=bool)
-        np.logical_and(inner, p[: -2 * s], out=mask[:, 0])
-        np.logical_and(inner, p[s - 1 : -s - 1], out=mask[:, 1])
-        np.logical_and(inner, p[s + 1 : n - s + 1], out=mask[:, 2])
-        np.logical_and(inner, p[2 * s :], out=mask[:, 3])
-        if self._neighbours is None or len(self._neighbours) != n - 2 * s:
-            cells = np.arange(s, n - s, dtype=np.int32)
-            self._neighbours = cells[:, None] + np.array(self.offsets, dtype=np.int32)
-        indices = self._neighbours[mask]
-        counts = mask.view(np.uint8)
-        degree = counts[:, 0] + counts[:, 1]  # summing columns beats count_nonzero(axis=1)
-        degree += counts[:, 2]
-        degree += counts[:, 3]
-        indptr = np.zeros(n + 1, dtype=np.int32)
-        np.cumsum(degree, out=indptr[s + 1 : n - s + 1])
-        indptr[n - s + 1 :] = indptr[n - s]
-        graph = csr_matrix((np.ones(indices.size), indices, indptr), shape=(n, n), copy=False)
-        self._graph = (self.graph_version, graph)
-        return graph
-
 
 # ---------------------------------------------------------------------- coordinated planners
 #: How a coordinated planner gathers its candidate targets: every known free unvisited cell
@@ -336,7 +307,7 @@ class CoordinatedPlanner(FrontierPlanner):
     """A planner that chooses every agent's target together, re-planning every step.
 
     Each step it computes one distance field per agent (shortest paths through the seen free
-    cells, SciPy's compiled search from all agents in one call), reads the cost of every
+    cells, :func:`envs.coverage.paths.distance_fields`), reads the cost of every
     candidate target for every agent from them, lets :meth:`assign` choose one candidate per
     agent, and moves each agent one step along a shortest path to its own. It keeps the team's
     map as :class:`FrontierPlanner` does (:meth:`sync`), plans only over what the team knows and
@@ -344,7 +315,7 @@ class CoordinatedPlanner(FrontierPlanner):
     episode repeats from its seed. Ties go to the lower candidate index (cells in row-major
     order), then the lower agent index.
 
-    The distance fields reach ``horizon`` cells (SciPy's ``limit``): candidates farther than
+    The distance fields reach ``horizon`` cells: candidates farther than
     that from an agent cost it nothing it can plan with (as if unreachable), which keeps a step's
     searches local; an agent with no candidate within the horizon searches the whole map.
 
@@ -370,48 +341,6 @@ class CoordinatedPlanner(FrontierPlanner):
         if horizon is not None and not horizon >= 1:
             raise ValueError(f"horizon must be >= 1 or None, got {horizon!r}")
         self.candidates, self.horizon = candidates, horizon
-        self._grid: csr_matrix | None = None
-
-    def _weighted_grid(self) -> csr_matrix:
-        """The 4-neighbour graph of the whole padded grid with weight 1 on edges between seen
-        free cells and infinity elsewhere (no path crosses them), its weights brought up to date
-        in place when cells became passable: no graph is built again during an episode."""
-        passable, s = self.passable_np, self.stride
-        n = passable.size
-        if self._grid is None:  # a new episode (_rebuild) or the first step
-            inner = np.arange(s, n - s)
-            self._nbr = inner[:, None] + np.array(self.offsets)  # (inner cells, 4)
-            indptr = np.zeros(n + 1, dtype=np.int32)
-            indptr[s + 1 : n - s + 1] = 4 * np.arange(1, inner.size + 1)
-            indptr[n - s + 1 :] = 4 * inner.size
-            data = np.full(4 * inner.size, np.inf)
-            self._grid = csr_matrix(
-                (data, self._nbr.ravel().astype(np.int32), indptr), shape=(n, n), copy=False
-            )
-            # Data slot of the edge from each neighbour back to the cell (offsets are symmetric:
-            # the reverse of direction k is direction 3 - k).
-            self._back = 4 * (self._nbr - s) + (3 - np.arange(4))
-            self._known = np.zeros(n, dtype=bool)
-            self._grid_version = -1
-        if self._grid_version == self.graph_version:  # no cell became passable since
-            return self._grid
-        self._grid_version = self.graph_version
-        changed = np.flatnonzero(passable != self._known)
-        if changed.size:
-            self._known = passable.copy()
-            rows = changed - s  # the padding ring is never passable: only inner cells change
-            both = passable[changed][:, None] & passable[self._nbr[rows]]  # (changed, 4)
-            weight = np.where(both, 1.0, np.inf)
-            data = self._grid.data
-            data[4 * rows[:, None] + np.arange(4)] = weight  # out of the changed cells
-            # Into them, from passable neighbours (inner cells): cells only become passable
-            # during an episode, and a new episode starts from a graph without edges.
-            data[self._back[rows][both]] = 1.0
-        return self._grid
-
-    def _rebuild(self, walls: np.ndarray, visited_map: np.ndarray) -> None:
-        super()._rebuild(walls, visited_map)
-        self._grid = None  # a new map (a new episode): the weights start again
 
     def act(self, rng: np.random.Generator | None = None) -> list[int]:
         """One action per agent (``rng`` is unused: the choice is deterministic)."""
@@ -419,17 +348,14 @@ class CoordinatedPlanner(FrontierPlanner):
         self.goals = [-1] * n
         if self.n_targets == 0:
             return [STAY] * n
-        starts = np.asarray(self.positions)
-        graph = self._weighted_grid()
-        limit = np.inf if self.horizon is None else self.horizon
-        dist, pred = dijkstra(graph, indices=starts, return_predecessors=True, limit=limit)
+        starts = np.asarray(self.positions, dtype=np.int64)
+        limit = np.inf if self.horizon is None else float(self.horizon)
+        dist, pred = self._fields(starts, limit)
         cells = np.flatnonzero(self.target_np)
         costs = dist[:, cells]
         blind = ~(costs < np.inf).any(axis=1)
         if self.horizon is not None and blind.any():  # nothing within reach: the whole map
-            dist[blind], pred[blind] = dijkstra(
-                graph, indices=starts[blind], return_predecessors=True
-            )
+            dist[blind], pred[blind] = self._fields(starts[blind], np.inf)
             costs = dist[:, cells]
         cost, goal_cells = self._candidate_costs(costs, cells)
         chosen = self.assign(cost, goal_cells)

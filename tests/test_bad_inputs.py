@@ -437,6 +437,36 @@ def console(args: list[str], cwd: Path, gone: bool = False, **env: str):
     )
 
 
+def test_paths_the_terminal_cannot_encode_are_printed_escaped(scratch):
+    tmp = scratch["tmp"]
+    (tmp / "ref ü x").mkdir()
+    (tmp / "ref ü x" / "episodes.csv").write_text(EPISODES)
+    proc = console(["compare", "ref ü x", "--out", "c.png"], tmp, PYTHONIOENCODING="ascii")
+    assert "Traceback" not in proc.stderr
+    assert proc.returncode == 0, proc.stderr
+    assert "ref \\xfc x" in proc.stdout  # the run's name in the table, escaped
+    assert (tmp / "c.png").is_file()
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["compare", "{done}", "--out", "{tmp}/c.png"],
+        pytest.param(
+            ["render", "{run}", "--out", "{tmp}/c.png", "--gif", "{tmp}/c.gif"],
+            marks=pytest.mark.slow,  # plays an episode
+        ),
+    ],
+    ids=["compare", "render"],
+)
+def test_pictures_are_written_whatever_display_backend_the_user_set(scratch, args):
+    values = {k: str(v) for k, v in scratch.items()}
+    proc = console([a.format(**values) for a in args], scratch["tmp"], MPLBACKEND="bogus")
+    assert "Traceback" not in proc.stderr
+    assert proc.returncode == 0, proc.stderr
+    assert (scratch["tmp"] / "c.png").is_file()
+
+
 @pytest.mark.parametrize(
     "args",
     [["eval", "{run}"], ["run", "{cfg}", "--runs-dir", "{tmp}/runs"], ["--help"]],

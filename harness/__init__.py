@@ -49,6 +49,27 @@ def _started_as_command() -> bool:
     return "-m" in argv and argv[argv.index("-m") + 1 :][:1] == ["harness.cli"]
 
 
+def check_working_folder() -> None:
+    """Exit with one line and code 2 when the current folder is gone: deleted after the shell
+    entered it, ``os.getcwd()`` fails, and libraries call it while they load (PettingZoo, in a
+    default argument), which would end the command in their traceback. Relative paths mean
+    nothing there, so the command is refused rather than guessed at. Run first by the command
+    and by each process it starts (``harness/processes.py``)."""
+    try:
+        os.getcwd()
+    except OSError as exc:
+        problem = (
+            "the current folder was deleted"
+            if isinstance(exc, FileNotFoundError)
+            else f"cannot read the current folder ({exc.strerror or type(exc).__name__})"
+        )
+        sys.stderr.write(
+            f"harness: error: {problem}: cd to an existing folder and run the command again\n"
+        )
+        sys.stderr.flush()
+        raise SystemExit(2) from None
+
+
 def end_of_loading() -> None:
     """Give Ctrl-C back to Python (``KeyboardInterrupt``, which each command handles); called
     by ``harness.cli.main`` once the modules are loaded."""
@@ -62,6 +83,8 @@ if _started_as_command() and signal.getsignal(signal.SIGINT) is signal.default_i
     # (ValueError: imported from another thread than the main one, not at the command's start)
     with contextlib.suppress(ValueError):
         signal.signal(signal.SIGINT, _interrupted_while_loading)
+if _started_as_command():
+    check_working_folder()
 
 
 def __getattr__(name: str) -> Any:

@@ -20,8 +20,10 @@ code 2, never a traceback.
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import math
+import os
 import shutil
 import signal
 import sys
@@ -837,6 +839,7 @@ COMMANDS = {
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``harness`` console script."""
+    _settle_environment()
     try:
         # The modules are loaded: from here on a Ctrl-C is a KeyboardInterrupt, which each
         # command handles (harness/__init__.py turned it into one line while they loaded).
@@ -851,6 +854,27 @@ def main(argv: Sequence[str] | None = None) -> int:
         # otherwise land in the interpreter's shutdown (torch's finalizers) with a traceback.
         signal.signal(signal.SIGINT, signal.SIG_IGN)
     return code
+
+
+def _settle_environment() -> None:
+    """Take from the environment the command starts in only what it means for this command.
+
+    * Paths are printed whatever the terminal's encoding: a character it lacks (``ü`` under
+      ``PYTHONIOENCODING=ascii`` or an ASCII locale, a file name that is not UTF-8) is written as
+      a backslash escape instead of raising ``UnicodeEncodeError`` after the work is done.
+    * Pictures are written with matplotlib's Agg backend: the commands only write files, so the
+      user's display backend (``MPLBACKEND``, a matplotlibrc) must not matter, and matplotlib
+      rejects an unknown ``MPLBACKEND`` as it is imported (by rliable's dependencies too, for
+      mere statistics), so the variable itself is set, before anything imports matplotlib. The
+      processes the command starts inherit it.
+
+    (A current folder deleted since the shell entered it is refused earlier, in
+    ``harness/__init__.py``: libraries ask for it while they load.)
+    """
+    for stream in (sys.stdout, sys.stderr):
+        if isinstance(stream, io.TextIOWrapper):  # not None, nor a replacement without it
+            stream.reconfigure(errors="backslashreplace")
+    os.environ["MPLBACKEND"] = "agg"
 
 
 def _main(argv: list[str]) -> int:

@@ -8,7 +8,8 @@ downloaded config would run in every child. Python 3.11's ``-P`` flag leaves it 
 project supports 3.10, and ``-I`` would also drop ``PYTHONPATH`` (a source checkout run without
 installing); so each child starts from a short bootstrap that removes that first entry before it
 imports anything, then appends the folder this harness was imported from at the end of the path
-(after every installed package, so it can only supply ``harness`` and ``envs``).
+(after every installed package, so it can only supply ``harness`` and ``envs``). A start folder
+deleted meanwhile ends the child there, in one line (:func:`harness.check_working_folder`).
 """
 
 from __future__ import annotations
@@ -21,9 +22,15 @@ _ROOT = str(Path(__file__).resolve().parents[1])
 
 _SCRUB = (
     "import os, sys\n"
-    "if sys.path and sys.path[0] in ('', os.getcwd()):\n"
+    "try:\n"
+    "    _cwd = os.getcwd()\n"
+    "except OSError:  # deleted meanwhile: refused below, in one line\n"
+    "    _cwd = None\n"
+    "if sys.path and sys.path[0] in ('', _cwd):\n"
     "    del sys.path[0]  # the start folder, put first by -c\n"
     f"sys.path.append({_ROOT!r})\n"
+    "from harness import check_working_folder\n"
+    "check_working_folder()\n"
 )
 
 

@@ -421,6 +421,72 @@ def test_the_console_script_shows_no_traceback(scratch, args, message):
     assert "Traceback" not in proc.stderr
 
 
+def console(args: list[str], cwd: Path, gone: bool = False, **env: str):
+    """``harness ARGS`` as a console command started in ``cwd`` with the extra environment
+    variables ``env``; ``gone``: ``cwd`` is deleted after the shell entered it, before Python
+    starts (``os.getcwd()`` then fails in the command)."""
+    cmd = [sys.executable, "-m", "harness.cli", *args]
+    if gone:
+        cmd = ["sh", "-c", 'cd "$0" && rmdir "$0" && exec "$@"', str(cwd), *cmd]
+    return subprocess.run(
+        cmd,
+        capture_output=True,
+        text=True,
+        cwd=cwd.parent if gone else cwd,
+        env={**os.environ, "PYTHONPATH": str(ROOT), **env},
+    )
+
+
+def test_paths_the_terminal_cannot_encode_are_printed_escaped(scratch):
+    tmp = scratch["tmp"]
+    (tmp / "ref ü x").mkdir()
+    (tmp / "ref ü x" / "episodes.csv").write_text(EPISODES)
+    proc = console(["compare", "ref ü x", "--out", "c.png"], tmp, PYTHONIOENCODING="ascii")
+    assert "Traceback" not in proc.stderr
+    assert proc.returncode == 0, proc.stderr
+    assert "ref \\xfc x" in proc.stdout  # the run's name in the table, escaped
+    assert (tmp / "c.png").is_file()
+
+
+@pytest.mark.parametrize(
+    "args",
+    [
+        ["compare", "{done}", "--out", "{tmp}/c.png"],
+        pytest.param(
+            ["render", "{run}", "--out", "{tmp}/c.png", "--gif", "{tmp}/c.gif"],
+            marks=pytest.mark.slow,  # plays an episode
+        ),
+    ],
+    ids=["compare", "render"],
+)
+def test_pictures_are_written_whatever_display_backend_the_user_set(scratch, args):
+    values = {k: str(v) for k, v in scratch.items()}
+    proc = console([a.format(**values) for a in args], scratch["tmp"], MPLBACKEND="bogus")
+    assert "Traceback" not in proc.stderr
+    assert proc.returncode == 0, proc.stderr
+    assert (scratch["tmp"] / "c.png").is_file()
+
+
+@pytest.mark.parametrize(
+    "args",
+    [["eval", "{run}"], ["run", "{cfg}", "--runs-dir", "{tmp}/runs"], ["--help"]],
+    ids=["eval", "run", "help"],
+)
+def test_a_deleted_current_folder_is_one_line_and_exit_2(scratch, args):
+    values = {k: str(v) for k, v in scratch.items()}
+    gone = scratch["tmp"] / "gone"
+    gone.mkdir()
+    before = snapshot(scratch["tmp"])
+    proc = console([a.format(**values) for a in args], gone, gone=True)
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.splitlines() == [
+        "harness: error: the current folder was deleted: cd to an existing folder and run the "
+        "command again"
+    ]
+    assert not gone.exists()
+    assert snapshot(scratch["tmp"]) == {k: v for k, v in before.items() if k != "gone"}
+
+
 @pytest.mark.parametrize(
     ("policy", "weights"),
     [

@@ -190,6 +190,46 @@ def test_an_unknown_key_far_from_every_known_one_gets_no_guess():
     assert "did you mean" not in str(err.value)
 
 
+MERGED = """\
+name: merged
+algo: {learning_starts: 50}
+phases:
+  - &explore {name: explore, timesteps: 300, batch_size: 16, train_freq: 2}
+  - &small {name: small, timesteps: 100, batch_size: 8, alpha: 0.25}
+  - <<: *explore
+    name: exploit
+    batch_size: 32
+  - <<: [*explore, *small]
+    name: both
+"""
+
+
+def test_yaml_merge_keys_merge_and_the_keys_written_beside_them_win(tmp_path):
+    explore, _, exploit, both = load_config(write(tmp_path, MERGED)).phases
+    assert (exploit.name, exploit.timesteps, exploit.batch_size) == ("exploit", 300, 32)
+    assert exploit.train_freq == explore.train_freq == 2
+    # Of a list of merged mappings the earlier one wins (YAML's rule), the later one fills in.
+    assert (both.name, both.timesteps, both.batch_size) == ("both", 300, 16)
+    assert both.alpha == 0.25
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        ("    name: again\n", r"line 11, column 5: invalid YAML \(duplicate key 'name'\)"),
+        ("    <<: *small\n", r"line 11, column 5: invalid YAML \(duplicate key '<<'\)"),
+        (
+            "  - {<<: {name: x, timesteps: 1, name: y}}\n",
+            r"line 11, column 34: invalid YAML \(duplicate key 'name'\)",
+        ),
+    ],
+    ids=["beside-a-merge-key", "two-merge-keys", "in-a-merged-mapping"],
+)
+def test_a_key_written_twice_is_refused_among_merge_keys(tmp_path, extra, message):
+    with pytest.raises(ConfigError, match=message):
+        load_config(write(tmp_path, MERGED + extra))
+
+
 def test_one_key_given_twice_with_set_is_refused():
     with pytest.raises(ConfigError, match=r"--set env\.n_agents is given twice"):
         config_from_dict({}, overrides=["env.n_agents=2", "env.n_agents=3"])

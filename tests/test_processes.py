@@ -73,3 +73,16 @@ def test_sweep_workers_are_started_through_the_helper():
     )
     cmd = study.worker_command(1)
     assert cmd[:3] == harness_command()[:3] and cmd[3:5] == ["sweep", "c.yaml"]
+
+
+def test_a_child_started_in_a_deleted_folder_says_so_in_one_line(tmp_path):
+    # The bootstrap itself asks for the current folder (to drop it from sys.path).
+    gone = tmp_path / "gone"
+    gone.mkdir()
+    cmd = ["sh", "-c", 'cd "$0" && rmdir "$0" && exec "$@"', str(gone)]
+    proc = subprocess.run([*cmd, *python_command("print('ran')")], capture_output=True, text=True)
+    assert proc.returncode == 2 and proc.stdout == ""
+    assert proc.stderr.splitlines() == [
+        "harness: error: the current folder was deleted: cd to an existing folder and run the "
+        "command again"
+    ]

@@ -10,7 +10,7 @@ import re
 import stat
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NoReturn
 
 import yaml
 from pydantic import ValidationError
@@ -118,25 +118,72 @@ def _list_index(items: list[Any], key: str) -> int | None:
     return None
 
 
+#: YAML's tags for a merge key (``<<: *base``), and for ``=`` which SafeLoader reads as text.
+_MERGE, _VALUE, _STR = (f"tag:yaml.org,2002:{t}" for t in ("merge", "value", "str"))
+
+
 class _UniqueKeyLoader(yaml.SafeLoader):
     """``yaml.SafeLoader`` that refuses a key given twice in one mapping (plain YAML keeps the
-    last one silently, so a repeated ``learning_rate:`` would quietly win)."""
+    last one silently, so a repeated ``learning_rate:`` would quietly win), and merges
+    ``<<: *base`` as YAML defines it."""
 
-    def construct_mapping(self, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
-        seen: set[Any] = set()
-        for key_node, _ in node.value:
-            key = self.construct_object(key_node, deep=deep)
-            if key in seen:
-                mark = key_node.start_mark
-                raise yaml.constructor.ConstructorError(
-                    None,
-                    None,
-                    f"duplicate key {key!r}",
-                    mark,
+    def flatten_mapping(self, node: yaml.MappingNode) -> None:
+        """Check ``node``'s keys and merge its merge key into it (SafeLoader calls this for every
+        mapping before building it, and here it is called for every mapping merged).
+
+        The keys written in the mapping override the merged ones, so they are not duplicates;
+        of ``<<: [*a, *b]`` the earlier mapping wins, as YAML defines (PyYAML's own merge lets
+        the later one win unless the two keys happen to be one Python object). A key written
+        twice, ``<<`` included, is refused. Afterwards ``node`` holds each key once and no
+        merge key, so flattening it again (an alias merged elsewhere) changes nothing.
+        """
+        own: dict[Any, tuple[yaml.Node, yaml.Node]] = {}
+        merged: dict[Any, tuple[yaml.Node, yaml.Node]] = {}
+        merge_keys = 0
+        for key_node, value_node in node.value:
+            if key_node.tag == _MERGE:
+                merge_keys += 1
+                if merge_keys > 1:
+                    self._duplicate("<<", key_node)
+                sources = (
+                    value_node.value if isinstance(value_node, yaml.SequenceNode) else [value_node]
                 )
-            with contextlib.suppress(TypeError):  # unhashable keys: SafeLoader's own error
-                seen.add(key)
-        return super().construct_mapping(node, deep=deep)
+                for source in sources:
+                    if not isinstance(source, yaml.MappingNode):
+                        raise yaml.constructor.ConstructorError(
+                            "while constructing a mapping",
+                            node.start_mark,
+                            f"expected a mapping or list of mappings for merging, but found "
+                            f"{source.id}",
+                            source.start_mark,
+                        )
+                    self.flatten_mapping(source)
+                    for pair in source.value:
+                        merged.setdefault(self._identity(pair[0]), pair)  # the first one wins
+                continue
+            if key_node.tag == _VALUE:  # as SafeLoader does
+                key_node.tag = _STR
+            key = self._identity(key_node)
+            if key in own:
+                self._duplicate(self.construct_object(key_node), key_node)
+            own[key] = (key_node, value_node)
+        node.value = [pair for key, pair in merged.items() if key not in own] + [*own.values()]
+
+    def _identity(self, key_node: yaml.Node) -> Any:
+        """The key a key node makes; an unhashable one stands for itself (SafeLoader refuses it
+        when the mapping is built, with its own message)."""
+        key = self.construct_object(key_node)
+        try:
+            hash(key)
+        except TypeError:
+            return ("unhashable", id(key_node))
+        return key
+
+    @staticmethod
+    def _duplicate(key: Any, key_node: yaml.Node) -> NoReturn:
+        raise yaml.constructor.ConstructorError(
+            None, None, f"duplicate key {key!r}", key_node.start_mark
+        )
 
 
 def parse_yaml(text: str, source: str) -> Any:

@@ -717,7 +717,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
     result, saved = tune(target, args.temperatures, args.episodes, args.overrides, args.write)
     if args.write:
         print(
-            f"saved eval.temperature={result['chosen']:g} in the run's config.yaml "
+            f"saved eval.temperature={result['chosen']:g} in {RunDir(target.run_dir).config} "
             f"(was {result['previous_temperature']:g}); eval files made before keep theirs",
             file=sys.stderr,
         )

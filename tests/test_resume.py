@@ -296,6 +296,18 @@ def test_checkpoints_without_their_config_still_refuse_another_team_size(run_cop
     assert snapshot(run_copy) == before
 
 
+def test_tune_write_of_an_unfinished_run_is_refused_and_keeps_its_resume(run_copy, capsys):
+    model = newest(run_copy) / "model.zip"
+    before = snapshot(run_copy)
+    args = ["tune", str(model), "--temperatures", "2.5", "--episodes", "1", "--write"]
+    assert main(args) == 2
+    err = only_line(capsys)
+    assert f"--write: {run_copy} has not finished training" in err
+    assert "nothing was written" in err
+    assert snapshot(run_copy) == before
+    assert resume(run_copy) == 0
+
+
 def test_a_finished_run_without_checkpoints_is_refused_and_keeps_its_model(run_copy, capsys):
     assert resume(run_copy) == 0
     capsys.readouterr()

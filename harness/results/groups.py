@@ -69,8 +69,11 @@ def parse_seeds(text: str, max_seed: int) -> list[int]:
     if (numbers[0] if len(numbers) == 1 else len(numbers)) > MAX_GROUP_RUNS:
         raise GroupError(f"--seeds {text[:40]!r}: at most {MAX_GROUP_RUNS:,} runs in a group")
     seeds = list(range(numbers[0])) if len(numbers) == 1 else numbers
-    if not seeds:
-        raise GroupError(f"--seeds {text!r}: needs at least one seed")
+    if not seeds:  # a count below 1: perhaps meant as the seed itself
+        raise GroupError(
+            f"--seeds {text!r}: a single number is a count of seeds (--seeds 3 trains seeds 0, "
+            "1, 2) and must be at least 1; to train one given seed, use --seed N"
+        )
     if len(set(seeds)) != len(seeds):
         raise GroupError(f"--seeds {text!r}: a seed is given twice")
     if any(not 0 <= s <= max_seed for s in seeds):

@@ -153,7 +153,7 @@ def result_filename(
     ``checkpoints/step-000000001000/model``) or ``eval-env.max_steps-500.json`` (``--set
     env.max_steps=500``), so no result replaces another. That readable name is the whole name
     only when it reads back as exactly what was evaluated (:func:`_read_back`); when it does
-    not (a ``/`` or ``-`` in a value, a name over :data:`READABLE_LIMIT` characters cut short),
+    not (e.g. a ``/`` or ``-`` in a value, a name over :data:`READABLE_LIMIT` characters cut short),
     ``~`` and a short hash of the exact model, episodes, seed and overrides follow it, e.g.
     ``eval-env.map-maps-a-b.txt~904d8dba.json``: ``maps/a-b.txt`` and ``maps/a/b.txt`` read
     the same but are two files. (A readable name without the hash has no ``~``, and two
@@ -191,7 +191,7 @@ def _read_back(slug: str) -> tuple[str, int, str | None, list[str]] | None:
 
     One fixed reading: a leading ``step-N_`` is a checkpoint's model; each ``-`` parts a key
     from its value; a value and the next key part at the ``_`` after which a top-level config
-    key (``env``, ``eval.temperature``'s ``eval``, ``seed``, ...) begins; before the first key,
+    key (``env``, ``eval``, ``seed``, ...) begins; before the first key,
     ``_``-separated, come the model, ``Nep`` and ``seedS``. A name is used bare only when this
     reading gives back its own setting, so that no two settings share a bare name.
     """

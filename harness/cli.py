@@ -480,7 +480,15 @@ def _group_done(group: Path, jobs: Sequence[Job]) -> int:
 
     print(f"group folder: {group}", file=sys.stderr)
     for job in jobs:
-        state = "done" if job.returncode == 0 else f"failed (exit {job.returncode}, see its log)"
+        if job.returncode == 0:
+            state = "done"
+        else:  # its own reason, from its log: nobody has to open the logs to see why
+            error = job.error_line()
+            state = (
+                f"failed (exit {job.returncode}): {error}"
+                if error
+                else f"failed (exit {job.returncode}, see {job.log})"
+            )
         print(f"  seed {job.seed}: {job.run.path.name} {state}", file=sys.stderr)
     finals = [seed_progress_value(job.run) for job in jobs if job.returncode == 0]
     finals = [f for f in finals if f is not None]
@@ -719,7 +727,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
     result, saved = tune(target, args.temperatures, args.episodes, args.overrides, args.write)
     if args.write:
         print(
-            f"saved eval.temperature={result['chosen']:g} in the run's config.yaml "
+            f"saved eval.temperature={result['chosen']:g} in {RunDir(target.run_dir).config} "
             f"(was {result['previous_temperature']:g}); eval files made before keep theirs",
             file=sys.stderr,
         )

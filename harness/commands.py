@@ -107,9 +107,20 @@ class Target:
 
 
 def find_run_config(model_path: Path) -> Path:
-    """``config.yaml`` of the run a model zip belongs to (beside it, or two folders up for a
-    checkpoint's ``checkpoints/step-N/model.zip``)."""
-    for folder in (model_path.parent, model_path.parent.parent.parent):
+    """``config.yaml`` of the run a model zip belongs to: beside it, or two folders up for a
+    checkpoint's ``checkpoints/step-N/model.zip``.
+
+    A checkpoint's folder holds a ``config.yaml`` too, but that is the copy a resume compares
+    the run's config with: the model's results and ``tune --write`` go to the run, never into
+    a checkpoint (deleted when newer checkpoints replace it, and a changed copy would make the
+    run's resume refuse a config nobody edited).
+    """
+    above = Path(os.path.normpath(model_path.parent / os.pardir / os.pardir))
+    in_checkpoint = os.path.abspath(model_path.parent.parent) == os.path.abspath(
+        RunDir(above).checkpoints
+    )
+    folders = (above, model_path.parent) if in_checkpoint else (model_path.parent, above)
+    for folder in folders:
         if RunDir(folder).config.is_file():
             return RunDir(folder).config
     raise TargetError(f"{model_path}: no config.yaml of its run beside it")
@@ -423,6 +434,33 @@ def format_tune(result: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def check_training_done(run_dir: Path) -> None:
+    """Refuse to change the config of a run that has training left to resume (``tune --write``
+    on a model of an unfinished run, a checkpoint's or ``best_model.zip``): its checkpoints
+    resume only with the config they were made with, ``eval.temperature`` included (it picks
+    ``best_model.zip``), so the write would make its next ``--resume`` refuse.
+
+    Raises:
+        TargetError: naming the run and its newest checkpoint.
+    """
+    from harness.training.checkpoints import CheckpointError, complete_checkpoints, read_state
+
+    run = RunDir(run_dir)
+    found = complete_checkpoints(run.checkpoints)
+    if not found:
+        return  # never checkpointed (or finished and cleaned): a resume starts from its config
+    try:
+        finished = read_state(found[-1]).finished and run.model.is_file()
+    except CheckpointError:
+        finished = False  # a resume falls back to the older checkpoint: still to resume
+    if not finished:
+        raise TargetError(
+            f"--write: {run_dir} has not finished training (it resumes from "
+            f"{found[-1].name} only with the config.yaml it was made with); tune without "
+            "--write now, or with --write once the run finished; nothing was written"
+        )
+
+
 def write_temperature(run_dir: Path, temperature: float) -> float:
     """Store ``temperature`` as ``eval.temperature`` in a run folder's ``config.yaml``
     (atomically) and return the one it replaces."""
@@ -607,6 +645,8 @@ def tune(
         raise TargetError(
             f"{target.run_dir}: a reference is read-only; --write tunes a run folder's config"
         )
+    if write:
+        check_training_done(target.run_dir)
     result = tune_temperature(target, temperatures, episodes)
     result["overrides"] = list(overrides)
     if write:

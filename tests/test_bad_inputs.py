@@ -187,7 +187,10 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], str]] = [
      "eval.validation_seed: Input should be greater than or equal to 0"),
     ("run-seed-negative", ["run", "{cfg}", "--seed", "-1"], {}, "argument --seed"),
     ("run-seed-text", ["run", "{cfg}", "--seed", "x"], {}, "argument --seed"),
-    ("seeds-negative", ["run", "{cfg}", "--seeds", "-1"], {}, "needs at least one seed"),
+    ("seeds-negative", ["run", "{cfg}", "--seeds", "-1"], {}, "must be at least 1"),
+    ("seeds-zero", ["run", "{cfg}", "--seeds", "0"], {},
+     "a single number is a count of seeds (--seeds 3 trains seeds 0, 1, 2) and must be at least "
+     "1; to train one given seed, use --seed N"),
     ("seeds-twice", ["run", "{cfg}", "--seeds", "0,0"], {}, "a seed is given twice"),
     ("seeds-count-huge", ["run", "{cfg}", "--seeds", "99999999999999999999"], {},
      "at most 1,000 runs in a group"),

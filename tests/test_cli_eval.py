@@ -14,6 +14,7 @@ from PIL import Image
 from harness.cli import main
 from harness.commands import choose_temperature
 from harness.config.loading import load_config
+from harness.results.rundir import result_filename
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "smoke.yaml"
@@ -77,6 +78,69 @@ def test_each_model_and_setting_gets_its_own_eval_file(smoke_run, capsys):
     assert (smoke_run / "eval-2ep_seed4.json").is_file()
     saved = json.loads((smoke_run / "eval.json").read_text())
     assert saved["episodes"] == 100 and saved["coverage_median"] == standard["coverage_median"]
+
+
+def test_overrides_that_read_alike_get_files_of_their_own(smoke_run, tmp_path, capsys):
+    # "/" and "-" both read as "-", and long names are cut: each setting still gets its own file
+    # (the readable name, then a short hash of the exact overrides).
+    free, walled = "#" + "." * 8 + "#", "#..##....#"
+    maps = {"a-b.txt": [walled] + [free] * 7, "a/b.txt": [free] * 8}
+    sets = []
+    for name, rows in maps.items():
+        path = tmp_path / "maps" / name
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text("\n".join(["#" * 10, *rows, "#" * 10]) + "\n")
+        sets.append([f"env.map={path}"])
+    start = [f"name={'x' * 64}", "env.max_steps=50"]  # over 100 characters with the last one
+    sets += [[*start, "eval.temperature=0.25"], [*start, "eval.temperature=0.5"]]
+    before = {p.name for p in smoke_run.glob("eval*.json")}
+    for overrides in sets:
+        eval_json(
+            capsys, str(smoke_run), "--episodes", "1", *[a for o in overrides for a in ("--set", o)]
+        )
+    made = {p.name: p for p in smoke_run.glob("eval*.json") if p.name not in before}
+    assert len(made) == len(sets), sorted(made)
+    assert sorted(json.loads(p.read_text())["overrides"] for p in made.values()) == sorted(sets)
+    assert all("~" in name for name in made)  # each has its hash
+
+
+@pytest.mark.parametrize(
+    "path", sorted(ROOT.glob("runs/reference/*/eval-*.json")), ids=lambda p: p.parent.name
+)
+def test_shipped_evaluations_keep_the_names_harness_eval_gives_them(path):
+    # Docs and tests name these files, and a new evaluation of the same setting must land on
+    # the same name: a readable name that says its setting exactly gets no hash.
+    saved = json.loads(path.read_text())
+    model = "final_model" if path.name.startswith("eval-final_model_") else "model"
+    name = result_filename("eval", saved["overrides"], model, saved["episodes"])
+    assert name == path.name
+
+
+def test_eval_of_a_checkpoint_goes_to_its_run_not_into_the_checkpoint(smoke_run, capsys):
+    checkpoint = sorted((smoke_run / "checkpoints").glob("step-*"))[-1]
+    before = sorted(p.name for p in checkpoint.iterdir())
+    capsys.readouterr()
+    assert main(["eval", str(checkpoint / "model.zip"), "--episodes", "2"]) == 0
+    saved = smoke_run / f"eval-{checkpoint.name}_2ep.json"
+    assert f"saved {saved}" in capsys.readouterr().err
+    assert json.loads(saved.read_text())["policy"] == str(checkpoint / "model.zip")
+    assert sorted(p.name for p in checkpoint.iterdir()) == before  # nothing written into it
+
+
+def test_tune_write_of_a_checkpoint_writes_the_runs_config(smoke_run, tmp_path, capsys):
+    run = tmp_path / smoke_run.name
+    shutil.copytree(smoke_run, run)
+    checkpoint = sorted((run / "checkpoints").glob("step-*"))[-1]
+    copy = (checkpoint / "config.yaml").read_bytes()
+    capsys.readouterr()
+    args = ["tune", str(checkpoint / "model.zip"), "--temperatures", "2.5", "--episodes", "1"]
+    assert main([*args, "--write"]) == 0
+    err = capsys.readouterr().err
+    assert f"saved eval.temperature=2.5 in {run / 'config.yaml'} (was 0)" in err
+    assert load_config(run / "config.yaml").eval.temperature == 2.5
+    assert (checkpoint / "config.yaml").read_bytes() == copy  # the resume's copy: untouched
+    assert (run / f"tune-{checkpoint.name}.json").is_file()
+    assert sorted(p.name for p in checkpoint.glob("*.json")) == ["state.json"]
 
 
 def test_eval_table_is_readable(smoke_run, capsys):

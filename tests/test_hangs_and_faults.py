@@ -322,11 +322,52 @@ def test_a_flipped_byte_in_the_only_checkpoint_is_a_one_line_refusal(run_copy, c
     assert snapshot(run_copy) == before
 
 
+def written_before_guards(checkpoint: Path, *files: str) -> None:
+    """Make ``checkpoint`` as written before it kept ``files``: without them, and with a
+    ``state.json`` that does not list its guard files."""
+    for name in files:
+        (checkpoint / name).unlink()
+    state = json.loads((checkpoint / "state.json").read_text())
+    del state["guards"]
+    (checkpoint / "state.json").write_text(json.dumps(state))
+
+
 def test_checkpoints_without_a_stored_sha256_still_resume(run_copy):
     for checkpoint in complete_checkpoints(run_copy / "checkpoints"):
-        (checkpoint / "replay_buffer.pkl.sha256").unlink()  # as written before they kept it
+        written_before_guards(checkpoint, "replay_buffer.pkl.sha256")
     assert resume(run_copy) == 0
     assert contiguous(run_copy)
+
+
+def test_a_deleted_sha256_falls_back_to_the_older_checkpoint(run_copy, capsys):
+    older, newest = complete_checkpoints(run_copy / "checkpoints")
+    assert state_of(newest).guards == ["replay_buffer.pkl.sha256", "config.yaml"]
+    (newest / "replay_buffer.pkl.sha256").unlink()  # its buffer must not load unchecked
+    assert resume(run_copy) == 0
+    err = capsys.readouterr().err
+    (line,) = [line for line in harness_lines(err) if "resuming from the older" in line]
+    assert f"{newest / 'replay_buffer.pkl.sha256'}: missing (written with the checkpoint" in line
+    assert line.endswith(f"resuming from the older {older.name}")
+    assert (newest.parent / f"unusable-{newest.name}").is_dir()
+    assert contiguous(run_copy)
+
+
+def test_checkpoints_that_all_lost_their_sha256_are_a_one_line_refusal(run_copy, capsys):
+    for checkpoint in complete_checkpoints(run_copy / "checkpoints"):
+        (checkpoint / "replay_buffer.pkl.sha256").unlink()
+    before = snapshot(run_copy)
+    assert resume(run_copy) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("harness: error: ") and "Traceback" not in "\n".join(err)
+    assert "replay_buffer.pkl.sha256: missing" in err[-1]
+    assert snapshot(run_copy) == before
+
+
+def test_a_state_listing_unknown_guards_is_unreadable():
+    data = json.loads(TrainingState().to_json())
+    for bad in ("config.yaml", ["model.zip"], [1]):
+        with pytest.raises(ValueError, match="guards"):
+            TrainingState.from_json(json.dumps({**data, "guards": bad}))
 
 
 def test_a_state_without_pending_eval_still_reads():

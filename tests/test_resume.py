@@ -278,9 +278,18 @@ def test_settings_of_the_machine_may_change(run_copy):
     assert resume(run_copy) == 0
 
 
+def written_before_config_copies(checkpoint: Path) -> None:
+    """Make ``checkpoint`` as written before checkpoints kept their config: no ``config.yaml``,
+    and a ``state.json`` that lists no guard files."""
+    (checkpoint / "config.yaml").unlink()
+    state = json.loads((checkpoint / "state.json").read_text())
+    del state["guards"]
+    (checkpoint / "state.json").write_text(json.dumps(state))
+
+
 def test_checkpoints_without_their_config_still_resume(run_copy):
     for checkpoint in complete_checkpoints(run_copy / "checkpoints"):
-        (checkpoint / "config.yaml").unlink()  # as written before checkpoints kept it
+        written_before_config_copies(checkpoint)
     assert resume(run_copy) == 0
     stored = yaml.safe_load((newest(run_copy) / "config.yaml").read_text())
     assert stored == yaml.safe_load((run_copy / "config.yaml").read_text())
@@ -288,12 +297,48 @@ def test_checkpoints_without_their_config_still_resume(run_copy):
 
 def test_checkpoints_without_their_config_still_refuse_another_team_size(run_copy, capsys):
     for checkpoint in complete_checkpoints(run_copy / "checkpoints"):
-        (checkpoint / "config.yaml").unlink()
+        written_before_config_copies(checkpoint)
     edit_config(run_copy, "env.n_agents", 3)
     before = snapshot(run_copy)
     assert resume(run_copy) == 2
     assert "env.n_agents x vec.copies is 6" in one_line_error(capsys)
     assert snapshot(run_copy) == before
+
+
+def test_a_deleted_config_copy_does_not_let_an_edited_config_through(run_copy, capsys):
+    older = complete_checkpoints(run_copy / "checkpoints")[0]
+    (newest(run_copy) / "config.yaml").unlink()  # its state.json says it was written
+    edit_config(run_copy, "algo.net_arch", [32])
+    before = snapshot(run_copy)
+    assert resume(run_copy) == 2
+    err = one_line_error(capsys)
+    # The newest checkpoint is damaged; the older one's copy still sees the edit.
+    assert f"changed since {older.name} was written (algo.net_arch: [64, 64] -> [32])" in err
+    assert snapshot(run_copy) == before
+
+
+def test_checkpoints_that_all_lost_their_config_copy_are_refused(run_copy, capsys):
+    for checkpoint in complete_checkpoints(run_copy / "checkpoints"):
+        (checkpoint / "config.yaml").unlink()
+    edit_config(run_copy, "algo.buffer_size", 4000)
+    before = snapshot(run_copy)
+    assert resume(run_copy) == 2
+    err = one_line_error(capsys)
+    for checkpoint in complete_checkpoints(run_copy / "checkpoints"):
+        assert f"{checkpoint / 'config.yaml'}: missing (written with the checkpoint" in err
+    assert snapshot(run_copy) == before
+
+
+def test_tune_write_of_an_unfinished_run_is_refused_and_keeps_its_resume(run_copy, capsys):
+    model = newest(run_copy) / "model.zip"
+    before = snapshot(run_copy)
+    args = ["tune", str(model), "--temperatures", "2.5", "--episodes", "1", "--write"]
+    assert main(args) == 2
+    err = only_line(capsys)
+    assert f"--write: {run_copy} has not finished training" in err
+    assert "nothing was written" in err
+    assert snapshot(run_copy) == before
+    assert resume(run_copy) == 0
 
 
 def test_a_finished_run_without_checkpoints_is_refused_and_keeps_its_model(run_copy, capsys):

@@ -72,6 +72,33 @@ def test_a_group_holds_at_most_1000_runs_given_as_a_count_or_a_list(text):
     assert len(parse_seeds(",".join(map(str, range(1000))), 10**6)) == 1000
 
 
+def failing_seed(line: str, code: int) -> list[str]:
+    """A seed's command that prints ``line`` (after a progress bar's carriage return) and exits
+    with ``code``, as a ``harness run`` refusing its arguments does."""
+    script = f"import sys; print('seed starting\\r' + {line!r}, file=sys.stderr); sys.exit({code})"
+    return [sys.executable, "-c", script]
+
+
+def test_failed_seeds_print_their_own_error_line(tiny, tmp_path, capsys, monkeypatch):
+    from harness.results import groups
+
+    error = "harness: error: --set algo.threads is given twice"
+    monkeypatch.setattr(groups, "_start_command", lambda job, *a: failing_seed(error, 2))
+    runs = tmp_path / "runs"
+    assert main(["run", str(tiny), "--seeds", "2", "--runs-dir", str(runs)]) == 1
+    err = capsys.readouterr().err
+    (group,) = runs.iterdir()
+    for seed in (0, 1):
+        line = f"  seed {seed}: tiny-seed{seed} failed (exit 2): --set algo.threads is given twice"
+        assert line in err.splitlines(), err
+    # A later attempt that dies without a word shows no stale reason: it points at its log.
+    monkeypatch.setattr(groups, "_start_command", lambda job, *a: failing_seed("", 3))
+    assert main(["run", "--resume", str(group)]) == 1
+    err = capsys.readouterr().err
+    assert f"  seed 0: tiny-seed0 failed (exit 3, see {group / 'tiny-seed0.log'})" in err
+    assert "given twice" not in err
+
+
 def test_jobs_share_the_cores_this_process_may_use():
     # A group started under `taskset -c 0` (or a Slurm job with one CPU) must not give each job
     # the machine's full core count: the share follows the CPU affinity.

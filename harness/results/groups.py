@@ -49,6 +49,11 @@ class GroupError(ValueError):
 #: Most runs in a seed group (``--seeds N``): far more than any comparison needs.
 MAX_GROUP_RUNS = 1_000
 
+#: How a ``harness`` command's error line starts (a seed's own reason to fail, in its log).
+ERROR_PREFIX = "harness: error: "
+#: Bytes at the end of a failed seed's log searched for its error line.
+ERROR_TAIL_BYTES = 64 * 1024
+
 
 def parse_seeds(text: str, max_seed: int) -> list[int]:
     """``"0,1,2"`` → ``[0, 1, 2]``; a single number ``"3"`` means three seeds, ``0, 1, 2``.
@@ -64,8 +69,11 @@ def parse_seeds(text: str, max_seed: int) -> list[int]:
     if (numbers[0] if len(numbers) == 1 else len(numbers)) > MAX_GROUP_RUNS:
         raise GroupError(f"--seeds {text[:40]!r}: at most {MAX_GROUP_RUNS:,} runs in a group")
     seeds = list(range(numbers[0])) if len(numbers) == 1 else numbers
-    if not seeds:
-        raise GroupError(f"--seeds {text!r}: needs at least one seed")
+    if not seeds:  # a count below 1: perhaps meant as the seed itself
+        raise GroupError(
+            f"--seeds {text!r}: a single number is a count of seeds (--seeds 3 trains seeds 0, "
+            "1, 2) and must be at least 1; to train one given seed, use --seed N"
+        )
     if len(set(seeds)) != len(seeds):
         raise GroupError(f"--seeds {text!r}: a seed is given twice")
     if any(not 0 <= s <= max_seed for s in seeds):
@@ -167,6 +175,32 @@ class Job:
     returncode: int | None = None
     cmd: list[str] | None = None
     """The command that trains it; ``None``: nothing to do (a finished seed of a resumed group)."""
+    log_start: int = 0
+    """Size of its log when this command started it: what its process wrote comes after (a
+    resume appends to the log of the attempts before)."""
+
+    @property
+    def log(self) -> Path:
+        """The seed's log, ``<run folder>.log`` beside its run folder."""
+        return self.run.path.parent / f"{self.run.path.name}.log"
+
+    def error_line(self) -> str | None:
+        """The last ``harness: error:`` line its process wrote to its log, without that prefix
+        (the reason a failed seed gives, shown so that nobody has to open the log); ``None``
+        when it wrote none (killed, or a traceback) or the log cannot be read."""
+        try:
+            with self.log.open("rb") as f:
+                # The end is enough: an error line is the last thing a failed run writes.
+                f.seek(max(self.log_start, f.seek(0, os.SEEK_END) - ERROR_TAIL_BYTES))
+                tail = f.read().decode("utf-8", "replace")
+        except OSError:
+            return None
+        errors = [
+            line[len(ERROR_PREFIX) :].strip()
+            for line in tail.splitlines()  # also splits at a progress bar's "\r"
+            if line.startswith(ERROR_PREFIX)
+        ]
+        return errors[-1] if errors else None
 
 
 class GroupInterrupted(Exception):
@@ -561,7 +595,8 @@ def _start(job: Job, env: dict[str, str]) -> subprocess.Popen[bytes]:
     process group of its own (a terminal's Ctrl-C is passed on by the group's command, once)."""
     assert job.cmd is not None
     try:
-        log = (job.run.path.parent / f"{job.run.path.name}.log").open("ab")
+        log = job.log.open("ab")
+        job.log_start = os.fstat(log.fileno()).st_size
     except OSError as exc:
         raise RunDirError(f"{job.run.path.parent}: cannot write a log ({exc.strerror})") from None
     with log:

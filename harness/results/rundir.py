@@ -10,8 +10,8 @@
     evaluations.csv    one row per evaluation during training (validation episodes)
     model.zip          the final model
     best_model.zip     the model with the best periodic evaluation so far
-    eval.json          written by ``harness eval`` (eval-*.json: other settings, see
-                       :func:`result_filename`)
+    eval.json          written by ``harness eval`` (eval-*.json: other models, a checkpoint's
+                       too, and settings, see :func:`result_filename`)
     tune.json          written by ``harness tune``
     reference.json     only in a folder made by ``harness export``: marks a reference, whose
                        eval/tune/render results go to ``runs/evals/<name>/`` instead
@@ -25,6 +25,7 @@ from __future__ import annotations
 import contextlib
 import csv
 import fcntl
+import hashlib
 import io
 import json
 import math
@@ -40,6 +41,8 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+
+from harness.config.schema import ExperimentConfig
 
 #: Columns of ``episodes.csv``, one row per finished training episode (see README).
 EPISODE_COLUMNS = (
@@ -126,6 +129,14 @@ STANDARD_EPISODES = 100
 REFERENCE_FILES = ("config.yaml", "command.txt", "episodes.csv", "evaluations.csv", "tune.json")
 
 
+#: Longest readable part of a result's file name (a file name may take 255 bytes).
+READABLE_LIMIT = 100
+
+#: The readable name of a checkpoint's model in a result's name: ``step-N`` for the model
+#: ``checkpoints/step-N/model``.
+_CHECKPOINT_MODEL = re.compile(r"checkpoints/(step-[0-9]+)/model")
+
+
 def result_filename(
     kind: str,
     overrides: Sequence[str],
@@ -138,8 +149,16 @@ def result_filename(
     ``eval.json`` is the standard evaluation: the run's ``model.zip``, :data:`STANDARD_EPISODES`
     episodes with the config's ``eval.seed`` (``tune.json``: the run's ``model.zip``). Anything
     else gets its own file, e.g. ``eval-best_model.json``, ``eval-10ep.json``,
-    ``eval-seed7.json`` or ``eval-env.max_steps-500.json`` (``--set env.max_steps=500``), so no
-    result replaces another.
+    ``eval-seed7.json``, ``eval-step-000000001000.json`` (the checkpoint's model
+    ``checkpoints/step-000000001000/model``) or ``eval-env.max_steps-500.json`` (``--set
+    env.max_steps=500``), so no result replaces another. That readable name is the whole name
+    only when it reads back as exactly what was evaluated (:func:`_read_back`); when it does
+    not (e.g. a ``/`` or ``-`` in a value, a name over :data:`READABLE_LIMIT` characters cut short),
+    ``~`` and a short hash of the exact model, episodes, seed and overrides follow it, e.g.
+    ``eval-env.map-maps-a-b.txt~904d8dba.json``: ``maps/a-b.txt`` and ``maps/a/b.txt`` read
+    the same but are two files. (A readable name without the hash has no ``~``, and two
+    settings that read back the same are the same setting, so neither kind of name can stand
+    for two settings.)
 
     Args:
         kind: ``"eval"`` or ``"tune"``.
@@ -149,7 +168,8 @@ def result_filename(
         episodes: Number of episodes evaluated (``eval`` only).
         seed_changed: The seed, when it is not the config's ``eval.seed`` (``eval`` only).
     """
-    parts = [] if model == "model" else [model]
+    checkpoint = _CHECKPOINT_MODEL.fullmatch(model)
+    parts = [] if model == "model" else [checkpoint[1] if checkpoint else model]
     if episodes != STANDARD_EPISODES:
         parts.append(f"{episodes}ep")
     if seed_changed is not None:
@@ -158,7 +178,62 @@ def result_filename(
     if not parts:
         return f"{kind}.json"
     slug = re.sub(r"[^A-Za-z0-9_.-]+", "-", "_".join(parts)).strip("-")
-    return f"{kind}-{slug[:100]}.json"
+    exact = (model, episodes, seed_changed, list(overrides))
+    if len(slug) <= READABLE_LIMIT and _read_back(slug) == exact:
+        return f"{kind}-{slug}.json"
+    digest = hashlib.sha256(json.dumps(exact).encode("utf-8")).hexdigest()[:8]
+    return f"{kind}-{slug[:READABLE_LIMIT]}~{digest}.json"
+
+
+def _read_back(slug: str) -> tuple[str, int, str | None, list[str]] | None:
+    """What a readable name (:func:`result_filename`'s, without ``kind-`` and ``.json``) says
+    was evaluated: ``(model, episodes, seed_changed, overrides)``, ``None`` when it cannot say.
+
+    One fixed reading: a leading ``step-N_`` is a checkpoint's model; each ``-`` parts a key
+    from its value; a value and the next key part at the ``_`` after which a top-level config
+    key (``env``, ``eval``, ``seed``, ...) begins; before the first key,
+    ``_``-separated, come the model, ``Nep`` and ``seedS``. A name is used bare only when this
+    reading gives back its own setting, so that no two settings share a bare name.
+    """
+    model = "model"
+    checkpoint = re.match(r"(step-[0-9]+)(?:_|$)", slug)
+    if checkpoint:
+        model, slug = f"checkpoints/{checkpoint[1]}/model", slug[checkpoint.end() :]
+    head, *pieces = slug.split("-")
+    overrides: list[str] = []
+    prefix = head
+    if pieces:
+        prefix, key = _split_at_key(head) or ("", head)
+        for piece in pieces[:-1]:
+            split = _split_at_key(piece)
+            if split is None:
+                return None
+            value, following = split
+            overrides.append(f"{key}={value}")
+            key = following
+        overrides.append(f"{key}={pieces[-1]}")
+    tokens = prefix.split("_") if prefix else []
+    seed = None
+    episodes = STANDARD_EPISODES
+    if tokens and re.fullmatch(r"seed[0-9]+", tokens[-1]):
+        seed = tokens.pop()[len("seed") :]
+    if tokens and re.fullmatch(r"[0-9]+ep", tokens[-1]):
+        episodes = int(tokens.pop()[: -len("ep")])
+    if tokens:
+        if model != "model":
+            return None
+        model = "_".join(tokens)
+    return model, episodes, seed, overrides
+
+
+def _split_at_key(text: str) -> tuple[str, str] | None:
+    """``text`` parted at its first ``_`` after which a config key begins (its first part is a
+    top-level key of the config), as ``(before, key)``; ``None`` when there is no such ``_``."""
+    for at in (i for i, c in enumerate(text) if c == "_"):
+        key = text[at + 1 :]
+        if key.split(".", 1)[0] in ExperimentConfig.model_fields:
+            return text[:at], key
+    return None
 
 
 @dataclass(frozen=True)

@@ -5,13 +5,17 @@ A checkpoint is a folder ``checkpoints/step-<num_timesteps>/`` holding:
 * ``model.zip``: the SB3 model (weights, optimizer state, step counters, ``ep_info_buffer``);
 * ``replay_buffer.pkl``: the replay buffer with its priorities, and
   ``replay_buffer.pkl.sha256``, its SHA-256 as written: a resume refuses a buffer that changed
-  since (:func:`check_replay_buffer`; a flipped byte could otherwise load as NaN observations).
-  Checkpoints written before checkpoints kept it have none and are not checked;
+  since (:func:`check_replay_buffer`; a flipped byte could otherwise load as NaN observations);
 * ``rng.pkl``: the numpy, Python and torch random states;
-* ``state.json``: the harness's own position (:class:`TrainingState`);
+* ``state.json``: the harness's own position (:class:`TrainingState`), with the list of the
+  checkpoint's guard files (``guards``: the ``.sha256``, ``config.yaml``);
 * ``config.yaml``: the run's config it was made with; a resume refuses a run whose
-  ``config.yaml`` has been edited since (:func:`check_config`). Checkpoints written before
-  checkpoints kept it have none and are not compared.
+  ``config.yaml`` has been edited since (:func:`check_config`).
+
+A guard file that ``state.json`` lists but the folder lacks makes the checkpoint damaged
+(:func:`check_guards`): deleting it must not switch its check off. Checkpoints written before
+``state.json`` listed them (no ``guards``) are checked with what they have: the ``.sha256`` and
+``config.yaml`` when there, nothing when not, as they were written.
 
 It is written into a hidden temporary folder and renamed into place only when complete, and older
 checkpoints are deleted only after that, so the last good checkpoint survives a crash or a
@@ -39,6 +43,11 @@ from harness.results.rundir import CheckpointDir, RunDir
 STEP_PREFIX = "step-"
 KEEP = 2  # checkpoints kept: the newest and the one before it
 
+#: The guard files of a checkpoint, as ``state.json`` lists them (:attr:`TrainingState.guards`).
+SHA256_GUARD = CheckpointDir(Path()).replay_buffer_sha256.name
+CONFIG_GUARD = CheckpointDir(Path()).config.name
+GUARDS = (SHA256_GUARD, CONFIG_GUARD)
+
 
 class CheckpointError(RuntimeError):
     """A missing or unreadable checkpoint, with a one-line message."""
@@ -50,7 +59,7 @@ class ConfigChangedError(CheckpointError):
 
 
 #: Fields of ``state.json`` that checkpoints written before them lack, with their value then.
-OPTIONAL_STATE_FIELDS: dict[str, Any] = {"pending_eval": None}
+OPTIONAL_STATE_FIELDS: dict[str, Any] = {"pending_eval": None, "guards": None}
 
 
 @dataclass
@@ -74,6 +83,11 @@ class TrainingState:
     pending_eval: int | None = None
     """The step of an in-training evaluation that a signal abandoned (a resume runs it first);
     ``None`` when none was. Optional in ``state.json`` (older checkpoints lack it)."""
+    guards: list[str] | None = None
+    """The files of the checkpoint that guard the others, as :func:`save_checkpoint` wrote them
+    (``replay_buffer.pkl.sha256``, ``config.yaml``): a resume treats a missing one as damage
+    (:func:`check_guards`). ``None`` in checkpoints written before ``state.json`` listed them
+    (optional in ``state.json``)."""
 
     def to_json(self) -> str:
         data = asdict(self)
@@ -95,11 +109,18 @@ class TrainingState:
             data["best_eval"] = float("-inf")
         for name, default in OPTIONAL_STATE_FIELDS.items():
             data.setdefault(name, default)
-        types = {"best_eval": (int, float), "finished": (bool,), "pending_eval": (int, type(None))}
+        types = {
+            "best_eval": (int, float),
+            "finished": (bool,),
+            "pending_eval": (int, type(None)),
+            "guards": (list, type(None)),
+        }
         for name in cls.__dataclass_fields__:
             value = data.get(name)
             expected = types.get(name, (int,))
             if name not in data or not isinstance(value, expected):
+                raise ValueError(f"{name} is {value!r}")
+            if name == "guards" and value is not None and any(g not in GUARDS for g in value):
                 raise ValueError(f"{name} is {value!r}")
             counter = int in expected and float not in expected and value is not None
             if counter and (isinstance(value, bool) or value < 0):
@@ -141,6 +162,9 @@ def save_checkpoint(
     """
     folder.mkdir(parents=True, exist_ok=True)
     state.num_timesteps = int(model.num_timesteps)
+    # Listed in state.json, so that a guard file deleted later reads as damage, not as a
+    # checkpoint written before it existed.
+    state.guards = [SHA256_GUARD] + ([CONFIG_GUARD] if config is not None else [])
     name = f"{STEP_PREFIX}{state.num_timesteps:012d}"
     final = folder / name
     tmp = folder / f".{name}.tmp"
@@ -180,9 +204,29 @@ def file_sha256(path: Path) -> str:
     return digest.hexdigest()
 
 
+def check_guards(checkpoint: Path, state: TrainingState) -> None:
+    """Refuse a checkpoint that lacks a guard file its ``state.json`` says was written (a
+    deleted ``.sha256`` would load the buffer unchecked, a deleted ``config.yaml`` would let an
+    edited config through).
+
+    Raises:
+        CheckpointError: one line naming the missing file (the damaged-checkpoint path: a
+            resume falls back to the older checkpoint, or refuses).
+    """
+    files = CheckpointDir(checkpoint)
+    paths = {SHA256_GUARD: files.replay_buffer_sha256, CONFIG_GUARD: files.config}
+    for guard in state.guards or ():
+        if not paths[guard].is_file():
+            raise CheckpointError(
+                f"{paths[guard]}: missing (written with the checkpoint, as its state.json "
+                "says; damaged)"
+            )
+
+
 def check_replay_buffer(checkpoint: Path) -> None:
     """Check ``replay_buffer.pkl`` against the SHA-256 stored beside it when the checkpoint was
-    written; a checkpoint without the stored hash (written before checkpoints kept it) passes.
+    written; a checkpoint without the stored hash passes (one written before checkpoints kept
+    it: :func:`check_guards` refuses the others first).
 
     Raises:
         CheckpointError: one line naming the file, when the hash differs or cannot be read.
@@ -329,7 +373,8 @@ def _short(value: Any, limit: int = 40) -> str:
 
 def check_config(checkpoint: Path, config: ExperimentConfig) -> None:
     """Refuse ``config`` (the run's ``config.yaml`` now) unless it is the one ``checkpoint`` was
-    made with, but for :data:`MAY_CHANGE`; a checkpoint without its config passes.
+    made with, but for :data:`MAY_CHANGE`; a checkpoint without its config passes (one written
+    before checkpoints kept it: :func:`check_guards` refuses the others first).
 
     Raises:
         ConfigChangedError: one line naming the keys that differ, with both values.

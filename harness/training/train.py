@@ -66,6 +66,7 @@ from harness.training.checkpoints import (
     ConfigChangedError,
     TrainingState,
     check_config,
+    check_guards,
     check_replay_buffer,
     complete_checkpoints,
     read_rng,
@@ -672,6 +673,7 @@ def load_resume_point(checkpoint: Path, config: ExperimentConfig) -> ResumePoint
     """
     files = CheckpointDir(checkpoint)
     state = read_state(checkpoint)
+    check_guards(checkpoint, state)  # a deleted guard must not switch its check off
     check_config(checkpoint, config)  # before the slow loads
     rng = read_rng(checkpoint)
     try:

@@ -420,22 +420,7 @@ class MinPosPlanner(CoordinatedPlanner):
     lower-index teammate chose this step."""
 
     def assign(self, cost: np.ndarray, goal_cells: np.ndarray) -> list[int]:
-        # rank[i, c]: teammates j with cost[j, c] < cost[i, c] (an agent is not closer to itself).
-        rank = (cost[None, :, :] < cost[:, None, :]).sum(axis=1)
-        reachable = np.isfinite(cost)
-        # One key per (agent, candidate): rank first, then distance (argmin then takes the
-        # lowest candidate index among equals); unreachable candidates never.
-        span = cost[reachable].max(initial=0.0) + 1.0
-        key = np.where(reachable, rank * span + cost, np.inf)
-        chosen = []
-        for i in range(cost.shape[0]):
-            pick = int(key[i].argmin())
-            if not key[i, pick] < np.inf:
-                pick = -1
-            else:
-                key[:, pick] = np.inf  # claimed: the next agents skip it
-            chosen.append(pick)
-        return chosen
+        return _minpos_choices(cost).tolist()
 
 
 class UtilityPlanner(CoordinatedPlanner):
@@ -466,21 +451,70 @@ class UtilityPlanner(CoordinatedPlanner):
         self.beta, self.radius = float(beta), float(radius)
 
     def assign(self, cost: np.ndarray, goal_cells: np.ndarray) -> list[int]:
-        utility = np.ones(cost.shape[1])
         # Where each candidate would be reached by each agent: the visibility is between those
         # cells and the chosen one.
         rows, cols = np.divmod(goal_cells, self.stride)
-        penalty = np.where(np.isfinite(cost), self.beta * cost, np.inf)
-        chosen = []
-        for i in range(cost.shape[0]):
-            score = utility - penalty[i]
-            pick = int(score.argmax())  # the first maximum: the lowest candidate index
-            if not score[pick] > -np.inf:
-                chosen.append(-1)  # nothing reachable
-                continue
-            chosen.append(pick)
-            dr, dc = rows[i] - rows[i, pick], cols[i] - cols[i, pick]
+        return _utility_choices(cost, rows, cols, self.beta, self.radius).tolist()
+
+
+# The assignments' loops, compiled: per step they run over every candidate (every known unvisited
+# cell) once per agent. Written with the same floating-point operations in the same order as
+# their NumPy form (no fastmath), so they choose exactly as it did.
+@njit(cache=True, nogil=True)
+def _minpos_choices(cost: np.ndarray) -> np.ndarray:
+    """MinPos's candidate per agent (-1: none reachable), see :class:`MinPosPlanner`."""
+    n, m = cost.shape
+    span = 0.0  # the largest finite cost, + 1: a rank outweighs any distance
+    for i in range(n):
+        for c in range(m):
+            if cost[i, c] < np.inf and cost[i, c] > span:
+                span = cost[i, c]
+    span += 1.0
+    key = np.empty((n, m))
+    for i in range(n):
+        for c in range(m):
+            if cost[i, c] < np.inf:
+                rank = 0  # teammates strictly closer to candidate c
+                for j in range(n):
+                    if cost[j, c] < cost[i, c]:
+                        rank += 1
+                key[i, c] = rank * span + cost[i, c]
+            else:
+                key[i, c] = np.inf
+    chosen = np.full(n, -1, dtype=np.int64)
+    for i in range(n):
+        pick = 0
+        for c in range(1, m):  # the first minimum: the lowest candidate index
+            if key[i, c] < key[i, pick]:
+                pick = c
+        if m > 0 and key[i, pick] < np.inf:
+            chosen[i] = pick
+            key[:, pick] = np.inf  # claimed: the next agents skip it
+    return chosen
+
+
+@njit(cache=True, nogil=True)
+def _utility_choices(
+    cost: np.ndarray, rows: np.ndarray, cols: np.ndarray, beta: float, radius: float
+) -> np.ndarray:
+    """The utility planner's candidate per agent (-1: none reachable), see
+    :class:`UtilityPlanner`."""
+    n, m = cost.shape
+    utility = np.ones(m)
+    reach = radius**2
+    chosen = np.full(n, -1, dtype=np.int64)
+    for i in range(n):
+        pick, best = -1, -np.inf
+        for c in range(m):
+            score = utility[c] - (beta * cost[i, c] if cost[i, c] < np.inf else np.inf)
+            if pick < 0 or score > best:  # the first maximum: the lowest candidate index
+                pick, best = c, score
+        if pick < 0 or not best > -np.inf:
+            continue  # nothing reachable
+        chosen[i] = pick
+        for c in range(m):  # candidates within the radius lose utility
+            dr, dc = rows[i, c] - rows[i, pick], cols[i, c] - cols[i, pick]
             d2 = dr * dr + dc * dc
-            seen = d2 < self.radius**2  # only candidates within the radius lose utility
-            utility[seen] -= 1.0 - np.sqrt(d2[seen]) / self.radius
-        return chosen
+            if d2 < reach:
+                utility[c] -= 1.0 - np.sqrt(d2) / radius
+    return chosen

@@ -47,7 +47,8 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
-from scipy.ndimage import label, uniform_filter
+from numba import njit
+from scipy.ndimage import uniform_filter
 
 from envs.coverage.types import STAY
 
@@ -82,8 +83,6 @@ GOAL_FEATURES = (
     "col",
 )
 
-#: 4-connectivity of frontier clusters.
-_CROSS = np.array([[0, 1, 0], [1, 1, 1], [0, 1, 0]], dtype=bool)
 #: Most slots a goal action may have (the candidate block is an observation of this width).
 MAX_K = 64
 
@@ -172,10 +171,10 @@ def gather_candidates(
         return out
     dist, pred = planner.distance_fields()
     stride = planner.stride
-    labels, _ = label(planner.target_np.reshape(-1, stride), structure=_CROSS)
-    labels = labels.ravel()
+    labels = np.zeros(planner.target_np.size, dtype=np.int64)
+    n_clusters = _label_clusters(planner.target_np, targets, stride, labels, np.empty_like(labels))
     ids = labels[targets]
-    sizes = np.bincount(ids)
+    sizes = np.bincount(ids, minlength=n_clusters + 1)
     unseen = (~planner.seen_np).reshape(-1, stride).astype(np.float32)
     unknown = uniform_filter(unseen, 5, mode="constant").ravel()
     # Open neighbours (unseen, or seen free and not visited), the pocket tie-break's count.
@@ -187,32 +186,27 @@ def gather_candidates(
     scale = 1.0 / (height + width)
     costs = dist[:, targets]  # (agents, targets)
     goals = planner.goals
-    goal_cluster = np.array([labels[g] if g >= 0 else 0 for g in goals])
+    goal_cluster = np.array([labels[g] if g >= 0 else 0 for g in goals], dtype=np.int64)
     column = np.full(labels.size, -1, dtype=np.int64)  # each target cell's column in costs
     column[targets] = np.arange(targets.size)
+    cells_i = np.empty(k, dtype=np.int64)
+    moves_i = np.empty(k, dtype=np.int64)
     for i in range(n):
-        cost = costs[i]
-        # Per cluster its nearest cell (lexsort: cluster, then cost, then the cell: the first
-        # entry of each cluster is its nearest cell, ties to the lower cell).
-        order = np.lexsort((targets, cost, ids))
-        first = np.concatenate(([True], ids[order][1:] != ids[order][:-1]))
-        picks = order[first]
-        picks = picks[np.isfinite(cost[picks]) & (ids[picks] != goal_cluster[i])]
-        picks = picks[np.lexsort((targets[picks], cost[picks]))]
-        cells, moves = [], []
+        m = 0
         if goals[i] >= 0:  # slot 0: the planner's choice and its own move
-            cells.append(goals[i])
-            moves.append(int(planned[i]))
-        for j in picks[: k - len(cells)].tolist():
-            cells.append(int(targets[j]))
-            moves.append(planner.first_move(pred[i], i, cells[-1]))
-        m = len(cells)
+            cells_i[0], moves_i[0] = goals[i], planned[i]
+            m = 1
+        m += _nearest_of_clusters(
+            costs[i], targets, ids, n_clusters, goal_cluster[i], pred[i],
+            planner.positions[i], stride, cells_i[m:], moves_i[m:],
+        )  # fmt: skip
         if m == 0:
             continue
-        chosen = np.asarray(cells)
-        out.cells[i, :m], out.moves[i, :m] = chosen, moves
+        chosen = cells_i[:m].copy()
+        out.cells[i, :m], out.moves[i, :m] = chosen, moves_i[:m]
         cols = column[chosen]
-        mates = np.delete(costs, i, axis=0)[:, cols]  # (teammates, m)
+        cost = costs[i]
+        mates = costs[np.arange(n) != i][:, cols]  # (teammates, m)
         mate = mates.min(axis=0) if mates.size else np.full(m, np.inf)
         others = np.delete(goal_cluster, i)
         rows_c, cols_c = np.divmod(chosen, stride)
@@ -229,3 +223,75 @@ def gather_candidates(
         f[:, 8] = (rows_c - row_i) / height
         f[:, 9] = (cols_c - col_i) / width
     return out
+
+
+# The per-step work of the candidates, compiled: it runs over every target cell once per agent.
+@njit(cache=True, nogil=True)
+def _label_clusters(
+    target: np.ndarray, cells: np.ndarray, stride: int, labels: np.ndarray, stack: np.ndarray
+) -> int:
+    """Number the frontier clusters (4-connected groups of ``target`` cells, flat and padded)
+    1, 2, ... into ``labels`` (0 elsewhere; ``labels`` starts zeroed) and return how many. Only
+    the grouping is used, never the numbers."""
+    n = 0
+    for c in cells:
+        if labels[c]:
+            continue
+        n += 1
+        labels[c] = n
+        top = 0
+        stack[0] = c
+        while top >= 0:
+            v = stack[top]
+            top -= 1
+            for w in (v - stride, v - 1, v + 1, v + stride):
+                if target[w] and not labels[w]:
+                    labels[w] = n
+                    top += 1
+                    stack[top] = w
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _nearest_of_clusters(
+    cost: np.ndarray,
+    targets: np.ndarray,
+    ids: np.ndarray,
+    n_clusters: int,
+    skip: int,
+    pred: np.ndarray,
+    start: int,
+    stride: int,
+    cells: np.ndarray,
+    moves: np.ndarray,
+) -> int:
+    """One agent's cluster candidates (module docstring): of every cluster it reaches, other
+    than ``skip``, the nearest cell (ties: the lower cell), nearest first (ties: the lower
+    cell), as many as ``cells`` holds, with the first move of the path to each (from the
+    agent's predecessors ``pred``). Returns how many were written."""
+    best = np.full(n_clusters + 1, -1, dtype=np.int64)  # per cluster: its nearest target
+    for j in range(targets.size):  # targets ascend: a strictly nearer cell replaces
+        c = ids[j]
+        if best[c] < 0 or cost[j] < cost[best[c]]:
+            best[c] = j
+    key = np.empty(n_clusters, dtype=np.float64)
+    picks = np.empty(n_clusters, dtype=np.int64)
+    m = 0
+    for c in range(1, n_clusters + 1):
+        j = best[c]
+        if j >= 0 and c != skip and cost[j] < np.inf:
+            picks[m] = j
+            # path lengths are whole numbers: distance first, then the cell, in one exact key
+            key[m] = cost[j] * pred.size + targets[j]
+            m += 1
+    order = np.argsort(key[:m])
+    count = min(m, cells.size)
+    for slot in range(count):
+        goal = targets[picks[order[slot]]]
+        step = goal
+        while pred[step] != start:  # walk back to the first step
+            step = pred[step]
+        d = step - start
+        cells[slot] = goal
+        moves[slot] = 0 if d == -stride else 1 if d == stride else 2 if d == -1 else 3
+    return count

@@ -253,15 +253,6 @@ class FrontierPlanner:
             self._scratch = np.empty((4, size), dtype=np.int64)
         return self._scratch
 
-    def first_move(self, pred: np.ndarray, agent: int, goal: int) -> int:
-        """The move (0-3) that starts the path to ``goal`` in agent ``agent``'s predecessors
-        ``pred`` (one row of :meth:`distance_fields`); ``goal`` must be reachable and not the
-        agent's own cell."""
-        start, step = self.positions[agent], goal
-        while (prev := int(pred[step])) != start:
-            step = prev
-        return self.action_of[step - start]
-
     def _search(self, start: int, claimed: np.ndarray) -> tuple[int, int] | None:
         """Nearest unclaimed target from ``start`` and the first cell of a shortest path to it
         (the tie-break's choice among the nearest), or ``None`` when no unclaimed target is

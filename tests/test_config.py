@@ -235,6 +235,40 @@ def test_one_key_given_twice_with_set_is_refused():
         config_from_dict({}, overrides=["env.n_agents=2", "env.n_agents=3"])
 
 
+def test_a_mapping_set_on_a_section_keeps_the_sections_other_keys(tmp_path):
+    from harness.training.sweep import override
+
+    path = write(
+        tmp_path,
+        "env: {height: 8, width: 8, n_agents: 2, max_steps: 20, map: {cave: {}},\n"
+        "      rewards: {new_cell: 3.0}}\n"
+        "phases: [{name: only, timesteps: 5000, batch_size: 16}]\n",
+    )
+    # --set and a sweep's space-file value (its --set text) take the one rule: merged.
+    for text in ("env={n_agents: 3, rewards: {step: -2.0}}",
+                 override("env", {"n_agents": 3, "rewards": {"step": -2.0}})):  # fmt: skip
+        env = load_config(path, [text]).env
+        assert (env.n_agents, env.max_steps, env.height, env.width) == (3, 20, 8, 8)
+        assert "cave" in env.map  # not reset to the default `random`
+        assert (env.rewards.step, env.rewards.new_cell) == (-2.0, 3.0)  # merged down a level
+    phase = load_config(path, ["phases.only={learning_rate: 1.0e-4}"]).phases[0]
+    assert (phase.name, phase.timesteps, phase.batch_size) == ("only", 5000, 16)
+    # A free-form mapping is replaced whole: another map kind is one map, not two.
+    assert load_config(path, ["env={map: {maze: {}}}"]).env.map.keys() == {"maze"}
+    # A list is replaced whole.
+    assert len(load_config(path, ["phases=[{name: a, timesteps: 4000}]"]).phases) == 1
+
+
+def test_a_map_file_named_in_an_env_mapping_drops_the_old_files_hash(tmp_path, monkeypatch):
+    (tmp_path / "a.txt").write_text("....\n.##.\n....\n")
+    (tmp_path / "b.txt").write_text("....\n....\n....\n")
+    monkeypatch.chdir(tmp_path)
+    saved = tmp_path / "run.yaml"
+    saved.write_text(load_config(write(tmp_path, "env: {map: a.txt, n_agents: 2}\n")).to_yaml())
+    env = load_config(saved, ["env={map: b.txt}"]).env
+    assert env.map == str(tmp_path / "b.txt") and env.n_agents == 2
+
+
 def test_quoted_set_values_stay_text_and_bare_exponents_are_numbers():
     # `harness run --name 2024` passes name="2024": a name, not a number.
     for name in ("2024", "1e5", "nan"):

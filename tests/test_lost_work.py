@@ -82,7 +82,7 @@ def test_a_stopped_seed_grid_trains_every_seed_exactly_once_after_resume(
     stop = {"at": stop_at}
     trained: list[int] = []
 
-    def objective(trial, config_path, overrides, dims, folder, total):
+    def objective(trial, config_path, overrides, dims, folder, total, *_):
         sweep._claim(trial, total)
         params = {d.key: d.suggest(trial) for d in dims}
         if trial.number == stop["at"]:
@@ -113,7 +113,7 @@ def test_a_stopped_seed_grid_trains_every_seed_exactly_once_after_resume(
 
 def test_a_resume_never_queues_a_grid_point_that_has_its_trial(tiny, tmp_path, monkeypatch):
     # Three of four points complete, one stopped twice (two failed trials): one trial more.
-    def objective(trial, config_path, overrides, dims, folder, total):
+    def objective(trial, config_path, overrides, dims, folder, total, *_):
         sweep._claim(trial, total)
         params = {d.key: d.suggest(trial) for d in dims}
         if params["seed"] == 2 and trial.number < 4:

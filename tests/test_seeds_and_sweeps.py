@@ -11,7 +11,9 @@ import shutil
 import subprocess
 import sys
 import tempfile
+import time
 from pathlib import Path
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -445,6 +447,221 @@ def test_resume_fails_the_trial_a_dead_sweep_left_running_and_runs_it_again(tiny
     assert trials[1].system_attrs["failed_trial"] == 0
 
 
+def _instant_training(monkeypatch, during=None) -> list:
+    """Trials train at once: one evaluation (coverage 0.5 at 80 transitions) is reported, after
+    ``during(run)`` if given. Returns the list of the configs trained, filled as they are."""
+    import harness.training.train as train_module
+
+    configs = []
+
+    def train(config, run, progress_bar=True, command=None, on_evaluation=None, **_):
+        configs.append(config)
+        if during is not None:
+            during(run)
+        on_evaluation(80, {"coverage_median": 0.5})
+        return SimpleNamespace(num_timesteps=80)
+
+    monkeypatch.setattr(train_module, "train", train)
+    return configs
+
+
+def test_a_second_sweep_of_a_live_study_is_refused_and_leaves_its_trial_alone(
+    tiny, tmp_path, monkeypatch, capsys
+):
+    space = tmp_path / "space.yaml"
+    space.write_text(SPACE)
+    sweeps = tmp_path / "sweeps"
+    args = ["sweep", str(tiny), "--space", str(space), "--trials", "1", "--sweeps-dir", str(sweeps)]
+    seen = {}
+
+    def during(run):  # while the first sweep trains its trial: a second one, new or --resume
+        if not seen:
+            seen["nested"] = True  # (today's main trains again in here: once)
+            seen["codes"] = [main([*args, "--resume"]), main(args)]
+            seen["err"] = capsys.readouterr().err
+            trials = optuna.load_study(study_name="tiny", storage=_journal(sweeps / "tiny")).trials
+            seen["states"] = [t.state.name for t in trials]
+
+    import optuna
+
+    _instant_training(monkeypatch, during)
+    assert main(args) == 0
+    assert seen["codes"] == [2, 2]
+    lines = seen["err"].strip().splitlines()
+    assert len(lines) == 2
+    for line in lines:
+        assert line == (
+            f"harness: error: {sweeps / 'tiny'}: in use by process {os.getpid()} (a sweep of "
+            "this study still going); wait for it to end or stop it first"
+        )
+    assert seen["states"] == ["RUNNING"]  # the first sweep's trial was not failed
+    trials = optuna.load_study(study_name="tiny", storage=_journal(sweeps / "tiny")).trials
+    assert [t.state.name for t in trials] == ["COMPLETE"]  # trained once, and it counts
+
+
+def test_a_sweep_held_by_another_process_is_refused_and_taken_over_once_it_died(
+    tiny, tmp_path, monkeypatch, capsys
+):
+    from harness.results.rundir import RunDir
+
+    space = tmp_path / "space.yaml"
+    space.write_text(SPACE)
+    sweeps = tmp_path / "sweeps"
+    args = ["sweep", str(tiny), "--space", str(space), "--trials", "1", "--sweeps-dir", str(sweeps)]
+    _instant_training(monkeypatch)
+    assert main(args) == 0
+    # Another process holds the sweep folder as a sweep does (RunDir.lock: flock on .lock).
+    code = (
+        "import sys, time; from pathlib import Path; from harness.results.rundir import RunDir\n"
+        "with RunDir(Path(sys.argv[1])).lock('a sweep of this study'):\n"
+        "    print('held', flush=True); time.sleep(600)\n"
+    )
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    holder = subprocess.Popen(
+        [sys.executable, "-c", code, str(sweeps / "tiny")], env=env, stdout=subprocess.PIPE
+    )
+    try:
+        assert holder.stdout.readline() == b"held\n"
+        capsys.readouterr()
+        resume = [*args[:5], "2", *args[6:], "--resume"]
+        assert main(resume) == 2
+        err = capsys.readouterr().err.strip()
+        assert f"in use by process {holder.pid} (a sweep of this study still going)" in err
+        assert "\n" not in err
+    finally:
+        holder.kill()
+        holder.wait()
+    assert main(resume) == 0  # the dead holder's lock is taken over
+    with RunDir(sweeps / "tiny").lock():  # and released when the sweep ends
+        pass
+
+
+def test_the_overrides_are_part_of_a_study_and_a_resume_refuses_others(
+    tiny, tmp_path, monkeypatch, capsys
+):
+    import optuna
+
+    space = tmp_path / "space.yaml"
+    space.write_text(SPACE)
+    sweeps = tmp_path / "sweeps"
+    args = ["sweep", str(tiny), "--space", str(space), "--sweeps-dir", str(sweeps)]
+    configs = _instant_training(monkeypatch)
+    sets = ["--set", "env.max_steps=30", "--set", "eval.episodes=3"]
+    assert main([*args, "--trials", "1", *sets]) == 0
+    storage = _journal(sweeps / "tiny")
+    study = optuna.load_study(study_name="tiny", storage=storage)
+    assert study.user_attrs["overrides"] == ["env.max_steps=30", "eval.episodes=3"]
+    capsys.readouterr()
+    # Another task for the same study: refused in one line naming what differs, nothing changed.
+    assert main([*args, "--trials", "2", "--resume", "--set", "env.max_steps=40"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (
+        "harness: error: study tiny was started with --set env.max_steps=30 eval.episodes=3; "
+        "this command differs in env.max_steps=40 (study: 30), no eval.episodes (study: 3): "
+        "give the study's --set, or a new --study"
+    )
+    assert len(optuna.load_study(study_name="tiny", storage=storage).trials) == 1
+    assert main([*args, "--trials", "2", "--resume"]) == 2  # none at all differs too
+    # The same overrides (in another order, written otherwise, with a machine-only key) go on.
+    same = ["--set", "eval.episodes=3", "--set", "env.max_steps=3.0e1", "--set", "algo.threads=1"]
+    assert main([*args, "--trials", "2", "--resume", *same]) == 0
+    assert [c.env.max_steps for c in configs] == [30, 30]
+    # A study from before studies kept their overrides resumes as it did, with any overrides.
+    old = optuna.create_study(study_name="old", storage=storage, direction="maximize")
+    old.ask()  # a trial a killed process left running
+    assert main([*args, "--study", "old", "--trials", "1", "--resume", *sets]) == 0
+    assert "overrides" not in optuna.load_study(study_name="old", storage=storage).user_attrs
+
+
+def test_a_section_valued_choice_in_a_space_file_keeps_the_sections_other_keys(
+    tiny, tmp_path, monkeypatch
+):
+    space = tmp_path / "space.yaml"
+    space.write_text("env: {choice: [{n_agents: 3}]}\n")
+    configs = _instant_training(monkeypatch)
+    args = ["sweep", str(tiny), "--space", str(space), "--trials", "1",
+            "--sweeps-dir", str(tmp_path / "sweeps")]  # fmt: skip
+    with pytest.warns(UserWarning, match="categorical distribution"):  # Optuna's, on dicts
+        assert main(args) == 0
+    (config,) = configs
+    assert config.env.n_agents == 3
+    assert (config.env.max_steps, config.env.height, config.env.width) == (20, 8, 8)  # kept
+
+
+@pytest.fixture
+def lose_the_database(monkeypatch):
+    """``lost["now"] = True`` makes every later word of Optuna's RDBStorage with its database
+    fail as a dropped connection does (SQLAlchemy's OperationalError, inside the session)."""
+    import contextlib
+
+    import optuna.storages._rdb.storage as rdb
+    from sqlalchemy.exc import OperationalError
+
+    real = rdb._create_scoped_session
+    lost = {"now": False}
+
+    @contextlib.contextmanager
+    def session(*args, **kwargs):
+        with real(*args, **kwargs) as s:
+            if lost["now"]:
+                raise OperationalError(
+                    "SELECT", {}, ConnectionError("server closed the connection unexpectedly")
+                )
+            yield s
+
+    monkeypatch.setattr(rdb, "_create_scoped_session", session)
+    return lost
+
+
+def test_a_lost_database_stops_the_sweep_in_one_line_and_resume_finishes_it(
+    tiny, tmp_path, monkeypatch, capsys, lose_the_database
+):
+    import threading
+
+    import optuna
+
+    from harness.training import sweep
+
+    monkeypatch.setattr(sweep, "HEARTBEAT_S", 1)  # a heartbeat falls while the database is gone
+    thread_errors = []
+    monkeypatch.setattr(threading, "excepthook", thread_errors.append)
+
+    def during(run):
+        if run.path.name == "trial-0001":  # the second trial: the database dies as it trains
+            lose_the_database["now"] = True
+            time.sleep(1.5)
+
+    configs = _instant_training(monkeypatch, during)
+    space = tmp_path / "space.yaml"
+    space.write_text(SPACE)
+    sweeps = tmp_path / "sweeps"
+    url = f"sqlite:///{tmp_path / 'optuna.db'}"
+    args = ["sweep", str(tiny), "--space", str(space), "--trials", "3", "--storage", url,
+            "--sweeps-dir", str(sweeps)]  # fmt: skip
+    capsys.readouterr()
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    lines = [x for x in err.splitlines() if not x.startswith("trial ")]
+    assert lines == [
+        "harness: error: --storage: lost the sweep's database (OperationalError: server closed "
+        "the connection unexpectedly); the trials' run folders are kept (the last one started: "
+        f"{sweeps / 'tiny' / 'trial-0001'}); once the database is back, continue with the same "
+        "command and --resume"
+    ]
+    assert "Traceback" not in err and thread_errors == []  # the heartbeat thread too
+    assert (sweeps / "tiny" / "trial-0001" / "config.yaml").parent.is_dir()
+    # The database is back: --resume fails the lost trial at once (its folder is held by no
+    # process; no wait for the heartbeat's grace) and trains it again, to the 3 asked.
+    lose_the_database["now"] = False
+    assert main([*args, "--resume"]) == 0
+    storage = optuna.storages.RDBStorage(url)
+    trials = optuna.load_study(study_name="tiny", storage=storage).trials
+    storage.engine.dispose()
+    assert [t.state.name for t in trials] == ["COMPLETE", "FAIL", "COMPLETE", "COMPLETE"]
+    assert trials[2].system_attrs["failed_trial"] == 1  # trial 1 again, same parameters
+    assert trials[2].params == trials[1].params and len(configs) == 4
+
+
 def test_a_dead_trial_of_a_seed_grid_is_trained_again_not_lost(tiny, tmp_path):
     import optuna
 
@@ -553,6 +770,59 @@ def test_two_workers_share_one_postgresql_study(tiny, tmp_path):
         assert all(t.state.name == "FAIL" and "skipped" in t.user_attrs for t in others)
         folder = tmp_path / "sweeps" / "shared"
         assert load_config(folder / "best.yaml").name == "tiny"
+    finally:
+        server.cleanup()
+        shutil.rmtree(data, ignore_errors=True)
+
+
+@pytest.mark.slow
+def test_a_sweep_whose_postgresql_server_dies_stops_in_one_line_and_resumes(tmp_path):
+    import optuna
+    import pgserver
+    from pgserver._commands import pg_ctl
+
+    data = Path(tempfile.mkdtemp(prefix="harness-pg-"))  # (see the test above for why not tmp)
+    server = pgserver.get_server(str(data / "pg"), cleanup_mode="stop")
+    try:
+        server.psql("CREATE DATABASE sweeps;")
+        socket_dir = server.get_uri().split("host=")[1]
+        url = f"postgresql+psycopg://postgres@/sweeps?host={socket_dir}"
+        config = tmp_path / "long.yaml"  # long enough to lose the server in the middle
+        config.write_text(TINY.replace("timesteps: 240", "timesteps: 1200"))
+        space = tmp_path / "space.yaml"
+        space.write_text("algo.gamma: {float: [0.8, 0.99]}\n")
+        sweeps = tmp_path / "sweeps"
+        cmd = [sys.executable, "-m", "harness.cli", "sweep", str(config), "--space", str(space),
+               "--trials", "1", "--storage", url, "--study", "s", "--pruner", "none",
+               "--sweeps-dir", str(sweeps)]  # fmt: skip
+        env = {**os.environ, "PYTHONPATH": str(ROOT)}
+        sweep = subprocess.Popen(cmd, cwd=ROOT, env=env, stderr=subprocess.PIPE)
+        evaluations = sweeps / "s" / "trial-0000" / "evaluations.csv"
+        deadline = time.monotonic() + 300
+        while not (evaluations.is_file() and len(evaluations.read_text().splitlines()) >= 2):
+            assert sweep.poll() is None and time.monotonic() < deadline
+            time.sleep(0.2)
+        # The server crashes (immediate shutdown: every connection dropped) mid-trial.
+        pg_ctl(["-m", "immediate", "stop"], pgdata=server.pgdata, user=server.system_user)
+        _, err = sweep.communicate(timeout=300)
+        text = err.decode()
+        assert sweep.returncode == 2, text[-3000:]
+        assert "Traceback" not in text, text[-3000:]
+        errors = [x for x in text.splitlines() if x.startswith("harness: error:")]
+        assert len(errors) == 1 and "lost the sweep's database" in errors[0]
+        assert "trial-0000" in errors[0] and evaluations.is_file()  # its run folder kept
+        # The server is back: the same command with --resume finishes the sweep.
+        with server._lock:
+            server.ensure_postgres_running()
+        done = subprocess.run([*cmd, "--resume"], cwd=ROOT, env=env, capture_output=True,
+                              timeout=600)  # fmt: skip
+        assert done.returncode == 0, done.stderr.decode()[-3000:]
+        storage = optuna.storages.RDBStorage(url)
+        trials = optuna.load_study(study_name="s", storage=storage).trials
+        storage.engine.dispose()
+        assert [t.state.name for t in trials] == ["FAIL", "COMPLETE"]
+        assert trials[1].params == trials[0].params  # the lost trial, trained again
+        assert load_config(sweeps / "s" / "best.yaml").name == "tiny"
     finally:
         server.cleanup()
         shutil.rmtree(data, ignore_errors=True)

@@ -10,10 +10,10 @@ import re
 import stat
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, NoReturn
+from typing import Any, NoReturn, get_args, get_origin
 
 import yaml
-from pydantic import ValidationError
+from pydantic import BaseModel, ValidationError
 
 from harness.config.maps import SHA256
 from harness.config.migrate import migrate
@@ -86,7 +86,13 @@ def parse_override(text: str) -> tuple[list[str], Any]:
 
 def apply_override(data: dict[str, Any], path: Sequence[str], value: Any, text: str) -> None:
     """Set ``value`` at ``path`` in nested dicts/lists. List items are picked by index or, for
-    lists of named items such as ``phases``, by name (``phases.optimizing.timesteps=...``)."""
+    lists of named items such as ``phases``, by name (``phases.optimizing.timesteps=...``).
+
+    A mapping given for a *section* of the schema (``env={n_agents: 3}``, ``phases.0={...}``,
+    ``env.rewards={...}``) is merged into it, key by key and down into its own sections, so the
+    keys it leaves out keep their values (the one rule for ``--set`` and a sweep's space-file
+    values). Any other value replaces what is there: a list, and a free-form mapping such as
+    ``env.map`` or ``env.observation`` (two map kinds would not make one map)."""
     node: Any = data
     for i, key in enumerate(path):
         last = i == len(path) - 1
@@ -96,16 +102,56 @@ def apply_override(data: dict[str, Any], path: Sequence[str], value: Any, text: 
             if idx is None:
                 raise ConfigError(f"--set {text}: no item {key!r} at {where}")
             if last:
-                node[idx] = value
+                node[idx] = _merged(node[idx], value, _schema_section(path))
             else:
                 node = node[idx]
         elif isinstance(node, dict):
             if last:
-                node[key] = value
+                node[key] = _merged(node.get(key), value, _schema_section(path))
             else:
                 node = node.setdefault(key, {})
         else:
             raise ConfigError(f"--set {text}: {'.'.join(path[:i])} is not a section")
+
+
+def _merged(old: Any, value: Any, section: type[BaseModel] | None) -> Any:
+    """``value`` put in the place of ``old``: merged into it when both are mappings and the place
+    is the schema's ``section`` (recursively, section by section), else ``value`` itself."""
+    if section is None or not isinstance(old, dict) or not isinstance(value, dict):
+        return value
+    merged = dict(old)
+    for key, item in value.items():
+        sub, is_list = _field_model(section, str(key))
+        merged[key] = _merged(merged.get(key), item, None if is_list else sub)
+    return merged
+
+
+def _field_model(model: type[BaseModel], key: str) -> tuple[type[BaseModel] | None, bool]:
+    """The section (a pydantic model) that ``model``'s field ``key`` holds, or ``None`` (a value,
+    a free-form mapping, no such field), and whether the field is a list of them."""
+    field = model.model_fields.get(key)
+    if field is None:
+        return None, False
+    annotation = field.annotation
+    is_list = get_origin(annotation) is list
+    candidates = get_args(annotation) if is_list else (annotation, *get_args(annotation))
+    nested = [c for c in candidates if isinstance(c, type) and issubclass(c, BaseModel)]
+    return (nested[0] if nested else None), is_list
+
+
+def _schema_section(path: Sequence[str]) -> type[BaseModel] | None:
+    """The schema's section at a ``--set`` key path (``env``, ``phases.0``, ``phases.initial``,
+    ``env.rewards``), or ``None`` where the path names a value or a free-form mapping."""
+    model: type[BaseModel] | None = ExperimentConfig
+    in_list = False
+    for key in path:
+        if model is None:
+            return None
+        if in_list:  # the item of a list section, by index or name: the list's own model
+            in_list = False
+            continue
+        model, in_list = _field_model(model, key)
+    return None if in_list else model
 
 
 def _list_index(items: list[Any], key: str) -> int | None:
@@ -256,7 +302,7 @@ def config_from_dict(
             raise ConfigError(f"--set {key} is given twice: give each key once")
         given.add(key)
         parsed.append((keys, value, text))
-    early = [item for item in parsed if _replaces_a_map(item[0])]
+    early = [item for item in parsed if _replaces_a_map(item[0], item[1])]
     try:
         data = migrate(raw)
     except ValueError as err:  # a retired knob turned on
@@ -286,18 +332,24 @@ def config_from_dict(
     return config
 
 
-def _replaces_a_map(keys: Sequence[str]) -> bool:
-    """Whether an override's key sets (part of) ``env.map`` or ``env.test_maps``."""
+def _replaces_a_map(keys: Sequence[str], value: Any) -> bool:
+    """Whether an override sets (part of) ``env.map`` or ``env.test_maps``, by its key or as a
+    key of the ``env`` mapping it gives."""
+    if list(keys) == ["env"] and isinstance(value, dict):
+        return bool({"map", "test_maps"} & set(value))
     return len(keys) >= 2 and keys[0] == "env" and keys[1] in ("map", "test_maps")
 
 
 def _apply(data: dict[str, Any], keys: list[str], value: Any, text: str) -> None:
     """:func:`apply_override`, and the hash of a map file an override names anew (or moves away
     from) forgotten: it is the replaced file's, and the new file's is taken when validating."""
-    apply_override(data, keys, value, text)
+    names_map = keys[:2] == ["env", "map"] or (
+        keys == ["env"] and isinstance(value, dict) and "map" in value
+    )
     env = data.get("env")
-    if keys[:2] == ["env", "map"] and isinstance(env, dict):
+    if names_map and isinstance(env, dict):  # first: a hash given beside the map is kept
         env.pop("map_sha256", None)
+    apply_override(data, keys, value, text)
     if len(keys) >= 2 and keys[-2:] == ["file", "path"]:
         node: Any = data
         for key in keys[:-1]:

@@ -477,13 +477,14 @@ class RunDir:
         return self.path / ".lock"
 
     @contextlib.contextmanager
-    def lock(self) -> Iterator[None]:
+    def lock(self, holder: str = "a run or resume") -> Iterator[None]:
         """Hold the run folder for this process: a second ``harness run --resume`` (or any other
         process training into this folder) is refused while this one lives.
 
         An OS lock (``flock``) on ``.lock``: the kernel releases it when the process ends, however
         it ends, so a lock left by a dead process is simply taken over. The file holds the
-        holder's pid, for the message.
+        holder's pid, for the message; ``holder`` says what holds such a folder (a sweep folder
+        is held the same way: ``a sweep of this study``).
 
         Raises:
             RunDirError: when another live process holds the folder.
@@ -496,9 +497,9 @@ class RunDir:
             try:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except BlockingIOError:
-                holder = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "?"
+                pid = os.pread(fd, 32, 0).decode("ascii", "replace").strip() or "?"
                 raise RunDirError(
-                    f"{self.path}: in use by process {holder} (a run or resume still going); "
+                    f"{self.path}: in use by process {pid} ({holder} still going); "
                     "wait for it to end or stop it first"
                 ) from None
             os.ftruncate(fd, 0)

@@ -36,6 +36,14 @@ trial is evaluated) the sweep stops at once. Either way the command ends with on
 Optuna traceback) and exit code 130 or 143; ``--resume`` continues it (a stopped trial of a grid
 is queued again and trained from step 0 in a new trial folder). With ``--jobs N`` a SIGTERM is
 passed on to the workers.
+
+One process works on an embedded study: the sweep holds its folder's ``.lock`` (as a run holds
+its run folder), so a second sweep of it, new or ``--resume``, is refused naming the holder's pid
+(a dead holder's lock is taken over). A study keeps the ``--set`` overrides it was started with
+(Optuna's study user attribute ``overrides``) and refuses others. A database that stops
+answering stops the sweep with one line (:class:`StorageLost`), the trial folders kept;
+``--resume`` then fails and queues again at once each RUNNING trial whose run folder here no live
+process holds.
 """
 
 from __future__ import annotations
@@ -57,10 +65,10 @@ from typing import Any
 
 import yaml
 
-from harness.config.loading import load_config, parse_yaml
+from harness.config.loading import load_config, parse_override, parse_yaml
 from harness.config.schema import ConfigError
 from harness.processes import harness_command
-from harness.results.rundir import RunDir, atomic_write_text
+from harness.results.rundir import RunDir, RunDirError, atomic_write_text
 
 #: Kinds of distribution a space file may name.
 KINDS = ("float", "int", "choice", "grid")
@@ -78,6 +86,11 @@ HEARTBEAT_S, GRACE_S = 30, 120
 
 class SweepError(ValueError):
     """A space file, study or storage that cannot be used, with a one-line message."""
+
+
+class StorageLost(SweepError):
+    """The sweep's database stopped answering (a lost connection, a server that went away): the
+    sweep stops with one line; ``--resume`` continues it once the database is back."""
 
 
 class SweepInterrupted(KeyboardInterrupt):
@@ -120,8 +133,8 @@ def _stop_on_sigterm(state: _SignalState) -> Iterator[None]:
 
 class _QuietInterrupts(logging.Filter):
     """Leaves out Optuna's "Trial N failed ... because of the following error" warning (with the
-    traceback) of a trial stopped by a signal, and its warnings after it: the command says what
-    happened in one line."""
+    traceback) of a trial stopped by a signal or by a lost database, and its warnings after it:
+    the command says what happened in one line."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -131,7 +144,9 @@ class _QuietInterrupts(logging.Filter):
         from harness.training.train import TrainingInterrupted
 
         error = record.exc_info[1] if record.exc_info else None
-        if isinstance(error, (KeyboardInterrupt, TrainingInterrupted)):
+        if isinstance(error, (KeyboardInterrupt, TrainingInterrupted)) or (
+            error is not None and _storage_failure(error) is not None
+        ):
             self.quiet = True
         return not self.quiet
 
@@ -244,6 +259,57 @@ def check_space(config_path: Path, overrides: Sequence[str], dims: Sequence[Dime
                 raise SweepError(f"space key {dim.key}={value!r}: {exc}") from None
 
 
+#: The study's user attribute that keeps the ``--set`` overrides it was started with.
+OVERRIDES_ATTR = "overrides"
+
+
+def check_overrides(study: Any, overrides: Sequence[str]) -> None:
+    """The ``--set`` overrides are part of a study's identity (every trial trains the same task):
+    a new study keeps them; a study that has them refuses others. Keys of how a run uses the
+    machine (``MAY_CHANGE``: ``algo.threads``, which ``--jobs`` gives its workers, ``algo.device``,
+    ...) may differ. A study started before studies kept them is not checked.
+
+    Raises:
+        SweepError: naming each override that differs from the study's.
+    """
+    stored = study.user_attrs.get(OVERRIDES_ATTR)
+    if stored is None:
+        if study.get_trials(deepcopy=False):
+            return  # started before studies kept their overrides: resumed as it was
+        study.set_user_attr(OVERRIDES_ATTR, list(overrides))
+        stored = study.user_attrs[OVERRIDES_ATTR]  # another worker's, if it was first
+    differ = _override_changes(stored, overrides)
+    if differ:
+        started = f"--set {' '.join(stored)}" if stored else "no --set"
+        raise SweepError(
+            f"study {study.study_name} was started with {started}; this command differs "
+            f"in {', '.join(differ)}: give the study's --set, or a new --study"
+        )
+
+
+def _override_changes(stored: Sequence[str], given: Sequence[str]) -> list[str]:
+    """Each override that differs between the study's (``stored``) and this command's
+    (``given``), as ``key=value (study: value)``; values compare as ``--set`` reads them."""
+    from harness.training.checkpoints import MAY_CHANGE
+
+    def values(texts: Sequence[str]) -> dict[str, tuple[Any, str]]:
+        parsed = {}
+        for text in texts:
+            keys, value = parse_override(text)
+            parsed[".".join(keys)] = (value, text.partition("=")[2].strip())
+        return parsed
+
+    old, new = values(stored), values(given)
+    changes = []
+    for key in dict.fromkeys([*old, *new]):
+        if key in MAY_CHANGE or (key in old and key in new and old[key][0] == new[key][0]):
+            continue
+        mine = f"{key}={new[key][1]}" if key in new else f"no {key}"
+        theirs = old[key][1] if key in old else "not set"
+        changes.append(f"{mine} (study: {theirs})")
+    return changes
+
+
 def _storage(url: str | None, folder: Path) -> Any:
     import optuna
     from optuna.storages.journal import JournalFileBackend
@@ -260,7 +326,7 @@ def _storage(url: str | None, folder: Path) -> Any:
                 warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
                 # A heartbeat lets fail_stale_trials (run before each trial and by --resume) tell
                 # a dead worker's running trial from a live one; the dead one is queued again.
-                return optuna.storages.RDBStorage(
+                return _storage_class()(
                     url,
                     heartbeat_interval=HEARTBEAT_S,
                     grace_period=GRACE_S,
@@ -277,6 +343,55 @@ def _storage(url: str | None, folder: Path) -> Any:
     raise SweepError(
         f"--storage: cannot open {url!r} ({type(error).__name__}: {str(error).splitlines()[0]})"
     ) from None
+
+
+def _storage_class() -> type:
+    """Optuna's ``RDBStorage`` whose heartbeat (a thread of its own) outlives a lost database:
+    Optuna's would end its thread with a traceback, and the next heartbeat after the database is
+    back would never come. The trial's own next word with the storage says it is lost."""
+    import optuna
+    from sqlalchemy.exc import SQLAlchemyError
+
+    class Storage(optuna.storages.RDBStorage):
+        def record_heartbeat(self, trial_id: int) -> None:
+            # Optuna wraps an error of the commit in its StorageInternalError.
+            with contextlib.suppress(SQLAlchemyError, optuna.exceptions.StorageInternalError):
+                super().record_heartbeat(trial_id)
+
+    return Storage
+
+
+def _storage_failure(exc: BaseException) -> BaseException | None:
+    """The database error behind ``exc`` (SQLAlchemy's, or Optuna's ``StorageInternalError`` for
+    one that has no SQLAlchemy error under it), or ``None``. Optuna raises other errors on top of
+    it: its ``StorageInternalError`` from the commit's error, and, for a trial whose end cannot
+    be stored, an ``UnboundLocalError`` inside ``study.optimize`` with the database's error as
+    its context."""
+    from optuna.exceptions import StorageInternalError
+    from sqlalchemy.exc import SQLAlchemyError
+
+    seen: set[int] = set()
+    found: BaseException | None = None
+    error: BaseException | None = exc
+    while error is not None and id(error) not in seen:
+        if isinstance(error, SQLAlchemyError):
+            return error
+        if isinstance(error, StorageInternalError) and found is None:
+            found = error
+        seen.add(id(error))
+        error = error.__cause__ or error.__context__
+    return found
+
+
+def _lost_line(error: BaseException, run: Path | None) -> str:
+    """:class:`StorageLost`'s message: the database's error, and the trial folder kept."""
+    cause = getattr(error, "orig", None) or error  # the driver's words, without the SQL
+    words = (str(cause).strip().splitlines() or [""])[0][:160]
+    kept = f"; the trials' run folders are kept (the last one started: {run})" if run else ""
+    return (
+        f"--storage: lost the sweep's database ({type(error).__name__}: {words}){kept}; once the "
+        "database is back, continue with the same command and --resume"
+    )
 
 
 def _retry_callback() -> Any:
@@ -325,9 +440,15 @@ def run_sweep(
     Returns:
         ``best.json``'s content, or ``None`` when no trial has completed yet.
 
+    The sweep folder of an embedded study is held (``RunDir.lock``, ``.lock``) by one process,
+    the sweep's (its ``--jobs`` workers are its children); a database's study is shared by every
+    process given it, its trials kept apart by heartbeats and their run folders' locks.
+
     Raises:
         SweepError: for a bad space file, a study that exists without ``--resume`` (embedded
-            storage), or a storage that cannot be opened.
+            storage), overrides other than the study's (:func:`check_overrides`), or a storage
+            that cannot be opened; :class:`StorageLost` when the database stops answering.
+        RunDirError: when a live process holds the sweep folder (embedded storage).
         ConfigError: for a bad config.
         TrainingInterrupted: on SIGINT/SIGTERM during a trial's training, after its checkpoint
             (the trial is marked failed).
@@ -391,13 +512,49 @@ def _run_sweep(
     points = math.prod(len(d.values) for d in dims)
     if grid and spec.trials > points:
         raise SweepError(f"--trials {spec.trials}: the grid of {spec.space_path} has only {points}")
+    embedded = spec.storage_url is None
+    with contextlib.ExitStack() as held:
+        if embedded and not worker:
+            # One process owns a journal's sweep (its --jobs workers are its children): a second
+            # one would fail the trials this one trains (--resume) and train them again.
+            spec.folder.mkdir(parents=True, exist_ok=True)
+            held.enter_context(RunDir(spec.folder).lock("a sweep of this study"))
+        storage = None
+        last_run: list[Path] = []  # the run folder of the trial this process started last
+        try:
+            if embedded and (spec.folder / "journal.log").exists() and not resume and not worker:
+                raise SweepError(
+                    f"{spec.folder}: a sweep of this study exists; add --resume to continue it"
+                )
+            optuna.logging.set_verbosity(optuna.logging.WARNING)
+            storage = _storage(spec.storage_url, spec.folder)  # before a database's folder is made
+            spec.folder.mkdir(parents=True, exist_ok=True)
+            return _run_study(spec, storage, dims, grid, resume, jobs, worker, report, state,
+                              last_run.append)  # fmt: skip
+        except Exception as exc:
+            lost = _storage_failure(exc) if storage is not None else None
+            if lost is None:
+                raise
+            raise StorageLost(_lost_line(lost, last_run[-1] if last_run else None)) from None
+
+
+def _run_study(
+    spec: _Study,
+    storage: Any,
+    dims: Sequence[Dimension],
+    grid: bool,
+    resume: bool,
+    jobs: int,
+    worker: bool,
+    report: Callable[[str], None] | None,
+    state: _SignalState,
+    started: Callable[[Path], None],
+) -> dict[str, Any] | None:
+    """The sweep on its opened ``storage`` (:func:`run_sweep`); ``started`` receives the run
+    folder of each trial this process starts."""
+    import optuna
+
     folder = spec.folder
-    exists = (folder / "journal.log").exists()
-    if spec.storage_url is None and exists and not resume and not worker:
-        raise SweepError(f"{folder}: a sweep of this study exists; add --resume to continue it")
-    optuna.logging.set_verbosity(optuna.logging.WARNING)
-    storage = _storage(spec.storage_url, folder)  # before any folder is made for a database
-    folder.mkdir(parents=True, exist_ok=True)
     sampler = _grid_sampler(dims) if grid else optuna.samplers.TPESampler(seed=None)
     study = optuna.create_study(
         study_name=spec.study_name,
@@ -407,8 +564,9 @@ def _run_sweep(
         pruner=make_pruner(spec.pruner),
         load_if_exists=True,
     )
+    check_overrides(study, spec.overrides)
     if resume and not worker:
-        _fail_dead_trials(study, embedded=spec.storage_url is None)
+        _fail_dead_trials(study, folder, embedded=spec.storage_url is None)
         if grid:
             _requeue_grid(study, sampler, spec.trials)
     if jobs > 1:
@@ -416,11 +574,16 @@ def _run_sweep(
     else:
         from harness.training.train import TrainingFailed, TrainingInterrupted
 
+        # The lock of the trial in training, from before the trial names its run folder until
+        # Optuna has recorded how it ended (released as the next trial starts, or the sweep
+        # ends): a folder of a RUNNING trial that no live process holds is a dead trial.
+        trial_lock = contextlib.ExitStack()
+
         def objective(trial: Any) -> float:
+            trial_lock.close()
             try:
-                return _objective(
-                    trial, spec.config_path, spec.overrides, dims, folder, spec.trials
-                )
+                return _objective(trial, spec.config_path, spec.overrides, dims, folder,
+                                  spec.trials, trial_lock, started)  # fmt: skip
             except TrainingInterrupted:
                 state.stopping = True  # its checkpoint is written; now the trial is marked failed
                 raise
@@ -428,15 +591,16 @@ def _run_sweep(
         counted = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED)
         left = spec.trials - len(study.get_trials(deepcopy=False, states=counted))
         if left > 0:
-            study.optimize(
-                objective,
-                n_trials=left,
-                callbacks=[
-                    optuna.study.MaxTrialsCallback(spec.trials, states=counted),
-                    *([_Reporter(report, spec.trials)] if report is not None else []),
-                ],
-                catch=(StudyFull, TrainingFailed),
-            )
+            with trial_lock:
+                study.optimize(
+                    objective,
+                    n_trials=left,
+                    callbacks=[
+                        optuna.study.MaxTrialsCallback(spec.trials, states=counted),
+                        *([_Reporter(report, spec.trials)] if report is not None else []),
+                    ],
+                    catch=(StudyFull, TrainingFailed),
+                )
     return None if worker else write_best(study, spec.config_path, spec.overrides, folder)
 
 
@@ -473,19 +637,46 @@ def _run_workers(spec: _Study, jobs: int) -> None:
         raise SweepError(f"sweep worker {failed[0]} failed; see {log}")
 
 
-def _fail_dead_trials(study: Any, embedded: bool) -> None:
+def _fail_dead_trials(study: Any, folder: Path, embedded: bool) -> None:
     """Mark the trials a killed worker left RUNNING as failed and queue each again with the same
     parameters (its run folder stays; the count of finished trials does not include it)."""
     import optuna
 
-    if not embedded:
-        optuna.storages.fail_stale_trials(study)  # by heartbeat: live workers keep theirs
-        return
-    # One machine, one journal: --resume is run when the sweep's processes are gone.
+    running = (optuna.trial.TrialState.RUNNING,)
+    if embedded:  # one machine, one journal: this process holds the sweep, the rest are gone
+        dead = study.get_trials(deepcopy=False, states=running)
+    else:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", optuna.exceptions.ExperimentalWarning)
+            optuna.storages.fail_stale_trials(study)  # by heartbeat: live workers keep theirs
+        # At once, without waiting for the heartbeat's grace period: the trials whose run folder
+        # in this sweep folder no live process holds (their process lost the database, or was
+        # killed). A trial of another machine has no folder here and is left to the heartbeat.
+        dead = [
+            t
+            for t in study.get_trials(deepcopy=False, states=running)
+            if _abandoned(t.user_attrs.get("run"), folder)
+        ]
     retry = _retry_callback()
-    for trial in study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.RUNNING,)):
-        study._storage.set_trial_state_values(trial._trial_id, optuna.trial.TrialState.FAIL)
+    for trial in dead:
+        try:
+            study._storage.set_trial_state_values(trial._trial_id, optuna.trial.TrialState.FAIL)
+        except optuna.exceptions.UpdateFinishedTrialError:
+            continue  # another worker failed it (and queued it) first
         retry(study, study._storage.get_trial(trial._trial_id))
+
+
+def _abandoned(run: str | None, folder: Path) -> bool:
+    """Whether ``run`` (a trial's run folder) is a folder of this sweep that no live process
+    holds: a trial holds its folder's lock from before it names the folder until its end is
+    recorded."""
+    if run is None or Path(run).parent.resolve() != folder.resolve() or not Path(run).is_dir():
+        return False
+    try:
+        with RunDir(Path(run)).lock():
+            return True
+    except RunDirError:  # held by a live trial (or not lockable: left alone)
+        return False
 
 
 #: The trials that settle a grid point: trained to the end, or stopped by the pruner.
@@ -608,8 +799,12 @@ def _objective(
     dims: Sequence[Dimension],
     folder: Path,
     total: int,
+    lock: contextlib.ExitStack,
+    started: Callable[[Path], None] = lambda run: None,
 ) -> float:
     """Train one trial into its own run folder; its value is the median validation coverage.
+    The folder's lock goes onto ``lock`` (the caller releases it once Optuna has recorded the
+    trial's end); ``started`` receives the folder.
 
     Raises:
         optuna.TrialPruned: when the pruner stops it (the run folder keeps what it logged).
@@ -624,6 +819,8 @@ def _objective(
     params = {d.key: d.suggest(trial) for d in dims}
     config = load_config(config_path, [*overrides, *(override(k, v) for k, v in params.items())])
     run = RunDir.create_at(folder / f"trial-{trial.number:04d}")
+    lock.enter_context(run.lock())  # before the trial names it: a --resume leaves it alone
+    started(run.path)
     trial.set_user_attr("run", str(run.path))
     last: dict[str, Any] = {}
 
@@ -633,11 +830,10 @@ def _objective(
         if trial.should_prune():
             raise optuna.TrialPruned(f"pruned at {timesteps} transitions")
 
-    with run.lock():
-        model = train(
-            config, run, progress_bar=False, command=["sweep", str(trial.number)],
-            on_evaluation=report,
-        )  # fmt: skip
+    model = train(
+        config, run, progress_bar=False, command=["sweep", str(trial.number)],
+        on_evaluation=report,
+    )  # fmt: skip
     if last.get("timesteps") == model.num_timesteps:  # the last evaluation saw the final model
         return last["value"]
     ev = config.eval

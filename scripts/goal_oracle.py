@@ -46,20 +46,20 @@ from harness.factory import make_env
 from harness.results.stats import paired_difference
 
 
-def clone(planner: FrontierPlanner, free: list[bool] | None = None) -> FrontierPlanner:
-    """A copy of the planner's map that can be stepped on its own (its ``free`` list and cached
-    graph are shared read-only; every per-cell state it changes is copied, and so are the
-    search's scratch arrays). ``free`` replaces
-    the true free cells (a sampled map) for the cells nobody has seen."""
+def clone(planner: FrontierPlanner, free: np.ndarray | None = None) -> FrontierPlanner:
+    """A copy of the planner's map that can be stepped on its own (its ``free`` array is shared
+    read-only; every per-cell state it changes is copied, and so are the searches' scratch
+    arrays). ``free`` replaces the true free cells (a sampled map) for the cells nobody has
+    seen."""
     copy = object.__new__(type(planner))
     copy.__dict__.update(planner.__dict__)
     if free is not None:
-        copy.free = free
-    for name in ("visited", "seen", "passable", "target", "positions", "goals"):
-        setattr(copy, name, list(getattr(planner, name)))
-    for name in ("passable_np", "target_np", "seen_np"):
+        copy.free = np.asarray(free, dtype=bool)
+    for name in ("visited", "seen", "passable", "target"):
         setattr(copy, name, getattr(planner, name).copy())
-    copy._scratch = None
+    copy.passable_np, copy.target_np, copy.seen_np = copy.passable, copy.target, copy.seen
+    copy.positions, copy.goals = list(planner.positions), list(planner.goals)
+    copy._scratch = copy._claimed = None
     return copy
 
 
@@ -109,7 +109,7 @@ def path_to(pred: np.ndarray, start: int, goal: int) -> list[int]:
     return cells[::-1]
 
 
-def sampled_free(planner: FrontierPlanner, rng: np.random.Generator) -> list[bool]:
+def sampled_free(planner: FrontierPlanner, rng: np.random.Generator) -> np.ndarray:
     """The free cells as the team can guess them: the true ones where a cell has been seen,
     elsewhere free with the share of free cells among the seen ones (the outer ring stays
     wall)."""
@@ -119,7 +119,7 @@ def sampled_free(planner: FrontierPlanner, rng: np.random.Generator) -> list[boo
     share = inner[seen].sum() / max(seen.sum(), 1)
     guess = free.copy()
     guess[1:-1, 1:-1] = np.where(seen, inner, rng.random(inner.shape) < share)
-    return guess.ravel().tolist()
+    return guess.ravel()
 
 
 def play(

@@ -1,11 +1,10 @@
 """Where a coordinated planner's time goes, per episode, beside the classical explorer's.
 
 Plays the bench's setting (50x50 random maps, 4 agents, 1000 steps, one thread) with each
-planner's baseline and times, inside the run, the parts of a step that the planner adds: SciPy's
-shortest-path searches (``envs.coverage.planners.dijkstra``: the fields up to the horizon, and
-the whole map for an agent with nothing within it), the graph's upkeep and the assignment. The
-rest of an episode is the env, the map upkeep and Python around them, which ``frontier`` pays
-too. docs/planners.md quotes it.
+planner's baseline and times, inside the run, the parts of a step that the planner adds: the
+compiled distance fields (``CoordinatedPlanner._fields``: up to the horizon, and the whole map
+for an agent with nothing within it) and the assignment. The rest of an episode is the env, the
+map upkeep and Python around them, which ``frontier`` pays too. docs/performance.md quotes it.
 
     python scripts/planner_time.py [EPISODES]     # default 8; under a minute
 """
@@ -44,15 +43,13 @@ def timed(spent: dict[str, float], name: str, fn: Callable[..., Any]) -> Callabl
 def main(episodes: int) -> None:
     torch.set_num_threads(1)
     spent: dict[str, float] = {}
-    search = planners.dijkstra
+    search = planners.FrontierPlanner._fields
 
-    def dijkstra(*args: Any, limit: float = np.inf, **kwargs: Any) -> Any:
+    def fields(self: Any, starts: np.ndarray, limit: float) -> Any:
         name = "search: whole map" if limit == np.inf else "search: horizon"
-        return timed(spent, name, search)(*args, limit=limit, **kwargs)
+        return timed(spent, name, search)(self, starts, limit)
 
-    planners.dijkstra = dijkstra
-    coordinated = planners.CoordinatedPlanner
-    coordinated._weighted_grid = timed(spent, "graph upkeep", coordinated._weighted_grid)
+    planners.FrontierPlanner._fields = fields
     for cls in (planners.HungarianPlanner, planners.MinPosPlanner, planners.UtilityPlanner):
         cls.assign = timed(spent, "assignment", cls.assign)
     for policy in POLICIES:

@@ -108,6 +108,87 @@ def nearest_targets(
     return count
 
 
+@njit(cache=True, nogil=True)
+def _visit_cells(
+    cells: np.ndarray,
+    window: np.ndarray,
+    free: np.ndarray,
+    visited: np.ndarray,
+    seen: np.ndarray,
+    passable: np.ndarray,
+    target: np.ndarray,
+) -> int:
+    """Mark ``cells`` visited in order, and each one's 3x3 ``window`` seen: a seen free cell
+    becomes passable, and a target until it is visited. Returns the change in the number of
+    targets."""
+    change = 0
+    for p in cells:
+        if visited[p]:
+            continue
+        visited[p] = True
+        if target[p]:
+            target[p] = False
+            change -= 1
+        for d in window:
+            q = p + d
+            if not seen[q]:
+                seen[q] = True
+                if free[q]:
+                    passable[q] = True
+                    if not visited[q]:
+                        target[q] = True
+                        change += 1
+    return change
+
+
+@njit(cache=True, nogil=True)
+def _plan(
+    passable: np.ndarray,
+    target: np.ndarray,
+    seen: np.ndarray,
+    starts: np.ndarray,
+    offsets: np.ndarray,
+    pocket: bool,
+    claimed: np.ndarray,
+    first: np.ndarray,
+    queue: np.ndarray,
+    ties: np.ndarray,
+    firsts: np.ndarray,
+    goals: np.ndarray,
+    actions: np.ndarray,
+) -> None:
+    """The frontier explorer's step for every agent (tie-break ``order``, or ``pocket``):
+    targets claimed in agent index order, each agent's nearest unclaimed target (``goals``, -1
+    for none) and its first move (``actions``). ``claimed`` comes in all False and is left so."""
+    stride = offsets[3]
+    for i in range(starts.size):
+        start = starts[i]
+        n = nearest_targets(passable, target, claimed, start, offsets, pocket, first, queue,
+                            ties, firsts)  # fmt: skip
+        if n == 0:
+            goals[i], actions[i] = -1, STAY
+            continue
+        pick = 0
+        if pocket:  # the fewest open neighbours (unseen, or a target); the first of equals
+            fewest = 5
+            for j in range(n):
+                g = ties[j]
+                count = 0
+                for d in offsets:
+                    if not seen[g + d] or target[g + d]:
+                        count += 1
+                if count < fewest:
+                    pick, fewest = j, count
+        goal, step = ties[pick], firsts[pick]
+        claimed[goal] = True
+        goals[i] = goal
+        d = step - start
+        actions[i] = 0 if d == -stride else 1 if d == stride else 2 if d == -1 else 3
+    for i in range(starts.size):
+        if goals[i] >= 0:
+            claimed[goals[i]] = False
+
+
 class FrontierPlanner:
     """The frontier explorer's team map of one episode, on a flat grid padded with one ring of
     wall, and its moves (see the module docstring).
@@ -115,8 +196,10 @@ class FrontierPlanner:
     Call :meth:`sync` with the episode's state after every reset and step, then :meth:`act`.
     ``tie_break`` is one of :data:`TIE_BREAKS`.
 
-    Padding lets neighbour lookups skip bounds checks; the per-cell state is kept in Python lists
-    because the search reads single cells, which lists do several times faster than numpy.
+    Padding lets neighbour lookups skip bounds checks. The per-cell state (``free``,
+    ``visited``, ``seen``, ``passable``, ``target``: flat ``bool`` arrays over the padded grid)
+    is kept up to date and searched by compiled functions (:func:`_visit_cells`,
+    :func:`_plan`), one call each per step.
     """
 
     def __init__(self, height: int, width: int, tie_break: str = "order") -> None:
@@ -138,7 +221,9 @@ class FrontierPlanner:
         #: Per agent: the padded cell of its target at the last :meth:`act` (-1: none).
         self.goals: list[int] = []
         self._offsets_np = np.array(self.offsets, dtype=np.int64)
+        self._window_np = np.array(self.window, dtype=np.int64)
         self._scratch: np.ndarray | None = None
+        self._claimed: np.ndarray | None = None
 
     # ------------------------------------------------------------------ map upkeep
     def sync(
@@ -157,13 +242,15 @@ class FrontierPlanner:
                 map is rebuilt (an episode's start, or a step the planner did not see), so the
                 per-step path never builds whole-map arrays.
         """
-        self.positions = ((positions[:, 0] + 1) * self.stride + positions[:, 1] + 1).tolist()
+        starts = ((positions[:, 0] + 1) * self.stride + positions[:, 1] + 1).astype(np.int64)
+        self.positions = starts.tolist()
         if steps == 0 or not (self.steps <= steps <= self.steps + 1):
             self._rebuild(*read_map())
         else:
-            for p in self.positions:
-                if not self.visited[p]:
-                    self._visit(p)
+            self.n_targets += _visit_cells(
+                starts, self._window_np,
+                self.free, self.visited, self.seen, self.passable, self.target,
+            )  # fmt: skip
         self.steps = steps
 
     def _rebuild(self, walls: np.ndarray, visited_map: np.ndarray) -> None:
@@ -180,31 +267,21 @@ class FrontierPlanner:
         seen[[0, -1], :] = seen[:, [0, -1]] = True
         passable = (seen & free).ravel()
         target = passable & ~visited.ravel()
-        self.free = free.ravel().tolist()
-        self.visited = visited.ravel().tolist()
-        self.seen = seen.ravel().tolist()
-        self.passable = passable.tolist()
-        self.target = target.tolist()
-        # numpy mirrors of the lists the compiled searches (and the goal candidates) need whole.
-        self.passable_np = passable
-        self.target_np = target
-        self.seen_np = seen.ravel()
+        self.free = free.ravel()
+        self.visited = visited.ravel()
+        self.seen = seen.ravel()
+        self.passable = passable
+        self.target = target
+        # The names the goal candidates and the coordinated planners read (the same arrays).
+        self.passable_np, self.target_np, self.seen_np = passable, target, self.seen
         self.n_targets = int(target.sum())
 
     def _visit(self, p: int) -> None:
-        self.visited[p] = True
-        if self.target[p]:
-            self.target[p] = self.target_np[p] = False
-            self.n_targets -= 1
-        for d in self.window:
-            q = p + d
-            if not self.seen[q]:
-                self.seen[q] = self.seen_np[q] = True
-                if self.free[q]:
-                    self.passable[q] = self.passable_np[q] = True
-                    if not self.visited[q]:
-                        self.target[q] = self.target_np[q] = True
-                        self.n_targets += 1
+        """Mark cell ``p`` visited (and its 3x3 window seen), as a step onto it does."""
+        self.n_targets += _visit_cells(
+            np.array([p], dtype=np.int64), self._window_np,
+            self.free, self.visited, self.seen, self.passable, self.target,
+        )  # fmt: skip
 
     # ------------------------------------------------------------------ acting
     def act(self, rng: np.random.Generator | None = None) -> list[int]:
@@ -216,10 +293,25 @@ class FrontierPlanner:
         if self.tie_break == "random" and rng is None:
             raise ValueError('tie_break="random" needs a generator: act(rng=...)')
         self.rng = rng
-        self.goals = [-1] * len(self.positions)
+        n = len(self.positions)
+        self.goals = [-1] * n
         if self.n_targets == 0:  # everything seen is visited: nothing left to walk to
-            return [STAY] * len(self.positions)
-        claimed = np.zeros(len(self.passable), dtype=np.bool_)
+            return [STAY] * n
+        size = self.passable.size
+        if self._claimed is None or self._claimed.size != size:
+            self._claimed = np.zeros(size, dtype=np.bool_)
+        if self.tie_break != "random":  # no generator: the whole step in one compiled call
+            goals, actions_np = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+            first, queue, ties, firsts = self._scratch_arrays(size)
+            _plan(
+                self.passable, self.target, self.seen,
+                np.asarray(self.positions, dtype=np.int64), self._offsets_np,
+                self.tie_break == "pocket", self._claimed, first, queue, ties, firsts,
+                goals, actions_np,
+            )  # fmt: skip
+            self.goals = goals.tolist()
+            return actions_np.tolist()
+        claimed = np.zeros(size, dtype=np.bool_)
         actions = []
         for i, start in enumerate(self.positions):
             found = self._search(start, claimed)

@@ -120,6 +120,9 @@ planner's move for the agent: a team that always steps is the planner (``"pocket
 
 ``reset(seed=None, options=None)``: ``options={"grid": bool_array, "starts": [(r, c), ...]}`` fixes
 that episode's map and/or start cells. Bad input raises ``ValueError`` naming the problem.
+``step(actions)`` takes a dict of every live agent to a Python or numpy integer of its action
+space; anything else (a float, even ``2.0``, a bool, a string, ``None``, an array, a number out of
+range) raises ``ValueError`` naming the agent, the value and the range, and steps nothing.
 
 **The batched core.** The env is the batch-of-one view of
 :class:`envs.coverage.core.CoverageCore`, which steps B copies of the episode in one compiled

@@ -170,11 +170,14 @@ def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) ->
 def check_model_fits(model: Any, model_path: Path, config: ExperimentConfig) -> None:
     """Refuse a model whose observation or action space is not its config's env's (a zip of
     another experiment, or made for another observation kind or team size)."""
+    from harness.sb3.policies import float_action_mask
+
     env = make_env(config.env)
     agent = env.possible_agents[0]
     check_team_size(model, model_path, config, env.observation_space(agent))
     for what, expected, got in (
-        ("observation", env.observation_space(agent), model.observation_space),
+        # The space the harness's models take (an action mask as float32), as training made it.
+        ("observation", float_action_mask(env.observation_space(agent)), model.observation_space),
         ("action", env.action_space(agent), model.action_space),
     ):
         if _space_layout(expected) != _space_layout(got):

@@ -79,6 +79,8 @@ def test_a_perfect_maze_is_a_tree_of_passages():
         (lambda: RandomMaps(5, 5, (0.5, 0.2)), "wall_fraction must satisfy"),
         (lambda: CaveMaps(2, 9), "a cave needs at least 3x3 cells"),
         (lambda: CaveMaps(9, 9, rock_share=1.5), "rock_share must be in"),
+        (lambda: CaveMaps(251, 250), r"a 251x250 cave has 62,750 cells, over the limit of 62,500"),
+        (lambda: MazeMaps(3, 30_001), r"a 3x30001 maze has 90,003 cells, over the limit of 90,000"),
         (lambda: MazeMaps(9, 9, n_chambers=-1), r"n_chambers must be an integer in \[0, 10,000\]"),
         (lambda: ShippedMap("nope"), "unknown shipped map 'nope'"),
         (lambda: FileMap("/no/such/map.txt"), "does not exist"),
@@ -89,6 +91,21 @@ def test_a_perfect_maze_is_a_tree_of_passages():
 def test_bad_source_parameters_are_refused(make, message):
     with pytest.raises(ValueError, match=message):
         make()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("kind", ["cave", "maze"])
+def test_a_map_at_its_kinds_cell_limit_draws_in_seconds(kind):
+    # The limit is what one reset can afford (about a second here); a square map at it, with the
+    # defaults, draws within a generous bound on a busy machine.
+    import time
+
+    side = int(GENERATORS[kind].max_cells ** 0.5)
+    source = GENERATORS[kind](side, side)
+    start = time.perf_counter()
+    walls = source(np.random.default_rng(0))
+    assert time.perf_counter() - start < 10.0
+    assert walls.shape == (side, side) and (~walls).any()
 
 
 #: sha256 (first 16 hex) of 12 maps and start cells per env, recorded with main's code before

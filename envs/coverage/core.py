@@ -238,6 +238,11 @@ class CoverageCore:
         Raises:
             ValueError: naming the problem with ``options`` or with the map source.
         """
+        if options is not None and not isinstance(options, Mapping):
+            raise ValueError(
+                f"options must be a dict (keys 'grid', 'starts') or None, got "
+                f"{type(options).__name__} {_describe(options)}"
+            )
         if seed is not None or self.rngs[copy] is None:
             self.rngs[copy], _ = seeding.np_random(seed)
         options = options or {}
@@ -271,21 +276,21 @@ class CoverageCore:
         self.states[b] = state
         observer.reset(state)
 
-    def step(self, actions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Step every copy with ``actions`` ``(B, N)``; planner-backed actions are replaced by
-        their moves first.
+    def step(self, actions: np.ndarray | Sequence[Any]) -> tuple[np.ndarray, np.ndarray]:
+        """Step every copy with ``actions`` ``(B, N)`` (an integer array, or any array or sequence
+        of ``B * N`` values in copy-major order); planner-backed actions are replaced by their
+        moves first.
 
         Returns:
             ``(rewards, done)``: float64 ``(B, N)`` and bool ``(B,)`` (the copies whose episode
             reached ``max_steps``: all their agents are truncated).
 
         Raises:
-            ValueError: for an action outside the action space (nothing is stepped).
+            ValueError: for an action that is not an integer of the action space (a float, a
+                string, ``None``, NaN, an array, or out of range), naming the agent, the value
+                and what is allowed; nothing is stepped.
         """
-        acts = np.array(actions, dtype=np.int64).reshape(self.copies, self.n_agents)
-        last = int(self.action_space.n) - 1
-        if acts.min() < 0 or acts.max() > last:
-            raise ValueError(f"actions must be in 0..{last}, got {acts.ravel().tolist()}")
+        acts = self._checked_actions(actions)
         if self.spec.frontier is not None and self.spec.frontier.action is not None:
             for b in range(self.copies):
                 acts[b] = self.frontiers[b].resolve(acts[b].tolist(), self.rng(b))
@@ -309,6 +314,48 @@ class CoverageCore:
             for b, state in enumerate(self.states):
                 state.steps = int(self.steps[b])
         return rewards, self.steps >= self.max_steps
+
+    def _checked_actions(self, actions: np.ndarray | Sequence[Any]) -> np.ndarray:
+        """``actions`` as int64 ``(B, N)``, after the one check of what an action may be: an
+        integer of ``0..n-1`` (Python's or numpy's, a 0-d integer array too: what Gymnasium's
+        ``Discrete.contains`` takes; a bool or a float, even ``2.0``, is not one).
+
+        An integer array (SB3's, the evaluation's) is checked by its dtype and two reductions,
+        once per step for the whole batch; anything else (the PettingZoo env's per-agent values)
+        value by value, so the message can name the offending agent.
+        """
+        n = self.copies * self.n_agents
+        last = int(self.action_space.n) - 1
+        if isinstance(actions, np.ndarray) and actions.dtype.kind in "iu":
+            if actions.size != n:
+                raise ValueError(
+                    f"expected {n} actions ({self.copies} copies x {self.n_agents} agents), "
+                    f"got an array of shape {actions.shape}"
+                )
+            acts = actions.astype(np.int64).reshape(self.copies, self.n_agents)
+            if acts.min() >= 0 and acts.max() <= last:
+                return acts
+            values: list[Any] = acts.ravel().tolist()
+        else:
+            if isinstance(actions, (list, tuple)):
+                values = list(actions)
+            else:  # another array, or a lone value: its elements as they are
+                values = list(np.asarray(actions, dtype=object).ravel())
+            if len(values) != n:
+                raise ValueError(
+                    f"expected {n} actions ({self.copies} copies x {self.n_agents} agents), "
+                    f"got {len(values)}"
+                )
+        for k, value in enumerate(values):
+            if not _is_action(value, last):
+                b, i = divmod(k, self.n_agents)
+                who = agent_name(i) if self.copies == 1 else f"{agent_name(i)} of copy {b}"
+                raise ValueError(
+                    f"actions must be in 0..{last} (integers), got {_describe(value)} for {who}"
+                )
+        return np.array([int(v) for v in values], dtype=np.int64).reshape(
+            self.copies, self.n_agents
+        )
 
     # ------------------------------------------------------------------ observations
     def observe(self, copies: slice | None = None) -> np.ndarray | dict[str, np.ndarray]:
@@ -439,6 +486,33 @@ class CoverageCore:
 
 
 # ---------------------------------------------------------------------- validation
+def agent_name(i: int) -> str:
+    """The name of agent ``i`` (PettingZoo's ``possible_agents`` of the env)."""
+    return f"agent_{i}"
+
+
+def _is_action(value: Any, last: int) -> bool:
+    """Whether ``value`` is an action of ``Discrete(last + 1)``: a Python or numpy integer (a
+    0-d integer array too), not a bool, in ``0..last``."""
+    if isinstance(value, np.ndarray):
+        if value.shape != () or value.dtype.kind not in "iu":
+            return False
+        value = value.item()
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        return False
+    return 0 <= value <= last
+
+
+def _describe(value: Any) -> str:
+    """``value`` for a one-line message: an array by its shape and dtype, anything else by its
+    ``repr`` (a numpy scalar as the Python number it holds), cut to 60 characters."""
+    if isinstance(value, np.ndarray):
+        return f"an array of shape {value.shape} ({value.dtype})"
+    text = repr(value.item() if isinstance(value, np.generic) else value)
+    text = " ".join(text.split())
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
 def _check_int(name: str, value: Any, minimum: int) -> None:
     if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")

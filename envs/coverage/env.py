@@ -13,7 +13,7 @@ from gymnasium import spaces
 from pettingzoo import ParallelEnv
 
 from envs.coverage import render
-from envs.coverage.core import DEFAULT_REWARDS, CoreSpec, CoverageCore
+from envs.coverage.core import DEFAULT_REWARDS, CoreSpec, CoverageCore, agent_name
 from envs.coverage.frontier import Frontier
 from envs.coverage.types import CELL_VISITED, GridState
 
@@ -66,7 +66,7 @@ class CoverageEnv(ParallelEnv):
         self.height, self.width = core.max_shape
         self.n_agents, self.max_steps = spec.n_agents, spec.max_steps
         self.render_mode = render_mode
-        self.possible_agents = [f"agent_{i}" for i in range(self.n_agents)]
+        self.possible_agents = [agent_name(i) for i in range(self.n_agents)]
         self.agents: list[str] = []
         self._obs_space = core.observation_space
         self._act_space = core.action_space
@@ -185,18 +185,29 @@ class CoverageEnv(ParallelEnv):
         dict[str, bool],
         dict[str, dict[str, Any]],
     ]:
-        """Move every agent at once (rules: ``envs/coverage_v0.py``); PettingZoo's five dicts."""
+        """Move every agent at once (rules: ``envs/coverage_v0.py``); PettingZoo's five dicts.
+
+        Raises:
+            ValueError: for actions that are not a dict, a live agent without an action, or an
+                action that is not an integer of the action space (the core's check names the
+                agent, the value and the range); nothing is stepped.
+        """
         self._require_state()
         if not self.agents:
             raise RuntimeError("step() called on a finished episode; call reset() first")
         if self._core.copies != 1:
             raise RuntimeError("a copy of a batched core is stepped by its core, not by step()")
+        if not isinstance(actions, Mapping):
+            raise ValueError(
+                f"actions must be a dict of agent name to action, got {type(actions).__name__}"
+            )
         try:
             acts = [actions[a] for a in self.agents]
         except KeyError as exc:
             raise ValueError(f"no action given for {exc.args[0]}") from exc
         core = self._core
-        reward, done = core.step(np.array(acts, dtype=np.int64)[None])
+        # The values as given: the core's one check of what an action may be names the agent.
+        reward, done = core.step(acts)
         agents = self.agents
         finished = bool(done[0])
         infos = dict(zip(agents, core.infos(0)))

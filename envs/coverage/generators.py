@@ -49,6 +49,10 @@ class MapGenerator(ABC):
 
     name: ClassVar[str]
     shapes: frozenset[tuple[int, int]]
+    #: Most cells of one map the kind draws in about a second (one is drawn per reset), or
+    #: ``None``: bounded only by the harness's map limit. A larger size is refused when the
+    #: source is built (a config names it at validation), not found out one slow reset at a time.
+    max_cells: ClassVar[int | None] = None
 
     @abstractmethod
     def __call__(self, rng: np.random.Generator, keep_free: np.ndarray | None = None) -> np.ndarray:
@@ -141,6 +145,13 @@ class _SeededMaps(MapGenerator):
             raise ValueError(
                 f"a {self.name} needs at least 3x3 cells, got {self.height}x{self.width}"
             )
+        cells, limit = self.height * self.width, self.max_cells
+        if limit is not None and cells > limit:
+            raise ValueError(
+                f"a {self.height}x{self.width} {self.name} has {cells:,} cells, over the limit "
+                f"of {limit:,} ({type(self).__name__}.max_cells: a larger one takes seconds to "
+                "minutes to draw, and each reset draws one)"
+            )
         self.shapes = frozenset({(self.height, self.width)})
 
     @abstractmethod
@@ -169,6 +180,9 @@ class CaveMaps(_SeededMaps):
 
     name = "cave"
     shipped_seed = cave.CAVE_SEED
+    #: 250x250: about 1.2 s a map with the defaults (0.4 s at 200x200, 2.6 s at 300x300; each
+    #: pocket joined relabels the whole map). docs/environment.md has the measurements.
+    max_cells: ClassVar[int | None] = 62_500
 
     def __init__(
         self,
@@ -210,6 +224,9 @@ class MazeMaps(_SeededMaps):
 
     name = "maze"
     shipped_seed = maze.MAZE_SEED
+    #: 300x300: about 1 s a map with the defaults (0.3 s at 200x200; the carving loop counts the
+    #: carved nodes each step). docs/environment.md has the measurements.
+    max_cells: ClassVar[int | None] = 90_000
 
     def __init__(
         self,

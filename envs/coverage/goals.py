@@ -66,8 +66,8 @@ __all__ = [
 
 #: Key of the candidates' feature block in the observation (``(k, len(GOAL_FEATURES))``).
 GOALS_KEY = "goals"
-#: Key of the slots' mask in the observation (PettingZoo's convention): 1 where a slot holds a
-#: candidate.
+#: Key of the slots' mask in the observation (PettingZoo's convention, int8): 1 where a slot
+#: holds a candidate.
 ACTION_MASK_KEY = "action_mask"
 #: Names of the candidate features, in column order (see the module docstring).
 GOAL_FEATURES = (
@@ -137,8 +137,9 @@ class Candidates:
 
     @property
     def mask(self) -> np.ndarray:
-        """``(agents, k)`` float32, 1 where a slot holds a candidate."""
-        return (self.cells >= 0).astype(np.float32)
+        """``(agents, k)`` int8 (PettingZoo's and Gymnasium's dtype of an action mask), 1 where
+        a slot holds a candidate."""
+        return (self.cells >= 0).astype(np.int8)
 
     @classmethod
     def empty(cls, n_agents: int, k: int) -> Candidates:

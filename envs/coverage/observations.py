@@ -268,7 +268,8 @@ class TeamMapObservation(ObservationBuilder):
         goal = self._frontier_ext.goal if self._frontier_ext is not None else None
         if goal is not None:
             views[GOALS_KEY] = spaces.Box(-1.0, 1.0, (goal.k, len(GOAL_FEATURES)), np.float32)
-            views[ACTION_MASK_KEY] = spaces.Box(0.0, 1.0, (goal.k,), np.float32)
+            # int8, PettingZoo's and Gymnasium's convention (Discrete.sample(mask) takes it).
+            views[ACTION_MASK_KEY] = spaces.Box(0, 1, (goal.k,), np.int8)
         return spaces.Dict(views)
 
     # ------------------------------------------------------------------ per-episode arrays

@@ -236,7 +236,10 @@ class EnvConfig(_Section):
     def _enough_cells(self) -> EnvConfig:
         if self.map == "random" or isinstance(self.map, dict):
             if isinstance(self.map, dict):
-                source = build_source(self.map, self.height, self.width)
+                try:  # at env.height x env.width where the source names no size: name the key
+                    source = build_source(self.map, self.height, self.width)
+                except ValueError as exc:
+                    raise ValueError(f"map: {exc}") from None
                 largest, smallest = source.max_shape, source.min_shape
                 if self.test_maps:
                     # A mix that names a test map: the generators' own refusal, no env built.

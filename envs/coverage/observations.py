@@ -23,7 +23,12 @@ from gymnasium import spaces
 from envs.coverage.frontier import Frontier
 from envs.coverage.goals import ACTION_MASK_KEY, GOAL_FEATURES, GOALS_KEY
 from envs.coverage.step import thesis_observation
-from envs.coverage.teammap_kernels import ego_views, frontier_views, update_known
+from envs.coverage.teammap_kernels import (
+    crop_and_block_views,
+    ego_views,
+    frontier_views,
+    update_known,
+)
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL, GridState, kind_options
 
 COORD_MODES = ("normalized", "raw")
@@ -324,13 +329,14 @@ class TeamMapObservation(ObservationBuilder):
     def build(self, state: GridState) -> dict[str, np.ndarray]:
         self._update(state)
         n = state.positions.shape[0]
-        c, g, half = self.crop, self.global_size, self.crop // 2
+        c, g = self.crop, self.global_size
         rows, cols = state.positions[:, 0], state.positions[:, 1]
         local = np.empty((n, self.local_channels, c, c), dtype=np.uint8)
-        for i in range(n):  # the padded map's rows r .. r+crop are the crop centred on row r
-            r, col = int(rows[i]), int(cols[i])
-            local[i, :4] = self._planes_2d[:, r : r + c, col : col + c]
-        local[:, 4] = 0
+        glob = np.zeros((n, self.GLOBAL_CHANNELS, g * g), dtype=np.uint8)
+        crop_and_block_views(
+            self._planes, self._wp, state.positions, c, self._shares,
+            self._row_block, self._col_block, g, local, glob,
+        )  # fmt: skip
         ext = self._frontier_ext
         if ext is not None:
             field, compass = self._frontier_views(state)
@@ -338,22 +344,6 @@ class TeamMapObservation(ObservationBuilder):
             if ext.planner is not None:
                 moves = np.asarray(ext.planned_moves(state))
                 compass[:, :4] = moves[:, None] == np.arange(4)[None, :]  # STAY (4) marks none
-        if n > 1:
-            dr = rows[None, :] - rows[:, None] + half  # (agent, teammate)
-            dc = cols[None, :] - cols[:, None] + half
-            seen = (dr >= 0) & (dr < c) & (dc >= 0) & (dc < c)
-            np.fill_diagonal(seen, False)
-            i, j = np.nonzero(seen)
-            local[i, 4, dr[i, j], dc[i, j]] = 255
-        glob = np.zeros((n, self.GLOBAL_CHANNELS, g * g), dtype=np.uint8)
-        glob[:, :4] = self._shares
-        own = self._row_block[rows] * g + self._col_block[cols]
-        agents = np.arange(n)
-        glob[agents, 4, own] = 255
-        # Teammates' blocks: every agent's block, less an agent's own block where it is alone.
-        glob[:, 5, own] = 255
-        alone = np.bincount(own, minlength=g * g)[own] == 1
-        glob[agents[alone], 5, own[alone]] = 0
         vector = np.empty((n, 3), dtype=np.float32)
         vector[:, :2] = state.positions * self._scale3
         vector[:, 2] = min(state.steps / self.max_steps, 1.0)

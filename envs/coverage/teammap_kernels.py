@@ -182,3 +182,53 @@ def update_known(
                 n = max(block_cells[b], 1)
                 for ch in range(4):
                     shares[ch, b] = np.uint8(np.rint(255.0 * (counts[b, _SHARE_ORDER[ch]] / n)))
+
+
+@njit(cache=True, nogil=True)
+def crop_and_block_views(
+    planes: np.ndarray,
+    wp: int,
+    positions: np.ndarray,
+    crop: int,
+    shares: np.ndarray,
+    row_block: np.ndarray,
+    col_block: np.ndarray,
+    g: int,
+    local: np.ndarray,
+    glob: np.ndarray,
+) -> None:
+    """The local crops' first five channels and the global view of every agent of one copy.
+
+    ``local`` ``(agents, >= 5, crop, crop)``: the four category planes of the crop centred on
+    the agent (``planes`` ``(4, cells)``, the padded grid flat; the padded grid's rows ``r ..
+    r + crop`` are the crop centred on grid row ``r``), then the teammates in the crop (255).
+    ``glob`` ``(agents, 6, blocks)``, all zero: the four share channels (``shares``), the agent's
+    own block, then the blocks of its teammates (an agent's own block only when a teammate
+    shares it); ``g`` blocks a side.
+    """
+    n = positions.shape[0]
+    half = crop // 2
+    for i in range(n):
+        r, c = positions[i, 0], positions[i, 1]
+        for ch in range(4):
+            for y in range(crop):
+                base = (r + y) * wp + c
+                for x in range(crop):
+                    local[i, ch, y, x] = planes[ch, base + x]
+        local[i, 4] = 0
+        for j in range(n):
+            dr, dc = positions[j, 0] - r + half, positions[j, 1] - c + half
+            if j != i and 0 <= dr < crop and 0 <= dc < crop:
+                local[i, 4, dr, dc] = 255
+    blocks = shares.shape[1]
+    own = np.empty(n, dtype=np.int64)
+    count = np.zeros(blocks, dtype=np.int64)
+    for i in range(n):
+        own[i] = row_block[positions[i, 0]] * g + col_block[positions[i, 1]]
+        count[own[i]] += 1
+    for i in range(n):
+        glob[i, :4] = shares
+        glob[i, 4, own[i]] = 255
+        for j in range(n):
+            if j != i or count[own[i]] > 1:
+                glob[i, 5, own[j]] = 255

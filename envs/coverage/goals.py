@@ -207,9 +207,10 @@ def gather_candidates(
         out.cells[i, :m], out.moves[i, :m] = chosen, moves_i[:m]
         cols = column[chosen]
         cost = costs[i]
-        mates = costs[np.arange(n) != i][:, cols]  # (teammates, m)
+        teammates = np.arange(n) != i
+        mates = costs[teammates][:, cols]  # (teammates, m)
         mate = mates.min(axis=0) if mates.size else np.full(m, np.inf)
-        others = np.delete(goal_cluster, i)
+        others = goal_cluster[teammates]
         rows_c, cols_c = np.divmod(chosen, stride)
         row_i, col_i = divmod(planner.positions[i], stride)
         f = out.features[i, :m]
@@ -217,7 +218,7 @@ def gather_candidates(
         f[0, 1] = float(goals[i] >= 0)
         f[:, 2] = np.minimum(cost[cols] * scale, 1.0)
         f[:, 3] = np.minimum(mate * scale, 1.0)
-        f[:, 4] = np.isin(labels[chosen], others)
+        f[:, 4] = (labels[chosen][:, None] == others[None, :]).any(axis=1)
         f[:, 5] = np.log1p(sizes[labels[chosen]]) / np.log1p(height * width)
         f[:, 6] = unknown[chosen]
         f[:, 7] = open_[chosen]

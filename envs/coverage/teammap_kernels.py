@@ -60,8 +60,22 @@ def frontier_views(
     if tail == 0:  # every known free cell is visited: no frontier left
         return
     moves = np.array([-wp, wp, -1, 1], dtype=np.int64)
+    # Only the known free cells of the agents' crops are read: the search stops once all of
+    # them have their distance (a breadth-first search never changes a distance it has set).
+    needed = np.zeros(n_cells, dtype=np.bool_)
+    remaining = 0
+    for i in range(n):
+        r, c = positions[i, 0], positions[i, 1]
+        for a in range(crop):
+            base = (r + a) * wp + c
+            for b in range(crop):
+                k = base + b
+                if free[k] and cat[k] != _UNKNOWN and not needed[k]:
+                    needed[k] = True
+                    if dist[k] == np.inf:  # not a frontier cell itself
+                        remaining += 1
     head = 0
-    while head < tail:
+    while head < tail and remaining > 0:
         u = queue[head]
         head += 1
         d = dist[u] + 1.0
@@ -71,6 +85,8 @@ def frontier_views(
                 dist[v] = d
                 queue[tail] = v
                 tail += 1
+                if needed[v]:
+                    remaining -= 1
     for k in range(n_cells):
         if cat[k] == _UNKNOWN:
             dist[k] = np.inf

@@ -432,28 +432,19 @@ class CoordinatedPlanner(FrontierPlanner):
         if self.n_targets == 0:
             return [STAY] * n
         starts = np.asarray(self.positions, dtype=np.int64)
-        limit = np.inf if self.horizon is None else float(self.horizon)
-        dist, pred = self._fields(starts, limit)
-        cells = np.flatnonzero(self.target_np)
-        costs = dist[:, cells]
-        blind = ~(costs < np.inf).any(axis=1)
-        if self.horizon is not None and blind.any():  # nothing within reach: the whole map
-            dist[blind], pred[blind] = self._fields(starts[blind], np.inf)
-            costs = dist[:, cells]
+        size = self.passable.size
+        dist = np.empty((n, size))
+        pred = np.empty((n, size), dtype=np.int32)
+        horizon = np.inf if self.horizon is None else float(self.horizon)
+        cells, costs = _target_costs(
+            self.passable, self.target, self.stride, starts, horizon, dist, pred,
+            self._scratch_arrays(size)[1],
+        )  # fmt: skip
         cost, goal_cells = self._candidate_costs(costs, cells)
-        chosen = self.assign(cost, goal_cells)
-        actions = []
-        for i, c in enumerate(chosen):
-            if c < 0 or not cost.item(i, c) < np.inf:
-                actions.append(STAY)
-                continue
-            goal = int(goal_cells[i, c])
-            self.goals[i] = goal
-            back, start, step = pred[i], self.positions[i], goal
-            while (prev := back.item(step)) != start:  # walk back to the first step
-                step = prev
-            actions.append(self.action_of[step - start])
-        return actions
+        chosen = np.asarray(self.assign(cost, goal_cells), dtype=np.int64)
+        goals, actions = _first_moves(pred, starts, cost, goal_cells, chosen, self.stride)
+        self.goals = goals.tolist()
+        return actions.tolist()
 
     def _candidate_costs(
         self, costs: np.ndarray, cells: np.ndarray
@@ -538,6 +529,67 @@ class UtilityPlanner(CoordinatedPlanner):
         # cells and the chosen one.
         rows, cols = np.divmod(goal_cells, self.stride)
         return _utility_choices(cost, rows, cols, self.beta, self.radius).tolist()
+
+
+# A coordinated planner's step around its assignment, compiled (the searches, the costs of the
+# targets, the walk back along the chosen paths).
+@njit(cache=True, nogil=True)
+def _target_costs(
+    passable: np.ndarray,
+    target: np.ndarray,
+    stride: int,
+    starts: np.ndarray,
+    horizon: float,
+    dist: np.ndarray,
+    pred: np.ndarray,
+    queue: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Every agent's distance field up to ``horizon`` (the whole map for an agent with no
+    target within it) into ``dist`` and ``pred``; returns the target cells (ascending) and the
+    agents' path lengths to them ``(agents, targets)``."""
+    distance_fields(passable, stride, starts, horizon, dist, pred, queue)
+    cells = np.flatnonzero(target)
+    costs = np.empty((starts.size, cells.size))
+    for i in range(starts.size):
+        blind = True
+        for j in range(cells.size):
+            costs[i, j] = dist[i, cells[j]]
+            if costs[i, j] < np.inf:
+                blind = False
+        if blind and horizon < np.inf:  # nothing within reach: the whole map
+            distance_fields(passable, stride, starts[i : i + 1], np.inf, dist[i : i + 1],
+                            pred[i : i + 1], queue)  # fmt: skip
+            for j in range(cells.size):
+                costs[i, j] = dist[i, cells[j]]
+    return cells, costs
+
+
+@njit(cache=True, nogil=True)
+def _first_moves(
+    pred: np.ndarray,
+    starts: np.ndarray,
+    cost: np.ndarray,
+    goal_cells: np.ndarray,
+    chosen: np.ndarray,
+    stride: int,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each agent's goal cell (-1: none) and the first move of its path there (``STAY`` when
+    it has no reachable candidate), walked back along its predecessors."""
+    n = starts.size
+    goals = np.full(n, -1, dtype=np.int64)
+    actions = np.full(n, STAY, dtype=np.int64)
+    for i in range(n):
+        c = chosen[i]
+        if c < 0 or not cost[i, c] < np.inf:
+            continue
+        goal = goal_cells[i, c]
+        goals[i] = goal
+        start, step = starts[i], goal
+        while pred[i, step] != start:
+            step = pred[i, step]
+        d = step - start
+        actions[i] = 0 if d == -stride else 1 if d == stride else 2 if d == -1 else 3
+    return goals, actions
 
 
 # The assignments' loops, compiled: per step they run over every candidate (every known unvisited

@@ -1,4 +1,5 @@
-"""Shared fixtures: small hand-built grids and envs made for them."""
+"""Shared fixtures and helpers: small hand-built grids and envs made for them, and the check of a
+one-line error."""
 
 from __future__ import annotations
 
@@ -27,3 +28,11 @@ def make_env():
         return env, obs
 
     return _make
+
+
+def one_error_line(err: str) -> str:
+    """The only line of ``err``, checked to be a harness error."""
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert lines[0].startswith("harness: error: ") and "Traceback" not in err
+    return lines[0]

@@ -110,7 +110,7 @@ def test_configuration_imports_no_training_evaluation_or_cli() -> None:
 
 def test_only_the_factory_calls_parallel_env() -> None:
     callers = []
-    for path in [*modules("harness"), *modules("scripts")]:
+    for path in [*modules("harness"), *modules("scripts"), *modules("experiments")]:
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Call):
                 func = node.func

@@ -1,10 +1,14 @@
-"""``harness eval``, ``compare`` and ``render`` end to end on a smoke run and on baselines."""
+"""``harness eval``, ``compare`` and ``render`` end to end on a smoke run and on baselines;
+``compare`` refuses numbers too large for it in one line."""
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
+import subprocess
+import sys
 import zipfile
 from pathlib import Path
 
@@ -15,6 +19,8 @@ from harness.cli import main
 from harness.commands import choose_temperature
 from harness.config.loading import load_config
 from harness.results.rundir import result_filename
+from tests.conftest import one_error_line
+from tests.test_seeds_and_sweeps import TINY
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "smoke.yaml"
@@ -203,6 +209,63 @@ def test_compare_writes_a_plot_and_a_table(smoke_run, tmp_path, capsys):
     table = out_lines[: out_lines.index("")]  # the per-run table, before the over-seeds part
     assert [line.split()[0] for line in table[1:]] == ["a", "b"]
     assert "| a | 1 |" in "\n".join(out_lines)
+
+
+# ---------------------------------------------------------------------- compare's numbers
+EPISODES = "episode,phase,timesteps,copy,coverage,reward_mean,wall_hits,new_cells,length\n"
+
+
+def fake_run(folder: Path, episodes: str, ev: str | None = None) -> Path:
+    folder.mkdir(parents=True)
+    (folder / "config.yaml").write_text(TINY)
+    (folder / "episodes.csv").write_text(EPISODES + episodes)
+    if ev is not None:
+        (folder / "eval.json").write_text(ev)
+    return folder
+
+
+HUGE = "1" + "0" * 400
+HUGE_EVAL = f'{{"coverage_median": 0.5, "coverage_mean": {HUGE}, "wall_hits_mean": 1}}'
+TOO_LARGE = [
+    ({"eval.json": HUGE_EVAL}, "eval.json: the number 100000000000... (401 digits) is too large"),
+    ({"episodes.csv": EPISODES + "1,0,1e300,0,0.5,0.1,0,10,20\n"},
+     "episodes.csv, line 2: timesteps 1e300 is out of range"),
+    ({"evaluations.csv": "timesteps,coverage_median\n1e300,0.5\n"},
+     "evaluations.csv, line 2: timesteps 1e300 is out of range"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(
+    ("files", "message"),
+    TOO_LARGE,
+    ids=["eval-json-400-digits", "episodes-1e300", "evaluations-1e300"],
+)
+def test_compare_refuses_numbers_too_large_in_one_line(tmp_path, capsys, files, message):
+    run = fake_run(tmp_path / "run", "0,0,20,0,0.5,0.1,0,10,20\n")
+    for name, text in files.items():
+        (run / name).write_text(text)
+    capsys.readouterr()
+    assert main(["compare", str(run), "--out", str(tmp_path / "c.png"), "--reps", "10"]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert f"{run}/{message}" in line
+
+
+def test_the_console_script_refuses_a_huge_eval_json_without_traceback(tmp_path):
+    ev = f'{{"coverage_median": {HUGE}, "coverage_iqr": 0, "coverage_mean": 0.5}}'
+    run = fake_run(tmp_path / "run", "0,0,20,0,0.5,0.1,0,10,20\n", ev)
+    proc = subprocess.run(
+        [sys.executable, "-m", "harness.cli", "compare", str(run), "--out",
+         str(tmp_path / "c.png")],
+        capture_output=True, text=True, cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )  # fmt: skip
+    assert proc.returncode == 2
+    assert "is too large for an evaluation" in one_error_line(proc.stderr)
+
+
+def test_large_but_finite_numbers_still_compare(tmp_path, capsys):
+    ev = '{"coverage_median": 0.5, "coverage_iqr": 0, "coverage_mean": 0.5, "wall_hits_mean": 1}'
+    run = fake_run(tmp_path / "run", "0,0,9000000000000000000,0,0.5,0.1,0,10,20\n", ev)
+    assert main(["compare", str(run), "--out", str(tmp_path / "c.png"), "--reps", "10"]) == 0
 
 
 @pytest.mark.parametrize(

@@ -1,16 +1,22 @@
-"""Config loading: defaults, YAML errors, unknown keys, overrides, the shipped configs."""
+"""Config loading: defaults, YAML errors, unknown keys, overrides, the shipped configs; map files
+keep their hash (alone or in a mix), and an override of ``env.map`` is applied before the map it
+replaces is checked."""
 
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 import pytest
 import yaml
 
+from harness.cli import main
 from harness.config.loading import config_from_dict, load_config, parse_override
 from harness.config.schema import ConfigError, ExperimentConfig
 from harness.factory import check_env
 from harness.training.checks import checked_config
+from tests.conftest import one_error_line
+from tests.test_seeds_and_sweeps import TINY
 
 CONFIGS = sorted(Path(__file__).resolve().parents[1].joinpath("configs").glob("*.yaml"))
 
@@ -296,3 +302,102 @@ def test_a_map_file_is_held_to_the_cell_limit_of_generated_maps(tmp_path, monkey
     )
     with pytest.raises(ConfigError, match=r"large.txt' has more than the 20 cells"):
         config_from_dict({"env": {"map": str(large), "n_agents": 1}})
+
+
+# ---------------------------------------------------------------------- map files' hashes
+ROOM = "........\n..##....\n........\n....#...\n........\n........\n........\n........\n"
+
+
+def with_map(tmp_path: Path, source: str) -> Path:
+    """A tiny config on ``room.txt`` given as ``source`` (YAML of ``env.map``)."""
+    (tmp_path / "room.txt").write_text(ROOM)
+    path = tmp_path / "given.yaml"
+    path.write_text(TINY.replace("max_steps: 20}", f"max_steps: 20, map: {source}}}"))
+    return path
+
+
+def saved_config(tmp_path: Path, config_path: Path) -> Path:
+    """The config as a run keeps it (``config.yaml``)."""
+    path = tmp_path / "config.yaml"
+    path.write_text(load_config(config_path).to_yaml())
+    return path
+
+
+FILE_SOURCES = {
+    "file": ("{file: {path: room.txt}}", lambda m: m["file"], "env.map: file: "),
+    "mix": (
+        "{mix: [{weight: 1, cave: {}}, {weight: 2, file: {path: room.txt}}]}",
+        lambda m: m["mix"][1]["file"],
+        "env.map: mix.1.file: ",
+    ),
+}
+
+
+@pytest.mark.parametrize("form", list(FILE_SOURCES))
+def test_a_file_source_keeps_its_hash_and_a_changed_file_is_one_line(
+    tmp_path, monkeypatch, capsys, form
+):
+    source, pick, where = FILE_SOURCES[form]
+    monkeypatch.chdir(tmp_path)
+    path = saved_config(tmp_path, with_map(tmp_path, source))
+    room = tmp_path / "room.txt"
+    kept = pick(yaml.safe_load(path.read_text())["env"]["map"])
+    assert kept["path"] == str(room) and len(kept["sha256"]) == 64
+    assert load_config(path).env.map == load_config(path).env.map  # unchanged: loads
+    room.write_text(ROOM.replace("#", "."))
+    runs = tmp_path / "runs"
+    capsys.readouterr()
+    assert main(["run", str(path), "--runs-dir", str(runs), "--no-progress"]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert f"{where}map file '{room}' has changed since this config was written" in line
+    assert not runs.exists()
+
+
+def test_a_saved_file_source_without_a_hash_still_loads_and_gets_one(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    path = with_map(tmp_path, f"{{file: {{path: {tmp_path / 'room.txt'}}}}}")
+    source = load_config(path).env.map
+    assert source["file"]["path"] == str(tmp_path / "room.txt")
+    assert len(source["file"]["sha256"]) == 64
+
+
+def test_an_override_naming_another_map_file_drops_the_old_hash(tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)
+    path = saved_config(tmp_path, with_map(tmp_path, "{file: {path: room.txt}}"))
+    (tmp_path / "hall.txt").write_text("." * 8 + "\n" + "." * 8 + "\n")
+    config = load_config(path, ["env.map.file.path=hall.txt"])
+    assert config.env.map["file"]["path"] == str(tmp_path / "hall.txt")
+    string_form = saved_config(tmp_path, with_map(tmp_path, "room.txt"))
+    assert load_config(string_form, ["env.map=hall.txt"]).env.map == str(tmp_path / "hall.txt")
+
+
+# ---------------------------------------------------------------------- overrides of the map
+@pytest.fixture
+def run_on_a_map_file(tmp_path: Path) -> Path:
+    """A run folder (untrained model) whose map file has since been deleted."""
+    from harness.training.adapters import make_vec_env
+    from harness.training.train import build_model
+
+    config = load_config(with_map(tmp_path, str(tmp_path / "room.txt")))
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "config.yaml").write_text(config.to_yaml())
+    venv = make_vec_env(config.env, config.vec.copies, 0, seed=0)
+    build_model(config, venv).save(run / "model.zip")
+    venv.close()
+    (tmp_path / "room.txt").unlink()
+    return run
+
+
+def test_eval_with_another_map_does_not_need_the_runs_map_file(run_on_a_map_file, capsys):
+    run = run_on_a_map_file
+    capsys.readouterr()
+    assert main(["eval", str(run), "--episodes", "1"]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert f"'{run.parent / 'room.txt'}' is not 'random'" in line
+    assert main(["eval", str(run), "--episodes", "1", "--set", "env.map=random", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["episodes"] == 1
+    # A bad replacement still names the override.
+    assert main(["eval", str(run), "--set", "env.map=nowhere.txt"]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert "with --set env.map=nowhere.txt: env.map: 'nowhere.txt' is not 'random'" in line

@@ -17,7 +17,7 @@ ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 DOCS = ROOT / "docs"
 CONFIG_PAGE = DOCS / "configuration.md"
-PAGES = [README, *sorted(DOCS.glob("*.md"))]
+PAGES = [README, ROOT / "experiments" / "README.md", *sorted(DOCS.glob("*.md"))]
 
 
 # ---------------------------------------------------------------------- README

@@ -33,6 +33,8 @@ from harness.training.adapters import make_vec_env
 
 UP, DOWN, LEFT, RIGHT, STAY = range(5)
 ROOT = Path(__file__).resolve().parents[1]
+#: The research scripts (``experiments/``) that the tests below run or import.
+EXPERIMENTS = ROOT / "experiments"
 F = {name: i for i, name in enumerate(GOAL_FEATURES)}
 
 
@@ -316,9 +318,9 @@ def test_a_goal_run_trains_and_evaluates_end_to_end(tmp_path: Path) -> None:
     assert saved.is_file()
     env = make_env(load_config(run / "config.yaml").env)
     assert env.action_space("agent_0").n == 4
-    # The validation comparison against the planner (scripts/goal_validation.py) runs on it.
+    # The validation comparison against the planner (experiments/goal_validation.py) runs on it.
     done = subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "goal_validation.py"), str(run), "--episodes", "2"],
+        [sys.executable, str(EXPERIMENTS / "goal_validation.py"), str(run), "--episodes", "2"],
         capture_output=True,
         text=True,
         check=False,
@@ -329,7 +331,7 @@ def test_a_goal_run_trains_and_evaluates_end_to_end(tmp_path: Path) -> None:
 
 
 def _script(name: str):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "scripts" / f"{name}.py")
+    spec = importlib.util.spec_from_file_location(name, EXPERIMENTS / f"{name}.py")
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module

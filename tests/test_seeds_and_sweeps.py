@@ -8,6 +8,7 @@ import json
 import os
 import re
 import shutil
+import signal
 import subprocess
 import sys
 import tempfile
@@ -660,6 +661,70 @@ def test_a_lost_database_stops_the_sweep_in_one_line_and_resume_finishes_it(
     assert [t.state.name for t in trials] == ["COMPLETE", "FAIL", "COMPLETE", "COMPLETE"]
     assert trials[2].system_attrs["failed_trial"] == 1  # trial 1 again, same parameters
     assert trials[2].params == trials[1].params and len(configs) == 4
+
+
+def sweep_args(tiny: Path, tmp_path: Path) -> list[str]:
+    (tmp_path / "space.yaml").write_text(SPACE)
+    return ["sweep", str(tiny), "--space", str(tmp_path / "space.yaml"),
+            "--trials", "2", "--sweeps-dir", str(tmp_path / "sweeps")]  # fmt: skip
+
+
+def trial_states(folder: Path) -> list[str]:
+    import optuna
+
+    return [
+        t.state.name for t in optuna.load_study(study_name="tiny", storage=_journal(folder)).trials
+    ]
+
+
+@pytest.mark.parametrize(
+    ("signum", "code"), [(signal.SIGTERM, 143), (signal.SIGINT, 130)], ids=["sigterm", "sigint"]
+)
+def test_a_signal_outside_training_stops_a_sweep_in_one_line(
+    tiny, tmp_path, monkeypatch, capfd, signum, code
+):
+    from harness.training import sweep
+
+    def objective(*args, **kwargs):  # the signal lands between trials' training
+        os.kill(os.getpid(), signum)
+        time.sleep(5)
+        raise AssertionError("the signal did not stop the trial")
+
+    monkeypatch.setattr(sweep, "_objective", objective)
+    args = sweep_args(tiny, tmp_path)
+    before = signal.getsignal(signal.SIGTERM)
+    capfd.readouterr()
+    assert main([*args, "--quiet"]) == code
+    err = capfd.readouterr().err
+    assert err.strip() == (
+        f"harness: sweep stopped by {signal.Signals(signum).name}; continue it with the same "
+        "command and --resume"
+    )
+    assert trial_states(tmp_path / "sweeps" / "tiny") == ["FAIL"]
+    assert signal.getsignal(signal.SIGTERM) == before  # put back
+
+
+@pytest.mark.slow
+def test_sigterm_to_a_training_sweep_exits_143_with_one_line(tiny, tmp_path):
+    # Long enough a trial to be stopped in training: its checkpoint is written, then it fails.
+    longer = ["--set", "phases.only.timesteps=200000", "--set", "eval.every=100000"]
+    cmd = [sys.executable, "-m", "harness.cli", *sweep_args(tiny, tmp_path), *longer]
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    episodes = tmp_path / "sweeps" / "tiny" / "trial-0000" / "episodes.csv"
+    deadline = time.monotonic() + 300
+    while not (episodes.is_file() and episodes.read_text().count("\n") > 2):
+        assert proc.poll() is None and time.monotonic() < deadline, "the trial never trained"
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert "Traceback" not in err and "failed" not in err
+    harness_lines = [line for line in err.splitlines() if line.startswith("harness:")]
+    assert harness_lines == [
+        "harness: sweep stopped by SIGTERM; continue it with the same command and --resume"
+    ]
+    assert trial_states(tmp_path / "sweeps" / "tiny") == ["FAIL"]
+    assert list((episodes.parent / "checkpoints").glob("step-*"))
 
 
 def test_a_dead_trial_of_a_seed_grid_is_trained_again_not_lost(tiny, tmp_path):

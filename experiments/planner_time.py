@@ -6,7 +6,7 @@ compiled distance fields (``CoordinatedPlanner._fields``: up to the horizon, and
 for an agent with nothing within it) and the assignment. The rest of an episode is the env, the
 map upkeep and Python around them, which ``frontier`` pays too. docs/performance.md quotes it.
 
-    python scripts/planner_time.py [EPISODES]     # default 8; under a minute
+    python experiments/planner_time.py [EPISODES]     # default 8; under a minute
 """
 
 from __future__ import annotations

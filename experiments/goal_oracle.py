@@ -24,7 +24,7 @@ scores by speed instead: an option by the steps its rollout takes to coverage ``
 cells), an episode by its steps to ``Q`` (a team that covers the whole map, 4 agents on 50x50,
 ends every rollout with the same cells).
 
-    python scripts/goal_oracle.py [--config configs/goals_2agents.yaml] [--episodes 10]
+    python experiments/goal_oracle.py [--config configs/goals_2agents.yaml] [--episodes 10]
         [--seed 2000003] [--set KEY=VALUE ...] [--horizon H] [--belief true|sampled]
         [--samples M] [--margin CELLS] [--model RUN/model.zip] [--save DECISIONS.npz]
         [--reach Q]

@@ -8,7 +8,7 @@ coverage over the three settings, then the fewest median steps to 99 % with 4 ag
 every planner covers everything). Writes ``docs/planners/validation.json``; docs/planners.md
 quotes it.
 
-    python scripts/planner_params.py [EPISODES]     # default 20; about 15 min on 2 cores
+    python experiments/planner_params.py [EPISODES]     # default 20; about 15 min on 2 cores
 """
 
 from __future__ import annotations

@@ -2,9 +2,10 @@
 
 Plays the bench's setting (50x50 random maps, 4 agents, 1000 steps, one thread) with each
 planner's baseline and times, inside the run, the parts of a step that the planner adds: the
-compiled distance fields (``CoordinatedPlanner._fields``: up to the horizon, and the whole map
-for an agent with nothing within it) and the assignment. The rest of an episode is the env, the
-map upkeep and Python around them, which ``frontier`` pays too. docs/performance.md quotes it.
+compiled searches with the targets' costs (``envs.coverage.planners._target_costs``: the fields
+up to the horizon, and the whole map for an agent with nothing within it) and the assignment.
+The rest of an episode is the env, the map upkeep and Python around them, which ``frontier``
+pays too. docs/performance.md quotes it.
 
     python experiments/planner_time.py [EPISODES]     # default 8; under a minute
 """
@@ -16,7 +17,6 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-import numpy as np
 import torch
 
 import envs.coverage.planners as planners
@@ -43,13 +43,7 @@ def timed(spent: dict[str, float], name: str, fn: Callable[..., Any]) -> Callabl
 def main(episodes: int) -> None:
     torch.set_num_threads(1)
     spent: dict[str, float] = {}
-    search = planners.FrontierPlanner._fields
-
-    def fields(self: Any, starts: np.ndarray, limit: float) -> Any:
-        name = "search: whole map" if limit == np.inf else "search: horizon"
-        return timed(spent, name, search)(self, starts, limit)
-
-    planners.FrontierPlanner._fields = fields
+    planners._target_costs = timed(spent, "searches and costs", planners._target_costs)
     for cls in (planners.HungarianPlanner, planners.MinPosPlanner, planners.UtilityPlanner):
         cls.assign = timed(spent, "assignment", cls.assign)
     for policy in POLICIES:

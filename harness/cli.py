@@ -59,13 +59,8 @@ from harness.results.rundir import (
     check_output_file,
 )
 from harness.results.stats import REPS
-from harness.training.checkpoints import (
-    CheckpointError,
-    ConfigChangedError,
-    check_config,
-    complete_checkpoints,
-    read_state,
-)
+from harness.training.checkpoints import CheckpointError
+from harness.training.state import RunState, check_resume_config, run_state, untrained
 from harness.training.sweep import BEST_CONFIG, PRUNERS, SweepError
 
 EXIT_USAGE = 2
@@ -415,17 +410,12 @@ def cmd_run(args: argparse.Namespace) -> int:
         ) from None
 
 
-#: What ``harness run`` writes into a new run folder before it trains.
-_START_FILES = frozenset({".lock", "config.yaml", "command.txt", "tb", "checkpoints"})
-
-
 def _remove_unstarted(run: RunDir) -> bool:
     """Remove the folder of a new run that failed before its first checkpoint, if it holds only
-    what the start wrote (no episode logged, no checkpoint); whether it was removed."""
+    what the start wrote (no episode logged, no checkpoint: :func:`untrained`); whether it was
+    removed."""
     try:
-        if not {p.name for p in run.path.iterdir()} <= _START_FILES:
-            return False
-        if complete_checkpoints(run.checkpoints):
+        if not untrained(run):
             return False
         shutil.rmtree(run.path)
     except OSError:
@@ -529,41 +519,32 @@ def _resume(args: argparse.Namespace) -> int:
     if args.jobs is not None:
         raise HarnessError("--jobs goes with --seeds or a seed group's --resume")
     run = RunDir(args.resume)
-    if not run.config.is_file():
+    if run_state(run).never_started:
         raise HarnessError(
             f"{run.path}: not a run folder (no config.yaml) nor a seed group (no group.json)"
         )
     with run.lock():  # a second resume of a live run stops here
         config = load_config(run.config)
-        found = complete_checkpoints(run.checkpoints)
-        if not found and run.model.is_file():  # model.zip is written once all phases are done
-            raise HarnessError(
-                f"{run.path}: this run is finished (it has its model.zip) and has no checkpoint to "
-                "resume from; nothing was trained and its model.zip is kept"
+        status = run_state(run)
+        if status.finished:
+            if status.training is None:  # its checkpoints deleted since: nothing to resume
+                raise HarnessError(
+                    f"{run.path}: this run is finished (it has its model.zip) and has no "
+                    "checkpoint to resume from; nothing was trained and its model.zip is kept"
+                )
+            print(
+                f"{run.path}: this run already finished ({status.training.num_timesteps} steps)",
+                file=sys.stderr,
             )
-        if not found:
+            return 0
+        if status.state is RunState.NO_CHECKPOINT:
             print(
                 f"{run.path}: no checkpoint yet (stopped before the first one): starting the run "
                 "again from step 0 in the same folder",
                 file=sys.stderr,
             )
             return _train(config, run, args, mode="restart")
-        try:
-            newest = read_state(found[-1])
-        except CheckpointError:
-            newest = None  # train() falls back to the older checkpoint and says so
-        if newest is not None and newest.finished and run.model.is_file():
-            print(
-                f"{run.path}: this run already finished ({newest.num_timesteps} steps)",
-                file=sys.stderr,
-            )
-            return 0
-        try:
-            check_config(found[-1], config)  # before the slow start: one line, nothing changed
-        except ConfigChangedError:
-            raise
-        except CheckpointError:
-            pass  # its copy is unreadable: train() falls back to the older checkpoint
+        check_resume_config(status, config)  # before the slow start: one line, nothing changed
         print(f"resuming {run.path}", file=sys.stderr)
         return _train(config, run, args, mode="resume")
 
@@ -577,7 +558,7 @@ def _resume_group(args: argparse.Namespace) -> int:
     try:
         jobs = resume_group(
             group,
-            seed_state,
+            run_state,
             args.jobs,
             say=print_progress,
             report=None if args.no_progress else print_progress,
@@ -585,23 +566,6 @@ def _resume_group(args: argparse.Namespace) -> int:
     except GroupInterrupted as exc:
         return _group_stopped(exc)
     return _group_done(group, jobs)
-
-
-def seed_state(run: RunDir) -> str:
-    """How a seed's run (with its ``config.yaml``) stands for ``--resume GROUP``: ``finished``
-    (as ``--resume RUN`` would say), or how it stopped (``stopped at step 1,200``)."""
-    found = complete_checkpoints(run.checkpoints)
-    if run.model.is_file() and not found:
-        return "finished"  # `--resume RUN` refuses it: nothing to resume from, model kept
-    if not found:
-        return "stopped before its first checkpoint"
-    try:
-        newest = read_state(found[-1])
-    except CheckpointError:
-        return "stopped (its newest checkpoint is unreadable)"
-    if newest.finished and run.model.is_file():
-        return "finished"
-    return f"stopped at step {newest.num_timesteps:,}"
 
 
 def _train(config: ExperimentConfig, run: RunDir, args: argparse.Namespace, mode: str) -> int:
@@ -633,8 +597,8 @@ def _train(config: ExperimentConfig, run: RunDir, args: argparse.Namespace, mode
         print(f"harness: error: {exc}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
-        found = complete_checkpoints(run.checkpoints)
-        kept = f"the newest checkpoint is {found[-1]}" if found else "no checkpoint yet"
+        newest = run_state(run).checkpoint
+        kept = f"the newest checkpoint is {newest}" if newest else "no checkpoint yet"
         print(
             f"harness: interrupted ({kept}); resume with: harness run --resume {run.path}",
             file=sys.stderr,

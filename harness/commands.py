@@ -446,20 +446,15 @@ def check_training_done(run_dir: Path) -> None:
     Raises:
         TargetError: naming the run and its newest checkpoint.
     """
-    from harness.training.checkpoints import CheckpointError, complete_checkpoints, read_state
+    from harness.training.state import RunState, run_state
 
-    run = RunDir(run_dir)
-    found = complete_checkpoints(run.checkpoints)
-    if not found:
-        return  # never checkpointed (or finished and cleaned): a resume starts from its config
-    try:
-        finished = read_state(found[-1]).finished and run.model.is_file()
-    except CheckpointError:
-        finished = False  # a resume falls back to the older checkpoint: still to resume
-    if not finished:
+    # Only a run with a checkpoint to resume (an unreadable newest one too: the resume falls
+    # back to the older) is held to its config; one never checkpointed starts from its config.
+    status = run_state(RunDir(run_dir))
+    if status.state is RunState.RESUMABLE and status.checkpoint is not None:
         raise TargetError(
             f"--write: {run_dir} has not finished training (it resumes from "
-            f"{found[-1].name} only with the config.yaml it was made with); tune without "
+            f"{status.checkpoint.name} only with the config.yaml it was made with); tune without "
             "--write now, or with --write once the run finished; nothing was written"
         )
 

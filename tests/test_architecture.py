@@ -8,7 +8,16 @@ counts as much as one at the top):
   sb3 < config (and processes, how a child Python is started) < factory < evaluation < results <
   training < commands, cli, bench; in particular
   configuration imports no training, evaluation or CLI module;
-* only the factory (``harness/factory.py``) calls ``parallel_env``.
+* only the factory (``harness/factory.py``) calls ``parallel_env``;
+* a run folder's file names (``config.yaml``, ``checkpoints``, ``state.json``, ...) are spelled
+  only by their owner, ``harness/results/rundir.py`` (``RunDir``, ``CheckpointDir``): no other
+  ``harness`` module has a string literal that is such a name or a path through one (prose that
+  mentions a file, in a message or a docstring, is no spelling of its path);
+* a run's state (new, stopped before its first checkpoint, resumable, finished) is decided only
+  by ``harness/training/state.py``: only it (and ``harness/training/train.py``, which loads the
+  checkpoint a resume continues from) reads a run's checkpoints to tell where it stands, and
+  outside the training package nothing of ``harness/training/checkpoints.py`` but its errors is
+  used.
 """
 
 from __future__ import annotations
@@ -125,3 +134,141 @@ def test_the_checks_find_a_violation(tmp_path: Path) -> None:
     bad = tmp_path / "bad.py"
     bad.write_text("def f():\n    from envs.coverage import env\n    return env\n")
     assert "envs.coverage" in imports(bad)
+
+
+# ----------------------------------------------------------------- run-file names, one owner
+#: The module that spells a run folder's file names.
+RUN_FILES_OWNER = "harness.results.rundir"
+
+
+def run_file_names() -> frozenset[str]:
+    """Every file and folder name of a run folder and of a checkpoint, read from their owner's
+    properties (so a name added there is checked here too)."""
+    from harness.results import rundir
+
+    names = {rundir.RunDir(Path()).progress_csv().name, *rundir.REFERENCE_FILES}
+    for cls in (rundir.RunDir, rundir.CheckpointDir):
+        blank = cls(Path())
+        for attr, value in vars(cls).items():
+            path = getattr(blank, attr) if isinstance(value, property) else None
+            if isinstance(path, Path):
+                names.add(path.name)
+    return frozenset(names)
+
+
+def docstring_nodes(tree: ast.AST) -> set[int]:
+    """The string statements of ``tree`` (docstrings, attribute docstrings), by ``id``."""
+    return {
+        id(node.value)
+        for node in ast.walk(tree)
+        if isinstance(node, ast.Expr)
+        and isinstance(node.value, ast.Constant)
+        and isinstance(node.value.value, str)
+    }
+
+
+def spelled_run_files(source: str, names: frozenset[str]) -> list[tuple[int, str]]:
+    """``(line, literal)`` of each code string literal of ``source`` (the text parts of an
+    f-string too) that is a name of ``names`` or a path through one (``"checkpoints/step-"``,
+    ``f"{run}/config.yaml"``): one of its ``/``-separated parts is the name. Docstrings are left
+    out, and so is prose that mentions a file (``"no config.yaml yet"``)."""
+    tree = ast.parse(source)
+    skip = docstring_nodes(tree)
+    found = []
+    for node in ast.walk(tree):
+        if (
+            isinstance(node, ast.Constant)
+            and isinstance(node.value, str)
+            and id(node) not in skip
+            and names.intersection(node.value.split("/"))
+        ):
+            found.append((node.lineno, node.value))
+    return found
+
+
+def test_the_run_file_names_are_read_from_their_owner() -> None:
+    names = run_file_names()
+    # The names every rule of this file relies on (a renamed property must not empty the set).
+    assert {"config.yaml", "checkpoints", "state.json", "model.zip", ".lock", "tb"} <= names
+
+
+@pytest.mark.parametrize("path", modules("harness"), ids=lambda p: str(p.relative_to(ROOT)))
+def test_only_the_run_dir_spells_run_file_names(path: Path) -> None:
+    if module_name(path) == RUN_FILES_OWNER:
+        return
+    spelled = spelled_run_files(path.read_text(), run_file_names())
+    assert not spelled, f"{module_name(path)} spells run-file names (use RunDir): {spelled}"
+
+
+def test_the_run_file_check_finds_a_spelling() -> None:
+    snippet = (
+        '"""A module about config.yaml."""\n'
+        "START = frozenset({'.lock', 'config.yaml'})\n"
+        "def newest(run, step):\n"
+        '    """The newest checkpoints/ folder."""\n'
+        '    print(f"{run}: no config.yaml yet")\n'
+        '    return f"{run}/checkpoints/step-{step}"\n'
+    )
+    spelled = spelled_run_files(snippet, run_file_names())
+    assert spelled == [(2, ".lock"), (2, "config.yaml"), (6, "/checkpoints/step-")]
+
+
+# ------------------------------------------------------------------ run state, one owner
+#: The module that decides a run's state.
+RUN_STATE_OWNER = "harness.training.state"
+#: What tells where a run stands: its complete checkpoints and the newest one's ``state.json``.
+CHECKPOINT_READERS = frozenset({"complete_checkpoints", "latest_checkpoint", "read_state"})
+#: Who may read them: the owner, and the training that loads the checkpoint a resume continues
+#: from (and the module that writes them).
+MAY_READ_CHECKPOINTS = frozenset(
+    {RUN_STATE_OWNER, "harness.training.train", "harness.training.checkpoints"}
+)
+#: What of the checkpoints module the layers above training may use: its errors.
+CHECKPOINT_ERRORS = frozenset({"CheckpointError", "ConfigChangedError"})
+
+
+def checkpoint_uses(path: Path) -> set[str]:
+    """The names ``path`` takes from ``harness.training.checkpoints`` (``*``: the module itself,
+    whose every name it may then use), lazy imports included."""
+    checkpoints = "harness.training.checkpoints"
+    used: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.ImportFrom) and node.module == checkpoints:
+            used.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module == "harness.training":
+            used.update("*" for alias in node.names if alias.name == "checkpoints")
+        elif isinstance(node, ast.Import):
+            used.update("*" for alias in node.names if alias.name == checkpoints)
+    return used
+
+
+def state_rule_breaches(path: Path) -> list[str]:
+    """What ``path`` uses of the checkpoints that the run-state owner alone may use."""
+    name = module_name(path) if path.is_relative_to(ROOT) else path.stem
+    used = checkpoint_uses(path)
+    bad = sorted(used & CHECKPOINT_READERS) if name not in MAY_READ_CHECKPOINTS else []
+    if not name.startswith("harness.training."):
+        bad += sorted(used - CHECKPOINT_ERRORS - CHECKPOINT_READERS)
+    return bad
+
+
+@pytest.mark.parametrize("path", modules("harness"), ids=lambda p: str(p.relative_to(ROOT)))
+def test_only_the_state_owner_decides_a_runs_state(path: Path) -> None:
+    bad = state_rule_breaches(path)
+    assert not bad, f"{module_name(path)} uses {bad} (ask {RUN_STATE_OWNER}.run_state)"
+
+
+def test_the_run_state_check_finds_a_breach(tmp_path: Path) -> None:
+    reader = tmp_path / "reader.py"
+    reader.write_text(
+        "def finished(run):\n"
+        "    from harness.training.checkpoints import complete_checkpoints, read_state\n"
+        "    return read_state(complete_checkpoints(run.checkpoints)[-1]).finished\n"
+    )
+    assert state_rule_breaches(reader) == ["complete_checkpoints", "read_state"]
+    asker = tmp_path / "asker.py"
+    asker.write_text(
+        "from harness.training.checkpoints import CheckpointError, check_config\n"
+        "from harness.training.state import run_state\n"
+    )
+    assert state_rule_breaches(asker) == ["check_config"]

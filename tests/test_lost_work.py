@@ -194,11 +194,11 @@ def _hand_made_group(folder: Path, config: Path) -> Path:
 
 
 def test_resuming_a_group_plans_each_seed_and_says_which(tiny, tmp_path):
-    from harness.cli import seed_state
     from harness.results.groups import plan_resume
+    from harness.training.state import run_state
 
     group = _hand_made_group(tmp_path / "g", tiny)
-    plan, lines = plan_resume(group, 2, seed_state)
+    plan, lines = plan_resume(group, 2, run_state)
     assert lines == [
         "seed 0: finished (tiny-seed0), left alone",
         "seed 1: stopped at step 240, resuming it (tiny-seed1)",
@@ -212,6 +212,38 @@ def test_resuming_a_group_plans_each_seed_and_says_which(tiny, tmp_path):
     assert start is not None and start[-2:] == ["--into", str(group / "tiny-seed3")]
     assert "seed=3" in start and str(tiny) in start
     assert not (group / "tiny-seed3").exists()  # the empty leftover is cleared for the start
+
+
+def test_the_run_state_of_each_kind_of_folder(tiny, tmp_path):
+    """The rules of harness/training/state.py on hand-made folders: the states --resume acts
+    on, with the words of a group's line per seed."""
+    from harness.training.state import RunState, run_state
+
+    group = _hand_made_group(tmp_path / "g", tiny)
+    seeds = [RunDir(group / f"tiny-seed{seed}") for seed in range(4)]
+    status = [run_state(run) for run in seeds]
+    assert [s.state for s in status] == [
+        RunState.FINISHED,
+        RunState.RESUMABLE,
+        RunState.NO_CHECKPOINT,
+        RunState.NEW,
+    ]
+    assert status[1].checkpoint == seeds[1].checkpoints / "step-000000000240"
+    assert status[1].training is not None and status[1].training.num_timesteps == 240
+    # A model.zip beside a newest checkpoint not marked finished: still to resume.
+    seeds[1].model.write_bytes(b"zip")
+    assert run_state(seeds[1]).state is RunState.RESUMABLE
+    # An unreadable newest state.json: still to resume (from the older checkpoint), even with
+    # a model.zip.
+    (seeds[0].checkpoints / "step-000000000240" / "state.json").write_text("{")
+    unreadable = run_state(seeds[0])
+    assert unreadable.state is RunState.RESUMABLE and unreadable.training is None
+    assert unreadable.words == "stopped (its newest checkpoint is unreadable)"
+    # Finished, its checkpoints deleted since: finished, with no checkpoint to resume from.
+    seeds[2].model.write_bytes(b"zip")
+    cleaned = run_state(seeds[2])
+    assert cleaned.state is RunState.FINISHED and cleaned.checkpoint is None
+    assert cleaned.words == "finished"
 
 
 def test_resuming_a_group_refuses_a_seed_folder_with_files_but_no_config(tiny, tmp_path, capsys):

@@ -31,7 +31,7 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 from harness.processes import harness_command
 from harness.results.rundir import RunDir, RunDirError, atomic_write_text, unique_folder
@@ -412,17 +412,34 @@ def read_group(folder: Path) -> dict[str, Any]:
     return data
 
 
-#: How a seed's run stands: ``finished``, or how it stopped (``stopped at step 1,200``).
-SeedState = Callable[[RunDir], str]
+class SeedStanding(Protocol):
+    """How a seed's run stands, as the training layer decides it
+    (:func:`harness.training.state.run_state`): a group only acts on it."""
+
+    @property
+    def never_started(self) -> bool:
+        """No ``config.yaml`` yet: the seed is started as the group's command would have."""
+
+    @property
+    def finished(self) -> bool:
+        """Nothing left to train: the seed is left alone."""
+
+    @property
+    def words(self) -> str:
+        """How it stands or stopped, for the seed's line (``stopped at step 1,200``)."""
+
+
+#: Tells how a seed's run stands (the command line passes the training layer's ``run_state``).
+SeedState = Callable[[RunDir], SeedStanding]
 
 
 def plan_resume(folder: Path, jobs: int, state_of: SeedState) -> tuple[list[Job], list[str]]:
     """What ``harness run --resume GROUP`` does for each seed, and a line saying it per seed.
 
-    A seed that ``state_of`` calls ``finished`` is left alone; one with a run folder
-    (``config.yaml``) is resumed (``harness run --resume RUN``: from its checkpoint, or from
-    step 0 when it stopped before the first); one never started is started as the group's
-    command would have.
+    A seed that ``state_of`` calls finished is left alone; one never started (no
+    ``config.yaml``) is started as the group's command would have; any other is resumed
+    (``harness run --resume RUN``: from its checkpoint, or from step 0 when it stopped before
+    the first).
 
     Raises:
         GroupError: for a group file that cannot be used, a seed's folder that is neither a run
@@ -438,10 +455,10 @@ def plan_resume(folder: Path, jobs: int, state_of: SeedState) -> tuple[list[Job]
     for entry, member in zip(data["runs"], members, strict=True):
         job = Job(entry["seed"], RunDir(member))
         run, name = job.run, member.name
-        state = state_of(run) if run.config.is_file() else "start"
-        if state == "finished":
-            lines.append(f"seed {job.seed}: finished ({name}), left alone")
-        elif state == "start":
+        standing = state_of(run)
+        if standing.finished:
+            lines.append(f"seed {job.seed}: {standing.words} ({name}), left alone")
+        elif standing.never_started:
             if not config_path.is_file():
                 raise GroupError(
                     f"{folder / GROUP_FILE}: seed {job.seed} was never started and its config "
@@ -449,11 +466,11 @@ def plan_resume(folder: Path, jobs: int, state_of: SeedState) -> tuple[list[Job]
                 )
             _clear_unstarted(run, job.seed)
             job.cmd = _start_command(job, config_path, data["overrides"], threads)
-            lines.append(f"seed {job.seed}: never started, starting it ({name})")
+            lines.append(f"seed {job.seed}: {standing.words}, starting it ({name})")
         else:
             _check_not_running(run, job.seed)
             job.cmd = harness_command("run", "--resume", str(run.path), "--no-progress")
-            lines.append(f"seed {job.seed}: {state}, resuming it ({name})")
+            lines.append(f"seed {job.seed}: {standing.words}, resuming it ({name})")
         plan.append(job)
     return plan, lines
 
@@ -491,10 +508,6 @@ def resume_group(
         return _run_jobs(folder, plan, jobs, threads_per_job(jobs), report, every)
 
 
-#: What ``harness run --into`` makes in a seed's folder before its ``config.yaml``.
-_START_ENTRIES = frozenset({".lock", "tb", "checkpoints"})
-
-
 def _clear_unstarted(run: RunDir, seed: int) -> None:
     """Remove a seed's folder that a kill left before its ``config.yaml`` (nothing trained), so
     that the seed can start in it again.
@@ -504,11 +517,11 @@ def _clear_unstarted(run: RunDir, seed: int) -> None:
     """
     if not run.path.exists():
         return
+    made = RunDir.made_names()  # what `harness run --into` makes before the config.yaml
     try:
         entries = list(run.path.iterdir())
         empty = all(
-            p.name.endswith(".tmp")
-            or (p.name in _START_ENTRIES and (not p.is_dir() or not any(p.iterdir())))
+            p.name.endswith(".tmp") or (p.name in made and (not p.is_dir() or not any(p.iterdir())))
             for p in entries
         )
         if empty:

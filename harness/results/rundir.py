@@ -476,6 +476,14 @@ class RunDir:
     def lock_file(self) -> Path:
         return self.path / ".lock"
 
+    @classmethod
+    def made_names(cls) -> frozenset[str]:
+        """The names a run folder holds from its making on, before anything is written into
+        it: ``tb/`` and ``checkpoints/`` (:meth:`create`, :meth:`create_at`) and ``.lock``
+        (:meth:`lock`)."""
+        blank = cls(Path())
+        return frozenset(p.name for p in (blank.tb, blank.checkpoints, blank.lock_file))
+
     @contextlib.contextmanager
     def lock(self, holder: str = "a run or resume") -> Iterator[None]:
         """Hold the run folder for this process: a second ``harness run --resume`` (or any other

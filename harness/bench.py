@@ -242,29 +242,29 @@ def bench_sharing(
     import torch
 
     from harness import DoubleDQN, PrioritizedReplayBuffer
-    from harness.sb3.registry import POLICIES
+    from harness.config.schema import AlgoConfig
     from harness.training.adapters import make_vec_env
+    from harness.training.checks import network_kwargs, policy_class_name
 
     torch.set_num_threads(1)
     net = THESIS_NET if net is None else net
-    n = THESIS_ENV.n_agents
     models, venvs = {}, []
     for mode in SHARING_MODES:
         env = THESIS_ENV.model_copy()
         env._agent_id = mode != "shared"
         venv = make_vec_env(env, copies=4, seed=0)
         venvs.append(venv)
-        kwargs: dict[str, Any] = {"net_arch": net, "optimizer_class": torch.optim.RMSprop}
-        if mode == "per_agent":
-            kwargs["n_agents"] = n
+        # The policy and its network as `harness run` builds them for this mode.
+        algo = AlgoConfig(sharing=mode, net_arch=net)
+        kwargs = network_kwargs(algo, THESIS_ENV.n_agents)
         model = DoubleDQN(
-            POLICIES["MlpPolicy"].per_agent_name if mode == "per_agent" else "MlpPolicy",
+            policy_class_name(algo),
             venv,
             buffer_size=100_000,
             batch_size=batch,
             learning_starts=10**9,  # fill the buffer without training
             replay_buffer_class=PrioritizedReplayBuffer,
-            policy_kwargs=kwargs,
+            policy_kwargs={**kwargs, "optimizer_class": torch.optim.RMSprop},
             device="cpu",
         )
         model.learn(fill)

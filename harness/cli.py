@@ -51,6 +51,10 @@ from harness.commands import (
 )
 from harness.config.loading import load_config
 from harness.config.schema import MAX_SEED, ConfigError, ExperimentConfig, check_name
+
+# The help names the baselines from their registry (its planners' SciPy costs the start nothing
+# more: the env, which every command imports, has loaded it already).
+from harness.evaluation.baselines import BASELINES
 from harness.results.groups import GroupError, GroupInterrupted, Job
 from harness.results.rundir import (
     RunDir,
@@ -350,13 +354,9 @@ def _add_target(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "target", type=Path, nargs="?", metavar="RUN_DIR_OR_MODEL", help="run folder or model zip"
     )
+    *others, last = BASELINES
     parser.add_argument(
-        "--policy",
-        help=(
-            "a baseline instead of a model: random, local, frontier, frontier_pocket, "
-            "frontier_random, frontier_utility, frontier_minpos, frontier_hungarian or "
-            "frontier_step"
-        ),
+        "--policy", help=f"a baseline instead of a model: {', '.join(others)} or {last}"
     )
     parser.add_argument("--config", type=Path, help="the experiment config of a --policy")
     parser.add_argument(

@@ -25,6 +25,7 @@ from typing import Any
 
 from harness.config.loading import load_config
 from harness.config.schema import ConfigError, ExperimentConfig
+from harness.evaluation.baselines import BASELINES, make_baseline
 from harness.evaluation.episodes import (
     BatchPolicy,
     model_policy,
@@ -249,26 +250,19 @@ def resolve_target(
             raise TargetError("give either a run/model or --policy, not both")
         if config_path is None:
             raise TargetError(f"--policy {policy} needs --config CONFIG.yaml")
-        from harness.evaluation.baselines import (  # SciPy: only when used
-            BASELINES,
-            FrontierStepPolicy,
-            make_baseline,
-        )
-
         if policy not in BASELINES:
             raise TargetError(f"unknown policy {policy!r}; known: {', '.join(BASELINES)}")
         config = load_config(config_path, overrides)
-        if policy == "frontier_step":
-            try:
-                FrontierStepPolicy.check(config.env.frontier_options)
-            except ValueError as exc:
-                raise TargetError(f"--policy {policy}: {exc}") from None
+        try:
+            BASELINES[policy].check(config.env.frontier_options)
+        except ValueError as exc:
+            raise TargetError(f"--policy {policy}: {exc}") from None
         seed = config.eval.seed if seed is None else seed
         return Target(make_baseline(policy, seed), config, policy, None, seed)
     if target is None:
         raise TargetError(
-            "give a run folder or model zip, or --policy random|local|frontier|frontier_step "
-            "--config FILE"
+            "give a run folder or model zip, or --policy BASELINE --config FILE (BASELINE: "
+            f"{', '.join(BASELINES)})"
         )
     if config_path is not None:
         raise TargetError("--config goes with --policy; a model uses its run's config.yaml")

@@ -556,8 +556,7 @@ def test_config_tests_with_its_references_tuned_temperature(ref: Path) -> None:
 
 @pytest.mark.parametrize("command", ["eval", "render"])
 def test_policy_help_names_every_baseline(command):
-    # The help text is written by hand (importing the baselines' SciPy would slow every
-    # command's start); this keeps it in step with the BASELINES table.
+    # The help text is built from the BASELINES registry: every entry, and nothing else.
     from harness.cli import build_parser
     from harness.evaluation.baselines import BASELINES
 

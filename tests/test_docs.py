@@ -1,5 +1,6 @@
 """README is a short user guide and the reference lives in docs/: README's size and order, the CI
-blocks `.ci/run` reads, every relative link, and the configuration page against the schema."""
+blocks `.ci/run` reads, every relative link, the configuration page against the schema, and the
+pages' lists of policies, planners, action kinds and baselines against their registries."""
 
 from __future__ import annotations
 
@@ -194,3 +195,83 @@ def test_configuration_page_lists_exactly_the_env_options(prefix: str) -> None:
     documented = {k[len(prefix) :] for k in keys if k.startswith(prefix)}
     assert documented == option_names(module, cls, fallback)
     assert prefix.split(".")[0] + "." + prefix.split(".")[1] in keys  # the key itself, too
+
+
+# ---------------------------------------------------------------------- registries
+def policy_table(page: Path) -> dict[str, str]:
+    """The ``--policy`` table of ``page``: each baseline's name and its last column (what it
+    runs on), in the page's order."""
+    rows, inside = {}, False
+    for line in page.read_text().splitlines():
+        if line.startswith("| `--policy` |"):
+            inside = True
+        elif inside and not line.startswith("|"):
+            break
+        elif inside and not line.startswith("|---"):
+            cells = [c.strip() for c in line.strip("|").split("|")]
+            rows[cells[0].strip("`")] = cells[-1]
+    return rows
+
+
+def backticked_names(text: str) -> list[str]:
+    """The backticked lower-case names of ``text`` (``frontier_pocket``, ``order``), in order."""
+    return re.findall(r"`([a-z][a-z_]*)`", text)
+
+
+def config_row(key: str) -> str:
+    """The values column of ``key``'s row on the configuration page."""
+    for line in CONFIG_PAGE.read_text().splitlines():
+        if line.startswith(f"| `{key}` |"):
+            return line.strip("|").split("|")[2]
+    raise AssertionError(f"no row for {key} in docs/configuration.md")
+
+
+def test_evaluation_page_lists_every_baseline_and_where_it_runs() -> None:
+    from harness.evaluation.baselines import BASELINES
+
+    table = policy_table(DOCS / "evaluation.md")
+    assert list(table) == list(BASELINES)
+    for name, runs_on in table.items():
+        needs = "`env.frontier.action`" in runs_on
+        assert needs == BASELINES[name].needs_action, f"{name}: {runs_on!r}"
+        assert needs or runs_on == "any config", f"{name}: {runs_on!r}"
+
+
+def test_planners_page_lists_the_planners_baselines_and_the_action_kinds() -> None:
+    from envs.coverage.frontier import ACTIONS, PLANNERS
+    from harness.evaluation.baselines import BASELINES
+
+    text = (DOCS / "planners.md").read_text()
+    table = policy_table(DOCS / "planners.md")
+    playing = [e.baseline for e in PLANNERS.values()]
+    playing += [name for name, b in BASELINES.items() if b.needs_action]
+    assert list(table) == playing
+    for name, needs in table.items():
+        assert ("`env.frontier.action" in needs) == BASELINES[name].needs_action, name
+    listed = re.search(r"\(the planners: ([^)]*)\)", text)
+    assert listed and sorted(backticked_names(listed[1])) == sorted(PLANNERS)
+    listed = re.search(r"\(the planner-backed action kinds: ([^)]*)\)", text)
+    assert listed and backticked_names(listed[1]) == list(ACTIONS)
+
+
+def test_readme_names_only_real_baselines() -> None:
+    # README's eval row names some baselines and points to docs/evaluation.md for all of them.
+    from harness.evaluation.baselines import BASELINES
+
+    (row,) = [r for r in README.read_text().splitlines() if r.startswith("| `harness eval ")]
+    named = re.search(r"a baseline \(([^)]*)\)", row)
+    assert named and "..." in named[1]
+    assert set(backticked_names(named[1])) <= set(BASELINES)
+    assert "docs/evaluation.md" in row
+
+
+def test_configuration_page_lists_the_registries_choices() -> None:
+    from envs.coverage.frontier import ACTIONS, PLANNERS
+    from harness.sb3.registry import POLICIES
+
+    assert set(re.findall(r"`(\w+Policy)`", config_row("algo.policy"))) == set(POLICIES)
+    planners = set(backticked_names(config_row("env.frontier.planner"))) - {"null"}
+    assert planners == set(PLANNERS)
+    actions = config_row("env.frontier.action")
+    for name in ACTIONS:
+        assert f"`{name}`" in actions or f"`{{{name}:" in actions, name

@@ -114,7 +114,7 @@ def _model(env: dict[str, Any], policy: str, sharing: str, **kwargs: Any) -> Dou
     venv = make_vec_env({**env, "agent_id": sharing != "shared"}, copies=2, seed=0)
     entry = POLICIES[policy]
     policy_kwargs: dict[str, Any] = {"net_arch": [16]}
-    if entry.observation == "teammap":
+    if entry.team_map:
         policy_kwargs["features_extractor_kwargs"] = {"features_dim": 16, "channels": [4, 4]}
     if sharing == "per_agent":
         policy_kwargs["n_agents"] = env["n_agents"]

@@ -87,6 +87,8 @@ class Step:
     #: The action a policy that follows the planner takes.
     expert_action: ClassVar[int] = FRONTIER_STEP
     needs_planner: ClassVar[bool] = False
+    #: Its actions are no candidate slots (no feature block for a slot-scoring policy).
+    slots: ClassVar[bool] = False
     n_actions: ClassVar[int] = 1
 
     def config(self) -> str:

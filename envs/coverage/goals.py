@@ -103,6 +103,9 @@ class Goal:
     expert_action: ClassVar[int] = 0
     #: The goal action needs a planner (its choice is slot 0).
     needs_planner: ClassVar[bool] = True
+    #: Its actions are candidate slots, each with its features in the observation
+    #: (:data:`GOALS_KEY`): a policy that scores slots can play it.
+    slots: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         k = self.k

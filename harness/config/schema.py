@@ -47,7 +47,7 @@ from envs.coverage.frontier import FrontierOptions
 from envs.coverage.maps import check_wall_fraction, shipped_maps
 from envs.coverage.observations import observation_options
 from harness.config.maps import build_source, parse_source
-from harness.sb3.registry import POLICIES
+from harness.sb3.registry import DEFAULT_POLICY, POLICIES
 
 
 class ConfigError(ValueError):
@@ -344,12 +344,14 @@ class AlgoConfig(_Section):
     ``per_agent``, one set of parameters per agent (the thesis's independent learners), in one
     model that routes each agent to its set. Both non-shared modes add the one-hot index to the
     observation (``env.agent_id``), so they are tied to the team size they were trained with."""
-    policy: str = "MlpPolicy"
+    policy: str = DEFAULT_POLICY
     """A policy of ``harness.sb3.registry.POLICIES``: ``MlpPolicy``, ``DuelingMlpPolicy`` (the
-    thesis observation), ``TeamMapPolicy``, ``DuelingTeamMapPolicy`` (``teammap``)."""
-    net_arch: list[PositiveInt] = [512, 512, 512]
+    thesis observation), ``TeamMapPolicy``, ``DuelingTeamMapPolicy``, ``SlotTeamMapPolicy``
+    (``teammap``)."""
+    net_arch: list[PositiveInt] = list(POLICIES[DEFAULT_POLICY].default_net_arch)
     """Hidden layers; for the dueling policy, each of the value and advantage streams. Not given:
-    the thesis's ``[512, 512, 512]``, or ``[]`` (none) for the TeamMap policies."""
+    the policy's ``default_net_arch`` (the thesis's ``[512, 512, 512]``, ``[]`` (none) for the
+    TeamMap policies, ``[128]`` for the slot scorer)."""
     dueling_aggregator: Literal["mean", "max"] = "mean"
     double_q: bool = True
     gamma: Annotated[float, Field(gt=0.0, le=1.0)] = 0.99
@@ -382,14 +384,13 @@ class AlgoConfig(_Section):
 
     @model_validator(mode="before")
     @classmethod
-    def _teammap_head(cls, data: Any) -> Any:
-        # A TeamMap policy's extractor already ends in a features_dim-wide layer: its Q head has
-        # no hidden layer unless asked (a 3x512 head would add ~0.66M weights to its ~0.47M).
+    def _policy_default_head(cls, data: Any) -> Any:
+        # Each policy has its own default head (the registry says which and why); an unknown
+        # policy is left to the field's check, which names it.
         if isinstance(data, dict) and "net_arch" not in data:
-            entry = POLICIES.get(str(data.get("policy", "")))
-            if entry is not None and entry.observation == "teammap":
-                # A slot scorer needs a hidden layer to weigh a slot against the map.
-                return {**data, "net_arch": [128] if entry.slots else []}
+            entry = POLICIES.get(str(data.get("policy", DEFAULT_POLICY)))
+            if entry is not None:
+                return {**data, "net_arch": list(entry.default_net_arch)}
         return data
 
     @field_validator("policy")
@@ -600,8 +601,8 @@ class ExperimentConfig(_Section):
     def _policy_fits_actions(self) -> ExperimentConfig:
         entry = POLICIES[self.algo.policy]
         options = self.env.frontier_options
-        goal = options is not None and options.action is not None and options.action.name == "goal"
-        if entry.slots and not goal:
+        slotted = options is not None and options.action is not None and options.action.slots
+        if entry.slots and not slotted:
             raise ValueError(
                 f"algo.policy {self.algo.policy} scores the goal action's candidates: it needs "
                 "env.frontier.action: {goal: {k: K}} (with a planner)"

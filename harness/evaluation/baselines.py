@@ -37,6 +37,7 @@ from __future__ import annotations
 
 import weakref
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -47,18 +48,35 @@ from envs.coverage.planners import FrontierPlanner
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL
 from harness.evaluation.episodes import BatchPolicy, batch_len, episode_draws, sample_categorical
 
-#: The baselines by the name ``--policy`` takes (the one list of them), each made from the
-#: evaluation's seed (only ``random`` uses it: the others draw from each episode's generator or
-#: none).
-BASELINES: dict[str, Callable[[int], BatchPolicy]] = {
-    "random": lambda seed: RandomPolicy(seed),
-    "local": lambda seed: LocalPolicy(),
-    # One per planner of the registry: frontier, frontier_pocket, frontier_random.
+
+@dataclass(frozen=True)
+class BaselineEntry:
+    """A baseline of the registry :data:`BASELINES`."""
+
+    make: Callable[[int], BatchPolicy]
+    """Builds it from the evaluation's seed (only ``random`` uses it: the others draw from each
+    episode's generator or none)."""
+    needs_action: bool = False
+    """It plays the env's planner-backed action, so it runs only on a config with
+    ``env.frontier.action`` (:meth:`check`); without: on any config."""
+
+    def check(self, options: FrontierOptions | None) -> None:
+        """``ValueError`` (one line, saying what to set) unless it can play an env with the
+        planner extension's ``options`` (``None``: off)."""
+        if self.needs_action:
+            FrontierStepPolicy.check(options)
+
+
+#: The baselines by the name ``--policy`` takes (the one list of them).
+BASELINES: dict[str, BaselineEntry] = {
+    "random": BaselineEntry(lambda seed: RandomPolicy(seed)),
+    "local": BaselineEntry(lambda seed: LocalPolicy()),
+    # One per planner of the registry: frontier, frontier_pocket, frontier_random, ...
     **{
-        entry.baseline: (lambda seed, name=name: FrontierPolicy(name))
+        entry.baseline: BaselineEntry(lambda seed, name=name: FrontierPolicy(name))
         for name, entry in PLANNERS.items()
     },
-    "frontier_step": lambda seed: FrontierStepPolicy(),
+    "frontier_step": BaselineEntry(lambda seed: FrontierStepPolicy(), needs_action=True),
 }
 
 
@@ -78,7 +96,7 @@ def make_baseline(name: str, seed: int) -> BatchPolicy:
     """
     if name not in BASELINES:
         raise ValueError(f"unknown baseline {name!r}; known: {', '.join(BASELINES)}")
-    return BASELINES[name](seed)
+    return BASELINES[name].make(seed)
 
 
 class FrontierStepPolicy:

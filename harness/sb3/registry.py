@@ -13,6 +13,9 @@ import importlib
 from dataclasses import dataclass
 from typing import Any
 
+#: The thesis's hidden layers (3x512), the MLP policies' default head.
+THESIS_NET_ARCH = (512, 512, 512)
+
 
 @dataclass(frozen=True)
 class PolicyEntry:
@@ -30,7 +33,12 @@ class PolicyEntry:
     alias."""
     slots: bool = False
     """Its actions are candidate slots scored from a feature block of the observation (takes
-    ``slots_key``; the env's goal action)."""
+    ``slots_key``): it needs an action kind whose actions are slots (the env's goal action)."""
+    team_map: bool = False
+    """Its features extractor is the team map's CNN (``TeamMapExtractor``): it takes
+    ``algo.features_dim`` and ``algo.cnn_channels``, which size its network."""
+    default_net_arch: tuple[int, ...] = THESIS_NET_ARCH
+    """Its hidden layers when a config gives no ``algo.net_arch``."""
 
     def load(self, per_agent: bool = False) -> Any:
         """The policy class, or its per-agent version."""
@@ -56,18 +64,32 @@ POLICIES: dict[str, PolicyEntry] = {
         dueling=True,
         per_agent="harness.sb3.policies:PerAgentDuelingMlpPolicy",
     ),
+    # A team-map extractor already ends in a features_dim-wide layer: its Q head has no hidden
+    # layer unless asked (a 3x512 head would add ~0.66M weights to its ~0.47M).
     "TeamMapPolicy": PolicyEntry(
         "harness.sb3.policies:TeamMapPolicy",
         "teammap",
         per_agent="harness.sb3.policies:PerAgentTeamMapPolicy",
+        team_map=True,
+        default_net_arch=(),
     ),
     "DuelingTeamMapPolicy": PolicyEntry(
         "harness.sb3.policies:DuelingTeamMapPolicy",
         "teammap",
         dueling=True,
         per_agent="harness.sb3.policies:PerAgentDuelingTeamMapPolicy",
+        team_map=True,
+        default_net_arch=(),
     ),
+    # A slot scorer needs a hidden layer to weigh a slot against the map.
     "SlotTeamMapPolicy": PolicyEntry(
-        "harness.sb3.policies:SlotTeamMapPolicy", "teammap", slots=True
+        "harness.sb3.policies:SlotTeamMapPolicy",
+        "teammap",
+        slots=True,
+        team_map=True,
+        default_net_arch=(128,),
     ),
 }
+
+#: The policy of a config that names none.
+DEFAULT_POLICY = "MlpPolicy"

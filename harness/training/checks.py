@@ -46,7 +46,7 @@ def network_kwargs(algo: Any, n_agents: int) -> dict[str, Any]:
         kwargs["n_agents"] = n_agents
     if entry.dueling:
         kwargs["aggregator"] = algo.dueling_aggregator
-    if entry.observation == "teammap":
+    if entry.team_map:
         kwargs["features_extractor_kwargs"] = {
             "features_dim": algo.features_dim,
             "channels": list(algo.cnn_channels),
@@ -222,7 +222,7 @@ def check_network_memory(config: ExperimentConfig, available: int | None = None)
     available = available_memory_bytes() if available is None else available
     if available is not None and need > available:
         keys = "algo.net_arch"
-        if POLICIES[config.algo.policy].observation == "teammap":
+        if POLICIES[config.algo.policy].team_map:
             keys += ", algo.features_dim, algo.cnn_channels"
         raise ValueError(
             f"{keys}: a policy of {n:,} weights (online and target network) needs about "

@@ -127,9 +127,9 @@ def signal_during_training(mp: pytest.MonkeyPatch, n: int = 5) -> None:
     original = DoubleDQN._gradient_step
     tick = signal_on_call(n)
 
-    def gradient_step(model: DoubleDQN, replay_data: Any, update: int) -> Any:
+    def gradient_step(model: DoubleDQN, replay_data: Any, *args: Any) -> Any:
         tick()
-        return original(model, replay_data, update)
+        return original(model, replay_data, *args)
 
     mp.setattr(DoubleDQN, "_gradient_step", gradient_step)
 

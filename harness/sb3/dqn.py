@@ -5,7 +5,6 @@ from __future__ import annotations
 import base64
 import io
 import json
-import math
 import pickle
 import zipfile
 from pathlib import Path
@@ -63,6 +62,7 @@ def moved_classes(path: str | Path | io.BufferedIOBase) -> dict[str, Any]:
 __all__ = [
     "ACTION_MASK_KEY",
     "DoubleDQN",
+    "StepStats",
     "allowed_actions",
     "per_agent_loss",
     "resolve_optimizer_class",
@@ -149,8 +149,50 @@ def per_agent_loss(
             0, agent, w, reduce="amax", include_self=False
         )
         losses = losses * (w / largest[agent])
-    counts = th.bincount(agent, minlength=n_agents).clamp(min=1).to(losses.dtype)
+    # Counted by a scatter, not th.bincount: on CUDA bincount reads the indices' range back
+    # to the host (a synchronisation per gradient step). The counts are the same integers.
+    ones = th.ones_like(losses)
+    counts = th.zeros(n_agents, dtype=losses.dtype, device=losses.device)
+    counts = counts.index_add(0, agent, ones).clamp(min=1)
     return (losses / counts[agent]).sum()
+
+
+def _to_host(tensor: th.Tensor) -> np.ndarray:
+    """``tensor``'s values as a numpy array: the one way :meth:`DoubleDQN.train` reads the
+    device (a host synchronisation on an accelerator), so that the reads can be counted."""
+    return tensor.detach().cpu().numpy()
+
+
+class StepStats:
+    """Scalars of each gradient step of a training call (the loss, the mean TD error, ...),
+    kept on the device where they were computed until :meth:`read` brings all of them to the
+    host in one transfer: a read per step would make the host wait for every step's kernels."""
+
+    def __init__(self) -> None:
+        self._values: dict[str, list[th.Tensor]] = {}
+
+    def add(self, name: str, value: th.Tensor) -> None:
+        """Record one step's ``value`` (a one-element tensor) under ``name``; reads nothing."""
+        self._values.setdefault(name, []).append(value.detach().reshape(()))
+
+    def read(self) -> dict[str, np.ndarray]:
+        """Every name's values in the order added, float64, in one transfer; then forgets them.
+
+        Empty (and no transfer) when nothing was added.
+        """
+        if not self._values:
+            return {}
+        names = list(self._values)
+        # One concatenation (promoted to a common dtype) and one copy to the host.
+        host = _to_host(th.cat([th.stack(self._values[name]) for name in names]))
+        out: dict[str, np.ndarray] = {}
+        start = 0
+        for name in names:
+            n = len(self._values[name])
+            out[name] = host[start : start + n].astype(np.float64)
+            start += n
+        self._values.clear()
+        return out
 
 
 class NonFiniteLossError(FloatingPointError):
@@ -348,8 +390,6 @@ class DoubleDQN(DQN):
         self.expert_action = expert_action
         self.margin = float(margin)
         self.margin_weight = float(margin_weight)
-        # (margin loss, expert agreement) of each gradient step since the last log.
-        self._imitation_stats: list[tuple[float, float]] = []
         if _init_setup_model:
             self._setup_model()
 
@@ -467,7 +507,6 @@ class DoubleDQN(DQN):
             *super()._excluded_save_params(),
             "exploration_schedule",
             "beta_schedule",
-            "_imitation_stats",
         ]
 
     @property
@@ -478,9 +517,20 @@ class DoubleDQN(DQN):
     def train(self, gradient_steps: int, batch_size: int = 100) -> None:
         """SB3's DQN update with Double-Q targets and prioritized replay when configured.
 
+        Each gradient step is :meth:`_gradient_step`, built from the hooks :meth:`_td_target`,
+        :meth:`_loss_terms` and :meth:`_weighted_loss`. The losses, the TD-error means and the
+        imitation statistics stay on the device (:class:`StepStats`) and are read once, at the end
+        of the call, where the non-finite check runs too; with prioritized replay the new
+        priorities go to the host buffer after every step (its next sample needs them), and a
+        non-finite one stops the call there.
+
         With a per-agent policy (:attr:`agent_sets` = N > 1) each gradient step samples
         ``N * batch_size`` transitions, ``batch_size`` per agent's set on average (see
         :func:`per_agent_loss` for why the loss is weighted rather than the batch stratified).
+
+        Raises:
+            NonFiniteLossError: A step's loss (or TD error) was NaN or infinite; the message
+                names the first such update.
         """
         self.policy.set_training_mode(True)
         self._update_learning_rate(self.policy.optimizer)
@@ -488,37 +538,88 @@ class DoubleDQN(DQN):
         assert buffer is not None
         prioritized = isinstance(buffer, PrioritizedReplayBuffer)
 
-        losses: list[float] = []
-        td_errors: list[float] = []
-        for _ in range(gradient_steps):
+        stats = StepStats()
+        for step in range(gradient_steps):
             replay_data = buffer.sample(batch_size * self.agent_sets, env=self._vec_normalize_env)
-            loss_value, abs_td = self._gradient_step(replay_data, self._n_updates + len(losses))
-            losses.append(loss_value)
-            td_errors.append(abs_td.mean().item())
+            loss, abs_td = self._gradient_step(replay_data, stats)
+            stats.add("loss", loss)
+            stats.add("td_error", abs_td.mean())
             if prioritized:
-                # Errors from before this step's update, as in Schaul et al. (Algorithm 1).
-                buffer.update_priorities(replay_data.indices, abs_td.cpu().numpy())  # type: ignore[union-attr]
+                # Errors from before this step's update, as in Schaul et al. (Algorithm 1). The
+                # buffer lives on the host and its next sample needs them: one transfer a step.
+                priorities = _to_host(abs_td)
+                if not np.isfinite(priorities).all():
+                    self._check_finite(stats.read())  # raises, naming the loss when it is bad
+                    bad = priorities[~np.isfinite(priorities)][0]
+                    raise self._non_finite("TD error", float(bad), step)
+                buffer.update_priorities(replay_data.indices, priorities)  # type: ignore[union-attr]
 
+        values = stats.read()  # the call's one read of the device
+        self._check_finite(values)
         self._n_updates += gradient_steps
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
-        self.logger.record("train/loss", np.mean(losses))
-        self.logger.record("train/mean_td_error", np.mean(td_errors))
-        if self._imitation_stats:
-            margin_loss, agreement = np.mean(self._imitation_stats, axis=0)
-            self.logger.record("train/margin_loss", margin_loss)
-            self.logger.record("train/expert_agreement", agreement)
-            self._imitation_stats.clear()
+        self.logger.record("train/loss", np.mean(self._reported_losses(values)))
+        self.logger.record("train/mean_td_error", np.mean(values.get("td_error", [])))
+        if "margin_loss" in values:
+            self.logger.record("train/margin_loss", np.mean(values["margin_loss"]))
+            self.logger.record("train/expert_agreement", np.mean(values["expert_agreement"]))
         if prioritized:
             self.logger.record("train/beta", buffer.beta)  # type: ignore[union-attr]
             self.logger.record("train/alpha", buffer.alpha)  # type: ignore[union-attr]
 
-    def _gradient_step(self, replay_data: Any, update: int) -> tuple[float, th.Tensor]:
-        """One optimizer step on a sampled batch; returns the loss (per agent set: the mean
-        over sets) and the samples' ``|TD error|`` before the step, ``(batch,)``.
+    def _reported_losses(self, values: dict[str, np.ndarray]) -> np.ndarray:
+        """The logged loss of each step: per agent set, the mean over the sets (the minimised
+        loss is their sum, :func:`per_agent_loss`), divided on the host in float64."""
+        return values.get("loss", np.empty(0)) / self.agent_sets
 
+    def _non_finite(self, what: str, value: float, step: int) -> NonFiniteLossError:
+        return NonFiniteLossError(
+            f"the {what} became {value} at step {self.num_timesteps} "
+            f"(update {self._n_updates + step})"
+        )
+
+    def _check_finite(self, values: dict[str, np.ndarray]) -> None:
+        """Raise :class:`NonFiniteLossError` naming the first update whose loss is not finite."""
+        losses = self._reported_losses(values)
+        bad = np.flatnonzero(~np.isfinite(losses))
+        if bad.size:
+            raise self._non_finite("loss", float(losses[bad[0]]), int(bad[0]))
+
+    def _gradient_step(
+        self, replay_data: Any, stats: StepStats | None = None
+    ) -> tuple[th.Tensor, th.Tensor]:
+        """One optimizer step on a sampled batch, from the hooks; reads nothing from the device.
+
+        Returns the minimised loss (detached; with per-agent sets their sum) and the samples'
+        ``|TD error|`` before the step, ``(batch,)``, both where they were computed.
         ``replay_data`` carries ``weights`` (IS weights) when it comes from a prioritized
-        buffer, and ``discounts`` from SB3's n-step buffer.
+        buffer, and ``discounts`` from SB3's n-step buffer. ``stats`` collects what the loss
+        terms log (:meth:`_margin_loss`).
         """
+        target_q = self._td_target(replay_data)
+        q_values = self.q_net(replay_data.observations)
+        current_q = th.gather(q_values, dim=1, index=replay_data.actions.long())
+        terms = self._loss_terms(replay_data, q_values, current_q, target_q, stats)
+        per_sample_loss = terms[0]
+        for term in terms[1:]:
+            per_sample_loss = per_sample_loss + term
+        loss = self._weighted_loss(per_sample_loss, replay_data)
+
+        self.policy.optimizer.zero_grad()
+        loss.backward()
+        if isinstance(self.q_net, PerAgentQNetwork):
+            self.q_net.clip_grad_norm_(self.max_grad_norm)
+        else:
+            th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
+        self.policy.optimizer.step()
+        return loss.detach(), (current_q.detach() - target_q).abs().reshape(-1)
+
+    # ------------------------------------------------------------------ the update's hooks
+    def _td_target(self, replay_data: Any) -> th.Tensor:
+        """The TD target of each sample, ``(batch, 1)``, without gradient: Double-Q's
+        (:func:`~harness.sb3.targets.double_q_target`) or the plain max
+        (:func:`~harness.sb3.targets.max_q_target`), over the actions the next observation
+        allows, with the n-step ``discounts`` when the samples carry them."""
         # n-step samples carry gamma**k per sample; plain/prioritized samples do not.
         discounts = getattr(replay_data, "discounts", None)
         if discounts is None:
@@ -530,7 +631,7 @@ class DoubleDQN(DQN):
             blocked = None if allowed is None else ~allowed
             if self.double_q:
                 next_q_online = self.q_net(replay_data.next_observations)
-                target_q = double_q_target(
+                return double_q_target(
                     replay_data.rewards,
                     replay_data.dones,
                     discounts,
@@ -538,47 +639,70 @@ class DoubleDQN(DQN):
                     next_q_target,
                     blocked,
                 )
-            else:
-                target_q = max_q_target(
-                    replay_data.rewards, replay_data.dones, discounts, next_q_target, blocked
-                )
+            return max_q_target(
+                replay_data.rewards, replay_data.dones, discounts, next_q_target, blocked
+            )
 
-        q_values = self.q_net(replay_data.observations)
-        current_q = th.gather(q_values, dim=1, index=replay_data.actions.long())
-        # Per-sample Huber loss so that the IS weights can scale each term.
-        per_sample_loss = F.smooth_l1_loss(current_q, target_q, reduction="none")
+    def _loss_terms(
+        self,
+        replay_data: Any,
+        q_values: th.Tensor,
+        current_q: th.Tensor,
+        target_q: th.Tensor,
+        stats: StepStats | None = None,
+    ) -> list[th.Tensor]:
+        """The per-sample loss terms, ``(batch, 1)`` each, summed in this order into the loss
+        that :meth:`_weighted_loss` weights: the TD loss (:meth:`_td_loss`), then DQfD's margin
+        (:meth:`_margin_loss`) with ``expert_action``. A new term is one more method, added
+        here.
+
+        Args:
+            replay_data: The sampled batch.
+            q_values: Online Q-values of its observations, ``(batch, n_actions)``.
+            current_q: Those of the taken actions, ``(batch, 1)``.
+            target_q: The TD targets, ``(batch, 1)`` (:meth:`_td_target`).
+            stats: Where the terms record what they log, or ``None``.
+        """
+        terms = [self._td_loss(current_q, target_q)]
         if self.expert_action is not None:
-            margin_loss = large_margin_loss(q_values, self.expert_action, self.margin)
-            per_sample_loss = per_sample_loss + self.margin_weight * margin_loss
+            terms.append(self._margin_loss(replay_data, q_values, stats))
+        return terms
+
+    def _td_loss(self, current_q: th.Tensor, target_q: th.Tensor) -> th.Tensor:
+        """The Huber loss of each sample's TD error, ``(batch, 1)``: per sample, so that the
+        IS weights can scale each term."""
+        return F.smooth_l1_loss(current_q, target_q, reduction="none")
+
+    def _margin_loss(
+        self, replay_data: Any, q_values: th.Tensor, stats: StepStats | None = None
+    ) -> th.Tensor:
+        """DQfD's large-margin term towards ``expert_action``, times ``margin_weight``,
+        ``(batch, 1)`` (:func:`~harness.sb3.targets.large_margin_loss`). Records the unweighted
+        margin loss and the expert agreement of the greedy actions as ``margin_loss`` and
+        ``expert_agreement``."""
+        assert self.expert_action is not None
+        margin_loss = large_margin_loss(q_values, self.expert_action, self.margin)
+        term = self.margin_weight * margin_loss
+        if stats is not None:
             # The agreement of the action the policy would take: the greedy one among the
             # allowed actions when the observations carry a mask.
-            allowed_now = allowed_actions(replay_data.observations, n_actions)
+            allowed_now = allowed_actions(replay_data.observations, int(self.action_space.n))  # type: ignore[attr-defined]
             greedy = _masked(q_values, allowed_now).argmax(dim=1)  # type: ignore[arg-type]
-            agreement = (greedy == self.expert_action).float().mean()
-            self._imitation_stats.append((margin_loss.mean().item(), agreement.item()))
+            stats.add("margin_loss", margin_loss.mean())
+            stats.add("expert_agreement", (greedy == self.expert_action).float().mean())
+        return term
+
+    def _weighted_loss(self, per_sample_loss: th.Tensor, replay_data: Any) -> th.Tensor:
+        """The scalar loss to minimise from the per-sample losses: the mean, each sample scaled
+        by its IS weight when the batch carries ``weights`` (prioritized replay); with per-agent
+        sets the sum of each set's mean over its own samples (:func:`per_agent_loss`)."""
         weights = getattr(replay_data, "weights", None)
         sets = self.agent_sets
         if sets > 1:
             agent = self.q_net.agents_of(replay_data.observations)  # type: ignore[operator]
-            loss = per_agent_loss(per_sample_loss, agent, sets, weights)
-            loss_value = loss.item() / sets
-        else:
-            weighted = per_sample_loss if weights is None else weights * per_sample_loss
-            loss = weighted.mean()
-            loss_value = loss.item()
-        if not math.isfinite(loss_value):
-            raise NonFiniteLossError(
-                f"the loss became {loss_value} at step {self.num_timesteps} (update {update})"
-            )
-
-        self.policy.optimizer.zero_grad()
-        loss.backward()
-        if isinstance(self.q_net, PerAgentQNetwork):
-            self.q_net.clip_grad_norm_(self.max_grad_norm)
-        else:
-            th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
-        self.policy.optimizer.step()
-        return loss_value, (current_q.detach() - target_q).abs().reshape(-1)
+            return per_agent_loss(per_sample_loss, agent, sets, weights)
+        weighted = per_sample_loss if weights is None else weights * per_sample_loss
+        return weighted.mean()
 
     def predict(
         self,

@@ -159,12 +159,16 @@ def large_margin_loss(
     if margin < 0:
         raise ValueError(f"margin must be >= 0, got {margin}")
     batch_size, n_actions = q.shape
+    out_of_range = f"expert actions must lie in [0, {n_actions})"
     if isinstance(expert_actions, int):
+        # Checked on the host: the training loop's one expert action costs no read of the device.
+        if not 0 <= expert_actions < n_actions:
+            raise ValueError(out_of_range)
         expert = th.full((batch_size, 1), expert_actions, dtype=th.long, device=q.device)
     else:
         expert = _as_column(expert_actions, "expert_actions", batch_size).long()
-    if bool(((expert < 0) | (expert >= n_actions)).any()):
-        raise ValueError(f"expert actions must lie in [0, {n_actions})")
+        if bool(((expert < 0) | (expert >= n_actions)).any()):
+            raise ValueError(out_of_range)
     in_set = th.zeros_like(q, dtype=th.bool).scatter(1, expert, True)
     if expert_set is not None:
         if expert_set.shape != q.shape:

@@ -1,6 +1,7 @@
-"""SB3 callbacks of a training phase: epochs by coverage, episode metrics, periodic evaluation,
-checkpoints and the progress bar. Each is small and does one thing. (The ε, β and learning-rate
-schedules are not callbacks: ``harness.training.train.apply_phase`` installs them on the model.)"""
+"""SB3 callbacks of a training phase: epochs by coverage, episode metrics, periodic work (the
+evaluation and the checkpoints of ``harness.training.train`` are two) and the progress bar. Each
+is small and does one thing. (The ε, β and learning-rate schedules are not callbacks:
+``harness.training.train.apply_phase`` installs them on the model.)"""
 
 from __future__ import annotations
 
@@ -119,12 +120,16 @@ class EpisodeLogCallback(BaseCallback):
 class PeriodicCallback(BaseCallback):
     """Call ``fn(model)`` every ``every`` transitions (0: never). Transitions arrive in blocks of
     ``n_envs``, so it fires on the first step at or past each multiple (and, with ``when``, on the
-    first such step where ``when(model)`` holds)."""
+    first such step where ``when(model)`` holds).
+
+    A subclass does its own work instead of ``fn`` by overriding :meth:`_on_period` (the
+    evaluation and the checkpoints of ``harness.training.train``).
+    """
 
     def __init__(
         self,
         every: int,
-        fn: Callable[[Any], None],
+        fn: Callable[[Any], None] | None = None,
         when: Callable[[Any], bool] | None = None,
     ) -> None:
         super().__init__()
@@ -140,8 +145,13 @@ class PeriodicCallback(BaseCallback):
     def _on_step(self) -> bool:
         if self.num_timesteps >= self._next and (self.when is None or self.when(self.model)):
             self._next = (self.num_timesteps // self.every + 1) * self.every
-            self.fn(self.model)
+            self._on_period()
         return True
+
+    def _on_period(self) -> None:
+        """What is done every ``every`` transitions: ``fn(model)``."""
+        if self.fn is not None:
+            self.fn(self.model)
 
 
 class PhaseProgressBar(ProgressBarCallback):

@@ -190,27 +190,32 @@ def apply_phase(model: DoubleDQN, phase: PhaseConfig, phase_start: int) -> None:
     model.train_freq = TrainFreq(phase.train_freq, TrainFrequencyUnit.STEP)
 
 
-def phase_callbacks(
-    config: ExperimentConfig,
-    phase: PhaseConfig,
-    run: RunDir,
-    evaluator: Evaluator,
-    first_episode: int,
-) -> tuple[list[BaseCallback], EpisodeLogCallback]:
-    """The callbacks of one phase, in the order they run (the schedules are not callbacks:
-    :func:`apply_phase` installs them)."""
+def phase_callbacks(ctx: RunContext, index: int) -> tuple[list[BaseCallback], EpisodeLogCallback]:
+    """The callbacks of (the rest of) phase ``index``, in the order they run, and its episode log
+    (the schedules are not callbacks: :func:`apply_phase` installs them). The run's evaluator,
+    checkpointer and stopper are the same objects in every phase."""
+    config, phase = ctx.config, ctx.config.phases[index]
     n_agents = config.env.n_agents
-    episode_log = EpisodeLogCallback(run.episodes_csv, n_agents, phase.name, first_episode)
+    episode_log = EpisodeLogCallback(
+        ctx.run.episodes_csv, n_agents, phase.name, ctx.state.next_episode
+    )
+    ctx.checkpointer.episode_log = episode_log  # the checkpoints store its episode counter
     callbacks: list[BaseCallback] = [
         EpochsByCoverageCallback(phase.epochs, phase.epochs_window, n_agents),
         episode_log,
-        PeriodicCallback(config.eval.every, evaluator),
+        ctx.evaluator,
+        ctx.checkpointer,
+        ctx.stopper,
     ]
+    if ctx.progress_bar:
+        done = int(ctx.model.num_timesteps) - ctx.state.phase_start
+        callbacks.append(PhaseProgressBar(phase.name, phase.timesteps - done, n_agents))
     return callbacks, episode_log
 
 
-class Evaluator:
-    """Evaluation on validation episodes during training; keeps the best model.
+class Evaluator(PeriodicCallback):
+    """Evaluation on validation episodes every ``eval.every`` transitions (a callback of every
+    phase); keeps the best model.
 
     The episodes come from ``eval.validation_seed``, never the test seed of ``harness eval``, so
     ``best_model.zip`` is chosen without seeing the test maps. The same maps and start cells are
@@ -219,7 +224,8 @@ class Evaluator:
 
     ``should_stop`` (training's: a signal arrived) is asked at every step of the evaluation's
     episodes: when it says so, the evaluation is abandoned, nothing of it is logged, and
-    :attr:`pending` keeps its step, which the checkpoint stores and a resume evaluates first.
+    :attr:`pending` keeps its step, which the checkpoint stores and a resume evaluates first
+    (:meth:`evaluate` with that step, outside ``learn()``).
     """
 
     def __init__(
@@ -231,6 +237,7 @@ class Evaluator:
         should_stop: Callable[[], bool] | None = None,
         pending: int | None = None,
     ) -> None:
+        super().__init__(config.eval.every)
         self.config, self.run = config, run
         self.best = best
         # Called with (timesteps, summary) after each evaluation: a sweep reports to Optuna here
@@ -239,9 +246,13 @@ class Evaluator:
         self.should_stop = should_stop
         self.pending = pending
 
-    def __call__(self, model: DoubleDQN, timesteps: int | None = None) -> None:
-        """Evaluate ``model`` and log it at ``timesteps`` (default: the model's step counter; a
+    def _on_period(self) -> None:
+        self.evaluate()
+
+    def evaluate(self, timesteps: int | None = None) -> None:
+        """Evaluate the model and log it at ``timesteps`` (default: the model's step counter; a
         resume passes the step of the evaluation it runs again)."""
+        model = self.model
         step = int(model.num_timesteps) if timesteps is None else int(timesteps)
         cfg = self.config.eval
         policy = model_policy(model, cfg.temperature, cfg.shield)
@@ -303,8 +314,9 @@ class StopOnSignal(BaseCallback):
     ignored with a note, so that it cannot tear a save in two.
 
     A training call (``gradient_steps`` updates after a round) does not wait for the end of the
-    round either: :meth:`before_gradient_step`, an optimizer step pre-hook, ends it before its
-    next update (:class:`GradientStepsStopped`) once a signal arrived.
+    round either: :meth:`before_gradient_step`, an optimizer step pre-hook that the callback puts
+    on the model's optimizer for the length of each ``learn()``, ends it before its next update
+    (:class:`GradientStepsStopped`) once a signal arrived.
     """
 
     def __init__(self) -> None:
@@ -312,6 +324,7 @@ class StopOnSignal(BaseCallback):
         self.signum: int | None = None
         self.saving_now = False
         self.gradient_steps_done = 0  # of the training call under way
+        self._hook: Any = None  # the optimizer hook's handle while learn() runs
 
     def stop_requested(self) -> bool:
         """Whether SIGINT or SIGTERM arrived."""
@@ -323,6 +336,19 @@ class StopOnSignal(BaseCallback):
         if self.signum is not None:
             raise GradientStepsStopped(self.gradient_steps_done)
         self.gradient_steps_done += 1
+
+    def _on_training_start(self) -> None:
+        # A signal ends a long training call (a large epochs table) before its next update.
+        self._remove_hook()  # one left by a learn() that raised
+        self._hook = self.model.policy.optimizer.register_step_pre_hook(self.before_gradient_step)
+
+    def _on_training_end(self) -> None:
+        self._remove_hook()
+
+    def _remove_hook(self) -> None:
+        if self._hook is not None:
+            self._hook.remove()
+            self._hook = None
 
     def _on_rollout_end(self) -> None:
         self.gradient_steps_done = 0  # SB3 calls the training after the rollout's end
@@ -347,30 +373,76 @@ class GradientStepsStopped(Exception):
         self.done = done
 
 
-class Checkpointer:
+class Checkpointer(PeriodicCallback):
     """Writes checkpoints with the live training state (episode counter, best evaluation, an
-    abandoned evaluation) and, when given, the run's config (YAML) that a resume compares the
-    run's ``config.yaml`` with."""
+    abandoned evaluation) and the run's config (YAML) that a resume compares the run's
+    ``config.yaml`` with: every ``checkpoint.every`` transitions (a callback of every phase), at
+    the first round boundary at or past each multiple, so that a resumed run trains on the same
+    transitions; and when :meth:`save` is called (a phase's end, a stop, the run's end)."""
 
     def __init__(
         self,
+        config: ExperimentConfig,
         run: RunDir,
         state: TrainingState,
         evaluator: Evaluator,
         stopper: StopOnSignal,
-        config: str | None = None,
     ) -> None:
+        super().__init__(config.checkpoint.every, when=DoubleDQN.at_round_boundary)
         self.run, self.state, self.evaluator, self.stopper = run, state, evaluator, stopper
-        self.config = config
-        self.episode_log: EpisodeLogCallback | None = None
+        self.config_yaml = config.to_yaml()
+        self.episode_log: EpisodeLogCallback | None = None  # the phase's (phase_callbacks)
 
-    def __call__(self, model: DoubleDQN) -> Path:
+    def _on_period(self) -> None:
+        self.save()
+
+    def save(self) -> Path:
+        """Write a checkpoint of the model now; its folder."""
         if self.episode_log is not None:
             self.state.next_episode = self.episode_log.next_episode
         self.state.best_eval = self.evaluator.best
         self.state.pending_eval = self.evaluator.pending
         with self.stopper.saving():
-            return save_checkpoint(model, self.run.checkpoints, self.state, self.config)
+            return save_checkpoint(self.model, self.run.checkpoints, self.state, self.config_yaml)
+
+
+@dataclass
+class RunContext:
+    """What the steps of one training run share, in one object (as SB3's callbacks reach the
+    model through ``self.model``): the model, the config, the run folder, the training state,
+    the callbacks that live as long as the run (evaluation, checkpoints, the signal stop) and
+    whether phases show a progress bar. :meth:`start` makes it for a built or loaded model."""
+
+    config: ExperimentConfig
+    run: RunDir
+    model: DoubleDQN
+    state: TrainingState
+    stopper: StopOnSignal
+    evaluator: Evaluator
+    checkpointer: Checkpointer
+    progress_bar: bool = True
+
+    @classmethod
+    def start(
+        cls,
+        config: ExperimentConfig,
+        run: RunDir,
+        model: DoubleDQN,
+        state: TrainingState,
+        progress_bar: bool = True,
+        on_evaluation: Callable[[int, dict[str, Any]], None] | None = None,
+    ) -> RunContext:
+        """The run's context, its evaluator and checkpointer taking up ``state`` (the best
+        evaluation, an abandoned one) and bound to ``model``: they also run outside
+        ``learn()`` (an abandoned evaluation on resuming, a checkpoint at a phase's end)."""
+        stopper = StopOnSignal()
+        evaluator = Evaluator(
+            config, run, state.best_eval, on_evaluation, stopper.stop_requested, state.pending_eval
+        )
+        checkpointer = Checkpointer(config, run, state, evaluator, stopper)
+        evaluator.init_callback(model)
+        checkpointer.init_callback(model)
+        return cls(config, run, model, state, stopper, evaluator, checkpointer, progress_bar)
 
 
 class TrainingInterrupted(Exception):
@@ -512,38 +584,31 @@ def train(
             model = build_model(config, venv)
             model.action_space.seed(config.seed)
         model.set_logger(logger)
-        stopper = StopOnSignal()
-        evaluator = Evaluator(
-            config, run, state.best_eval, on_evaluation, stopper.stop_requested, state.pending_eval
-        )
-        checkpointer = Checkpointer(run, state, evaluator, stopper, config.to_yaml())
-        with stop_on_signals(stopper):
-            if evaluator.pending is not None:
-                _evaluate_pending(model, evaluator, checkpointer, stopper)
+        ctx = RunContext.start(config, run, model, state, progress_bar, on_evaluation)
+        with stop_on_signals(ctx.stopper):
+            if ctx.evaluator.pending is not None:
+                _evaluate_pending(ctx)
             for index in range(state.phase, len(config.phases)):
-                _run_phase(
-                    model, config, run, index, state, evaluator, checkpointer, stopper, progress_bar
-                )
-            with stopper.saving():
+                _run_phase(ctx, index)
+            with ctx.stopper.saving():
                 save_model(model, run.model)
             state.finished = True
-            checkpointer(model)
+            ctx.checkpointer.save()
         return model
     finally:
         logger.close()
         venv.close()
 
 
-def _evaluate_pending(
-    model: DoubleDQN, evaluator: Evaluator, checkpointer: Checkpointer, stopper: StopOnSignal
-) -> None:
+def _evaluate_pending(ctx: RunContext) -> None:
     """Run the evaluation that a signal abandoned before the checkpoint a run resumes from: the
     model is the one it was to evaluate (no training call came between), logged at its step."""
-    step = evaluator.pending
+    step = ctx.evaluator.pending
     print(f"evaluating step {step} again (abandoned when the run stopped)", file=sys.stderr)
-    evaluator(model, timesteps=step)
-    if stopper.signum is not None:
-        raise TrainingInterrupted(stopper.signum, checkpointer(model), _stop_note(evaluator))
+    ctx.evaluator.evaluate(timesteps=step)
+    if ctx.stopper.signum is not None:
+        checkpoint = ctx.checkpointer.save()
+        raise TrainingInterrupted(ctx.stopper.signum, checkpoint, _stop_note(ctx.evaluator))
 
 
 def _stop_note(
@@ -563,62 +628,41 @@ def _stop_note(
     return "; ".join(notes)
 
 
-def _run_phase(
-    model: DoubleDQN,
-    config: ExperimentConfig,
-    run: RunDir,
-    index: int,
-    state: TrainingState,
-    evaluator: Evaluator,
-    checkpointer: Checkpointer,
-    stopper: StopOnSignal,
-    progress_bar: bool,
-) -> None:
+def _run_phase(ctx: RunContext, index: int) -> None:
     """Run (the rest of) phase ``index``, then checkpoint at its end."""
-    phase = config.phases[index]
+    model, state, stopper = ctx.model, ctx.state, ctx.stopper
+    phase = ctx.config.phases[index]
     if index != state.phase:  # a new phase starts here
         state.phase, state.phase_start = index, int(model.num_timesteps)
     done = int(model.num_timesteps) - state.phase_start
     if done < phase.timesteps:
         apply_phase(model, phase, state.phase_start)
-        callbacks, episode_log = phase_callbacks(config, phase, run, evaluator, state.next_episode)
-        checkpointer.episode_log = episode_log
-        # Checkpoints at round boundaries: a resumed run then trains on the same transitions.
-        checkpoints = PeriodicCallback(
-            config.checkpoint.every, checkpointer, when=DoubleDQN.at_round_boundary
-        )
-        callbacks += [checkpoints, stopper]
-        if progress_bar:
-            bar = PhaseProgressBar(phase.name, phase.timesteps - done, config.env.n_agents)
-            callbacks.append(bar)
+        callbacks, episode_log = phase_callbacks(ctx, index)
         callback = CallbackList(callbacks)
         cut: GradientStepsStopped | None = None
-        # A signal ends a long training call (a large epochs table) before its next update.
-        hook = model.policy.optimizer.register_step_pre_hook(stopper.before_gradient_step)
         try:
             model.learn(
                 total_timesteps=phase.timesteps - done,
                 callback=callback,
-                log_interval=config.n_slots,  # dump logs once per round of finished episodes
+                log_interval=ctx.config.n_slots,  # dump logs once per round of finished episodes
                 reset_num_timesteps=False,
             )
         except GradientStepsStopped as exc:  # at a round's end: the training call after it
             cut = exc
-            callback.on_training_end()  # what learn() skipped: closes the progress bar
+            # What learn() skipped: closes the progress bar, takes off the stopper's hook.
+            callback.on_training_end()
         except NonFiniteLossError as exc:
-            found = complete_checkpoints(run.checkpoints)
+            found = complete_checkpoints(ctx.run.checkpoints)
             kept = f"the last good checkpoint is {found[-1]}" if found else "no checkpoint yet"
             raise TrainingFailed(
                 f"{exc}; training stopped, {kept} (try a lower learning rate or max_grad_norm)"
             ) from None
-        finally:
-            hook.remove()
         state.next_episode = episode_log.next_episode
         if stopper.signum is not None:
-            note = _stop_note(evaluator, cut, int(model.gradient_steps))
-            raise TrainingInterrupted(stopper.signum, checkpointer(model), note)
+            note = _stop_note(ctx.evaluator, cut, int(model.gradient_steps))
+            raise TrainingInterrupted(stopper.signum, ctx.checkpointer.save(), note)
     state.phase, state.phase_start = index + 1, int(model.num_timesteps)
-    checkpointer(model)
+    ctx.checkpointer.save()
 
 
 @dataclass

@@ -36,6 +36,18 @@ from harness.processes import python_command
 #: The thesis's setting: 50x50 random maps, 4 agents, 1000 steps.
 THESIS_ENV = EnvConfig(n_agents=4, max_steps=1000)
 THESIS_NET = [512, 512, 512]
+#: The team map of the shipped configs with the pocket planner's step, 2 agents, 50x50 random
+#: maps (``teammap_2agents_pocket`` less its map mix): ``bench eval``'s ``frontier_step`` rows.
+TEAMMAP_ENV = EnvConfig(
+    n_agents=2,
+    max_steps=1000,
+    observation={"teammap": {"crop": 15, "global_size": 13, "ego_size": 21, "ego_block": 5}},
+    frontier={"action": "step", "planner": "pocket"},
+)
+#: The same with the goal action (k = 8), as ``goals_2agents``.
+GOALS_ENV = TEAMMAP_ENV.model_copy(
+    update={"frontier": {"action": {"goal": {"k": 8}}, "planner": "pocket"}}
+)
 #: Env copies of the VecEnv figures (the batched core pays off with many).
 VEC_COPIES = (1, 4, 16, 64)
 
@@ -315,6 +327,15 @@ def bench_eval(episodes: int = 8) -> dict[str, Any]:
         "eval_100_episodes_s": 100 / mlp,
         "eval_random_episodes_per_s": rand,
     }
+    # The planner's step through the team-map env and through the goal action's env (its
+    # candidates built every step): `harness eval --policy frontier_step` on such configs.
+    step = make_baseline("frontier_step", 0)
+    for name, env in (("teammap", TEAMMAP_ENV), ("goals", GOALS_ENV)):
+        run_episodes(step, env, 1, 0)  # compiles what the first episode needs
+        count = max(1, episodes // 2)
+        out[f"eval_{name}_frontier_step_episodes_per_s"] = _rate(
+            count, lambda env=env, count=count: run_episodes(step, env, count, 0)
+        )
     for name, rate in rates.items():
         out[f"eval_{name}_episodes_per_s"] = rate
         if name != "frontier":
@@ -451,6 +472,10 @@ def format_bench(r: dict[str, Any]) -> str:
         ]
         if "eval_random_episodes_per_s" in r:
             lines.append(f"  random episodes/s          {r['eval_random_episodes_per_s']:>12.2f}")
+        for name in ("teammap", "goals"):
+            key = f"eval_{name}_frontier_step_episodes_per_s"
+            if key in r:
+                lines.append(f"  frontier_step, {name + ':':<11} {r[key]:>12.2f}")
         for key, rate in r.items():
             name = key.removeprefix("eval_").removesuffix("_episodes_per_s")
             if key.endswith("_episodes_per_s") and name.startswith("frontier_"):

@@ -100,6 +100,9 @@ def test_bench_eval_has_a_key_per_planner():
     assert set(k for k in out if k.endswith("_over_frontier")) == {
         f"eval_{e.baseline}_over_frontier" for e in PLANNERS.values() if e.baseline != "frontier"
     }
+    # The planner's step through the team map and through the goal action's candidates.
+    assert out["eval_teammap_frontier_step_episodes_per_s"] > 0
+    assert out["eval_goals_frontier_step_episodes_per_s"] > 0
 
 
 def test_bench_sharing_reports_gradient_steps_per_mode():

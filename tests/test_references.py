@@ -68,3 +68,25 @@ def test_check_references_repeats_a_reference_on_all_its_committed_episodes(caps
     assert script["main"](["ddqn_15x15"]) == 0
     (line,) = capsys.readouterr().out.splitlines()
     assert line.startswith("ddqn_15x15") and "100 episodes" in line and " same " in line
+
+
+def test_check_references_repeats_a_stored_planner_evaluation(capsys) -> None:
+    """``--baselines``: a stored written-policy evaluation of docs/baselines (a planner row of
+    docs/results.md) evaluated again, every figure compared."""
+    import runpy
+
+    script = runpy.run_path(str(ROOT / "scripts" / "check_references.py"))
+    assert script["main"](["--baselines", "ddqn_15x15-frontier_hungarian"]) == 0
+    (line,) = capsys.readouterr().out.splitlines()
+    assert line.startswith("ddqn_15x15-frontier_hungarian") and " same " in line
+
+
+def test_check_references_compares_the_figures_both_files_hold() -> None:
+    import runpy
+
+    same = runpy.run_path(str(ROOT / "scripts" / "check_references.py"))["_same_numbers"]
+    stored = {"episodes": 2, "coverage_mean": 0.5, "coverage_median": 0.5, "wall_hits_mean": 0.0}
+    assert same({**stored, "coverage_mean_ci": [0.4, 0.6], "env": {"a": 1}}, {**stored})
+    assert same({**stored}, {**stored, "step_bonus": 0.0, "env": {"old": 2}})  # dropped since
+    assert not same({**stored, "coverage_mean": 0.51}, {**stored})
+    assert not same({"episodes": 2}, {**stored})  # a quoted figure missing

@@ -8,7 +8,9 @@ busy machine shifts all of them together. Nothing here asserts a time.
   batched core's and SuperSuit's over the PettingZoo env, alternately), and of 8 SuperSuit
   copies stepped by 1 or 2 processes;
 * ``train``: gradient steps and transitions per second of ``DoubleDQN`` + PER against SB3's
-  ``DQN`` + ``ReplayBuffer`` (same network, batch and train_freq), run alternately;
+  ``DQN`` + ``ReplayBuffer`` (same network, batch and train_freq), run alternately; gradient
+  steps per second of both for the thesis's MLP 3x512 and the team-map CNN, on the CPU and, when
+  torch sees one, the GPU;
   gradient steps per second over batch sizes, network widths and torch thread counts;
 * ``sharing``: gradient steps per second of each ``algo.sharing`` mode (one network, one with
   the agent's index, one parameter set per agent), same network and batch;
@@ -26,11 +28,12 @@ import subprocess
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from harness.config.schema import EnvConfig
+from harness.config.schema import AlgoConfig, EnvConfig
 from harness.processes import python_command
 
 #: The thesis's setting: 50x50 random maps, 4 agents, 1000 steps.
@@ -154,72 +157,167 @@ def bench_env(episodes: int = 3) -> dict[str, Any]:
 
 
 # ---------------------------------------------------------------------- train
-def _models(net: list[int], batch: int, threads: int) -> tuple[Any, Any, Any]:
-    """DoubleDQN+PER and plain DQN on the same VecEnv, both with a filled buffer."""
+@dataclass(frozen=True)
+class TrainNet:
+    """A network ``bench train`` times: the env it reads (4 copies), the ``algo`` section that
+    sizes it (policy and network, as ``harness run`` reads them), the batch, how many random
+    transitions fill each learner's buffer before the timing, and its share of the gradient
+    steps per timed call (a slow net runs fewer, so that the section stays short)."""
+
+    env: EnvConfig
+    algo: AlgoConfig
+    batch: int
+    fill: int = 8_000
+    buffer_size: int = 100_000
+    steps_share: float = 1.0
+
+
+#: The networks of ``bench train``'s table, each on every device: the thesis's MLP 3x512 on its
+#: observation, and the team-map CNN of the shipped team-map configs
+#: (configs/teammap_2agents_pocket.yaml: its observation, frontier step, policy and batch) on
+#: 50x50 random maps; a smaller buffer and fill, as a team-map transition is ~20 times a thesis
+#: one and its env steps slower, and a quarter of the gradient steps (~4x slower on a CPU).
+TRAIN_NETS: dict[str, TrainNet] = {
+    "mlp_3x512": TrainNet(THESIS_ENV, AlgoConfig(net_arch=THESIS_NET), batch=32),
+    "teammap_cnn": TrainNet(
+        TEAMMAP_ENV,
+        AlgoConfig(policy="TeamMapPolicy", net_arch=[], features_dim=256, cnn_channels=(8, 16)),
+        batch=64,
+        fill=2_000,
+        buffer_size=10_000,
+        steps_share=0.25,
+    ),
+}
+#: The net of the report's flat keys and targets (``train_grad_steps_per_s``, ...), on the CPU.
+REPORT_NET = "mlp_3x512"
+#: The learners of each row, in the order they are timed: ours, then SB3's.
+TRAIN_LEARNERS = ("doubledqn_per", "dqn")
+
+
+def train_devices() -> tuple[str, ...]:
+    """The devices ``bench train`` times: the CPU, and CUDA when torch sees a GPU."""
     import torch
+
+    return ("cpu", "cuda") if torch.cuda.is_available() else ("cpu",)
+
+
+def _models(net: TrainNet, threads: int, device: str = "cpu") -> tuple[Any, Any, Any]:
+    """DoubleDQN+PER and plain DQN (uniform replay) with ``net`` on ``device``, on the same
+    VecEnv, both with a filled buffer (SB3's buffers keep their arrays on the host)."""
+    import torch
+    from gymnasium import spaces
     from stable_baselines3 import DQN
     from stable_baselines3.common.logger import configure
 
-    from harness import DoubleDQN, PrioritizedReplayBuffer
+    from harness import DoubleDQN
+    from harness.sb3.buffers import PrioritizedDictReplayBuffer, PrioritizedReplayBuffer
+    from harness.sb3.registry import POLICIES
     from harness.training.adapters import make_vec_env
+    from harness.training.checks import network_kwargs, policy_class_name
 
     torch.set_num_threads(threads)
-    venv = make_vec_env(THESIS_ENV, copies=4, seed=0)
+    venv = make_vec_env(net.env, copies=4, seed=0)
     common = {
         "learning_rate": 5e-5,
-        "buffer_size": 100_000,
-        "batch_size": batch,
+        "buffer_size": net.buffer_size,
+        "batch_size": net.batch,
         "train_freq": (2, "step"),
         "gradient_steps": 1,
+        # The network as `harness run` builds it from the algo section.
         "policy_kwargs": {
-            "net_arch": net,
+            **network_kwargs(net.algo, net.env.n_agents),
             "optimizer_class": torch.optim.RMSprop,
             "optimizer_kwargs": {"foreach": True},
         },
-        "device": "cpu",
+        "device": device,
     }
+    dict_obs = isinstance(venv.observation_space, spaces.Dict)
     ours = DoubleDQN(
-        "MlpPolicy",
+        policy_class_name(net.algo),
         venv,
-        replay_buffer_class=PrioritizedReplayBuffer,
+        replay_buffer_class=PrioritizedDictReplayBuffer if dict_obs else PrioritizedReplayBuffer,
         replay_buffer_kwargs={"alpha": 0.55, "beta": 0.4},
         **common,
     )
-    plain = DQN("MlpPolicy", venv, **common)
+    # SB3's DQN knows only its own aliases: it gets the registry's class (SB3's MlpPolicy for
+    # the MLP); it picks its DictReplayBuffer for a Dict observation by itself.
+    plain = DQN(POLICIES[net.algo.policy].load(), venv, **common)
     for model in (ours, plain):
         model.set_logger(configure(None, []))
     # Fill both buffers with the same random-policy transitions (no training: learning_starts).
     for model in (ours, plain):
         model.learning_starts = 10**9
-        model.learn(8_000)
+        model.learn(net.fill)
         model.learning_starts = 0
     return ours, plain, venv
 
 
-def bench_train(rounds: int = 5, grad_steps: int = 100) -> dict[str, Any]:
-    """Gradient steps/s and transitions/s, DoubleDQN+PER vs plain DQN, measured alternately."""
-    ours, plain, venv = _models(THESIS_NET, 32, 1)
-    try:
-        g_ours, g_plain, t_ours, t_plain = [], [], [], []
-        for _ in range(rounds):
-            g_ours.append(_rate(grad_steps, lambda: ours.train(grad_steps, 32)))
-            g_plain.append(_rate(grad_steps, lambda: plain.train(grad_steps, 32)))
-            t_ours.append(_rate(2_000, lambda: ours.learn(2_000, reset_num_timesteps=False)))
-            t_plain.append(_rate(2_000, lambda: plain.learn(2_000, reset_num_timesteps=False)))
-    finally:
-        venv.close()
-    out = {
-        "train_grad_steps_per_s": float(np.median(g_ours)),
-        "train_grad_steps_per_s_plain_dqn": float(np.median(g_plain)),
-        "train_transitions_per_s": float(np.median(t_ours)),
-        "train_transitions_per_s_plain_dqn": float(np.median(t_plain)),
-    }
-    out["train_grad_steps_ratio"] = (
-        out["train_grad_steps_per_s"] / out["train_grad_steps_per_s_plain_dqn"]
-    )
-    out["train_transitions_ratio"] = (
-        out["train_transitions_per_s"] / out["train_transitions_per_s_plain_dqn"]
-    )
+def _grad_rate(model: Any, grad_steps: int, batch: int, device: str) -> float:
+    """Gradient steps/s of one ``train`` call; on CUDA it waits for the queued kernels."""
+    import torch
+
+    def run() -> None:
+        model.train(grad_steps, batch)
+        if device == "cuda":
+            torch.cuda.synchronize()
+
+    return _rate(grad_steps, run)
+
+
+def bench_train(
+    rounds: int = 5,
+    grad_steps: int = 100,
+    transitions: int = 2_000,
+    nets: dict[str, TrainNet] | None = None,
+) -> dict[str, Any]:
+    """Gradient steps/s, DoubleDQN+PER vs plain DQN (same net, batch and device), measured
+    alternately, for each net of :data:`TRAIN_NETS` on each device of :func:`train_devices`
+    (``train_grad_steps_by_device``: device -> net -> learner's rate and ``ratio``, ours over
+    SB3's), ``grad_steps`` per call times each net's ``steps_share``; and, for
+    :data:`REPORT_NET` on the CPU, the flat keys of the report's targets with the transitions/s
+    of ``learn`` (``transitions`` per call). Medians over ``rounds``; ``nets`` replaces
+    :data:`TRAIN_NETS` (tests)."""
+    nets = TRAIN_NETS if nets is None else nets
+    by_device: dict[str, dict[str, dict[str, float]]] = {}
+    flat: dict[str, list[float]] = {}
+    for device in train_devices():
+        by_device[device] = {}
+        for name, net in nets.items():
+            steps = max(1, round(grad_steps * net.steps_share))
+            ours, plain, venv = _models(net, 1, device)
+            try:
+                for model in (ours, plain):  # warm-up: first calls allocate (and on CUDA, load)
+                    model.train(2, net.batch)
+                rates: dict[str, list[float]] = {learner: [] for learner in TRAIN_LEARNERS}
+                # The report's net on the CPU also gives its transitions/s.
+                learn = device == "cpu" and name == REPORT_NET
+                for _ in range(rounds):
+                    for learner, model in zip(TRAIN_LEARNERS, (ours, plain)):
+                        rates[learner].append(_grad_rate(model, steps, net.batch, device))
+                    if learn:
+                        for learner, model in zip(TRAIN_LEARNERS, (ours, plain)):
+                            flat.setdefault(learner, []).append(
+                                _rate(
+                                    transitions,
+                                    lambda m=model: m.learn(transitions, reset_num_timesteps=False),
+                                )
+                            )
+            finally:
+                venv.close()
+            row = {learner: float(np.median(r)) for learner, r in rates.items()}
+            row["ratio"] = row["doubledqn_per"] / row["dqn"]
+            by_device[device][name] = row
+    out: dict[str, Any] = {"train_grad_steps_by_device": by_device}
+    mlp = by_device["cpu"].get(REPORT_NET)
+    if mlp is not None:
+        out["train_grad_steps_per_s"] = mlp["doubledqn_per"]
+        out["train_grad_steps_per_s_plain_dqn"] = mlp["dqn"]
+        out["train_grad_steps_ratio"] = mlp["ratio"]
+        out["train_transitions_per_s"] = float(np.median(flat["doubledqn_per"]))
+        out["train_transitions_per_s_plain_dqn"] = float(np.median(flat["dqn"]))
+        out["train_transitions_ratio"] = (
+            out["train_transitions_per_s"] / out["train_transitions_per_s_plain_dqn"]
+        )
     return out
 
 
@@ -230,7 +328,8 @@ def bench_scaling(grad_steps: int = 60) -> dict[str, Any]:
     for threads in (1, 2):
         for name, net in nets.items():
             for batch in (32, 64, 256):
-                ours, _, venv = _models(net, batch, threads)
+                setting = TrainNet(THESIS_ENV, AlgoConfig(net_arch=net), batch)
+                ours, _, venv = _models(setting, threads)
                 venv.close()
                 ours.train(5, batch)  # warm-up
                 rate = _rate(grad_steps, lambda m=ours, b=batch: m.train(grad_steps, b))
@@ -449,6 +548,19 @@ def format_bench(r: dict[str, Any]) -> str:
             f"plain DQN {r['train_transitions_per_s_plain_dqn']:,.0f} "
             f"(ratio {r['train_transitions_ratio']:.2f})",
         ]
+    if "train_grad_steps_by_device" in r:
+        lines += [
+            "",
+            "gradient steps/s by device and network (same batch and device, alternately; "
+            "CPU: 1 torch thread)",
+            f"  {'device':<8}{'network':<13}{'DDQN+PER':>10}{'SB3 DQN':>10}{'ratio':>8}",
+        ]
+        for device, by_net in r["train_grad_steps_by_device"].items():
+            for net, row in by_net.items():
+                lines.append(
+                    f"  {device:<8}{net:<13}{row['doubledqn_per']:>10,.0f}{row['dqn']:>10,.0f}"
+                    f"{row['ratio']:>8.2f}"
+                )
     if "train_grad_steps_per_s_by_setting" in r:
         lines += ["", "gradient steps/s by network, batch and torch threads (DoubleDQN + PER)"]
         lines.append(f"  {'network':<8}{'batch':>6}{'1 thread':>11}{'2 threads':>11}")

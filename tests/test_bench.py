@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import math
 
-from harness.bench import bench_sharing, format_bench, machine_info
+import pytest
+
+from harness.bench import TRAIN_NETS, bench_sharing, bench_train, format_bench, machine_info
 from harness.cli import main
 
 
@@ -49,6 +53,13 @@ def test_bench_report_shows_every_section_with_targets():
         "train_transitions_per_s": 4000.0,
         "train_transitions_per_s_plain_dqn": 5000.0,
         "train_transitions_ratio": 0.8,
+        "train_grad_steps_by_device": {
+            "cpu": {
+                "mlp_3x512": {"doubledqn_per": 200.0, "dqn": 240.0, "ratio": 200 / 240},
+                "teammap_cnn": {"doubledqn_per": 36.0, "dqn": 45.0, "ratio": 0.8},
+            },
+            "cuda": {"teammap_cnn": {"doubledqn_per": 1_500.0, "dqn": 1_250.0, "ratio": 1.2}},
+        },
         "train_grad_steps_per_s_by_setting": {
             "2x64/batch32/threads1": 500.0,
             "2x64/batch32/threads2": 450.0,
@@ -76,6 +87,10 @@ def test_bench_report_shows_every_section_with_targets():
     ):
         assert expected in text, expected
     assert "2x64" in text and "450" in text
+    (line,) = [line for line in text.splitlines() if "cpu" in line and "teammap_cnn" in line]
+    assert line.split()[2:] == ["36", "45", "0.80"]
+    (line,) = [line for line in text.splitlines() if "cuda" in line and "teammap_cnn" in line]
+    assert line.split()[2:] == ["1,500", "1,250", "1.20"]
     (line,) = [line for line in text.splitlines() if "VecEnv, 16 copies" in line]
     assert "520,000" in line and "SuperSuit    52,000" in line and "10.0 x SuperSuit" in line
     (line,) = [line for line in text.splitlines() if "teammap + frontier field" in line]
@@ -112,3 +127,28 @@ def test_bench_sharing_reports_gradient_steps_per_mode():
     assert all(rate > 0 for rate in rates.values())
     text = format_bench({**machine_info(), **out})
     assert "by algo.sharing" in text and "x shared" in text
+
+
+def test_bench_train_times_both_learners_per_net_on_the_cpu_alone_without_cuda(monkeypatch):
+    import torch
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    # The real nets and envs, with tiny buffers and calls.
+    nets = {n: dataclasses.replace(net, fill=64, buffer_size=512) for n, net in TRAIN_NETS.items()}
+    out = bench_train(rounds=1, grad_steps=4, transitions=32, nets=nets)
+    by_device = out["train_grad_steps_by_device"]
+    assert list(by_device) == ["cpu"]
+    assert list(by_device["cpu"]) == ["mlp_3x512", "teammap_cnn"]
+    for row in by_device["cpu"].values():
+        assert list(row) == ["doubledqn_per", "dqn", "ratio"]
+        assert all(math.isfinite(v) and v > 0 for v in row.values())
+        assert row["ratio"] == pytest.approx(row["doubledqn_per"] / row["dqn"])
+    # The flat keys keep their meaning: the MLP on the CPU.
+    mlp = by_device["cpu"]["mlp_3x512"]
+    assert out["train_grad_steps_per_s"] == mlp["doubledqn_per"]
+    assert out["train_grad_steps_per_s_plain_dqn"] == mlp["dqn"]
+    assert out["train_grad_steps_ratio"] == mlp["ratio"]
+    for key in ("train_transitions_per_s", "train_transitions_per_s_plain_dqn"):
+        assert math.isfinite(out[key]) and out[key] > 0
+    text = format_bench({**machine_info(), **out})
+    assert "by device and network" in text and "cuda" not in text

@@ -66,22 +66,47 @@ def _same_numbers(new: dict, stored: dict) -> bool:
     added to the output since, such as an interval, or dropped since, such as an old reward
     setting, are not a difference; nor is the env's settings, which older files wrote in an
     older form: the env is the config's)."""
-    new.pop("env", None), stored.pop("env", None)
+    for drop in ("env", "overrides"):  # how the run was named, not what it measured
+        new.pop(drop, None), stored.pop(drop, None)
     shared = set(new) & set(stored)
     return all(k in shared for k in _FIGURES) and all(new[k] == stored[k] for k in shared)
 
 
-def check_baseline(stored: Path) -> bool:
-    """Evaluate a stored baseline again (its config, policy, episodes and max_steps override,
-    as ``scripts/baselines.sh`` named it) and compare every number."""
-    committed = json.loads(stored.read_text())
-    policy = committed["policy"]
-    stem = stored.name.removesuffix(f"-{policy}.json")
+def _config_of(stored: Path, committed: dict, scratch: Path) -> tuple[Path, list[str]]:
+    """The config file and overrides that evaluate ``stored`` again: the config named by the
+    file (``<config>[-env.max_steps-N]-<policy>.json``, as ``scripts/baselines.sh`` names
+    them), or, for a file named by its setting (the team-map rows), a config made from the env
+    the file stored, its older flat form (``crop``, ``frontier_action``, ...) translated."""
+    stem = stored.name.removesuffix(f"-{committed['policy']}.json")
     config, _, max_steps = stem.partition("-env.max_steps-")
-    args = ["eval", "--policy", policy, "--config", str(ROOT / "configs" / f"{config}.yaml")]
+    path = ROOT / "configs" / f"{config}.yaml"
+    if path.is_file():
+        return path, ["--set", f"env.max_steps={max_steps}"] if max_steps else []
+    env = dict(committed["env"])
+    view = {k: env.pop(k) for k in ("crop", "global_size", "ego_size", "ego_block") if k in env}
+    if env.pop("trail", 0):
+        raise ValueError(f"{stored.name}: a trail is not an option any more")
+    if env.get("observation") == "teammap" and view:
+        env["observation"] = {"teammap": view}
+    step, claims = env.pop("frontier_action", False), env.pop("frontier_claims", False)
+    if isinstance(env.get("frontier"), bool):
+        on = env["frontier"] or step or claims
+        env["frontier"] = ({"action": "step"} if step else {}) if on else None
+    team_map = isinstance(env.get("observation"), dict) or env.get("observation") == "teammap"
+    doc = {"name": stem, "env": env, "eval": {"seed": committed["seed"]}}
+    if team_map:
+        doc["algo"] = {"policy": "TeamMapPolicy"}
+    path = scratch / f"{stem}.yaml"
+    path.write_text(json.dumps(doc))  # JSON is YAML
+    return path, []
+
+
+def check_baseline(stored: Path, scratch: Path) -> bool:
+    """Evaluate a stored baseline again (:func:`_config_of`) and compare every figure."""
+    committed = json.loads(stored.read_text())
+    config, overrides = _config_of(stored, committed, scratch)
+    args = ["eval", "--policy", committed["policy"], "--config", str(config), *overrides]
     args += ["--episodes", str(committed["episodes"]), "--json"]
-    if max_steps:
-        args += ["--set", f"env.max_steps={max_steps}"]
     start = time.perf_counter()
     out = io.StringIO()
     with contextlib.redirect_stdout(out), contextlib.redirect_stderr(io.StringIO()):
@@ -102,7 +127,8 @@ def main(names: list[str]) -> int:
         stored = sorted(
             {p for pat in patterns for p in (ROOT / "docs" / "baselines").glob(f"{pat}.json")}
         )
-        return 0 if all([check_baseline(p) for p in stored]) else 1
+        with tempfile.TemporaryDirectory() as tmp:
+            return 0 if all([check_baseline(p, Path(tmp)) for p in stored]) else 1
     if not names:
         names = sorted(p.parent.name for p in (ROOT / "runs" / "reference").glob("*/eval.json"))
     with tempfile.TemporaryDirectory() as tmp:

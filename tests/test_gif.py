@@ -1,5 +1,5 @@
 """``harness render --gif``: the header band, the frame spacing rule, the title and the refusal of
-a GIF too large for memory (issue 38)."""
+a GIF too large for memory."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Hangs and faults (issue 38): SIGINT/SIGTERM stop a long in-training evaluation or a long
+"""Hangs and faults: SIGINT/SIGTERM stop a long in-training evaluation or a long
 training call at once, with a checkpoint that resumes; a damaged replay buffer is found by the
 SHA-256 its checkpoint keeps; Ctrl-C while the modules load, and a killed training process with
 env worker processes, print no traceback."""

@@ -1,4 +1,4 @@
-"""Lost work (issue 38): a stopped seed-grid sweep trains every grid point exactly once after
+"""Lost work: a stopped seed-grid sweep trains every grid point exactly once after
 ``--resume``, and a seed group stopped by SIGTERM passes it on to its seeds, says how to go on,
 and ``harness run --resume GROUP`` finishes it."""
 

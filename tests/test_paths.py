@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from envs.coverage.paths import UNREACHED, distance_fields
+from envs.coverage.paths import UNREACHED, distance_fields, first_step
 
 
 def scipy_graph(passable: np.ndarray, stride: int, all_edges: bool) -> csr_matrix:
@@ -112,3 +112,36 @@ def test_several_starts_are_independent(limit: float) -> None:
         d, p = fields(passable, 6, [s], limit)
         np.testing.assert_array_equal(both_d[i], d[0])
         np.testing.assert_array_equal(both_p[i], p[0])
+
+
+@settings(max_examples=200, deadline=None)
+@given(
+    h=st.integers(1, 12),
+    w=st.integers(1, 12),
+    density=st.floats(0.0, 0.6),
+    seed=st.integers(0, 2**32 - 1),
+    limit=st.sampled_from([np.inf, 3.0, 15.0]),
+)
+def test_first_step_walks_the_predecessors_back(h, w, density, seed, limit) -> None:
+    """The first cell of every path, walked back from the distances alone, is the one the
+    predecessors give."""
+    rng = np.random.default_rng(seed)
+    free = rng.random((h, w)) >= density
+    free.flat[rng.integers(free.size)] = True
+    passable = padded(free)
+    start = int(rng.choice(np.flatnonzero(passable)))
+    dist, pred = fields(passable, w + 2, [start], limit)
+    for goal in np.flatnonzero((dist[0] > 0) & (dist[0] < np.inf)).tolist():
+        step = goal
+        while pred[0, step] != start:
+            step = pred[0, step]
+        assert first_step(dist[0], goal, w + 2) == step
+
+
+def test_no_predecessors_asked_for() -> None:
+    passable = padded(np.ones((2, 3), dtype=bool))
+    dist = np.empty((1, passable.size))
+    none = np.empty((0, 0), dtype=np.int32)
+    queue = np.empty(passable.size, np.int64)
+    distance_fields(passable, 5, np.array([6]), np.inf, dist, none, queue)
+    assert dist[0, 13] == 3 and first_step(dist[0], 13, 5) == 11  # via the cell below the start

@@ -50,6 +50,7 @@ import numpy as np
 from numba import njit
 from scipy.ndimage import uniform_filter
 
+from envs.coverage.paths import first_step
 from envs.coverage.types import STAY
 
 if TYPE_CHECKING:
@@ -173,7 +174,7 @@ def gather_candidates(
     targets = np.flatnonzero(planner.target_np)
     if targets.size == 0:
         return out
-    dist, pred = planner.distance_fields()
+    dist, _ = planner.distance_fields(predecessors=False)
     stride = planner.stride
     labels = np.zeros(planner.target_np.size, dtype=np.int64)
     n_clusters = _label_clusters(planner.target_np, targets, stride, labels, np.empty_like(labels))
@@ -201,7 +202,7 @@ def gather_candidates(
             cells_i[0], moves_i[0] = goals[i], planned[i]
             m = 1
         m += _nearest_of_clusters(
-            costs[i], targets, ids, n_clusters, goal_cluster[i], pred[i],
+            costs[i], targets, ids, n_clusters, goal_cluster[i], dist[i],
             planner.positions[i], stride, cells_i[m:], moves_i[m:],
         )  # fmt: skip
         if m == 0:
@@ -264,7 +265,7 @@ def _nearest_of_clusters(
     ids: np.ndarray,
     n_clusters: int,
     skip: int,
-    pred: np.ndarray,
+    dist: np.ndarray,
     start: int,
     stride: int,
     cells: np.ndarray,
@@ -272,8 +273,8 @@ def _nearest_of_clusters(
 ) -> int:
     """One agent's cluster candidates (module docstring): of every cluster it reaches, other
     than ``skip``, the nearest cell (ties: the lower cell), nearest first (ties: the lower
-    cell), as many as ``cells`` holds, with the first move of the path to each (from the
-    agent's predecessors ``pred``). Returns how many were written."""
+    cell), as many as ``cells`` holds, with the first move of the path to each (walked back
+    along the agent's distance field ``dist``). Returns how many were written."""
     best = np.full(n_clusters + 1, -1, dtype=np.int64)  # per cluster: its nearest target
     for j in range(targets.size):  # targets ascend: a strictly nearer cell replaces
         c = ids[j]
@@ -287,16 +288,13 @@ def _nearest_of_clusters(
         if j >= 0 and c != skip and cost[j] < np.inf:
             picks[m] = j
             # path lengths are whole numbers: distance first, then the cell, in one exact key
-            key[m] = cost[j] * pred.size + targets[j]
+            key[m] = cost[j] * dist.size + targets[j]
             m += 1
     order = np.argsort(key[:m])
     count = min(m, cells.size)
     for slot in range(count):
         goal = targets[picks[order[slot]]]
-        step = goal
-        while pred[step] != start:  # walk back to the first step
-            step = pred[step]
-        d = step - start
+        d = first_step(dist, goal, stride) - start
         cells[slot] = goal
         moves[slot] = 0 if d == -stride else 1 if d == stride else 2 if d == -1 else 3
     return count

@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["UNREACHED", "distance_fields"]
+__all__ = ["UNREACHED", "distance_fields", "first_step"]
 
 #: Predecessor of a cell no path reaches (and of each start), as SciPy writes it.
 UNREACHED = -9999
@@ -52,14 +52,15 @@ def distance_fields(
         limit: Paths longer than this are not followed (``inf``: the whole map).
         dist: ``float64 (len(starts), cells)``, written: path lengths, ``inf`` where none.
         pred: ``int32 (len(starts), cells)``, written: predecessors, :data:`UNREACHED` where
-            none and at the start.
+            none and at the start; an array with no rows skips them (:func:`first_step` walks
+            a path back from the distances alone).
         queue: ``int64 (cells,)`` scratch.
     """
+    with_pred = pred.shape[0] > 0
     offsets = (stride, 1, -1, -stride)  # highest neighbour index first: the predecessor rule
     for i in range(starts.size):
-        d, p = dist[i], pred[i]
+        d = dist[i]
         d[:] = np.inf
-        p[:] = UNREACHED
         s = starts[i]
         d[s] = 0.0
         head, tail = 0, 1
@@ -77,6 +78,10 @@ def distance_fields(
                         d[w] = nd
                         queue[tail] = w
                         tail += 1
+        if not with_pred:
+            continue
+        p = pred[i]
+        p[:] = UNREACHED
         for j in range(1, tail):  # every reached cell but the start
             w = queue[j]
             before = d[w] - 1.0
@@ -85,3 +90,20 @@ def distance_fields(
                 if d[u] == before:  # a start is passable or reaches nothing
                     p[w] = u
                     break
+
+
+@njit(cache=True, nogil=True)
+def first_step(dist: np.ndarray, goal: int, stride: int) -> int:
+    """The first cell of the path to ``goal`` (reached: ``0 < dist[goal] < inf``) in one row
+    of :func:`distance_fields`: the path its predecessors give, walked back from the distances
+    alone (each cell's predecessor is its highest-index neighbour one step nearer)."""
+    offsets = (stride, 1, -1, -stride)
+    step = goal
+    while dist[step] > 1.0:
+        before = dist[step] - 1.0
+        for k in range(4):
+            u = step + offsets[k]
+            if dist[u] == before:
+                step = u
+                break
+    return step

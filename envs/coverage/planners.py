@@ -43,7 +43,7 @@ from numba import njit
 from scipy.ndimage import label
 from scipy.optimize import linear_sum_assignment
 
-from envs.coverage.paths import distance_fields
+from envs.coverage.paths import distance_fields, first_step
 from envs.coverage.types import STAY
 
 __all__ = [
@@ -324,20 +324,22 @@ class FrontierPlanner:
             actions.append(self.action_of[step - start])
         return actions
 
-    def distance_fields(self, limit: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+    def distance_fields(
+        self, limit: float = np.inf, predecessors: bool = True
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """Every agent's shortest path lengths through the seen free cells to every padded cell
         and the predecessors on those paths, ``(agents, cells)`` each (one compiled search per
         agent, :func:`envs.coverage.paths.distance_fields`: ``inf`` and
-        :data:`~envs.coverage.paths.UNREACHED` where a cell is not reached within ``limit``)."""
-        return self._fields(np.asarray(self.positions, dtype=np.int64), limit)
-
-    def _fields(self, starts: np.ndarray, limit: float) -> tuple[np.ndarray, np.ndarray]:
+        :data:`~envs.coverage.paths.UNREACHED` where a cell is not reached within ``limit``).
+        With ``predecessors`` False, ``None`` for them (:func:`envs.coverage.paths.first_step`
+        walks a path back from the distances)."""
+        starts = np.asarray(self.positions, dtype=np.int64)
         size = self.passable_np.size
         dist = np.empty((starts.size, size))
-        pred = np.empty((starts.size, size), dtype=np.int32)
+        pred = np.empty((starts.size if predecessors else 0, size), dtype=np.int32)
         queue = self._scratch_arrays(size)[1]
         distance_fields(self.passable_np, self.stride, starts, limit, dist, pred, queue)
-        return dist, pred
+        return dist, pred if predecessors else None
 
     def _scratch_arrays(self, size: int) -> np.ndarray:
         """The searches' working arrays (4, cells), made once per map size."""
@@ -434,15 +436,14 @@ class CoordinatedPlanner(FrontierPlanner):
         starts = np.asarray(self.positions, dtype=np.int64)
         size = self.passable.size
         dist = np.empty((n, size))
-        pred = np.empty((n, size), dtype=np.int32)
         horizon = np.inf if self.horizon is None else float(self.horizon)
         cells, costs = _target_costs(
-            self.passable, self.target, self.stride, starts, horizon, dist, pred,
+            self.passable, self.target, self.stride, starts, horizon, dist,
             self._scratch_arrays(size)[1],
         )  # fmt: skip
         cost, goal_cells = self._candidate_costs(costs, cells)
         chosen = np.asarray(self.assign(cost, goal_cells), dtype=np.int64)
-        goals, actions = _first_moves(pred, starts, cost, goal_cells, chosen, self.stride)
+        goals, actions = _first_moves(dist, starts, cost, goal_cells, chosen, self.stride)
         self.goals = goals.tolist()
         return actions.tolist()
 
@@ -541,13 +542,13 @@ def _target_costs(
     starts: np.ndarray,
     horizon: float,
     dist: np.ndarray,
-    pred: np.ndarray,
     queue: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Every agent's distance field up to ``horizon`` (the whole map for an agent with no
-    target within it) into ``dist`` and ``pred``; returns the target cells (ascending) and the
-    agents' path lengths to them ``(agents, targets)``."""
-    distance_fields(passable, stride, starts, horizon, dist, pred, queue)
+    target within it) into ``dist``; returns the target cells (ascending) and the agents' path
+    lengths to them ``(agents, targets)``."""
+    none = np.empty((0, 0), dtype=np.int32)  # no predecessors: _first_moves walks distances
+    distance_fields(passable, stride, starts, horizon, dist, none, queue)
     cells = np.flatnonzero(target)
     costs = np.empty((starts.size, cells.size))
     for i in range(starts.size):
@@ -558,7 +559,7 @@ def _target_costs(
                 blind = False
         if blind and horizon < np.inf:  # nothing within reach: the whole map
             distance_fields(passable, stride, starts[i : i + 1], np.inf, dist[i : i + 1],
-                            pred[i : i + 1], queue)  # fmt: skip
+                            none, queue)  # fmt: skip
             for j in range(cells.size):
                 costs[i, j] = dist[i, cells[j]]
     return cells, costs
@@ -566,7 +567,7 @@ def _target_costs(
 
 @njit(cache=True, nogil=True)
 def _first_moves(
-    pred: np.ndarray,
+    dist: np.ndarray,
     starts: np.ndarray,
     cost: np.ndarray,
     goal_cells: np.ndarray,
@@ -574,7 +575,7 @@ def _first_moves(
     stride: int,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Each agent's goal cell (-1: none) and the first move of its path there (``STAY`` when
-    it has no reachable candidate), walked back along its predecessors."""
+    it has no reachable candidate), walked back along its distance field (:func:`first_step`)."""
     n = starts.size
     goals = np.full(n, -1, dtype=np.int64)
     actions = np.full(n, STAY, dtype=np.int64)
@@ -584,10 +585,7 @@ def _first_moves(
             continue
         goal = goal_cells[i, c]
         goals[i] = goal
-        start, step = starts[i], goal
-        while pred[i, step] != start:
-            step = pred[i, step]
-        d = step - start
+        d = first_step(dist[i], goal, stride) - starts[i]
         actions[i] = 0 if d == -stride else 1 if d == stride else 2 if d == -1 else 3
     return goals, actions
 

@@ -188,46 +188,19 @@ def gather_candidates(
     for d in (-stride, -1, 1, stride):
         open_[stride:-stride] += is_open[stride + d : is_open.size - stride + d]
     open_ /= 4.0
-    scale = 1.0 / (height + width)
     costs = dist[:, targets]  # (agents, targets)
-    goals = planner.goals
-    goal_cluster = np.array([labels[g] if g >= 0 else 0 for g in goals], dtype=np.int64)
+    goals = np.asarray(planner.goals, dtype=np.int64)
+    goal_cluster = np.where(goals >= 0, labels[np.maximum(goals, 0)], 0)
     column = np.full(labels.size, -1, dtype=np.int64)  # each target cell's column in costs
     column[targets] = np.arange(targets.size)
-    cells_i = np.empty(k, dtype=np.int64)
-    moves_i = np.empty(k, dtype=np.int64)
-    for i in range(n):
-        m = 0
-        if goals[i] >= 0:  # slot 0: the planner's choice and its own move
-            cells_i[0], moves_i[0] = goals[i], planned[i]
-            m = 1
-        m += _nearest_of_clusters(
-            costs[i], targets, ids, n_clusters, goal_cluster[i], dist[i],
-            planner.positions[i], stride, cells_i[m:], moves_i[m:],
-        )  # fmt: skip
-        if m == 0:
-            continue
-        chosen = cells_i[:m].copy()
-        out.cells[i, :m], out.moves[i, :m] = chosen, moves_i[:m]
-        cols = column[chosen]
-        cost = costs[i]
-        teammates = np.arange(n) != i
-        mates = costs[teammates][:, cols]  # (teammates, m)
-        mate = mates.min(axis=0) if mates.size else np.full(m, np.inf)
-        others = goal_cluster[teammates]
-        rows_c, cols_c = np.divmod(chosen, stride)
-        row_i, col_i = divmod(planner.positions[i], stride)
-        f = out.features[i, :m]
-        f[:, 0] = 1.0
-        f[0, 1] = float(goals[i] >= 0)
-        f[:, 2] = np.minimum(cost[cols] * scale, 1.0)
-        f[:, 3] = np.minimum(mate * scale, 1.0)
-        f[:, 4] = (labels[chosen][:, None] == others[None, :]).any(axis=1)
-        f[:, 5] = np.log1p(sizes[labels[chosen]]) / np.log1p(height * width)
-        f[:, 6] = unknown[chosen]
-        f[:, 7] = open_[chosen]
-        f[:, 8] = (rows_c - row_i) / height
-        f[:, 9] = (cols_c - col_i) / width
+    # Per cluster its ``cluster`` feature, in NumPy (the same log1p as the features had).
+    cluster_share = np.log1p(sizes) / np.log1p(height * width)
+    _fill_candidates(
+        costs, targets, ids, n_clusters, goal_cluster, goals,
+        np.asarray(planned, dtype=np.int64), dist, np.asarray(planner.positions, dtype=np.int64),
+        stride, column, labels, cluster_share, unknown, open_, 1.0 / (height + width),
+        height, width, out.cells, out.moves, out.features,
+    )  # fmt: skip
     return out
 
 
@@ -298,3 +271,65 @@ def _nearest_of_clusters(
         cells[slot] = goal
         moves[slot] = 0 if d == -stride else 1 if d == stride else 2 if d == -1 else 3
     return count
+
+
+@njit(cache=True, nogil=True)
+def _fill_candidates(
+    costs: np.ndarray,
+    targets: np.ndarray,
+    ids: np.ndarray,
+    n_clusters: int,
+    goal_cluster: np.ndarray,
+    goals: np.ndarray,
+    planned: np.ndarray,
+    dist: np.ndarray,
+    starts: np.ndarray,
+    stride: int,
+    column: np.ndarray,
+    labels: np.ndarray,
+    cluster_share: np.ndarray,
+    unknown: np.ndarray,
+    open_: np.ndarray,
+    scale: float,
+    height: int,
+    width: int,
+    cells: np.ndarray,
+    moves: np.ndarray,
+    features: np.ndarray,
+) -> None:
+    """Every agent's slots (``cells``, ``moves``) and their features (module docstring), into
+    the empty :class:`Candidates` arrays: slot 0 the planner's target and move, then
+    :func:`_nearest_of_clusters`."""
+    n = starts.size
+    for i in range(n):
+        m = 0
+        if goals[i] >= 0:  # slot 0: the planner's choice and its own move
+            cells[i, 0], moves[i, 0] = goals[i], planned[i]
+            m = 1
+        m += _nearest_of_clusters(
+            costs[i], targets, ids, n_clusters, goal_cluster[i], dist[i], starts[i], stride,
+            cells[i, m:], moves[i, m:],
+        )  # fmt: skip
+        if m == 0:
+            continue
+        row_i, col_i = starts[i] // stride, starts[i] % stride
+        for slot in range(m):
+            c = cells[i, slot]
+            col = column[c]
+            f = features[i, slot]
+            f[0] = 1.0
+            f[2] = min(costs[i, col] * scale, 1.0)
+            mate, heading = np.inf, False
+            for j in range(n):
+                if j != i:
+                    mate = min(mate, costs[j, col])
+                    heading = heading or goal_cluster[j] == labels[c]
+            f[3] = min(mate * scale, 1.0)
+            f[4] = 1.0 if heading else 0.0
+            f[5] = cluster_share[labels[c]]
+            f[6] = unknown[c]
+            f[7] = open_[c]
+            f[8] = (c // stride - row_i) / height
+            f[9] = (c % stride - col_i) / width
+        f0 = features[i, 0]
+        f0[1] = 1.0 if goals[i] >= 0 else 0.0

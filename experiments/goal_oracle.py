@@ -57,7 +57,6 @@ def clone(planner: FrontierPlanner, free: np.ndarray | None = None) -> FrontierP
         copy.free = np.asarray(free, dtype=bool)
     for name in ("visited", "seen", "passable", "target"):
         setattr(copy, name, getattr(planner, name).copy())
-    copy.passable_np, copy.target_np, copy.seen_np = copy.passable, copy.target, copy.seen
     copy.positions, copy.goals = list(planner.positions), list(planner.goals)
     copy._scratch = copy._claimed = None
     return copy
@@ -113,7 +112,7 @@ def sampled_free(planner: FrontierPlanner, rng: np.random.Generator) -> np.ndarr
     """The free cells as the team can guess them: the true ones where a cell has been seen,
     elsewhere free with the share of free cells among the seen ones (the outer ring stays
     wall)."""
-    seen = planner.seen_np.reshape(-1, planner.stride)[1:-1, 1:-1]  # inside the wall ring
+    seen = planner.seen.reshape(-1, planner.stride)[1:-1, 1:-1]  # inside the wall ring
     free = np.asarray(planner.free, dtype=bool).reshape(-1, planner.stride)
     inner = free[1:-1, 1:-1]
     share = inner[seen].sum() / max(seen.sum(), 1)

@@ -346,11 +346,11 @@ def test_the_oracles_rollouts_replay_the_planner_and_leave_the_env_alone() -> No
     env = make_env(cfg.env)
     env.reset(seed=5)
     planner = env._frontier.planner
-    before = (list(planner.visited), list(planner.positions), planner.target_np.copy())
+    before = (list(planner.visited), list(planner.positions), planner.target.copy())
     # Everybody on the planner from the reset: the copy's cells are the planner episode's.
     new, _ = oracle.rollout(oracle.clone(planner), env.max_steps, {})
     assert (list(planner.visited), list(planner.positions)) == before[:2]
-    assert (planner.target_np == before[2]).all()
+    assert (planner.target == before[2]).all()
     start = int(env.visited.sum())
     coverage, deviations, _ = oracle.play(env, 5, oracle=False)
     assert deviations == 0 and coverage == pytest.approx((start + new) / env.free_cells)

@@ -172,9 +172,9 @@ def test_cluster_candidates_match_a_from_scratch_reference() -> None:
         env.step(dict(zip(env.agents, planner.act())))
     planner.sync(env.steps, env.positions, lambda: (env.walls, env.visited))
     dist, _ = planner.distance_fields()
-    cells = np.flatnonzero(planner.target_np)
+    cells = np.flatnonzero(planner.target)
     cost, goals = planner._candidate_costs(dist[:, cells], cells)
-    labels, n = label(planner.target_np.reshape(-1, planner.stride))
+    labels, n = label(planner.target.reshape(-1, planner.stride))
     assert cost.shape == (3, n) and n > 1
     for k in range(1, n + 1):
         members = [c for c in cells.tolist() if labels.ravel()[c] == k]

@@ -50,7 +50,7 @@ import numpy as np
 from numba import njit
 from scipy.ndimage import uniform_filter
 
-from envs.coverage.paths import first_step
+from envs.coverage.paths import first_step, move_towards
 from envs.coverage.types import STAY
 
 if TYPE_CHECKING:
@@ -171,19 +171,19 @@ def gather_candidates(
     """
     n = len(planner.positions)
     out = Candidates.empty(n, k)
-    targets = np.flatnonzero(planner.target_np)
+    targets = np.flatnonzero(planner.target)
     if targets.size == 0:
         return out
     dist, _ = planner.distance_fields(predecessors=False)
     stride = planner.stride
-    labels = np.zeros(planner.target_np.size, dtype=np.int64)
-    n_clusters = _label_clusters(planner.target_np, targets, stride, labels, np.empty_like(labels))
+    labels = np.zeros(planner.target.size, dtype=np.int64)
+    n_clusters = _label_clusters(planner.target, targets, stride, labels, np.empty_like(labels))
     ids = labels[targets]
     sizes = np.bincount(ids, minlength=n_clusters + 1)
-    unseen = (~planner.seen_np).reshape(-1, stride).astype(np.float32)
+    unseen = (~planner.seen).reshape(-1, stride).astype(np.float32)
     unknown = uniform_filter(unseen, 5, mode="constant").ravel()
     # Open neighbours (unseen, or seen free and not visited), the pocket tie-break's count.
-    is_open = ~planner.seen_np | planner.target_np
+    is_open = ~planner.seen | planner.target
     open_ = np.zeros(is_open.size, dtype=np.float32)
     for d in (-stride, -1, 1, stride):
         open_[stride:-stride] += is_open[stride + d : is_open.size - stride + d]
@@ -267,9 +267,8 @@ def _nearest_of_clusters(
     count = min(m, cells.size)
     for slot in range(count):
         goal = targets[picks[order[slot]]]
-        d = first_step(dist, goal, stride) - start
         cells[slot] = goal
-        moves[slot] = 0 if d == -stride else 1 if d == stride else 2 if d == -1 else 3
+        moves[slot] = move_towards(first_step(dist, goal, stride), start, stride)
     return count
 
 

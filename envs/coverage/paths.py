@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["UNREACHED", "distance_fields", "first_step"]
+__all__ = ["UNREACHED", "distance_fields", "first_step", "move_towards"]
 
 #: Predecessor of a cell no path reaches (and of each start), as SciPy writes it.
 UNREACHED = -9999
@@ -107,3 +107,10 @@ def first_step(dist: np.ndarray, goal: int, stride: int) -> int:
                 step = u
                 break
     return step
+
+
+@njit(cache=True, nogil=True)
+def move_towards(step: int, start: int, stride: int) -> int:
+    """The move (0-3: up, down, left, right) from ``start`` to its neighbour ``step``."""
+    d = step - start
+    return 0 if d == -stride else 1 if d == stride else 2 if d == -1 else 3

@@ -43,7 +43,7 @@ from numba import njit
 from scipy.ndimage import label
 from scipy.optimize import linear_sum_assignment
 
-from envs.coverage.paths import distance_fields, first_step
+from envs.coverage.paths import distance_fields, first_step, move_towards
 from envs.coverage.types import STAY
 
 __all__ = [
@@ -182,8 +182,7 @@ def _plan(
         goal, step = ties[pick], firsts[pick]
         claimed[goal] = True
         goals[i] = goal
-        d = step - start
-        actions[i] = 0 if d == -stride else 1 if d == stride else 2 if d == -1 else 3
+        actions[i] = move_towards(step, start, stride)
     for i in range(starts.size):
         if goals[i] >= 0:
             claimed[goals[i]] = False
@@ -213,15 +212,12 @@ class FrontierPlanner:
         # visits neighbours in the same order, so both break ties between equally near targets
         # the same way.
         s = self.stride
-        self.offsets = (-s, -1, 1, s)
-        self.action_of = {-s: 0, s: 1, -1: 2, 1: 3}
-        self.window = tuple(dr * s + dc for dr in (-1, 0, 1) for dc in (-1, 0, 1))
+        self.offsets = np.array([-s, -1, 1, s], dtype=np.int64)
+        self.window = np.array([dr * s + dc for dr in (-1, 0, 1) for dc in (-1, 0, 1)], np.int64)
         self.steps = -1
         self.positions: list[int] = []
         #: Per agent: the padded cell of its target at the last :meth:`act` (-1: none).
         self.goals: list[int] = []
-        self._offsets_np = np.array(self.offsets, dtype=np.int64)
-        self._window_np = np.array(self.window, dtype=np.int64)
         self._scratch: np.ndarray | None = None
         self._claimed: np.ndarray | None = None
 
@@ -248,7 +244,7 @@ class FrontierPlanner:
             self._rebuild(*read_map())
         else:
             self.n_targets += _visit_cells(
-                starts, self._window_np,
+                starts, self.window,
                 self.free, self.visited, self.seen, self.passable, self.target,
             )  # fmt: skip
         self.steps = steps
@@ -272,14 +268,12 @@ class FrontierPlanner:
         self.seen = seen.ravel()
         self.passable = passable
         self.target = target
-        # The names the goal candidates and the coordinated planners read (the same arrays).
-        self.passable_np, self.target_np, self.seen_np = passable, target, self.seen
         self.n_targets = int(target.sum())
 
     def _visit(self, p: int) -> None:
         """Mark cell ``p`` visited (and its 3x3 window seen), as a step onto it does."""
         self.n_targets += _visit_cells(
-            np.array([p], dtype=np.int64), self._window_np,
+            np.array([p], dtype=np.int64), self.window,
             self.free, self.visited, self.seen, self.passable, self.target,
         )  # fmt: skip
 
@@ -305,7 +299,7 @@ class FrontierPlanner:
             first, queue, ties, firsts = self._scratch_arrays(size)
             _plan(
                 self.passable, self.target, self.seen,
-                np.asarray(self.positions, dtype=np.int64), self._offsets_np,
+                np.asarray(self.positions, dtype=np.int64), self.offsets,
                 self.tie_break == "pocket", self._claimed, first, queue, ties, firsts,
                 goals, actions_np,
             )  # fmt: skip
@@ -321,24 +315,22 @@ class FrontierPlanner:
             goal, step = found
             claimed[goal] = True
             self.goals[i] = goal
-            actions.append(self.action_of[step - start])
+            actions.append(move_towards(step, start, self.stride))
         return actions
 
-    def distance_fields(
-        self, limit: float = np.inf, predecessors: bool = True
-    ) -> tuple[np.ndarray, np.ndarray | None]:
+    def distance_fields(self, predecessors: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """Every agent's shortest path lengths through the seen free cells to every padded cell
         and the predecessors on those paths, ``(agents, cells)`` each (one compiled search per
         agent, :func:`envs.coverage.paths.distance_fields`: ``inf`` and
-        :data:`~envs.coverage.paths.UNREACHED` where a cell is not reached within ``limit``).
+        :data:`~envs.coverage.paths.UNREACHED` where a cell cannot be reached).
         With ``predecessors`` False, ``None`` for them (:func:`envs.coverage.paths.first_step`
         walks a path back from the distances)."""
         starts = np.asarray(self.positions, dtype=np.int64)
-        size = self.passable_np.size
+        size = self.passable.size
         dist = np.empty((starts.size, size))
         pred = np.empty((starts.size if predecessors else 0, size), dtype=np.int32)
         queue = self._scratch_arrays(size)[1]
-        distance_fields(self.passable_np, self.stride, starts, limit, dist, pred, queue)
+        distance_fields(self.passable, self.stride, starts, np.inf, dist, pred, queue)
         return dist, pred if predecessors else None
 
     def _scratch_arrays(self, size: int) -> np.ndarray:
@@ -348,33 +340,18 @@ class FrontierPlanner:
         return self._scratch
 
     def _search(self, start: int, claimed: np.ndarray) -> tuple[int, int] | None:
-        """Nearest unclaimed target from ``start`` and the first cell of a shortest path to it
-        (the tie-break's choice among the nearest), or ``None`` when no unclaimed target is
-        reachable through seen free cells."""
-        first, queue, ties, firsts = self._scratch_arrays(len(self.passable))
-        all_ties = self.tie_break != "order"
+        """Nearest unclaimed target from ``start`` and the first cell of a shortest path to it,
+        a uniform draw among the equally near ones (the ``"random"`` tie-break; the others run
+        in :func:`_plan`), or ``None`` when no unclaimed target is reachable."""
+        first, queue, ties, firsts = self._scratch_arrays(self.passable.size)
         n = nearest_targets(
-            self.passable_np, self.target_np, claimed, start, self._offsets_np, all_ties,
+            self.passable, self.target, claimed, start, self.offsets, True,
             first, queue, ties, firsts,
         )  # fmt: skip
         if n == 0:
             return None
-        if n == 1:
-            return int(ties[0]), int(firsts[0])
-        found = ties[:n].tolist()
-        goal = self._choose(found)
-        return goal, int(firsts[found.index(goal)])
-
-    def _choose(self, ties: list[int]) -> int:
-        """The tie-break among equally near targets, listed in the order the search found them."""
-        if self.tie_break == "random":
-            return ties[int(self.rng.integers(len(ties)))]
-        if self.tie_break == "pocket":
-            seen, target, offsets = self.seen, self.target, self.offsets
-            return min(
-                ties, key=lambda g: sum(not seen[g + d] or target[g + d] for d in offsets)
-            )  # min keeps the first of equals: "order" breaks the remaining ties
-        return ties[0]
+        pick = 0 if n == 1 else int(self.rng.integers(n))
+        return int(ties[pick]), int(firsts[pick])
 
 
 # ---------------------------------------------------------------------- coordinated planners
@@ -454,7 +431,7 @@ class CoordinatedPlanner(FrontierPlanner):
         the agents' path lengths ``costs`` to the target ``cells`` ``(agents, cells)``."""
         if self.candidates == "all":
             return costs, np.repeat(cells[None, :], costs.shape[0], axis=0)
-        labels, _ = label(self.target_np.reshape(-1, self.stride), structure=_CROSS)
+        labels, _ = label(self.target.reshape(-1, self.stride), structure=_CROSS)
         ids = labels.ravel()[cells]
         # Per agent, cells sorted by cluster, then cost, then cell (lexsort is stable and the
         # cells come in row-major order): the first of each cluster is its nearest cell.
@@ -585,8 +562,7 @@ def _first_moves(
             continue
         goal = goal_cells[i, c]
         goals[i] = goal
-        d = first_step(dist[i], goal, stride) - starts[i]
-        actions[i] = 0 if d == -stride else 1 if d == stride else 2 if d == -1 else 3
+        actions[i] = move_towards(first_step(dist[i], goal, stride), starts[i], stride)
     return goals, actions
 
 

@@ -44,22 +44,25 @@ def fields(passable: np.ndarray, stride: int, starts, limit: float = np.inf):
     return dist, pred
 
 
+@st.composite
+def grids(draw) -> tuple[np.ndarray, int, np.random.Generator]:
+    """A padded random grid (at least one free cell), its stride and a generator for starts."""
+    h, w = draw(st.integers(1, 12)), draw(st.integers(1, 12))
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    free = rng.random((h, w)) >= draw(st.floats(0.0, 0.6))
+    free.flat[rng.integers(free.size)] = True
+    return padded(free), w + 2, rng
+
+
 @settings(max_examples=300, deadline=None)
 @given(
-    h=st.integers(1, 12),
-    w=st.integers(1, 12),
-    density=st.floats(0.0, 0.6),
-    seed=st.integers(0, 2**32 - 1),
+    grid=grids(),
     n_starts=st.integers(1, 4),
     limit=st.sampled_from([np.inf, 0.0, 1.0, 3.0, 15.0, 2.5]),
     all_edges=st.booleans(),
 )
-def test_equals_scipy(h, w, density, seed, n_starts, limit, all_edges) -> None:
-    rng = np.random.default_rng(seed)
-    free = rng.random((h, w)) >= density
-    free.flat[rng.integers(free.size)] = True
-    passable = padded(free)
-    stride = w + 2
+def test_equals_scipy(grid, n_starts, limit, all_edges) -> None:
+    passable, stride, rng = grid
     starts = rng.choice(np.flatnonzero(passable), n_starts)  # repeats allowed (agents meet)
     want_d, want_p = dijkstra(
         scipy_graph(passable, stride, all_edges),
@@ -115,27 +118,18 @@ def test_several_starts_are_independent(limit: float) -> None:
 
 
 @settings(max_examples=200, deadline=None)
-@given(
-    h=st.integers(1, 12),
-    w=st.integers(1, 12),
-    density=st.floats(0.0, 0.6),
-    seed=st.integers(0, 2**32 - 1),
-    limit=st.sampled_from([np.inf, 3.0, 15.0]),
-)
-def test_first_step_walks_the_predecessors_back(h, w, density, seed, limit) -> None:
+@given(grid=grids(), limit=st.sampled_from([np.inf, 3.0, 15.0]))
+def test_first_step_walks_the_predecessors_back(grid, limit) -> None:
     """The first cell of every path, walked back from the distances alone, is the one the
     predecessors give."""
-    rng = np.random.default_rng(seed)
-    free = rng.random((h, w)) >= density
-    free.flat[rng.integers(free.size)] = True
-    passable = padded(free)
+    passable, stride, rng = grid
     start = int(rng.choice(np.flatnonzero(passable)))
-    dist, pred = fields(passable, w + 2, [start], limit)
+    dist, pred = fields(passable, stride, [start], limit)
     for goal in np.flatnonzero((dist[0] > 0) & (dist[0] < np.inf)).tolist():
         step = goal
         while pred[0, step] != start:
             step = pred[0, step]
-        assert first_step(dist[0], goal, w + 2) == step
+        assert first_step(dist[0], goal, stride) == step
 
 
 def test_no_predecessors_asked_for() -> None:

@@ -466,13 +466,19 @@ def _instant_training(monkeypatch, during=None) -> list:
     return configs
 
 
-def test_a_second_sweep_of_a_live_study_is_refused_and_leaves_its_trial_alone(
-    tiny, tmp_path, monkeypatch, capsys
-):
+def _one_trial_sweep(tiny, tmp_path) -> tuple:
+    """The sweeps folder and the command line of a one-trial sweep of ``tiny`` over SPACE."""
     space = tmp_path / "space.yaml"
     space.write_text(SPACE)
     sweeps = tmp_path / "sweeps"
-    args = ["sweep", str(tiny), "--space", str(space), "--trials", "1", "--sweeps-dir", str(sweeps)]
+    return sweeps, ["sweep", str(tiny), "--space", str(space), "--trials", "1",
+                    "--sweeps-dir", str(sweeps)]  # fmt: skip
+
+
+def test_a_second_sweep_of_a_live_study_is_refused_and_leaves_its_trial_alone(
+    tiny, tmp_path, monkeypatch, capsys
+):
+    sweeps, args = _one_trial_sweep(tiny, tmp_path)
     seen = {}
 
     def during(run):  # while the first sweep trains its trial: a second one, new or --resume
@@ -505,10 +511,7 @@ def test_a_sweep_held_by_another_process_is_refused_and_taken_over_once_it_died(
 ):
     from harness.results.rundir import RunDir
 
-    space = tmp_path / "space.yaml"
-    space.write_text(SPACE)
-    sweeps = tmp_path / "sweeps"
-    args = ["sweep", str(tiny), "--space", str(space), "--trials", "1", "--sweeps-dir", str(sweeps)]
+    sweeps, args = _one_trial_sweep(tiny, tmp_path)
     _instant_training(monkeypatch)
     assert main(args) == 0
     # Another process holds the sweep folder as a sweep does (RunDir.lock: flock on .lock).

@@ -16,6 +16,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch as th
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from envs import coverage_v0
 from envs.coverage.frontier import FrontierOptions
@@ -413,3 +415,25 @@ def test_the_oracle_walks_the_shortest_path_of_the_predecessors() -> None:
     pred = np.array([-9999, 0, 1, -9999, -9999, 2])
     assert oracle.path_to(pred, 0, 5) == [1, 2, 5]
     assert oracle.path_to(pred, 0, 1) == [1]
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    h=st.integers(1, 30),
+    w=st.integers(1, 30),
+    share=st.floats(0.0, 1.0),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_the_unknown_feature_equals_scipy_s_uniform_filter_value_for_value(h, w, share, seed):
+    # The feature was measured (and the goal models trained) with SciPy's float32
+    # uniform_filter over the planner's padded map; the compiled share must equal it exactly,
+    # at every cell, not just approximately.
+    from scipy.ndimage import uniform_filter
+
+    from envs.coverage.goals import _unknown_share
+
+    seen = np.random.default_rng(seed).random((h + 2, w + 2)) >= share
+    want = uniform_filter((~seen).astype(np.float32), 5, mode="constant").ravel()
+    flat = seen.ravel()
+    got = np.array([_unknown_share(flat, w + 2, c) for c in range(flat.size)], dtype=np.float32)
+    np.testing.assert_array_equal(got, want)

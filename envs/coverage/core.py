@@ -190,7 +190,7 @@ class CoverageCore:
         self._observers = [{} for _ in range(self.copies)]
         largest, _ = self._observer_for(0, *self.max_shape)
         self.pad = largest.padding
-        space = largest.space()
+        space = self._space = largest.space()
         self.observation_space = agent_id_space(space, self.n_agents) if spec.agent_id else space
         self.action_space = spaces.Discrete(spec.n_actions)
         #: Whether the observation kind is built for the whole batch by a compiled kernel.
@@ -367,18 +367,13 @@ class CoverageCore:
             out = np.empty((len(self.cells[sl]), self.n_agents, 13), dtype=np.float32)
             thesis_observation(self.cells[sl], self.pad, self.positions[sl], self.scale[sl], out)
             return add_agent_id(out, self.n_agents) if self.spec.agent_id else out
-        per_copy = [
-            self._with_id(self.observers[b].build(self.states[b]))
-            for b in range(*sl.indices(self.copies))
-        ]
-        if len(per_copy) == 1:  # a batch of one (the PettingZoo env): a view, no copy
-            first = per_copy[0]
-            if isinstance(first, dict):
-                return {key: value[None] for key, value in first.items()}
-            return first[None]
-        if isinstance(per_copy[0], dict):
-            return {key: np.stack([o[key] for o in per_copy]) for key in per_copy[0]}
-        return np.stack(per_copy)
+        # Other kinds: each copy's builder writes into its part of fresh batch arrays.
+        indices = range(*sl.indices(self.copies))
+        out = _zeros(self._space, (len(indices), self.n_agents))
+        for j, b in enumerate(indices):
+            part = {key: a[j] for key, a in out.items()} if isinstance(out, dict) else out[j]
+            self.observers[b].build_into(self.states[b], part)
+        return add_agent_id(out, self.n_agents, (len(indices),)) if self.spec.agent_id else out
 
     @staticmethod
     def flat(obs: np.ndarray | dict[str, np.ndarray]) -> np.ndarray | dict[str, np.ndarray]:
@@ -388,9 +383,6 @@ class CoverageCore:
         if isinstance(obs, dict):
             return {key: value.reshape(-1, *value.shape[2:]) for key, value in obs.items()}
         return obs.reshape(-1, *obs.shape[2:])
-
-    def _with_id(self, obs: np.ndarray | dict[str, np.ndarray]) -> Any:
-        return add_agent_id(obs, self.n_agents) if self.spec.agent_id else obs
 
     # ------------------------------------------------------------------ infos
     def infos(self, copy: int) -> list[dict[str, Any]]:
@@ -483,6 +475,13 @@ class CoverageCore:
     def coverage(self, copy: int) -> float:
         n_free = int(self.n_free[copy])
         return int(self.n_visited[copy]) / n_free if n_free else 0.0
+
+
+def _zeros(space: spaces.Space, lead: tuple[int, ...]) -> np.ndarray | dict[str, np.ndarray]:
+    """Zeroed arrays of ``space`` (per key for a ``Dict``) with the leading axes ``lead``."""
+    if isinstance(space, spaces.Dict):
+        return {key: _zeros(sub, lead) for key, sub in space.spaces.items()}  # type: ignore[misc]
+    return np.zeros((*lead, *space.shape), dtype=space.dtype)
 
 
 # ---------------------------------------------------------------------- validation

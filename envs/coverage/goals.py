@@ -44,13 +44,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import TYPE_CHECKING, Any, ClassVar
 
 import numpy as np
 from numba import njit
-from scipy.ndimage import uniform_filter
 
-from envs.coverage.paths import first_step, move_towards
+from envs.coverage.paths import distance_fields, first_step, move_towards
 from envs.coverage.types import STAY
 
 if TYPE_CHECKING:
@@ -171,37 +171,118 @@ def gather_candidates(
     """
     n = len(planner.positions)
     out = Candidates.empty(n, k)
-    targets = np.flatnonzero(planner.target)
-    if targets.size == 0:
+    if planner.n_targets == 0:
         return out
-    dist, _ = planner.distance_fields(predecessors=False)
-    stride = planner.stride
-    labels = np.zeros(planner.target.size, dtype=np.int64)
-    n_clusters = _label_clusters(planner.target, targets, stride, labels, np.empty_like(labels))
-    ids = labels[targets]
-    sizes = np.bincount(ids, minlength=n_clusters + 1)
-    unseen = (~planner.seen).reshape(-1, stride).astype(np.float32)
-    unknown = uniform_filter(unseen, 5, mode="constant").ravel()
-    # Open neighbours (unseen, or seen free and not visited), the pocket tie-break's count.
-    is_open = ~planner.seen | planner.target
-    open_ = np.zeros(is_open.size, dtype=np.float32)
-    for d in (-stride, -1, 1, stride):
-        open_[stride:-stride] += is_open[stride + d : is_open.size - stride + d]
-    open_ /= 4.0
-    costs = dist[:, targets]  # (agents, targets)
-    goals = np.asarray(planner.goals, dtype=np.int64)
-    goal_cluster = np.where(goals >= 0, labels[np.maximum(goals, 0)], 0)
-    column = np.full(labels.size, -1, dtype=np.int64)  # each target cell's column in costs
-    column[targets] = np.arange(targets.size)
-    # Per cluster its ``cluster`` feature, in NumPy (the same log1p as the features had).
-    cluster_share = np.log1p(sizes) / np.log1p(height * width)
-    _fill_candidates(
-        costs, targets, ids, n_clusters, goal_cluster, goals,
-        np.asarray(planned, dtype=np.int64), dist, np.asarray(planner.positions, dtype=np.int64),
-        stride, column, labels, cluster_share, unknown, open_, 1.0 / (height + width),
-        height, width, out.cells, out.moves, out.features,
+    dist, scratch = planner.work_arrays()
+    _gather_candidates(
+        planner.passable, planner.target, planner.seen, planner.stride,
+        np.asarray(planner.positions, dtype=np.int64), np.asarray(planner.goals, dtype=np.int64),
+        np.asarray(planned, dtype=np.int64), _cluster_shares(height, width),
+        1.0 / (height + width), height, width,
+        dist, scratch, out.cells, out.moves, out.features,
     )  # fmt: skip
     return out
+
+
+@lru_cache(maxsize=32)
+def _cluster_shares(height: int, width: int) -> np.ndarray:
+    """The ``cluster`` feature of a cluster of every size ``0 .. H * W``,
+    ``log(1 + cells) / log(1 + H * W)``, by NumPy's ``log1p`` (the features were measured and
+    the shipped models trained with it; a compiled ``log1p`` may differ in the last bit)."""
+    return np.log1p(np.arange(height * width + 1)) / np.log1p(height * width)
+
+
+@njit(cache=True, nogil=True)
+def _gather_candidates(
+    passable: np.ndarray,
+    target: np.ndarray,
+    seen: np.ndarray,
+    stride: int,
+    starts: np.ndarray,
+    goals: np.ndarray,
+    planned: np.ndarray,
+    cluster_shares: np.ndarray,
+    scale: float,
+    height: int,
+    width: int,
+    dist: np.ndarray,
+    scratch: np.ndarray,
+    cells: np.ndarray,
+    moves: np.ndarray,
+    features: np.ndarray,
+) -> None:
+    """:func:`gather_candidates` in one compiled call: every agent's distance field through the
+    seen free cells (``dist`` ``(agents, cells)``), the frontier clusters, and the slots with
+    their features (:func:`_fill_candidates`); ``scratch`` ``(>= 3, cells)`` int64."""
+    size = target.size
+    no_predecessors = np.empty((0, 0), dtype=np.int32)
+    distance_fields(passable, stride, starts, np.inf, dist, no_predecessors, scratch[0])
+    n_targets = 0
+    for c in range(size):
+        if target[c]:
+            scratch[0, n_targets] = c
+            n_targets += 1
+    if n_targets == 0:
+        return
+    targets = scratch[0, :n_targets].copy()
+    labels = scratch[1]
+    labels[:] = 0
+    n_clusters = _label_clusters(target, targets, stride, labels, scratch[2])
+    ids = np.empty(n_targets, dtype=np.int64)
+    sizes = np.zeros(n_clusters + 1, dtype=np.int64)
+    column = scratch[2]  # each target cell's column in costs (the stack is no longer needed)
+    for j in range(n_targets):
+        ids[j] = labels[targets[j]]
+        sizes[ids[j]] += 1
+        column[targets[j]] = j
+    cluster_share = np.empty(n_clusters + 1)
+    for c in range(n_clusters + 1):
+        cluster_share[c] = cluster_shares[sizes[c]]
+    n = starts.size
+    costs = np.empty((n, n_targets))
+    for i in range(n):
+        for j in range(n_targets):
+            costs[i, j] = dist[i, targets[j]]
+    goal_cluster = np.zeros(n, dtype=np.int64)
+    for i in range(n):
+        if goals[i] >= 0:
+            goal_cluster[i] = labels[goals[i]]
+    _fill_candidates(
+        costs, targets, ids, n_clusters, goal_cluster, goals, planned, dist, starts, stride,
+        column, labels, cluster_share, passable, target, seen, scale, height, width,
+        cells, moves, features,
+    )  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
+def _unknown_share(seen: np.ndarray, stride: int, c: int) -> np.float32:
+    """The ``unknown`` feature of padded cell ``c``: the share of unseen cells in the 5x5
+    window around it (outside the padded grid counts as seen), as SciPy's
+    ``uniform_filter(unseen, 5, mode="constant")`` on float32 computes it: a float32 mean
+    down each column, then a float32 mean of five of them (both sums are exact in float64,
+    so this equals SciPy's running sums value for value)."""
+    rows = seen.size // stride
+    row, col = c // stride, c % stride
+    total = 0.0
+    for cc in range(col - 2, col + 3):
+        if 0 <= cc < stride:
+            count = 0
+            for rr in range(row - 2, row + 3):
+                if 0 <= rr < rows and not seen[rr * stride + cc]:
+                    count += 1
+            total += np.float64(np.float32(count / 5.0))
+    return np.float32(total / 5.0)
+
+
+@njit(cache=True, nogil=True)
+def _open_share(passable: np.ndarray, target: np.ndarray, seen: np.ndarray, stride: int, c: int):
+    """The ``open`` feature of padded cell ``c``: the share of its 4 neighbours that are
+    unseen, or seen free and not visited (a target)."""
+    count = 0
+    for v in (c - stride, c - 1, c + 1, c + stride):
+        if not seen[v] or target[v]:
+            count += 1
+    return np.float32(count / 4.0)
 
 
 # The per-step work of the candidates, compiled: it runs over every target cell once per agent.
@@ -287,8 +368,9 @@ def _fill_candidates(
     column: np.ndarray,
     labels: np.ndarray,
     cluster_share: np.ndarray,
-    unknown: np.ndarray,
-    open_: np.ndarray,
+    passable: np.ndarray,
+    target: np.ndarray,
+    seen: np.ndarray,
     scale: float,
     height: int,
     width: int,
@@ -326,8 +408,8 @@ def _fill_candidates(
             f[3] = min(mate * scale, 1.0)
             f[4] = 1.0 if heading else 0.0
             f[5] = cluster_share[labels[c]]
-            f[6] = unknown[c]
-            f[7] = open_[c]
+            f[6] = _unknown_share(seen, stride, c)
+            f[7] = _open_share(passable, target, seen, stride, c)
             f[8] = (c // stride - row_i) / height
             f[9] = (c % stride - col_i) / width
         f0 = features[i, 0]

@@ -23,12 +23,7 @@ from gymnasium import spaces
 from envs.coverage.frontier import Frontier
 from envs.coverage.goals import ACTION_MASK_KEY, GOAL_FEATURES, GOALS_KEY
 from envs.coverage.step import thesis_observation
-from envs.coverage.teammap_kernels import (
-    crop_and_block_views,
-    ego_views,
-    frontier_views,
-    update_known,
-)
+from envs.coverage.teammap_kernels import ego_counts, teammap_views
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL, GridState, kind_options
 
 COORD_MODES = ("normalized", "raw")
@@ -76,6 +71,17 @@ class ObservationBuilder(ABC):
     def build(self, state: GridState) -> np.ndarray | dict[str, np.ndarray]:
         """Every agent's observation, a fresh array (or a dict of fresh arrays) with the agents on
         the first axis: ``(n_agents, *space().shape)`` (per key for a ``Dict`` space)."""
+
+    def build_into(self, state: GridState, out: np.ndarray | dict[str, np.ndarray]) -> None:
+        """:meth:`build` written into ``out`` (zeroed arrays of that shape, views of a batch's
+        arrays: the core builds every copy's part in place). Kinds that can write there
+        directly override it."""
+        obs = self.build(state)
+        if isinstance(out, dict):
+            for key, value in out.items():
+                value[...] = obs[key]
+        else:
+            out[...] = obs
 
     def _coords_high(self) -> np.ndarray:
         if self.coords == "normalized":
@@ -300,23 +306,19 @@ class TeamMapObservation(ObservationBuilder):
         self._wp = wp
         if self.frontier:
             # Free cells of the padded grid, flat: walls never change within an episode, so the
-            # frontier field's search reads this copy instead of the (maybe strided) grid.
+            # frontier field's search reads this copy instead of the (maybe strided) grid; and
+            # the search's scratch arrays.
             self._free = np.ascontiguousarray(state.cells != CELL_WALL).ravel()
-
-    def _update(self, state: GridState) -> None:
-        """Make the agents' 3x3 windows known and bring changed cells up to date (compiled:
-        :func:`envs.coverage.teammap_kernels.update_known`)."""
-        update_known(
-            state.cells,
-            state.pad,
-            state.positions,
-            self._cat,
-            self._planes,
-            self._counts,
-            self._block_of,
-            self._block_cells,
-            self._shares,
-        )
+            self._dist = np.empty(hp * wp, dtype=np.float64)
+            self._queue = np.empty(hp * wp, dtype=np.int64)
+            self._needed = np.zeros(hp * wp, dtype=bool)
+        else:
+            self._free, self._needed = _NO_CELLS, _NO_CELLS
+            self._dist, self._queue = _NO_CELLS.astype(np.float64), _NO_CELLS.astype(np.int64)
+        if self.ego_size:
+            self._ego_counts = ego_counts(self.height, self.width, self.ego_size, self.ego_block)
+        else:
+            self._ego_counts = _NONE_3D
 
     def _update_shares(self, blocks: np.ndarray) -> None:
         """Recompute the share channels of ``blocks`` (repeats allowed) from the counts."""
@@ -327,74 +329,48 @@ class TeamMapObservation(ObservationBuilder):
         self._shares[:, blocks] = np.rint(255.0 * shares.T)
 
     def build(self, state: GridState) -> dict[str, np.ndarray]:
-        self._update(state)
         n = state.positions.shape[0]
-        c, g = self.crop, self.global_size
-        rows, cols = state.positions[:, 0], state.positions[:, 1]
-        local = np.empty((n, self.local_channels, c, c), dtype=np.uint8)
-        glob = np.zeros((n, self.GLOBAL_CHANNELS, g * g), dtype=np.uint8)
-        crop_and_block_views(
-            self._planes, self._wp, state.positions, c, self._shares,
-            self._row_block, self._col_block, g, local, glob,
+        out = {
+            key: np.zeros((n, *space.shape), dtype=space.dtype)
+            for key, space in self.space().spaces.items()
+        }
+        self.build_into(state, out)
+        return out
+
+    def build_into(self, state: GridState, out: dict[str, np.ndarray]) -> None:
+        """:meth:`build` into ``out``: arrays of the space's keys, zeroed, agents first (views
+        of a batch's arrays: the core builds every copy's observation in place)."""
+        n = state.positions.shape[0]
+        glob = out["global"].reshape(n, self.GLOBAL_CHANNELS, -1)
+        compass = out["frontier"] if self.frontier else _NONE_2D
+        teammap_views(
+            state.cells, state.pad, state.positions, min(state.steps / self.max_steps, 1.0),
+            self._cat, self._planes, self._counts, self._block_of, self._block_cells,
+            self._shares, self._row_block, self._col_block, self.global_size, self._scale3,
+            self._free, self._frontier_scale, self._dist, self._queue, self._needed,
+            self._ego_counts, (self.ego_size // 2) * self.ego_block, self.ego_block,
+            out["local"], glob, out.get("ego", _NONE_4D), out["vector"], compass,
         )  # fmt: skip
         ext = self._frontier_ext
-        if ext is not None:
-            field, compass = self._frontier_views(state)
-            local[:, self.frontier_channel] = field
-            if ext.planner is not None:
-                moves = np.asarray(ext.planned_moves(state))
-                compass[:, :4] = moves[:, None] == np.arange(4)[None, :]  # STAY (4) marks none
-        vector = np.empty((n, 3), dtype=np.float32)
-        vector[:, :2] = state.positions * self._scale3
-        vector[:, 2] = min(state.steps / self.max_steps, 1.0)
-        views = {"local": local, "global": glob.reshape(n, self.GLOBAL_CHANNELS, g, g)}
-        if self.ego_size:
-            views["ego"] = self._ego(rows, cols)
-        views["vector"] = vector
-        if ext is not None:
-            views["frontier"] = compass
-            ext.compass = compass  # what planner-backed actions of the next env step follow
-            if ext.candidates is not None:  # the goal action's (made by planned_moves above)
-                views[GOALS_KEY] = ext.candidates.features
-                views[ACTION_MASK_KEY] = ext.candidates.mask
-        return views
+        if ext is None:
+            return
+        if ext.planner is not None:
+            # The compass marks the planner's move instead (STAY, 4, marks none).
+            compass[:, :4] = 0.0
+            for i, move in enumerate(ext.planned_moves(state)):
+                if move < 4:
+                    compass[i, move] = 1.0
+        ext.compass = compass  # what planner-backed actions of the next env step follow
+        if ext.candidates is not None:  # the goal action's (made by planned_moves above)
+            out[GOALS_KEY][:] = ext.candidates.features
+            out[ACTION_MASK_KEY][:] = ext.candidates.mask
 
-    def _frontier_views(self, state: GridState) -> tuple[np.ndarray, np.ndarray]:
-        """The frontier field of every agent's crop ``(agents, crop, crop)`` uint8 and the
-        frontier compass ``(agents, 5)`` float32 (see the class docstring; compiled:
-        :func:`envs.coverage.teammap_kernels.frontier_views`)."""
-        n, c = state.positions.shape[0], self.crop
-        field = np.zeros((n, c, c), dtype=np.uint8)
-        compass = np.zeros((n, 5), dtype=np.float32)
-        frontier_views(
-            self._free,
-            self._cat,
-            self._wp,
-            state.pad,
-            state.positions,
-            self._frontier_scale,
-            field,
-            compass,
-        )
-        return field, compass
 
-    def _ego(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        """The ego views of all agents (compiled: :func:`envs.coverage.teammap_kernels.
-        ego_views`)."""
-        ego = np.zeros((rows.shape[0], self.EGO_CHANNELS, self.ego_size, self.ego_size), np.uint8)
-        positions = np.stack([rows, cols], axis=1)
-        ego_views(
-            self._cat,
-            self._wp,
-            self.padding,
-            self.height,
-            self.width,
-            positions,
-            self._ego_edges,
-            self.ego_block,
-            ego,
-        )
-        return ego
+# Empty arrays for the views that are off (the compiled call takes every array).
+_NO_CELLS = np.zeros(0, dtype=bool)
+_NONE_2D = np.zeros((0, 5), dtype=np.float32)
+_NONE_3D = np.zeros((4, 0, 0), dtype=np.uint8)
+_NONE_4D = np.zeros((0, 5, 0, 0), dtype=np.uint8)
 
 
 #: Key of the agent's one-hot index in a ``Dict`` observation (``agent_id=True``).
@@ -422,13 +398,15 @@ def agent_id_space(space: spaces.Space, n_agents: int) -> spaces.Space:
 
 
 def add_agent_id(
-    obs: np.ndarray | dict[str, np.ndarray], n_agents: int
+    obs: np.ndarray | dict[str, np.ndarray], n_agents: int, lead: tuple[int, ...] = ()
 ) -> np.ndarray | dict[str, np.ndarray]:
-    """Every agent's observation (agents on the first axis, as :meth:`ObservationBuilder.build`
-    makes them) with its one-hot index added, in the layout of :func:`agent_id_space`."""
+    """Every agent's observation (agents on the first axis after the leading axes ``lead``, as
+    :meth:`ObservationBuilder.build` makes them, or the core for a batch of copies) with its
+    one-hot index added, in the layout of :func:`agent_id_space`."""
     if isinstance(obs, dict):
-        return {**obs, AGENT_ID_KEY: np.eye(n_agents, dtype=np.float32)}
-    eye = np.eye(n_agents, dtype=obs.dtype)  # leading batch axes, if any, get the same one-hot
+        eye = np.eye(n_agents, dtype=np.float32)
+        return {**obs, AGENT_ID_KEY: np.broadcast_to(eye, (*lead, n_agents, n_agents)).copy()}
+    eye = np.eye(n_agents, dtype=obs.dtype)  # leading batch axes get the same one-hot
     return np.concatenate([obs, np.broadcast_to(eye, (*obs.shape[:-2], n_agents, n_agents))], -1)
 
 

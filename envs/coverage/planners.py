@@ -219,6 +219,7 @@ class FrontierPlanner:
         #: Per agent: the padded cell of its target at the last :meth:`act` (-1: none).
         self.goals: list[int] = []
         self._scratch: np.ndarray | None = None
+        self._distances: np.ndarray | None = None
         self._claimed: np.ndarray | None = None
 
     # ------------------------------------------------------------------ map upkeep
@@ -338,6 +339,15 @@ class FrontierPlanner:
         if self._scratch is None or self._scratch.shape[1] != size:
             self._scratch = np.empty((4, size), dtype=np.int64)
         return self._scratch
+
+    def work_arrays(self) -> tuple[np.ndarray, np.ndarray]:
+        """Working arrays for a search after :meth:`act` (the goal action's candidates):
+        ``float64 (agents, cells)`` for distance fields and ``int64 (4, cells)``, made once
+        per map size and team, overwritten by the next search."""
+        n, size = len(self.positions), self.passable.size
+        if self._distances is None or self._distances.shape != (n, size):
+            self._distances = np.empty((n, size))
+        return self._distances, self._scratch_arrays(size)
 
     def _search(self, start: int, claimed: np.ndarray) -> tuple[int, int] | None:
         """Nearest unclaimed target from ``start`` and the first cell of a shortest path to it,

@@ -30,6 +30,9 @@ def frontier_views(
     pad: int,
     positions: np.ndarray,
     scale: float,
+    dist: np.ndarray,
+    queue: np.ndarray,
+    needed: np.ndarray,
     field: np.ndarray,
     compass: np.ndarray,
 ) -> None:
@@ -38,31 +41,31 @@ def frontier_views(
 
     ``d`` is the length of a shortest path through ``free`` cells (flat, padded) to the
     nearest known free cell not yet visited: one multi-source breadth-first search from every
-    such cell, then unknown cells set to infinity (they show nothing). Going through unknown
-    cells never shortens a path (see the builder's docstring), so this is the search through
-    known cells. Compass: the moves (up, down, left, right) that lower ``d`` by one, then
-    ``min(d(agent) * scale, 1)`` (1 when no frontier is reachable). Field: a cell of the crop
-    whose ``d`` and the agent's are finite is ``clip(128 + 16 * (d(agent) - d(cell)), 1, 255)``,
-    others 0.
+    such cell; unknown cells show nothing (their ``d`` counts as infinite). Going through
+    unknown cells never shortens a path (see the builder's docstring), so this is the search
+    through known cells. Compass: the moves (up, down, left, right) that lower ``d`` by one,
+    then ``min(d(agent) * scale, 1)`` (1 when no frontier is reachable). Field: a cell of the
+    crop whose ``d`` and the agent's are finite is ``clip(128 + 16 * (d(agent) - d(cell)), 1,
+    255)``, others 0. ``dist``, ``queue`` (float64, int64) and ``needed`` (bool, all False) are
+    scratch arrays of the grid's size, ``needed`` left all False again.
     """
     n_cells = cat.shape[0]
     n, crop = field.shape[0], field.shape[1]
     for i in range(n):
         compass[i, 4] = 1.0
-    dist = np.full(n_cells, np.inf)
-    queue = np.empty(n_cells, dtype=np.int64)
     tail = 0
     for k in range(n_cells):
         if cat[k] == _KNOWN_FREE:
             dist[k] = 0.0
             queue[tail] = k
             tail += 1
+        else:
+            dist[k] = np.inf
     if tail == 0:  # every known free cell is visited: no frontier left
         return
     moves = np.array([-wp, wp, -1, 1], dtype=np.int64)
     # Only the known free cells of the agents' crops are read: the search stops once all of
     # them have their distance (a breadth-first search never changes a distance it has set).
-    needed = np.zeros(n_cells, dtype=np.bool_)
     remaining = 0
     for i in range(n):
         r, c = positions[i, 0], positions[i, 1]
@@ -87,15 +90,18 @@ def frontier_views(
                 tail += 1
                 if needed[v]:
                     remaining -= 1
-    for k in range(n_cells):
-        if cat[k] == _UNKNOWN:
-            dist[k] = np.inf
     for i in range(n):
         r, c = positions[i, 0], positions[i, 1]
+        for a in range(crop):  # leave the scratch array clean for the next call
+            base = (r + a) * wp + c
+            for b in range(crop):
+                needed[base + b] = False
         centre = (r + pad) * wp + (c + pad)
-        own = dist[centre]
+        own = dist[centre]  # the agent's cell is visited: never unknown
         for j in range(4):
-            compass[i, j] = 1.0 if own - dist[centre + moves[j]] == 1.0 else 0.0
+            v = centre + moves[j]
+            near = dist[v] if cat[v] != _UNKNOWN else np.inf
+            compass[i, j] = 1.0 if own - near == 1.0 else 0.0
         compass[i, 4] = min(own * scale, 1.0)
         if own == np.inf:
             continue
@@ -103,49 +109,60 @@ def frontier_views(
         for a in range(crop):
             base = (r + a) * wp + c
             for b in range(crop):
-                value = dist[base + b]
-                if value != np.inf:
+                k = base + b
+                value = dist[k]
+                if value != np.inf and cat[k] != _UNKNOWN:
                     field[i, a, b] = np.uint8(min(max(128.0 + 16.0 * (own - value), 1.0), 255.0))
 
 
+def ego_counts(height: int, width: int, size: int, block: int) -> np.ndarray:
+    """The ego view's block counts at the start of an episode: ``(4, height + 2 * o, width +
+    2 * o)`` uint8 with ``o = (size // 2) * block``, entry ``[category, o + R, o + C]`` the
+    cells of each category (:data:`_KNOWN_WALL` .. :data:`_UNKNOWN`) in the ``block`` x
+    ``block`` window centred on grid cell ``(R, C)`` (the centre of every ego block any agent
+    position can have). Outside the grid counts as known wall, every cell inside is unknown;
+    :func:`update_known` keeps the counts as cells become known."""
+    o, half = (size // 2) * block, block // 2
+    # Interior indicator on a grid with o + half cells of outside around the map, summed over
+    # every block x block window (a summed-area table).
+    m = o + half
+    inside = np.zeros((height + 2 * m, width + 2 * m), dtype=np.int64)
+    inside[m : m + height, m : m + width] = 1
+    table = np.zeros((inside.shape[0] + 1, inside.shape[1] + 1), dtype=np.int64)
+    table[1:, 1:] = inside.cumsum(0).cumsum(1)
+    unknown = (
+        table[block:, block:] - table[:-block, block:] - table[block:, :-block]
+        + table[:-block, :-block]
+    )  # fmt: skip
+    counts = np.zeros((4, *unknown.shape), dtype=np.uint8)
+    counts[_UNKNOWN] = unknown
+    counts[_KNOWN_WALL] = block * block - unknown
+    return counts
+
+
 @njit(cache=True, nogil=True)
-def ego_views(
-    cat: np.ndarray,
-    wp: int,
-    pad: int,
-    height: int,
-    width: int,
-    positions: np.ndarray,
-    edges: np.ndarray,
-    block: int,
-    ego: np.ndarray,
-) -> None:
+def ego_views(counts: np.ndarray, positions: np.ndarray, block: int, ego: np.ndarray) -> None:
     """The ego views ``(agents, 5, E, E)`` uint8 (zeroed by the caller): E x E blocks of
-    ``block`` x ``block`` cells around each agent (block k spans rows ``r + edges[k]`` ..
-    ``r + edges[k + 1] - 1``), channels ``rint(255 * share)`` of the block's cells visited, known
-    free not visited, unknown and known wall (the part outside the grid counts as wall), then the
-    teammates' blocks (255)."""
+    ``block`` x ``block`` cells around each agent (block ``(bi, bj)`` centred on the agent's
+    cell moved by ``(bi - E // 2, bj - E // 2)`` blocks), channels ``rint(255 * share)`` of the
+    block's cells visited, known free not visited, unknown and known wall (the part outside the
+    grid counts as wall), then the teammates' blocks (255). A block's shares are one read of
+    the ``counts`` kept by :func:`update_known` (:func:`ego_counts`)."""
     n, e = positions.shape[0], ego.shape[2]
-    area = block * block
-    factor = 255 / area
-    counts = np.zeros(4, dtype=np.int64)
+    mid = e // 2
+    offset = mid * block
+    factor = 255 / (block * block)
     for i in range(n):
         r, c = positions[i, 0], positions[i, 1]
         for bi in range(e):
-            r0 = min(max(r + edges[bi], 0), height)
-            r1 = min(max(r + edges[bi + 1], 0), height)
+            row = r + (bi - mid) * block + offset
             for bj in range(e):
-                c0 = min(max(c + edges[bj], 0), width)
-                c1 = min(max(c + edges[bj + 1], 0), width)
-                counts[:] = 0
-                for rr in range(r0, r1):
-                    base = (rr + pad) * wp + pad
-                    for cc in range(c0, c1):
-                        counts[cat[base + cc]] += 1
-                counts[_KNOWN_WALL] += area - (r1 - r0) * (c1 - c0)
+                col = c + (bj - mid) * block + offset
                 for ch in range(4):
-                    ego[i, ch, bi, bj] = np.uint8(np.rint(counts[_SHARE_ORDER[ch]] * factor))
-        half, mid = block // 2, e // 2
+                    ego[i, ch, bi, bj] = np.uint8(
+                        np.rint(counts[_SHARE_ORDER[ch], row, col] * factor)
+                    )
+        half = block // 2
         for j in range(n):
             if j != i:
                 br = (positions[j, 0] - r + half) // block + mid
@@ -165,13 +182,20 @@ def update_known(
     block_of: np.ndarray,
     block_cells: np.ndarray,
     shares: np.ndarray,
+    ego: np.ndarray,
+    ego_offset: int,
+    ego_block: int,
 ) -> None:
     """Make the agents' 3x3 windows known: each cell of a window whose category changed (from
     ``cells`` ``(Hp, Wp)``: wall, unvisited free, visited) gets its new category in ``cat`` and
     in the 0/255 ``planes`` ``(4, Hp * Wp)``, moves between the category counts of its global
     block (``counts`` ``(G * G, 4)``), and the block's share channels ``shares`` ``(4, G * G)``
-    become ``rint(255 * count / cells of the block)`` again."""
+    become ``rint(255 * count / cells of the block)`` again. With the ego view, the cell also
+    moves between the counts of the ego blocks around it (``ego``, :func:`ego_counts`, whose
+    ``ego_offset`` is ``(E // 2) * ego_block``; an empty array without the view)."""
     wp = cells.shape[1]
+    with_ego = ego.shape[1] > 0
+    half = ego_block // 2
     for i in range(positions.shape[0]):
         r, c = positions[i, 0] + pad, positions[i, 1] + pad
         for dr in range(-1, 2):
@@ -198,6 +222,13 @@ def update_known(
                 n = max(block_cells[b], 1)
                 for ch in range(4):
                     shares[ch, b] = np.uint8(np.rint(255.0 * (counts[b, _SHARE_ORDER[ch]] / n)))
+                if with_ego:  # every ego block centre within half a block of the cell
+                    row0 = r + dr - pad + ego_offset - half
+                    col0 = c + dc - pad + ego_offset - half
+                    for rr in range(row0, row0 + ego_block):
+                        for cc in range(col0, col0 + ego_block):
+                            ego[old, rr, cc] -= 1
+                            ego[new, rr, cc] += 1
 
 
 @njit(cache=True, nogil=True)
@@ -248,3 +279,58 @@ def crop_and_block_views(
         for j in range(n):
             if j != i or count[own[i]] > 1:
                 glob[i, 5, own[j]] = 255
+
+
+@njit(cache=True, nogil=True)
+def teammap_views(
+    cells: np.ndarray,
+    pad: int,
+    positions: np.ndarray,
+    time: float,
+    cat: np.ndarray,
+    planes: np.ndarray,
+    counts: np.ndarray,
+    block_of: np.ndarray,
+    block_cells: np.ndarray,
+    shares: np.ndarray,
+    row_block: np.ndarray,
+    col_block: np.ndarray,
+    g: int,
+    scale: np.ndarray,
+    free: np.ndarray,
+    frontier_scale: float,
+    dist: np.ndarray,
+    queue: np.ndarray,
+    needed: np.ndarray,
+    ego_counts: np.ndarray,
+    ego_offset: int,
+    ego_block: int,
+    local: np.ndarray,
+    glob: np.ndarray,
+    ego: np.ndarray,
+    vector: np.ndarray,
+    compass: np.ndarray,
+) -> None:
+    """One step of the team-map observation of one copy, in one call: :func:`update_known`,
+    then every agent's views into the zeroed outputs: ``local`` ``(agents, channels, crop,
+    crop)`` and ``glob`` ``(agents, 6, G * G)`` (:func:`crop_and_block_views`), the frontier
+    field (``local``'s last channel) and ``compass`` when ``free`` is not empty
+    (:func:`frontier_views`), ``ego`` when ``ego_counts`` is not empty (:func:`ego_views`), and
+    ``vector`` ``(agents, 3)``: row and column times ``scale``, then ``time``."""
+    update_known(
+        cells, pad, positions, cat, planes, counts, block_of, block_cells, shares,
+        ego_counts, ego_offset, ego_block,
+    )  # fmt: skip
+    wp, crop = cells.shape[1], local.shape[2]
+    crop_and_block_views(planes, wp, positions, crop, shares, row_block, col_block, g, local, glob)
+    if free.shape[0] > 0:
+        frontier_views(
+            free, cat, wp, pad, positions, frontier_scale, dist, queue, needed,
+            local[:, local.shape[1] - 1], compass,
+        )  # fmt: skip
+    if ego_counts.shape[1] > 0:
+        ego_views(ego_counts, positions, ego_block, ego)
+    for i in range(positions.shape[0]):
+        vector[i, 0] = positions[i, 0] * scale[0]
+        vector[i, 1] = positions[i, 1] * scale[1]
+        vector[i, 2] = time

@@ -263,12 +263,9 @@ class Frontier:
         """Each agent's move by the planner on the team's map of ``state`` (needs a planner)."""
         assert self.planner is not None
         interior = state.interior
-        self.planner.sync(
-            state.steps,
-            state.positions,
-            lambda: (interior == CELL_WALL, interior == CELL_VISITED),
+        moves = self.planner.step(
+            state.steps, state.positions, lambda: (interior == CELL_WALL, interior == CELL_VISITED)
         )
-        moves = self.planner.act()
         if self.goal is not None:
             self.candidates = gather_candidates(
                 self.planner, moves, self.goal.k, self.height, self.width

@@ -79,13 +79,15 @@ def nearest_targets(
     Writes the targets of the nearest distance layer that holds any, in the order the search
     discovers them, to ``ties`` and the first cell of each one's path (the search tree's) to
     ``firsts``, and returns how many; with ``all_ties`` False it stops at the first (the
-    classical explorer's choice). ``first`` and ``queue`` are scratch arrays of the grid's size.
+    classical explorer's choice). ``first`` and ``queue`` are scratch arrays of the grid's size;
+    ``first`` comes in all -1 and is left so (only the cells the search reached are reset: the
+    nearest target is mostly a few steps away, the grid thousands of cells).
     """
-    first[:] = -1
     first[start] = start
     queue[0] = start
     head, tail, layer_end, count = 0, 1, 1, 0
-    while head < tail:
+    done = False
+    while head < tail and not done:
         c = queue[head]
         head += 1
         f = first[c]
@@ -93,18 +95,21 @@ def nearest_targets(
             m = c + d
             if passable[m] and first[m] < 0:
                 first[m] = m if c == start else f
+                queue[tail] = m
+                tail += 1
                 if target[m] and not claimed[m]:
                     ties[count] = m
                     firsts[count] = first[m]
                     count += 1
                     if not all_ties:
-                        return count
-                queue[tail] = m
-                tail += 1
+                        done = True
+                        break
         if head == layer_end:  # a distance layer is complete
             if count > 0:
-                return count
+                done = True
             layer_end = tail
+    for j in range(tail):
+        first[queue[j]] = -1
     return count
 
 
@@ -150,21 +155,26 @@ def _plan(
     offsets: np.ndarray,
     pocket: bool,
     claimed: np.ndarray,
-    first: np.ndarray,
-    queue: np.ndarray,
-    ties: np.ndarray,
-    firsts: np.ndarray,
+    n_targets: int,
+    scratch: np.ndarray,
     goals: np.ndarray,
     actions: np.ndarray,
 ) -> None:
     """The frontier explorer's step for every agent (tie-break ``order``, or ``pocket``):
     targets claimed in agent index order, each agent's nearest unclaimed target (``goals``, -1
-    for none) and its first move (``actions``). ``claimed`` comes in all False and is left so."""
+    for none) and its first move (``actions``). ``claimed`` comes in all False and is left so;
+    ``n_targets`` is the number of targets (once every one is claimed, the agents left stay
+    without a search); ``scratch`` ``(4, cells)`` int64, its first row all -1
+    (:func:`nearest_targets`)."""
     stride = offsets[3]
+    first, queue, ties, firsts = scratch[0], scratch[1], scratch[2], scratch[3]
     for i in range(starts.size):
         start = starts[i]
-        n = nearest_targets(passable, target, claimed, start, offsets, pocket, first, queue,
-                            ties, firsts)  # fmt: skip
+        # Once every target is claimed (each agent before claimed at most one), none is left.
+        n = 0
+        if i < n_targets:
+            n = nearest_targets(passable, target, claimed, start, offsets, pocket, first, queue,
+                                ties, firsts)  # fmt: skip
         if n == 0:
             goals[i], actions[i] = -1, STAY
             continue
@@ -188,6 +198,43 @@ def _plan(
             claimed[goals[i]] = False
 
 
+@njit(cache=True, nogil=True)
+def _sync_and_plan(
+    positions: np.ndarray,
+    window: np.ndarray,
+    free: np.ndarray,
+    visited: np.ndarray,
+    seen: np.ndarray,
+    passable: np.ndarray,
+    target: np.ndarray,
+    n_targets: int,
+    offsets: np.ndarray,
+    pocket: bool,
+    claimed: np.ndarray,
+    scratch: np.ndarray,
+    starts: np.ndarray,
+    goals: np.ndarray,
+    actions: np.ndarray,
+) -> int:
+    """One step of :class:`FrontierPlanner` (``order`` or ``pocket``) in one call: the agents'
+    padded cells (``starts``) from ``positions`` ``(agents, 2)``, the map brought up to date
+    (:func:`_visit_cells`) and, while targets are left, the moves (:func:`_plan`; else every
+    agent stays with no goal). Returns the number of targets now."""
+    stride = offsets[3]
+    for i in range(starts.size):
+        starts[i] = (positions[i, 0] + 1) * stride + positions[i, 1] + 1
+    n_targets += _visit_cells(starts, window, free, visited, seen, passable, target)
+    if n_targets == 0:
+        goals[:] = -1
+        actions[:] = STAY
+        return n_targets
+    _plan(
+        passable, target, seen, starts, offsets, pocket, claimed, n_targets, scratch,
+        goals, actions,
+    )  # fmt: skip
+    return n_targets
+
+
 class FrontierPlanner:
     """The frontier explorer's team map of one episode, on a flat grid padded with one ring of
     wall, and its moves (see the module docstring).
@@ -200,6 +247,10 @@ class FrontierPlanner:
     is kept up to date and searched by compiled functions (:func:`_visit_cells`,
     :func:`_plan`), one call each per step.
     """
+
+    #: Whether :meth:`step` may run the explorer's own step in one compiled call (a subclass
+    #: that plans otherwise, in :meth:`act`, sets it False).
+    _compiled_step = True
 
     def __init__(self, height: int, width: int, tie_break: str = "order") -> None:
         if tie_break not in TIE_BREAKS:
@@ -297,12 +348,11 @@ class FrontierPlanner:
             self._claimed = np.zeros(size, dtype=np.bool_)
         if self.tie_break != "random":  # no generator: the whole step in one compiled call
             goals, actions_np = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
-            first, queue, ties, firsts = self._scratch_arrays(size)
             _plan(
                 self.passable, self.target, self.seen,
                 np.asarray(self.positions, dtype=np.int64), self.offsets,
-                self.tie_break == "pocket", self._claimed, first, queue, ties, firsts,
-                goals, actions_np,
+                self.tie_break == "pocket", self._claimed, self.n_targets,
+                self._scratch_arrays(size), goals, actions_np,
             )  # fmt: skip
             self.goals = goals.tolist()
             return actions_np.tolist()
@@ -318,6 +368,34 @@ class FrontierPlanner:
             self.goals[i] = goal
             actions.append(move_towards(step, start, self.stride))
         return actions
+
+    def step(
+        self,
+        steps: int,
+        positions: np.ndarray,
+        read_map: Callable[[], tuple[np.ndarray, np.ndarray]],
+        rng: np.random.Generator | None = None,
+    ) -> list[int]:
+        """:meth:`sync` then :meth:`act`: one action per agent. The ``order`` and ``pocket``
+        explorers do both in one compiled call (:func:`_sync_and_plan`) on the steps that only
+        bring the map up to date."""
+        incremental = steps != 0 and self.steps <= steps <= self.steps + 1
+        if not (incremental and self._compiled_step and self.tie_break != "random"):
+            self.sync(steps, positions, read_map)
+            return self.act(rng)
+        n = positions.shape[0]
+        starts, goals, actions = np.empty((3, n), dtype=np.int64)
+        size = self.passable.size
+        if self._claimed is None or self._claimed.size != size:
+            self._claimed = np.zeros(size, dtype=np.bool_)
+        self.n_targets = _sync_and_plan(
+            positions, self.window, self.free, self.visited, self.seen, self.passable,
+            self.target, self.n_targets, self.offsets, self.tie_break == "pocket",
+            self._claimed, self._scratch_arrays(size), starts, goals, actions,
+        )  # fmt: skip
+        self.steps, self.rng = steps, rng
+        self.positions, self.goals = starts.tolist(), goals.tolist()
+        return actions.tolist()
 
     def distance_fields(self, predecessors: bool = True) -> tuple[np.ndarray, np.ndarray | None]:
         """Every agent's shortest path lengths through the seen free cells to every padded cell
@@ -338,16 +416,17 @@ class FrontierPlanner:
         """The searches' working arrays (4, cells), made once per map size."""
         if self._scratch is None or self._scratch.shape[1] != size:
             self._scratch = np.empty((4, size), dtype=np.int64)
+            self._scratch[0] = -1  # the searches' ``first`` (nearest_targets keeps it so)
         return self._scratch
 
     def work_arrays(self) -> tuple[np.ndarray, np.ndarray]:
         """Working arrays for a search after :meth:`act` (the goal action's candidates):
-        ``float64 (agents, cells)`` for distance fields and ``int64 (4, cells)``, made once
+        ``float64 (agents, cells)`` for distance fields and ``int64 (3, cells)``, made once
         per map size and team, overwritten by the next search."""
         n, size = len(self.positions), self.passable.size
         if self._distances is None or self._distances.shape != (n, size):
             self._distances = np.empty((n, size))
-        return self._distances, self._scratch_arrays(size)
+        return self._distances, self._scratch_arrays(size)[1:4]
 
     def _search(self, start: int, claimed: np.ndarray) -> tuple[int, int] | None:
         """Nearest unclaimed target from ``start`` and the first cell of a shortest path to it,
@@ -403,6 +482,8 @@ class CoordinatedPlanner(FrontierPlanner):
         candidates: One of :data:`CANDIDATES`.
         horizon: Path length the distance fields reach (``None``: the whole map).
     """
+
+    _compiled_step = False  # plans in act(), from the team's distance fields
 
     def __init__(
         self, height: int, width: int, candidates: str = "all", horizon: int | None = 15

@@ -217,6 +217,6 @@ class FrontierPolicy:
             team = self._maps.get(env)
             if team is None or team.shape != (env.height, env.width):
                 team = self._maps[env] = self._make(env.height, env.width)
-            team.sync(env.steps, env.positions, lambda env=env: (env.walls, env.visited))
-            actions.extend(team.act(env.np_random))
+            read_map = lambda env=env: (env.walls, env.visited)  # noqa: E731
+            actions.extend(team.step(env.steps, env.positions, read_map, env.np_random))
         return np.asarray(actions, dtype=np.int64)

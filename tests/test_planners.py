@@ -196,3 +196,32 @@ def test_a_planner_reused_over_episodes_plays_each_as_a_fresh_one(name: str) -> 
     ]
     assert [r.new_cells for r in reused] == [r.new_cells for r in fresh]
     assert min(r.coverage for r in reused) > 0.9
+
+
+@pytest.mark.parametrize(
+    "make",
+    [
+        lambda h, w: FrontierPlanner(h, w, "order"),
+        lambda h, w: FrontierPlanner(h, w, "pocket"),
+        *(lambda h, w, c=c: c(h, w) for c in COORDINATED.values()),
+        lambda h, w: UtilityPlanner(h, w, horizon=None, beta=0.5, radius=2.0),
+        lambda h, w: MinPosPlanner(h, w, candidates="clusters"),
+    ],
+    ids=["order", "pocket", *COORDINATED, "utility-whole-map", "minpos-clusters"],
+)
+def test_the_one_call_step_plays_as_sync_then_act(make) -> None:
+    # step() runs a planner's whole step in one compiled call where it can; it must choose
+    # every goal and move as sync() followed by act() does, over whole episodes.
+    from envs import coverage_v0
+
+    env = coverage_v0.parallel_env(height=15, width=18, n_agents=4, max_steps=300)
+    for seed in (0, 1):
+        env.reset(seed=seed)
+        fused, plain = make(15, 18), make(15, 18)
+        while env.agents:
+            read = lambda: (env.walls, env.visited)  # noqa: E731
+            moves = fused.step(env.steps, env.positions, read)
+            plain.sync(env.steps, env.positions, read)
+            assert moves == plain.act(), f"seed {seed}, step {env.steps}"
+            assert fused.goals == plain.goals and fused.n_targets == plain.n_targets
+            env.step(dict(zip(env.possible_agents, moves)))

@@ -248,10 +248,6 @@ class FrontierPlanner:
     :func:`_plan`), one call each per step.
     """
 
-    #: Whether :meth:`step` may run the explorer's own step in one compiled call (a subclass
-    #: that plans otherwise, in :meth:`act`, sets it False).
-    _compiled_step = True
-
     def __init__(self, height: int, width: int, tie_break: str = "order") -> None:
         if tie_break not in TIE_BREAKS:
             raise ValueError(f"unknown tie_break {tie_break!r}; known: {', '.join(TIE_BREAKS)}")
@@ -380,7 +376,7 @@ class FrontierPlanner:
         explorers do both in one compiled call (:func:`_sync_and_plan`) on the steps that only
         bring the map up to date."""
         incremental = steps != 0 and self.steps <= steps <= self.steps + 1
-        if not (incremental and self._compiled_step and self.tie_break != "random"):
+        if not (incremental and self.tie_break != "random"):
             self.sync(steps, positions, read_map)
             return self.act(rng)
         n = positions.shape[0]
@@ -483,8 +479,6 @@ class CoordinatedPlanner(FrontierPlanner):
         horizon: Path length the distance fields reach (``None``: the whole map).
     """
 
-    _compiled_step = False  # plans in act(), from the team's distance fields
-
     def __init__(
         self, height: int, width: int, candidates: str = "all", horizon: int | None = 15
     ) -> None:
@@ -495,6 +489,43 @@ class CoordinatedPlanner(FrontierPlanner):
             raise ValueError(f"horizon must be >= 1 or None, got {horizon!r}")
         self.candidates, self.horizon = candidates, horizon
 
+    #: The compiled assignment of :func:`_coordinated_step` (:data:`_MINPOS`,
+    #: :data:`_UTILITY`), or ``None``: :meth:`assign` in Python, after the compiled costs.
+    _compiled_assign: int | None = None
+
+    def step(
+        self,
+        steps: int,
+        positions: np.ndarray,
+        read_map: Callable[[], tuple[np.ndarray, np.ndarray]],
+        rng: np.random.Generator | None = None,
+    ) -> list[int]:
+        """:meth:`sync` then :meth:`act`; with every known unvisited cell a candidate and a
+        compiled assignment, both in one compiled call (:func:`_coordinated_step`) on the steps
+        that only bring the map up to date."""
+        incremental = steps != 0 and self.steps <= steps <= self.steps + 1
+        kind = self._compiled_assign
+        if not (incremental and kind is not None and self.candidates == "all"):
+            self.sync(steps, positions, read_map)
+            return self.act(rng)
+        n = positions.shape[0]
+        starts, goals, actions = np.empty((3, n), dtype=np.int64)
+        size = self.passable.size
+        if self._distances is None or self._distances.shape != (n, size):
+            self._distances = np.empty((n, size))
+        beta, radius = getattr(self, "beta", 0.0), getattr(self, "radius", 1.0)
+        self.n_targets = _coordinated_step(
+            positions, self.window, self.free, self.visited, self.seen, self.passable,
+            self.target, self.n_targets, self.stride, self._horizon(), self._distances,
+            self._scratch_arrays(size)[1], kind, beta, radius, starts, goals, actions,
+        )  # fmt: skip
+        self.steps, self.rng = steps, rng
+        self.positions, self.goals = starts.tolist(), goals.tolist()
+        return actions.tolist()
+
+    def _horizon(self) -> float:
+        return np.inf if self.horizon is None else float(self.horizon)
+
     def act(self, rng: np.random.Generator | None = None) -> list[int]:
         """One action per agent (``rng`` is unused: the choice is deterministic)."""
         n = len(self.positions)
@@ -504,9 +535,8 @@ class CoordinatedPlanner(FrontierPlanner):
         starts = np.asarray(self.positions, dtype=np.int64)
         size = self.passable.size
         dist = np.empty((n, size))
-        horizon = np.inf if self.horizon is None else float(self.horizon)
         cells, costs = _target_costs(
-            self.passable, self.target, self.stride, starts, horizon, dist,
+            self.passable, self.target, self.stride, starts, self._horizon(), dist,
             self._scratch_arrays(size)[1],
         )  # fmt: skip
         cost, goal_cells = self._candidate_costs(costs, cells)
@@ -562,6 +592,8 @@ class MinPosPlanner(CoordinatedPlanner):
     planners, candidates are claimed in agent index order: an agent skips a candidate a
     lower-index teammate chose this step."""
 
+    _compiled_assign = 0  # _MINPOS
+
     def assign(self, cost: np.ndarray, goal_cells: np.ndarray) -> list[int]:
         return _minpos_choices(cost).tolist()
 
@@ -592,6 +624,8 @@ class UtilityPlanner(CoordinatedPlanner):
         if not beta >= 0 or not radius > 0:
             raise ValueError(f"beta must be >= 0 and radius > 0, got {beta} and {radius}")
         self.beta, self.radius = float(beta), float(radius)
+
+    _compiled_assign = 1  # _UTILITY
 
     def assign(self, cost: np.ndarray, goal_cells: np.ndarray) -> list[int]:
         # Where each candidate would be reached by each agent: the visibility is between those
@@ -718,3 +752,55 @@ def _utility_choices(
             if d2 < reach:
                 utility[c] -= 1.0 - np.sqrt(d2) / radius
     return chosen
+
+
+#: The assignments :func:`_coordinated_step` runs compiled.
+_MINPOS, _UTILITY = 0, 1
+
+
+@njit(cache=True, nogil=True)
+def _coordinated_step(
+    positions: np.ndarray,
+    window: np.ndarray,
+    free: np.ndarray,
+    visited: np.ndarray,
+    seen: np.ndarray,
+    passable: np.ndarray,
+    target: np.ndarray,
+    n_targets: int,
+    stride: int,
+    horizon: float,
+    dist: np.ndarray,
+    queue: np.ndarray,
+    kind: int,
+    beta: float,
+    radius: float,
+    starts: np.ndarray,
+    goals: np.ndarray,
+    actions: np.ndarray,
+) -> int:
+    """One step of a coordinated planner with every known unvisited cell a candidate and a
+    compiled assignment (``kind``: :data:`_MINPOS` or :data:`_UTILITY` with ``beta`` and
+    ``radius``), in one call: the map brought up to date (:func:`_visit_cells`), the costs
+    (:func:`_target_costs`), the assignment and the first moves (:func:`_first_moves`), as
+    :meth:`CoordinatedPlanner.act` does them one call after another. Returns the number of
+    targets now."""
+    for i in range(starts.size):
+        starts[i] = (positions[i, 0] + 1) * stride + positions[i, 1] + 1
+    n_targets += _visit_cells(starts, window, free, visited, seen, passable, target)
+    goals[:] = -1
+    actions[:] = STAY
+    if n_targets == 0:
+        return n_targets
+    cells, costs = _target_costs(passable, target, stride, starts, horizon, dist, queue)
+    goal_cells = np.empty(costs.shape, dtype=np.int64)
+    for i in range(starts.size):
+        goal_cells[i] = cells
+    if kind == _MINPOS:
+        chosen = _minpos_choices(costs)
+    else:
+        chosen = _utility_choices(costs, goal_cells // stride, goal_cells % stride, beta, radius)
+    g, a = _first_moves(dist, starts, costs, goal_cells, chosen, stride)
+    goals[:] = g
+    actions[:] = a
+    return n_targets

@@ -316,7 +316,7 @@ class TeamMapObservation(ObservationBuilder):
             self._free, self._needed = _NO_CELLS, _NO_CELLS
             self._dist, self._queue = _NO_CELLS.astype(np.float64), _NO_CELLS.astype(np.int64)
         if self.ego_size:
-            self._ego_counts = ego_counts(self.height, self.width, self.ego_size, self.ego_block)
+            self._ego_counts = ego_counts(self.height, self.width, self.ego_block)
         else:
             self._ego_counts = _NONE_3D
 
@@ -348,7 +348,7 @@ class TeamMapObservation(ObservationBuilder):
             self._cat, self._planes, self._counts, self._block_of, self._block_cells,
             self._shares, self._row_block, self._col_block, self.global_size, self._scale3,
             self._free, self._frontier_scale, self._dist, self._queue, self._needed,
-            self._ego_counts, (self.ego_size // 2) * self.ego_block, self.ego_block,
+            self._ego_counts, self.ego_block,
             out["local"], glob, out.get("ego", _NONE_4D), out["vector"], compass,
         )  # fmt: skip
         ext = self._frontier_ext

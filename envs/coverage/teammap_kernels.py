@@ -115,17 +115,17 @@ def frontier_views(
                     field[i, a, b] = np.uint8(min(max(128.0 + 16.0 * (own - value), 1.0), 255.0))
 
 
-def ego_counts(height: int, width: int, size: int, block: int) -> np.ndarray:
-    """The ego view's block counts at the start of an episode: ``(4, height + 2 * o, width +
-    2 * o)`` uint8 with ``o = (size // 2) * block``, entry ``[category, o + R, o + C]`` the
-    cells of each category (:data:`_KNOWN_WALL` .. :data:`_UNKNOWN`) in the ``block`` x
-    ``block`` window centred on grid cell ``(R, C)`` (the centre of every ego block any agent
-    position can have). Outside the grid counts as known wall, every cell inside is unknown;
+def ego_counts(height: int, width: int, block: int) -> np.ndarray:
+    """The ego view's block counts at the start of an episode: ``(4, height + 2 * h, width +
+    2 * h)`` uint8 with ``h = block // 2``, entry ``[category, h + R, h + C]`` the cells of
+    each category (:data:`_KNOWN_WALL` .. :data:`_UNKNOWN`) in the ``block`` x ``block`` window
+    centred on cell ``(R, C)``, for every centre whose window reaches the grid (a window that
+    does not is all wall). Outside the grid counts as known wall, every cell inside is unknown;
     :func:`update_known` keeps the counts as cells become known."""
-    o, half = (size // 2) * block, block // 2
-    # Interior indicator on a grid with o + half cells of outside around the map, summed over
-    # every block x block window (a summed-area table).
-    m = o + half
+    half = block // 2
+    # Interior indicator with 2 * half cells of outside around the map, summed over every
+    # block x block window (a summed-area table).
+    m = 2 * half
     inside = np.zeros((height + 2 * m, width + 2 * m), dtype=np.int64)
     inside[m : m + height, m : m + width] = 1
     table = np.zeros((inside.shape[0] + 1, inside.shape[1] + 1), dtype=np.int64)
@@ -147,22 +147,25 @@ def ego_views(counts: np.ndarray, positions: np.ndarray, block: int, ego: np.nda
     cell moved by ``(bi - E // 2, bj - E // 2)`` blocks), channels ``rint(255 * share)`` of the
     block's cells visited, known free not visited, unknown and known wall (the part outside the
     grid counts as wall), then the teammates' blocks (255). A block's shares are one read of
-    the ``counts`` kept by :func:`update_known` (:func:`ego_counts`)."""
+    the ``counts`` kept by :func:`update_known` (:func:`ego_counts`), or all wall for a block
+    wholly outside the grid."""
     n, e = positions.shape[0], ego.shape[2]
-    mid = e // 2
-    offset = mid * block
+    mid, half = e // 2, block // 2
+    rows, cols = counts.shape[1], counts.shape[2]
     factor = 255 / (block * block)
     for i in range(n):
         r, c = positions[i, 0], positions[i, 1]
         for bi in range(e):
-            row = r + (bi - mid) * block + offset
+            row = r + (bi - mid) * block + half
             for bj in range(e):
-                col = c + (bj - mid) * block + offset
-                for ch in range(4):
-                    ego[i, ch, bi, bj] = np.uint8(
-                        np.rint(counts[_SHARE_ORDER[ch], row, col] * factor)
-                    )
-        half = block // 2
+                col = c + (bj - mid) * block + half
+                if 0 <= row < rows and 0 <= col < cols:
+                    for ch in range(4):
+                        ego[i, ch, bi, bj] = np.uint8(
+                            np.rint(counts[_SHARE_ORDER[ch], row, col] * factor)
+                        )
+                else:
+                    ego[i, 3, bi, bj] = 255  # channel 3 is the wall share
         for j in range(n):
             if j != i:
                 br = (positions[j, 0] - r + half) // block + mid
@@ -183,7 +186,6 @@ def update_known(
     block_cells: np.ndarray,
     shares: np.ndarray,
     ego: np.ndarray,
-    ego_offset: int,
     ego_block: int,
 ) -> None:
     """Make the agents' 3x3 windows known: each cell of a window whose category changed (from
@@ -191,11 +193,10 @@ def update_known(
     in the 0/255 ``planes`` ``(4, Hp * Wp)``, moves between the category counts of its global
     block (``counts`` ``(G * G, 4)``), and the block's share channels ``shares`` ``(4, G * G)``
     become ``rint(255 * count / cells of the block)`` again. With the ego view, the cell also
-    moves between the counts of the ego blocks around it (``ego``, :func:`ego_counts`, whose
-    ``ego_offset`` is ``(E // 2) * ego_block``; an empty array without the view)."""
+    moves between the counts of the ego blocks around it (``ego``, :func:`ego_counts`; an
+    empty array without the view)."""
     wp = cells.shape[1]
     with_ego = ego.shape[1] > 0
-    half = ego_block // 2
     for i in range(positions.shape[0]):
         r, c = positions[i, 0] + pad, positions[i, 1] + pad
         for dr in range(-1, 2):
@@ -223,8 +224,8 @@ def update_known(
                 for ch in range(4):
                     shares[ch, b] = np.uint8(np.rint(255.0 * (counts[b, _SHARE_ORDER[ch]] / n)))
                 if with_ego:  # every ego block centre within half a block of the cell
-                    row0 = r + dr - pad + ego_offset - half
-                    col0 = c + dc - pad + ego_offset - half
+                    row0 = r + dr - pad  # its grid row: centres row0 - half .. row0 + half
+                    col0 = c + dc - pad
                     for rr in range(row0, row0 + ego_block):
                         for cc in range(col0, col0 + ego_block):
                             ego[old, rr, cc] -= 1
@@ -303,7 +304,6 @@ def teammap_views(
     queue: np.ndarray,
     needed: np.ndarray,
     ego_counts: np.ndarray,
-    ego_offset: int,
     ego_block: int,
     local: np.ndarray,
     glob: np.ndarray,
@@ -319,7 +319,7 @@ def teammap_views(
     ``vector`` ``(agents, 3)``: row and column times ``scale``, then ``time``."""
     update_known(
         cells, pad, positions, cat, planes, counts, block_of, block_cells, shares,
-        ego_counts, ego_offset, ego_block,
+        ego_counts, ego_block,
     )  # fmt: skip
     wp, crop = cells.shape[1], local.shape[2]
     crop_and_block_views(planes, wp, positions, crop, shares, row_block, col_block, g, local, glob)

@@ -52,7 +52,12 @@ from harness.results.rundir import (
     rewind_logs,
 )
 from harness.sb3.buffers import PrioritizedDictReplayBuffer, PrioritizedReplayBuffer
-from harness.sb3.dqn import DoubleDQN, NonFiniteLossError, resolve_optimizer_class
+from harness.sb3.dqn import (
+    DoubleDQN,
+    NonFiniteLossError,
+    OldModelError,
+    resolve_optimizer_class,
+)
 from harness.sb3.schedules import PhaseLinearSchedule
 from harness.training.adapters import make_vec_env
 from harness.training.callbacks import (
@@ -722,6 +727,8 @@ def load_resume_point(checkpoint: Path, config: ExperimentConfig) -> ResumePoint
     rng = read_rng(checkpoint)
     try:
         model = DoubleDQN.load(files.model, device=config.algo.device)
+    except OldModelError as exc:  # its own line: it names the command that migrates the model
+        raise CheckpointError(str(exc)) from None
     except Exception as exc:  # SB3 raises many kinds on a damaged zip
         raise CheckpointError(f"{files.model}: unreadable ({exc})") from None
     check_replay_buffer(checkpoint)  # a flipped byte could load as NaN observations

@@ -21,6 +21,7 @@ from stable_baselines3.dqn.policies import DQNPolicy
 from torch.nn import functional as F
 
 from harness.sb3.buffers import PrioritizedReplayBuffer
+from harness.sb3.device_replay import DevicePrioritizedReplayBuffer
 from harness.sb3.policies import ACTION_MASK_KEY, MultiInputPolicy, PerAgentQNetwork
 from harness.sb3.registry import POLICIES
 from harness.sb3.targets import double_q_target, large_margin_loss, max_q_target
@@ -523,9 +524,11 @@ class DoubleDQN(DQN):
         Each gradient step is :meth:`_gradient_step`, built from the hooks :meth:`_td_target`,
         :meth:`_loss_terms` and :meth:`_weighted_loss`. The losses, the TD-error means and the
         imitation statistics stay on the device (:class:`StepStats`) and are read once, at the end
-        of the call, where the non-finite check runs too; with prioritized replay the new
-        priorities go to the host buffer after every step (its next sample needs them), and a
-        non-finite one stops the call there.
+        of the call, where the non-finite check runs too. With prioritized replay each step's
+        new priorities are written before the next sample: on the device with
+        :class:`~harness.sb3.device_replay.DevicePrioritizedReplayBuffer` (the call then reads
+        the device once), or copied to the host buffer after every step, where a non-finite one
+        stops the call at once.
 
         With a per-agent policy (:attr:`agent_sets` = N > 1) each gradient step samples
         ``N * batch_size`` transitions, ``batch_size`` per agent's set on average (see
@@ -540,6 +543,7 @@ class DoubleDQN(DQN):
         buffer = self.replay_buffer
         assert buffer is not None
         prioritized = isinstance(buffer, PrioritizedReplayBuffer)
+        on_device = isinstance(buffer, DevicePrioritizedReplayBuffer)
 
         stats = StepStats()
         for step in range(gradient_steps):
@@ -547,9 +551,13 @@ class DoubleDQN(DQN):
             loss, abs_td = self._gradient_step(replay_data, stats)
             stats.add("loss", loss)
             stats.add("td_error", abs_td.mean())
-            if prioritized:
-                # Errors from before this step's update, as in Schaul et al. (Algorithm 1). The
-                # buffer lives on the host and its next sample needs them: one transfer a step.
+            if on_device:
+                # Errors from before this step's update, as in Schaul et al. (Algorithm 1),
+                # written where the buffer is: nothing is read (a non-finite one makes this
+                # step's loss non-finite, which the call's one read below reports).
+                buffer.update_priorities(replay_data.indices, abs_td)  # type: ignore[union-attr]
+            elif prioritized:
+                # The same, for the host buffer: its next sample needs them, one transfer a step.
                 priorities = _to_host(abs_td)
                 if not np.isfinite(priorities).all():
                     self._check_finite(stats.read())  # raises, naming the loss when it is bad

@@ -99,11 +99,12 @@ def n_step_returns_on_device(
     first = ends.to(th.uint8).argmax(dim=1)
     first_end = th.where(ends.any(dim=1), first, n_steps - 1)
     inside = steps[None, :] <= first_end[:, None]
-    powers = th.pow(th.tensor(gamma, dtype=th.float64, device=rows.device), steps)
+    # gamma as a Python number: a tensor made from it would be a copy to the device.
+    powers = gamma ** steps.to(th.float64)
     returns = (rewards[seq_rows, column] * powers * inside).sum(dim=1)
     last = seq_rows[th.arange(len(rows), device=rows.device), first_end]
     terminal = dones[last, envs] * (1 - timeouts[last, envs])
-    discounts = th.pow(th.tensor(gamma, dtype=th.float64, device=rows.device), first_end + 1)
+    discounts = gamma ** (first_end + 1).to(th.float64)
     return returns.float(), discounts.float(), last, terminal.float()
 
 

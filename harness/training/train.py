@@ -51,7 +51,8 @@ from harness.results.rundir import (
     atomic_write_text,
     rewind_logs,
 )
-from harness.sb3.buffers import PrioritizedDictReplayBuffer, PrioritizedReplayBuffer
+from harness.sb3.buffers import PrioritizedReplayBuffer
+from harness.sb3.device_replay import prioritized_buffer_class
 from harness.sb3.dqn import (
     DoubleDQN,
     NonFiniteLossError,
@@ -116,7 +117,8 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
             "gamma": algo.gamma,
         }
         dict_obs = isinstance(venv.observation_space, spaces.Dict)
-        buffer_class = PrioritizedDictReplayBuffer if dict_obs else PrioritizedReplayBuffer
+        # On an accelerator the buffer lives there too (no host round trip per gradient step).
+        buffer_class = prioritized_buffer_class(algo.device, dict_obs)
     return DoubleDQN(
         policy_class_name(algo),
         venv,

@@ -38,7 +38,7 @@ GOALS = ROOT / "runs" / "reference" / "goals_2agents"
 def _decode(entry: dict) -> object:
     import pickle
 
-    return pickle.loads(base64.b64decode(entry[":serialized:"]))  # noqa: S301 (our own file)
+    return pickle.loads(base64.b64decode(entry[":serialized:"]))  # our own file
 
 
 def _encode(key: str, value: object) -> dict:
@@ -107,7 +107,7 @@ def test_every_shipped_model_is_in_todays_format() -> None:
 
 def test_an_old_model_is_refused_with_one_line_naming_the_migration(old_goals, capsys) -> None:
     assert saved_model_format(old_goals / "model.zip") == 1
-    with pytest.raises(OldModelError, match="scripts/migrate_models.py"):
+    with pytest.raises(OldModelError, match=r"scripts/migrate_models\.py"):
         DoubleDQN.load(old_goals / "model.zip")
     capsys.readouterr()
     assert main(["eval", str(old_goals), "--episodes", "1"]) == 2

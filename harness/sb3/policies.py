@@ -673,7 +673,10 @@ class PerAgentQNetwork(BasePolicy):
         # not contiguous, see _input_major, and a reshape would copy them.)
         norms = th.stack([th.linalg.vector_norm(g, dim=tuple(range(1, g.dim()))) for g in grads])
         scale = (max_norm / (th.linalg.vector_norm(norms, dim=0) + 1e-6)).clamp(max=1.0)
-        if bool((scale < 1.0).any()):  # most steps clip nothing: skip a pass over every gradient
+        # Most steps clip nothing: on the CPU, skip a pass over every gradient then. On an
+        # accelerator asking would wait for the device, and a scale of 1 leaves a gradient as it
+        # is, so every step scales.
+        if scale.device.type != "cpu" or bool((scale < 1.0).any()):
             for g in grads:
                 g.mul_(scale.reshape(-1, *([1] * (g.dim() - 1))))
 

@@ -27,7 +27,7 @@ from harness.sb3.registry import POLICIES
 from harness.sb3.targets import double_q_target, large_margin_loss, max_q_target
 
 #: The layout of the models :class:`DoubleDQN` saves, stored in each (``harness_model_format`` in
-#: its ``data``). Raised when a saved model's layout changes; older models are then rewritten once
+#: its ``data``). Increased when a saved model's layout changes; older models are rewritten once
 #: by :data:`MIGRATE_COMMAND` rather than read through shims. 2: the classes under
 #: ``harness.sb3``, the target network always stored (a compact export stores it as the online
 #: network's tensors, once), an action mask in the env's dtype, no retired settings.

@@ -660,9 +660,11 @@ def test_a_pickled_device_buffer_draws_what_the_original_draws() -> None:
     np.testing.assert_array_equal(restored.raw_priorities, buffer.raw_priorities)
 
 
-def test_the_prioritized_buffer_is_the_devices_on_an_accelerator_and_the_hosts_on_the_cpu() -> None:
+def test_the_prioritized_buffer_is_the_devices_on_cuda_and_the_hosts_elsewhere() -> None:
     assert prioritized_buffer_class("cpu", False) is PrioritizedReplayBuffer
     assert prioritized_buffer_class("cpu", True) is PrioritizedDictReplayBuffer
+    if th.backends.mps.is_available():  # no float64 on MPS: the host path
+        assert prioritized_buffer_class("mps", False) is PrioritizedReplayBuffer
     if th.cuda.is_available():
         assert prioritized_buffer_class("cuda", False) is DevicePrioritizedReplayBuffer
         assert prioritized_buffer_class("cuda", True) is DevicePrioritizedDictReplayBuffer

@@ -65,14 +65,15 @@ _TENSORS = (
 def prioritized_buffer_class(
     device: th.device | str, dict_observations: bool
 ) -> type[PrioritizedReplayBuffer]:
-    """The prioritized buffer for a model on ``device``: the device buffer on an accelerator, the
-    host buffer (its sum tree) on the CPU.
+    """The prioritized buffer for a model on ``device``: the device buffer on CUDA, the host
+    buffer (its sum tree) elsewhere: on the CPU, and on Apple's MPS, which has no float64 for the
+    priorities' sums.
 
     Args:
         device: The model's device (``"auto"`` as SB3 resolves it).
         dict_observations: Whether the observations are a ``Dict``.
     """
-    on_device = get_device(device).type != "cpu"
+    on_device = get_device(device).type == "cuda"
     if dict_observations:
         return DevicePrioritizedDictReplayBuffer if on_device else PrioritizedDictReplayBuffer
     return DevicePrioritizedReplayBuffer if on_device else PrioritizedReplayBuffer

@@ -203,14 +203,15 @@ def train_devices() -> tuple[str, ...]:
 
 def _models(net: TrainNet, threads: int, device: str = "cpu") -> tuple[Any, Any, Any]:
     """DoubleDQN+PER and plain DQN (uniform replay) with ``net`` on ``device``, on the same
-    VecEnv, both with a filled buffer (SB3's buffers keep their arrays on the host)."""
+    VecEnv, both with a filled buffer: SB3's on the host, ours where ``harness run`` puts it
+    (:func:`harness.sb3.device_replay.prioritized_buffer_class`: on the device on CUDA)."""
     import torch
     from gymnasium import spaces
     from stable_baselines3 import DQN
     from stable_baselines3.common.logger import configure
 
     from harness import DoubleDQN
-    from harness.sb3.buffers import PrioritizedDictReplayBuffer, PrioritizedReplayBuffer
+    from harness.sb3.device_replay import prioritized_buffer_class
     from harness.sb3.registry import POLICIES
     from harness.training.adapters import make_vec_env
     from harness.training.checks import network_kwargs, policy_class_name
@@ -235,7 +236,7 @@ def _models(net: TrainNet, threads: int, device: str = "cpu") -> tuple[Any, Any,
     ours = DoubleDQN(
         policy_class_name(net.algo),
         venv,
-        replay_buffer_class=PrioritizedDictReplayBuffer if dict_obs else PrioritizedReplayBuffer,
+        replay_buffer_class=prioritized_buffer_class(device, dict_obs),
         replay_buffer_kwargs={"alpha": 0.55, "beta": 0.4},
         **common,
     )

@@ -148,11 +148,13 @@ def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) ->
         raise TargetError(f"{path}: no such run folder or model file")
     config = load_config(config_path, overrides)
     check_model_zip(model_path, model_path)
-    from harness.sb3.dqn import DoubleDQN  # torch and SB3 only when a model is used
+    from harness.sb3.dqn import DoubleDQN, OldModelError  # torch and SB3 only when a model is used
 
     try:
         # SB3 zips hold pickled objects: load only files you trust (see README).
         model = DoubleDQN.load(model_path, device="cpu")
+    except OldModelError as exc:  # its own line: it names the command that migrates the model
+        raise TargetError(str(exc)) from None
     except Exception as exc:  # a damaged zip raises zipfile, pickle, torch or KeyError errors
         raise TargetError(
             f"{model_path}: cannot load model ({type(exc).__name__}: {exc})"
@@ -171,14 +173,11 @@ def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) ->
 def check_model_fits(model: Any, model_path: Path, config: ExperimentConfig) -> None:
     """Refuse a model whose observation or action space is not its config's env's (a zip of
     another experiment, or made for another observation kind or team size)."""
-    from harness.sb3.policies import float_action_mask
-
     env = make_env(config.env)
     agent = env.possible_agents[0]
     check_team_size(model, model_path, config, env.observation_space(agent))
     for what, expected, got in (
-        # The space the harness's models take (an action mask as float32), as training made it.
-        ("observation", float_action_mask(env.observation_space(agent)), model.observation_space),
+        ("observation", env.observation_space(agent), model.observation_space),
         ("action", env.action_space(agent), model.action_space),
     ):
         if _space_layout(expected) != _space_layout(got):
@@ -471,8 +470,9 @@ def export_reference(run: Path, out: Path, model: str = "model") -> Path:
     ``evaluations.csv`` (its learning curves: training episodes and test-policy evaluations),
     the ``harness tune`` sweep of the exported model as ``tune.json``, and ``model.zip`` (or
     ``best_model.zip`` with ``model="best_model"``, saved as ``model.zip``) without the
-    optimizer's state and the target network, which matter only to continue training (together
-    two thirds of a model zip), and ``reference.json`` (where it came from; it marks the folder
+    optimizer's state and with the online network's weights standing for the target network's
+    (stored once), which matter only to continue training (together two thirds of a model zip),
+    and ``reference.json`` (where it came from; it marks the folder
     as a reference). ``harness eval`` and ``harness render`` work on the folder as on the run,
     with the same actions, and write their results to ``runs/evals/<name>/``.
 
@@ -485,10 +485,12 @@ def export_reference(run: Path, out: Path, model: str = "model") -> Path:
     if out.exists():
         raise TargetError(f"{out}: already exists (a reference is never overwritten)")
     check_model_zip(source, source)
-    from harness.sb3.dqn import DoubleDQN
+    from harness.sb3.dqn import DoubleDQN, OldModelError
 
     try:
         policy = DoubleDQN.load(source, device="cpu")
+    except OldModelError as exc:
+        raise TargetError(str(exc)) from None
     except Exception as exc:  # a damaged zip raises many kinds
         raise TargetError(f"{source}: cannot load model ({type(exc).__name__}: {exc})") from None
     old = policy.policy.optimizer
@@ -529,14 +531,18 @@ def _write_reference(run: Path, out: Path, model: str, policy: Any) -> None:
         RunDir(out).note_command(f"exported: {model}.zip (harness export --model {model})")
     buffer = io.BytesIO()
     policy.save(buffer)
-    RunDir(out).model.write_bytes(_without_target_network(buffer.getvalue()))
+    RunDir(out).model.write_bytes(_compact_target_network(buffer.getvalue()))
     RunDir(out).write_reference_marker(run, model)
 
 
-def _without_target_network(model_zip: bytes) -> bytes:
-    """An SB3 model zip whose ``policy.pth`` lacks the target network (``DoubleDQN.load`` fills
-    it from the online network), halving the size of the weights."""
+def _compact_target_network(model_zip: bytes) -> bytes:
+    """An SB3 model zip whose ``policy.pth`` holds the online network's tensors as the target
+    network's too: torch stores a storage once however many entries name it, so the weights take
+    half the room, and ``DoubleDQN.load`` reads the zip as any other (its target network a copy of
+    the online one, which only continued training would tell apart)."""
     import torch
+
+    from harness.sb3.dqn import target_as_online
 
     check_model_zip(model_zip, "the exported model")
     out = io.BytesIO()
@@ -548,9 +554,8 @@ def _without_target_network(model_zip: bytes) -> bytes:
             data = zin.read(item.filename)
             if item.filename == "policy.pth":
                 state = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
-                kept = {k: v for k, v in state.items() if not k.startswith("q_net_target.")}
                 packed = io.BytesIO()
-                torch.save(kept, packed)
+                torch.save(target_as_online(state), packed)
                 data = packed.getvalue()
             zout.writestr(item, data)
     return out.getvalue()

@@ -19,6 +19,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 import harness.sb3.dqn
 import harness.sb3.targets
 from harness.sb3.buffers import PrioritizedDictReplayBuffer
+from harness.sb3.device_replay import DevicePrioritizedDictReplayBuffer
 from harness.sb3.dqn import ACTION_MASK_KEY, DoubleDQN, allowed_actions
 from harness.sb3.policies import PerAgentQNetwork, TeamMapExtractor
 
@@ -268,7 +269,9 @@ def test_the_targets_get_the_negated_mask(monkeypatch: pytest.MonkeyPatch) -> No
 # ------------------------------------------------------------------------ training, save/load
 
 
-@pytest.mark.parametrize("buffer_class", [None, PrioritizedDictReplayBuffer])
+@pytest.mark.parametrize(
+    "buffer_class", [None, PrioritizedDictReplayBuffer, DevicePrioritizedDictReplayBuffer]
+)
 def test_training_takes_allowed_actions_only_and_the_loaded_model_keeps_masking(
     tmp_path: Path, buffer_class: type | None
 ) -> None:

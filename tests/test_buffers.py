@@ -24,6 +24,12 @@ from harness.sb3.buffers import (
     importance_weights,
     n_step_returns,
 )
+from harness.sb3.device_replay import (
+    DevicePrioritizedDictReplayBuffer,
+    DevicePrioritizedReplayBuffer,
+    n_step_returns_on_device,
+    prioritized_buffer_class,
+)
 
 OBS_SPACE = spaces.Box(-1e6, 1e6, shape=(2,), dtype=np.float32)
 #: The Dict buffer's twin of OBS_SPACE: the same vector plus a uint8 image holding its first value.
@@ -34,12 +40,19 @@ ACTION_SPACE = spaces.Discrete(4)
 
 
 @pytest.fixture(
-    params=[PrioritizedReplayBuffer, PrioritizedDictReplayBuffer], ids=["array", "dict"]
+    params=[
+        PrioritizedReplayBuffer,
+        PrioritizedDictReplayBuffer,
+        DevicePrioritizedReplayBuffer,
+        DevicePrioritizedDictReplayBuffer,
+    ],
+    ids=["array", "dict", "device-array", "device-dict"],
 )
 def make_buffer(request: pytest.FixtureRequest) -> Callable[..., PrioritizedReplayBuffer]:
-    """Factory of an empty buffer of the test's class: every buffer test runs on both."""
+    """Factory of an empty buffer of the test's class: every buffer test runs on the host path
+    and on the device path (on CPU tensors here: the same code as on an accelerator)."""
     buffer_class = request.param
-    space = DICT_OBS_SPACE if buffer_class is PrioritizedDictReplayBuffer else OBS_SPACE
+    space = DICT_OBS_SPACE if issubclass(buffer_class, PrioritizedDictReplayBuffer) else OBS_SPACE
 
     def make(buffer_size: int, n_envs: int = 1, **kwargs: float) -> PrioritizedReplayBuffer:
         return buffer_class(buffer_size, space, ACTION_SPACE, device="cpu", n_envs=n_envs, **kwargs)
@@ -97,6 +110,33 @@ def check_tree(tree: SumTree) -> None:
         tree.nodes[internal], tree.nodes[2 * internal] + tree.nodes[2 * internal + 1]
     )
     assert tree.total == tree.nodes[tree.size :].sum()
+
+
+def on_device(buffer: PrioritizedReplayBuffer) -> bool:
+    return isinstance(buffer, DevicePrioritizedReplayBuffer)
+
+
+def check_sampler(buffer: PrioritizedReplayBuffer) -> None:
+    """The sampler agrees with the raw priorities: the host path's sum tree holds its sums, the
+    device path's leaves are ``raw ** alpha`` (0 for an empty slot), from which it sums."""
+    if not on_device(buffer):
+        check_tree(buffer._tree)
+        return
+    raw = buffer.raw_priorities
+    expected = np.where(raw > 0, raw**buffer.alpha, 0.0)
+    # torch's pow and numpy's may differ in the last bit
+    np.testing.assert_allclose(buffer.priorities, expected, rtol=1e-15, atol=0)
+
+
+def sampler_total(buffer: PrioritizedReplayBuffer) -> float:
+    """The sum of the sampling priorities, as the sampler holds it."""
+    return float(buffer._leaves.sum()) if on_device(buffer) else buffer._tree.total
+
+
+def indices_of(batch: PrioritizedReplayBufferSamples) -> np.ndarray:
+    """A batch's flat indices on the host (the device path returns a tensor)."""
+    indices = batch.indices
+    return indices.cpu().numpy() if isinstance(indices, th.Tensor) else indices
 
 
 # ---------------------------------------------------------------------------------- SumTree
@@ -180,7 +220,7 @@ def test_samples_extend_sb3_samples(make_buffer: Callable[..., PrioritizedReplay
     assert batch.weights.dtype == th.float32
     assert batch.rewards.shape == batch.dones.shape == (5, 1)
     assert batch.discounts is None
-    assert batch.indices.dtype == np.int64
+    assert indices_of(batch).dtype == np.int64
     assert batch.indices.shape == (5,)
     first_values(batch.observations)  # a Dict batch holds every key, read from one slot
 
@@ -221,7 +261,7 @@ def test_sampling_frequencies_follow_priorities(
     n_draws = 50_000
     counts = np.zeros(8)
     for _ in range(n_draws // 100):
-        np.add.at(counts, buffer.sample(100).indices, 1)
+        np.add.at(counts, indices_of(buffer.sample(100)), 1)
     frequencies = counts / n_draws
     # Tolerance: 5 binomial standard deviations per item (stratified sampling only lowers the
     # variance), at most 0.0096 here; alpha=1 or alpha=0 would miss the last item by > 0.07.
@@ -241,15 +281,15 @@ def test_importance_weights_hand_computed(
     # w_i = (4 * p_i / 15) ** -0.5 / (4 * 1 / 15) ** -0.5 = sqrt(1 / p_i)
     # -> [1, 1/sqrt(2), 1/2, 1/sqrt(8)]. batch 15 -> 15 strata of width 1: 1, 2, 4, 8 per item.
     batch = buffer.sample(15)
-    np.testing.assert_array_equal(np.sort(batch.indices), np.repeat(np.arange(4), [1, 2, 4, 8]))
+    np.testing.assert_array_equal(np.sort(indices_of(batch)), np.repeat(np.arange(4), [1, 2, 4, 8]))
     expected = {0: 1.0, 1: 2**-0.5, 2: 0.5, 3: 8**-0.5}
-    for index, weight in zip(batch.indices, batch.weights.numpy().ravel(), strict=True):
+    for index, weight in zip(indices_of(batch), batch.weights.numpy().ravel(), strict=True):
         assert weight == pytest.approx(expected[int(index)], rel=1e-6)
 
     # beta is settable and read at sampling time: beta=1 gives w_i = p_min / p_i.
     buffer.beta = 1.0
     batch = buffer.sample(15)
-    for index, weight in zip(batch.indices, batch.weights.numpy().ravel(), strict=True):
+    for index, weight in zip(indices_of(batch), batch.weights.numpy().ravel(), strict=True):
         assert weight == pytest.approx(1.0 / 2 ** int(index), rel=1e-6)
     with pytest.raises(ValueError):
         buffer.beta = -0.1
@@ -272,16 +312,16 @@ def test_importance_weights_normalise_by_the_buffer_minimum_not_the_batch(
     for _ in range(200):
         batch = buffer.sample(2)
         weights = batch.weights.numpy().ravel()
-        expected = np.sqrt(1.0 / np.array([1.0, 2.0, 4.0, 8.0]))[batch.indices]
+        expected = np.sqrt(1.0 / np.array([1.0, 2.0, 4.0, 8.0]))[indices_of(batch)]
         np.testing.assert_allclose(weights, expected, rtol=1e-6)
-        missed_item_0 += int(0 not in batch.indices)
+        missed_item_0 += int(0 not in indices_of(batch))
     assert missed_item_0 > 100  # the case that matters was exercised
     # A batch of one: item 3 alone weighs 1/sqrt(8), not 1.
     set_random_seed(1)
     for _ in range(20):
         single = buffer.sample(1)
         assert single.weights.item() == pytest.approx(
-            np.sqrt(1.0 / [1.0, 2.0, 4.0, 8.0][int(single.indices[0])]), rel=1e-6
+            np.sqrt(1.0 / [1.0, 2.0, 4.0, 8.0][int(indices_of(single)[0])]), rel=1e-6
         )
 
 
@@ -310,7 +350,7 @@ def test_multi_env_flat_index_maps_to_the_right_transition(
     for _ in range(50):
         batch = buffer.sample(12)
         seen.update(batch.indices.tolist())
-        pos, env = np.divmod(batch.indices, n_envs)
+        pos, env = np.divmod(indices_of(batch), n_envs)
         np.testing.assert_array_equal(first_values(batch.observations), 10 * pos + env)
         np.testing.assert_array_equal(first_values(batch.next_observations), 10 * pos + env + 0.5)
         np.testing.assert_array_equal(batch.rewards.numpy().ravel(), 100 * pos + env)
@@ -338,11 +378,11 @@ def test_wrap_around_overwrites_priorities(
     add_step(buffer, 3)  # overwrites row 0, i.e. flat indices 0 and 1
     np.testing.assert_array_equal(buffer.raw_priorities, [6.0, 6.0, 3.0, 4.0, 5.0, 6.0])
     np.testing.assert_array_equal(buffer.priorities, buffer.raw_priorities)  # alpha = 1
-    check_tree(buffer._tree)
+    check_sampler(buffer)
     assert buffer.n_transitions == 6
     set_random_seed(2)
     batch = buffer.sample(64)
-    pos, env = np.divmod(batch.indices, n_envs)
+    pos, env = np.divmod(indices_of(batch), n_envs)
     step = np.where(pos == 0, 3, pos)  # row 0 now holds step 3
     np.testing.assert_array_equal(first_values(batch.observations), 10 * step + env)
 
@@ -357,7 +397,7 @@ def test_alpha_change_rebuilds_tree(make_buffer: Callable[..., PrioritizedReplay
 
     buffer.alpha = 0.5
     np.testing.assert_allclose(buffer.priorities, np.sqrt(raw))
-    check_tree(buffer._tree)
+    check_sampler(buffer)
     # alpha = 0: uniform over stored transitions, empty slots stay unsampleable.
     buffer.alpha = 0.0
     np.testing.assert_array_equal(buffer.priorities, [1, 1, 1, 1, 1, 0, 0, 0])
@@ -378,11 +418,12 @@ def test_update_priorities_duplicates_last_wins(
         add_step(buffer, step)
     buffer.update_priorities(np.array([2, 1, 2]), th.tensor([5.0, -3.0, 1.0]))
     np.testing.assert_array_equal(buffer.raw_priorities, [1.0, 4.0, 2.0, 1.0])
-    check_tree(buffer._tree)
+    check_sampler(buffer)
     with pytest.raises(ValueError):
         buffer.update_priorities(np.array([0, 1]), np.array([1.0]))
-    with pytest.raises(ValueError):
-        buffer.update_priorities(np.array([0]), np.array([np.nan]))
+    if not on_device(buffer):  # the device path checks no values: that would read them back
+        with pytest.raises(ValueError):
+            buffer.update_priorities(np.array([0]), np.array([np.nan]))
 
 
 def test_timeouts_are_not_terminal(make_buffer: Callable[..., PrioritizedReplayBuffer]) -> None:
@@ -391,7 +432,7 @@ def test_timeouts_are_not_terminal(make_buffer: Callable[..., PrioritizedReplayB
     add_step(buffer, 1, done=True, truncated=False)
     batch = buffer.sample(64)
     dones = batch.dones.numpy().ravel()
-    np.testing.assert_array_equal(dones, (batch.indices == 1).astype(np.float32))
+    np.testing.assert_array_equal(dones, (indices_of(batch) == 1).astype(np.float32))
 
 
 def test_unsupported_configurations_and_empty_buffer(
@@ -410,7 +451,7 @@ def test_reset_clears_priorities(make_buffer: Callable[..., PrioritizedReplayBuf
     buffer.reset()
     assert buffer.n_transitions == 0
     assert buffer.max_priority == 1.0
-    assert buffer._tree.total == 0.0
+    assert sampler_total(buffer) == 0.0
 
 
 def test_pickle_round_trip_keeps_priorities(
@@ -423,7 +464,8 @@ def test_pickle_round_trip_keeps_priorities(
     buffer.update_priorities(np.arange(4), np.array([1.0, 2.0, 3.0, 4.0]))
     restored = pickle.loads(pickle.dumps(buffer))
     np.testing.assert_array_equal(restored.priorities, buffer.priorities)
-    np.testing.assert_array_equal(restored._tree.nodes, buffer._tree.nodes)
+    check_sampler(restored)
+    assert sampler_total(restored) == sampler_total(buffer)
     assert (restored.alpha, restored.beta, restored.max_priority) == (0.5, 0.4, buffer.max_priority)
 
 
@@ -500,7 +542,7 @@ def test_prioritized_n_step_sample_carries_discounts_and_one_step_none(
     assert one.sample(6).discounts is None
     batch = three.sample(6)
     # The transition of (step, env) holds reward 100*step + env: recompute its 3-step return.
-    step, env = np.divmod(batch.indices, 2)
+    step, env = np.divmod(indices_of(batch), 2)
     k = np.minimum(3, 5 - step)  # step 4 is the newest row
     expected = [
         sum(0.5**i * (100.0 * (s + i) + e) for i in range(n))
@@ -529,3 +571,100 @@ def test_a_buffer_pickled_before_n_step_loads_as_one_step() -> None:
     restored = pickle.loads(pickle.dumps(old))
     assert restored.n_steps == 1
     assert restored.sample(2).discounts is None
+
+
+# ------------------------------------------------------------------------- the device path
+def test_both_paths_draw_the_same_transitions_and_weights_from_the_same_offsets(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # The same transitions and TD errors in both buffers (3 envs, wrapped around once): given the
+    # same stratified offsets, the host's sum-tree descent and the device's search over the
+    # cumulative priorities pick the same transitions, with the same IS weights.
+    rng = np.random.default_rng(5)
+    kwargs = dict(alpha=0.7, beta=0.5, eps=1e-3)
+    host = PrioritizedReplayBuffer(15, OBS_SPACE, ACTION_SPACE, device="cpu", n_envs=3, **kwargs)
+    dev = DevicePrioritizedReplayBuffer(15, OBS_SPACE, ACTION_SPACE, "cpu", n_envs=3, **kwargs)
+    for step in range(7):  # 5 rows: steps 5 and 6 overwrite rows 0 and 1
+        for buffer in (host, dev):
+            add_step(buffer, step)
+        flat = rng.integers(0, 15, size=6)
+        errors = rng.exponential(2.0, size=6)
+        host.update_priorities(flat, errors)
+        dev.update_priorities(th.as_tensor(flat), th.as_tensor(errors))
+    np.testing.assert_allclose(dev.raw_priorities, host.raw_priorities, rtol=1e-15)
+    assert dev.max_priority == host.max_priority
+    for batch_size in (1, 7, 64):
+        offsets = rng.random(batch_size)
+        monkeypatch.setattr(np.random, "random_sample", lambda n, o=offsets: o)
+        monkeypatch.setattr(dev, "_uniform", lambda n, o=offsets: th.as_tensor(o))
+        want, got = host.sample(batch_size), dev.sample(batch_size)
+        np.testing.assert_array_equal(indices_of(got), want.indices)
+        th.testing.assert_close(got.weights, want.weights)
+        th.testing.assert_close(got.observations, want.observations)
+        th.testing.assert_close(got.rewards, want.rewards)
+        th.testing.assert_close(got.dones, want.dones)
+
+
+def test_the_device_sampler_hand_computed_at_given_offsets(monkeypatch: pytest.MonkeyPatch) -> None:
+    # Priorities [1, 2, 4, 8] (alpha 1, eps 1), total 15, cumulative [1, 3, 7, 15]. Batch 3:
+    # strata of width 5. Offsets 0.1, 0.5, 0.9 -> queries 0.5, 7.5, 14.5 -> items 0, 3, 3;
+    # offsets 0.25, 0, 0 -> queries 1.25, 5, 10 -> items 1, 2, 3 (a query on a boundary belongs
+    # to the item the boundary starts). Weights sqrt(p_min / p_i), beta 0.5.
+    buffer = DevicePrioritizedReplayBuffer(
+        4, OBS_SPACE, ACTION_SPACE, "cpu", alpha=1.0, beta=0.5, eps=1.0
+    )
+    for step in range(4):
+        add_step(buffer, step)
+    buffer.update_priorities(th.arange(4), th.tensor([0.0, 1.0, 3.0, 7.0]))
+    for offsets, items in (([0.1, 0.5, 0.9], [0, 3, 3]), ([0.25, 0.0, 0.0], [1, 2, 3])):
+        monkeypatch.setattr(buffer, "_uniform", lambda n, o=offsets: th.tensor(o, dtype=th.float64))
+        batch = buffer.sample(3)
+        assert indices_of(batch).tolist() == items
+        expected = np.sqrt(1.0 / np.array([1.0, 2.0, 4.0, 8.0])[items])
+        np.testing.assert_allclose(batch.weights.numpy().ravel(), expected, rtol=1e-6)
+    # A query at the top edge (rounding) takes the last stored transition, never an empty slot.
+    monkeypatch.setattr(buffer, "_uniform", lambda n: th.ones(n, dtype=th.float64))
+    assert indices_of(buffer.sample(2)).tolist() == [3, 3]
+
+
+def test_n_step_returns_on_the_device_equal_the_hosts() -> None:
+    rng = np.random.default_rng(3)
+    rows_n, envs_n = 9, 3
+    rewards = rng.normal(size=(rows_n, envs_n)).astype(np.float32)
+    dones = (rng.random((rows_n, envs_n)) < 0.2).astype(np.float32)
+    timeouts = dones * (rng.random((rows_n, envs_n)) < 0.5)
+    rows = rng.integers(0, rows_n, 40)
+    envs = rng.integers(0, envs_n, 40)
+    want = n_step_returns(rewards, dones, timeouts, rows, envs, 4, 0.9, newest_row=5)
+    got = n_step_returns_on_device(
+        *map(th.as_tensor, (rewards, dones, timeouts, rows, envs)), 4, 0.9, newest_row=5
+    )
+    for w, g in zip(want, got, strict=True):
+        np.testing.assert_allclose(g.numpy(), w, rtol=1e-6)
+
+
+def test_a_pickled_device_buffer_draws_what_the_original_draws() -> None:
+    # Resume: the checkpoint's buffer continues the original's draws (its generator is saved).
+    buffer = DevicePrioritizedDictReplayBuffer(12, DICT_OBS_SPACE, ACTION_SPACE, "cpu", n_envs=2)
+    for step in range(4):
+        add_step(buffer, step)
+    buffer.update_priorities(th.tensor([0, 3, 5]), th.tensor([2.0, 0.5, 4.0]))
+    buffer.sample(5)
+    restored = pickle.loads(pickle.dumps(buffer))
+    assert isinstance(restored.observations["vec"], th.Tensor)
+    for _ in range(3):
+        want, got = buffer.sample(6), restored.sample(6)
+        assert th.equal(got.indices, want.indices) and th.equal(got.weights, want.weights)
+        buffer.update_priorities(want.indices, th.arange(6.0))
+        restored.update_priorities(got.indices, th.arange(6.0))
+    np.testing.assert_array_equal(restored.raw_priorities, buffer.raw_priorities)
+
+
+def test_the_prioritized_buffer_is_the_devices_on_cuda_and_the_hosts_elsewhere() -> None:
+    assert prioritized_buffer_class("cpu", False) is PrioritizedReplayBuffer
+    assert prioritized_buffer_class("cpu", True) is PrioritizedDictReplayBuffer
+    if th.backends.mps.is_available():  # no float64 on MPS: the host path
+        assert prioritized_buffer_class("mps", False) is PrioritizedReplayBuffer
+    if th.cuda.is_available():
+        assert prioritized_buffer_class("cuda", False) is DevicePrioritizedReplayBuffer
+        assert prioritized_buffer_class("cuda", True) is DevicePrioritizedDictReplayBuffer

@@ -319,6 +319,10 @@ def test_export_makes_a_compact_reference_that_evaluates_the_same(
     for f in ("config.yaml", "command.txt", "episodes.csv", "evaluations.csv"):
         assert (ref / f).read_bytes() == (smoke_run / f).read_bytes(), f
     assert (ref / "model.zip").stat().st_size < 0.5 * (smoke_run / "model.zip").stat().st_size
+    # In today's format: no migration, and no loading shim, reads it.
+    from harness.sb3.dqn import MODEL_FORMAT, saved_model_format
+
+    assert saved_model_format(ref / "model.zip") == MODEL_FORMAT
     original = eval_json(capsys, str(smoke_run), "--episodes", "3", "--seed", "9")
     exported = eval_json(capsys, str(ref), "--episodes", "3", "--seed", "9")
     assert {k: v for k, v in exported.items() if k != "policy"} == {

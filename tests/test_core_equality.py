@@ -87,7 +87,7 @@ def settings_(draw: st.DrawFn) -> dict[str, Any]:
 def test_the_core_vecenv_equals_supersuit_over_the_pettingzoo_env(kwargs, copies, seed):
     core = make_vec_env(kwargs, copies, seed=seed, monitor=False, backend="core")
     ref = make_vec_env(kwargs, copies, seed=seed, monitor=False, backend="supersuit")
-    assert isinstance(core.unwrapped, CoreVecEnv)  # in FloatActionMask for the goal action
+    assert isinstance(core.unwrapped, CoreVecEnv)
     assert core.observation_space == ref.observation_space
     assert core.action_space == ref.action_space and core.num_envs == ref.num_envs
     _assert_same(core.reset(), ref.reset(), "reset")

@@ -24,6 +24,7 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 import harness.sb3.dqn
 import harness.sb3.targets
 from harness import DoubleDQN, DuelingDQNPolicy, PrioritizedReplayBuffer
+from harness.sb3.device_replay import DevicePrioritizedReplayBuffer
 
 S = np.array([[1.0, 0.0]], dtype=np.float32)  # state s
 S_NEXT = np.array([[0.0, 1.0]], dtype=np.float32)  # next state s'
@@ -153,9 +154,13 @@ def test_n_step_discounts_are_passed_through(monkeypatch: pytest.MonkeyPatch) ->
 # --------------------------------------------------------------------- prioritized training
 
 
-def make_prioritized_model(**kwargs: Any) -> DQN:
+def make_prioritized_model(
+    buffer_class: type[PrioritizedReplayBuffer] = PrioritizedReplayBuffer, **kwargs: Any
+) -> DQN:
+    """The linear model with a prioritized buffer (the host's, or ``buffer_class``) holding two
+    transitions of raw priorities 1 and 3."""
     model = make_linear_model(
-        replay_buffer_class=PrioritizedReplayBuffer,
+        replay_buffer_class=buffer_class,
         replay_buffer_kwargs=dict(alpha=1.0, beta=1.0, eps=1.0),
         **kwargs,
     )
@@ -167,8 +172,17 @@ def make_prioritized_model(**kwargs: Any) -> DQN:
     return model
 
 
-def test_importance_weighted_loss_and_priority_update() -> None:
-    model = make_prioritized_model()
+# The host path, and the device path on CPU tensors: the same update.
+BUFFERS = pytest.mark.parametrize(
+    "buffer_class", [PrioritizedReplayBuffer, DevicePrioritizedReplayBuffer], ids=["host", "device"]
+)
+
+
+@BUFFERS
+def test_importance_weighted_loss_and_priority_update(
+    buffer_class: type[PrioritizedReplayBuffer],
+) -> None:
+    model = make_prioritized_model(buffer_class)
     model.train(gradient_steps=1, batch_size=4)
     # Strata of width 1 over total 4: indices [0, 1, 1, 1]. P = [1/4, 3/4], N = 2, beta = 1:
     # w ∝ 1 / (N P) = [2, 2/3] -> normalised [1, 1/3]. Huber: 0.5 (TD 1) and 2.5 (TD 3).
@@ -179,8 +193,11 @@ def test_importance_weighted_loss_and_priority_update() -> None:
     np.testing.assert_allclose(model.replay_buffer.raw_priorities, [2.0, 4.0])  # type: ignore[union-attr]
 
 
-def test_priorities_updated_after_every_gradient_step(monkeypatch: pytest.MonkeyPatch) -> None:
-    model = make_prioritized_model()
+@BUFFERS
+def test_priorities_updated_after_every_gradient_step(
+    monkeypatch: pytest.MonkeyPatch, buffer_class: type[PrioritizedReplayBuffer]
+) -> None:
+    model = make_prioritized_model(buffer_class)
     buffer = model.replay_buffer
     calls: list[str] = []
     sample, update = buffer.sample, buffer.update_priorities  # type: ignore[union-attr]

@@ -17,6 +17,10 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 import harness.sb3.dqn
 from harness import DoubleDQN
 from harness.sb3.buffers import PrioritizedDictReplayBuffer
+from harness.sb3.device_replay import (
+    DevicePrioritizedDictReplayBuffer,
+    DevicePrioritizedReplayBuffer,
+)
 from harness.sb3.dqn import NonFiniteLossError, StepStats
 from tests import test_action_mask as masking
 from tests.test_double_dqn import (
@@ -214,6 +218,17 @@ def test_check_finite_names_the_first_bad_update() -> None:
         model._check_finite({"loss": np.array([0.5, np.inf, np.nan])})
 
 
+def test_a_nan_td_error_on_the_device_path_stops_the_call_at_its_end_naming_the_update() -> None:
+    # The device path reads nothing per step: the NaN's priority is written, and the call's one
+    # read finds the loss of the step that met it.
+    model = make_prioritized_model(DevicePrioritizedReplayBuffer, learning_rate=1e-3)
+    model.replay_buffer.rewards[0, 0] = float("nan")  # type: ignore[union-attr]
+    model._n_updates = 4
+    with pytest.raises(NonFiniteLossError, match=r"the loss became nan at step 0 \(update 4\)"):
+        model.train(gradient_steps=3, batch_size=4)
+    assert model._n_updates == 4
+
+
 def test_a_nan_td_error_stops_a_prioritized_call_before_its_priorities_are_written() -> None:
     model = make_prioritized_model(learning_rate=1e-3)
     buffer = model.replay_buffer
@@ -288,12 +303,26 @@ def _n_step() -> DoubleDQN:
     return model
 
 
-def _masked_prioritized_imitation() -> DoubleDQN:
+def _device_n_step() -> DoubleDQN:
+    model = make_linear_model(
+        learning_rate=1e-3,
+        buffer_size=8,
+        replay_buffer_class=DevicePrioritizedReplayBuffer,
+        replay_buffer_kwargs=dict(n_steps=2, gamma=GAMMA),
+    )
+    for _ in range(3):
+        add_transition(model, reward=1.0)
+    return model
+
+
+def _masked_prioritized_imitation(
+    buffer_class: type[PrioritizedDictReplayBuffer] = PrioritizedDictReplayBuffer,
+) -> DoubleDQN:
     model = masking.make_model(
         n_envs=1,
         q=masking.Q_ONLINE,
         expert_action=1,
-        replay_buffer_class=PrioritizedDictReplayBuffer,
+        replay_buffer_class=buffer_class,
         replay_buffer_kwargs=dict(alpha=0.6, beta=0.4),
     )
     assert model.replay_buffer is not None
@@ -312,8 +341,20 @@ def _masked_prioritized_imitation() -> DoubleDQN:
         (_n_step, False),
         (lambda: make_prioritized_model(learning_rate=1e-3), True),
         (_masked_prioritized_imitation, True),
+        # The device path: the priorities stay where the buffer is, one read per call in all.
+        (lambda: make_prioritized_model(DevicePrioritizedReplayBuffer, learning_rate=1e-3), False),
+        (lambda: _masked_prioritized_imitation(DevicePrioritizedDictReplayBuffer), False),
+        (lambda: _device_n_step(), False),
     ],
-    ids=["uniform", "n-step", "prioritized", "masked-prioritized-imitation"],
+    ids=[
+        "uniform",
+        "n-step",
+        "prioritized",
+        "masked-prioritized-imitation",
+        "device-prioritized",
+        "device-masked-prioritized-imitation",
+        "device-prioritized-n-step",
+    ],
 )
 def test_one_host_read_per_training_call_besides_the_priorities(
     monkeypatch: pytest.MonkeyPatch, setup: Any, priority_transfers: bool
@@ -343,3 +384,31 @@ def test_the_spy_sees_a_read_in_the_update(monkeypatch: pytest.MonkeyPatch) -> N
     counts = count_host_reads(monkeypatch)
     model.train(gradient_steps=3, batch_size=4)
     assert counts == {"_to_host": 1, "reading_td_loss": 3}
+
+
+@pytest.mark.skipif(not th.cuda.is_available(), reason="needs CUDA; the spy above counts on CPU")
+@pytest.mark.parametrize("n_steps", [1, 2])
+def test_one_cuda_synchronisation_per_training_call_on_the_device_path(n_steps: int) -> None:
+    # What the spy counts on CPU tensors, counted by CUDA itself: every synchronising operation
+    # warns in torch's sync debug mode.
+    import warnings
+
+    model = make_linear_model(
+        learning_rate=1e-3,
+        buffer_size=8,
+        device="cuda",
+        replay_buffer_class=DevicePrioritizedReplayBuffer,
+        replay_buffer_kwargs=dict(n_steps=n_steps, gamma=GAMMA),
+    )
+    for reward in (1.0, 3.0, 2.0):
+        add_transition(model, reward=reward)
+    model.train(gradient_steps=2, batch_size=4)  # first call: CUDA's lazy set-up
+    th.cuda.set_sync_debug_mode("warn")
+    try:
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            model.train(gradient_steps=5, batch_size=4)
+    finally:
+        th.cuda.set_sync_debug_mode("default")
+    syncs = [w for w in caught if "synchroniz" in str(w.message)]
+    assert len(syncs) == 1, [str(w.message) for w in syncs]

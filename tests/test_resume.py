@@ -157,6 +157,29 @@ def test_no_readable_checkpoint_is_one_line_and_changes_nothing(run_copy, capsys
     assert snapshot(run_copy) == before
 
 
+def test_a_checkpoint_of_an_older_model_format_names_the_migration(run_copy, capsys):
+    import zipfile
+
+    from harness.sb3.dqn import FORMAT_KEY, MIGRATE_COMMAND
+
+    for checkpoint in complete_checkpoints(run_copy / "checkpoints"):
+        model = checkpoint / "model.zip"
+        with zipfile.ZipFile(model) as zin:
+            items = [(item, zin.read(item.filename)) for item in zin.infolist()]
+        with zipfile.ZipFile(model, "w") as zout:  # the zip as a version before formats wrote it
+            for item, content in items:
+                if item.filename == "data":
+                    data = json.loads(content)
+                    del data[FORMAT_KEY]
+                    content = json.dumps(data).encode()
+                zout.writestr(item, content)
+    before = snapshot(run_copy)
+    assert resume(run_copy) == 2
+    err = one_line_error(capsys)
+    assert "model format 1" in err and f"{MIGRATE_COMMAND} " in err
+    assert snapshot(run_copy) == before
+
+
 def test_tampered_state_never_deletes_episode_rows(run_copy, capsys):
     latest = newest(run_copy)
     state = json.loads((latest / "state.json").read_text())

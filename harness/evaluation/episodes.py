@@ -81,8 +81,6 @@ def model_policy(model: Any, temperature: float = 0.0, shield: bool = False) -> 
     """
     if temperature < 0:
         raise ValueError(f"temperature must be >= 0, got {temperature}")
-    # The env's action mask (int8) as the model takes it (float32), as training fed it.
-    from harness.sb3.policies import float_action_mask_obs
 
     def q_values(obs: np.ndarray) -> np.ndarray:
         import torch as th
@@ -100,14 +98,13 @@ def model_policy(model: Any, temperature: float = 0.0, shield: bool = False) -> 
         return q
 
     def greedy(obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
-        obs = float_action_mask_obs(obs)
         if shield:
             return q_values(obs).argmax(axis=1)
         actions, _ = model.policy.predict(obs, deterministic=True)
         return np.asarray(actions)
 
     def boltzmann(obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
-        q = q_values(float_action_mask_obs(obs))
+        q = q_values(obs)
         return softmax_sample(q, temperature, episode_draws(envs, batch_len(obs) // len(envs)))
 
     return greedy if temperature == 0 else boltzmann

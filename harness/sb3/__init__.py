@@ -1,5 +1,6 @@
 """The Stable-Baselines3 extensions: ``DoubleDQN``, the dueling and team-map policies, the
-prioritized replay buffers, the TD targets and schedules, and the policy registry.
+prioritized replay buffers (on the host, or on the model's device), the TD targets and schedules,
+and the policy registry.
 
 This layer imports nothing from ``envs`` or from the rest of ``harness``: it works on any
 Gymnasium env or VecEnv. Anything env-specific (which actions are masked, which action is the
@@ -13,10 +14,16 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from harness.sb3.buffers import PrioritizedDictReplayBuffer, PrioritizedReplayBuffer
+    from harness.sb3.device_replay import (
+        DevicePrioritizedDictReplayBuffer,
+        DevicePrioritizedReplayBuffer,
+    )
     from harness.sb3.dqn import DoubleDQN
     from harness.sb3.policies import DuelingDQNPolicy
 
 __all__ = [
+    "DevicePrioritizedDictReplayBuffer",
+    "DevicePrioritizedReplayBuffer",
     "DoubleDQN",
     "DuelingDQNPolicy",
     "PrioritizedDictReplayBuffer",
@@ -29,6 +36,8 @@ _EXPORTS = {
     "DuelingDQNPolicy": "harness.sb3.policies",
     "PrioritizedReplayBuffer": "harness.sb3.buffers",
     "PrioritizedDictReplayBuffer": "harness.sb3.buffers",
+    "DevicePrioritizedReplayBuffer": "harness.sb3.device_replay",
+    "DevicePrioritizedDictReplayBuffer": "harness.sb3.device_replay",
 }
 
 

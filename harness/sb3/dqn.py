@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import base64
 import io
 import json
-import pickle
 import zipfile
 from pathlib import Path
 from typing import Any, ClassVar
@@ -23,49 +21,67 @@ from stable_baselines3.dqn.policies import DQNPolicy
 from torch.nn import functional as F
 
 from harness.sb3.buffers import PrioritizedReplayBuffer
+from harness.sb3.device_replay import DevicePrioritizedReplayBuffer
 from harness.sb3.policies import ACTION_MASK_KEY, MultiInputPolicy, PerAgentQNetwork
 from harness.sb3.registry import POLICIES
 from harness.sb3.targets import double_q_target, large_margin_loss, max_q_target
 
-#: Modules of the harness's SB3 classes before they moved into ``harness.sb3`` (models saved
-#: then name them; :meth:`DoubleDQN.load` finds them under their new names).
-MOVED_MODULES = {
-    "harness.policies": "harness.sb3.policies",
-    "harness.buffers": "harness.sb3.buffers",
-    "harness.dqn": "harness.sb3.dqn",
-    "harness.schedules": "harness.sb3.schedules",
-}
+#: The layout of the models :class:`DoubleDQN` saves, stored in each (``harness_model_format`` in
+#: its ``data``). Increased when a saved model's layout changes; older models are rewritten once
+#: by :data:`MIGRATE_COMMAND` rather than read through shims. 2: the classes under
+#: ``harness.sb3``, the target network always stored (a compact export stores it as the online
+#: network's tensors, once), an action mask in the env's dtype, no retired settings.
+MODEL_FORMAT = 2
+#: The command that rewrites older saved models into :data:`MODEL_FORMAT` (its own docstring says
+#: what it changes).
+MIGRATE_COMMAND = "python scripts/migrate_models.py"
+#: The ``data`` key that holds a saved model's :data:`MODEL_FORMAT`.
+FORMAT_KEY = "harness_model_format"
 
 
-class _RenamingUnpickler(pickle.Unpickler):
-    def find_class(self, module: str, name: str) -> Any:
-        return super().find_class(MOVED_MODULES.get(module, module), name)
+class OldModelError(ValueError):
+    """A saved model in an older layout than :data:`MODEL_FORMAT`; the message names the
+    migration command (one line)."""
 
 
-def moved_classes(path: str | Path | io.BufferedIOBase) -> dict[str, Any]:
-    """The classes a saved model's ``data`` names by a module of :data:`MOVED_MODULES`, loaded
-    from their new module, by key (``policy_class``, ``replay_buffer_class``, ...): SB3's
-    ``custom_objects`` for such a model. Empty for anything else (a file SB3 reports on)."""
+def saved_model_format(path: str | Path | io.BufferedIOBase) -> int | None:
+    """The :data:`MODEL_FORMAT` a saved model zip states, 1 for a harness model saved before
+    formats were stated, ``None`` for anything that is not a model zip (left to SB3 to report)."""
     try:
         with zipfile.ZipFile(path) as archive:
             data = json.loads(archive.read("data"))
     except (OSError, KeyError, ValueError, zipfile.BadZipFile):
-        return {}
-    out = {}
-    for key, item in data.items():
-        if isinstance(item, dict) and item.get("__module__") in MOVED_MODULES:
-            raw = base64.b64decode(item[":serialized:"])
-            out[key] = _RenamingUnpickler(io.BytesIO(raw)).load()
-    return out
+        return None
+    finally:
+        if isinstance(path, io.BufferedIOBase):
+            path.seek(0)
+    return int(data.get(FORMAT_KEY, 1)) if isinstance(data, dict) else None
+
+
+def target_as_online(policy_state: dict[str, th.Tensor]) -> dict[str, th.Tensor]:
+    """A DQN policy's ``state_dict`` whose target network entries (``q_net_target.*``) are the
+    online network's tensors (``q_net.*``), the same objects, so that ``torch.save`` stores them
+    once: the compact form of a model kept only to be played (``harness export``)."""
+    online = {k: v for k, v in policy_state.items() if not k.startswith("q_net_target.")}
+    target = {
+        "q_net_target." + k.removeprefix("q_net."): v
+        for k, v in online.items()
+        if k.startswith("q_net.")
+    }
+    return {**online, **target}
 
 
 __all__ = [
     "ACTION_MASK_KEY",
+    "MIGRATE_COMMAND",
+    "MODEL_FORMAT",
     "DoubleDQN",
+    "OldModelError",
     "StepStats",
     "allowed_actions",
     "per_agent_loss",
     "resolve_optimizer_class",
+    "target_as_online",
 ]
 
 
@@ -304,12 +320,9 @@ class DoubleDQN(DQN):
     phase_start: int = 0
     #: Transitions in the current phase; ``None``: SB3's own progress (no phases).
     phase_timesteps: int | None = None
-    # Class defaults, so that models saved before the imitation loss existed load without it.
-    # (SB3's load sets every saved attribute on the model: a model saved with the retired
-    # `action_mask` or `same_moves` settings gets them as attributes that nothing reads.)
-    expert_action: int | None = None
-    margin: float = 0.8
-    margin_weight: float = 1.0
+    expert_action: int | None
+    margin: float
+    margin_weight: float
 
     def __init__(
         self,
@@ -390,6 +403,8 @@ class DoubleDQN(DQN):
         self.expert_action = expert_action
         self.margin = float(margin)
         self.margin_weight = float(margin_weight)
+        # Saved with the model (SB3 saves the instance's attributes): load checks it.
+        setattr(self, FORMAT_KEY, MODEL_FORMAT)
         if _init_setup_model:
             self._setup_model()
 
@@ -469,36 +484,25 @@ class DoubleDQN(DQN):
         custom_objects: dict[str, Any] | None = None,
         **kwargs: Any,
     ) -> DoubleDQN:
-        """SB3's ``load``; a model saved before the classes moved into ``harness.sb3`` loads
-        too (:func:`moved_classes`)."""
-        found = moved_classes(path)
-        if isinstance(path, io.BufferedIOBase):
-            path.seek(0)
-        custom = {**found, **(custom_objects or {})}
-        return super().load(path, env=env, device=device, custom_objects=custom, **kwargs)
+        """SB3's ``load``, of a model in today's :data:`MODEL_FORMAT` only.
 
-    def set_parameters(
-        self,
-        load_path_or_dict: str | dict[str, Any],
-        exact_match: bool = True,
-        device: th.device | str = "auto",
-    ) -> None:
-        """SB3's ``set_parameters``, also accepting a policy saved without its target network.
-
-        Compact exports (``harness export``) leave out ``q_net_target``: it is only needed to keep
-        training, and a target network is a copy of the online network. When it is missing, it is
-        filled from the online network's weights.
+        Raises:
+            OldModelError: The model was saved in an older layout; the message names
+                :data:`MIGRATE_COMMAND`, which rewrites it once.
         """
-        if isinstance(load_path_or_dict, dict):
-            policy = load_path_or_dict.get("policy")
-            if isinstance(policy, dict) and not any(k.startswith("q_net_target.") for k in policy):
-                target = {
-                    "q_net_target." + k[len("q_net.") :]: v
-                    for k, v in policy.items()
-                    if k.startswith("q_net.")
-                }
-                load_path_or_dict = {**load_path_or_dict, "policy": {**policy, **target}}
-        super().set_parameters(load_path_or_dict, exact_match=exact_match, device=device)
+        found = saved_model_format(path)
+        where = path if isinstance(path, (str, Path)) else "the model"
+        if found is not None and found < MODEL_FORMAT:
+            raise OldModelError(
+                f"{where}: saved by an older version of the harness (model format {found}, this "
+                f"version reads {MODEL_FORMAT}); rewrite it once with: {MIGRATE_COMMAND} {where}"
+            )
+        if found is not None and found > MODEL_FORMAT:
+            raise OldModelError(
+                f"{where}: saved by a newer version of the harness (model format {found}, this "
+                f"version reads {MODEL_FORMAT}); update the harness to load it"
+            )
+        return super().load(path, env=env, device=device, custom_objects=custom_objects, **kwargs)
 
     def _excluded_save_params(self) -> list[str]:
         # Both schedules are rebuilt by _setup_model on load; saving them would only pickle
@@ -520,9 +524,11 @@ class DoubleDQN(DQN):
         Each gradient step is :meth:`_gradient_step`, built from the hooks :meth:`_td_target`,
         :meth:`_loss_terms` and :meth:`_weighted_loss`. The losses, the TD-error means and the
         imitation statistics stay on the device (:class:`StepStats`) and are read once, at the end
-        of the call, where the non-finite check runs too; with prioritized replay the new
-        priorities go to the host buffer after every step (its next sample needs them), and a
-        non-finite one stops the call there.
+        of the call, where the non-finite check runs too. With prioritized replay each step's
+        new priorities are written before the next sample: on the device with
+        :class:`~harness.sb3.device_replay.DevicePrioritizedReplayBuffer` (the call then reads
+        the device once), or copied to the host buffer after every step, where a non-finite one
+        stops the call at once.
 
         With a per-agent policy (:attr:`agent_sets` = N > 1) each gradient step samples
         ``N * batch_size`` transitions, ``batch_size`` per agent's set on average (see
@@ -537,6 +543,7 @@ class DoubleDQN(DQN):
         buffer = self.replay_buffer
         assert buffer is not None
         prioritized = isinstance(buffer, PrioritizedReplayBuffer)
+        on_device = isinstance(buffer, DevicePrioritizedReplayBuffer)
 
         stats = StepStats()
         for step in range(gradient_steps):
@@ -544,9 +551,13 @@ class DoubleDQN(DQN):
             loss, abs_td = self._gradient_step(replay_data, stats)
             stats.add("loss", loss)
             stats.add("td_error", abs_td.mean())
-            if prioritized:
-                # Errors from before this step's update, as in Schaul et al. (Algorithm 1). The
-                # buffer lives on the host and its next sample needs them: one transfer a step.
+            if on_device:
+                # Errors from before this step's update, as in Schaul et al. (Algorithm 1),
+                # written where the buffer is: nothing is read (a non-finite one makes this
+                # step's loss non-finite, which the call's one read below reports).
+                buffer.update_priorities(replay_data.indices, abs_td)  # type: ignore[union-attr]
+            elif prioritized:
+                # The same, for the host buffer: its next sample needs them, one transfer a step.
                 priorities = _to_host(abs_td)
                 if not np.isfinite(priorities).all():
                     self._check_finite(stats.read())  # raises, naming the loss when it is bad

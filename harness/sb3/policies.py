@@ -46,8 +46,6 @@ __all__ = [
     "SlotTeamMapPolicy",
     "TeamMapExtractor",
     "TeamMapPolicy",
-    "float_action_mask",
-    "float_action_mask_obs",
     "without_action_mask",
 ]
 
@@ -97,42 +95,6 @@ def without_action_mask(space: spaces.Space) -> spaces.Space:
     if isinstance(space, spaces.Dict) and ACTION_MASK_KEY in space.spaces:
         return spaces.Dict({k: v for k, v in space.spaces.items() if k != ACTION_MASK_KEY})
     return space
-
-
-def float_action_mask(space: spaces.Space) -> spaces.Space:
-    """``space`` with its :data:`ACTION_MASK_KEY` ``Box`` (an int8 one, as PettingZoo has it) as a
-    float32 ``Box`` of the same shape and bounds (any other space as it is): the form the
-    Q-networks and replay buffers of this harness take the mask in.
-
-    PettingZoo and Gymnasium want the mask as int8 (``Discrete.sample(mask)`` refuses any other
-    dtype), and envs give it so; models trained while the coverage env gave it as float32 (the
-    goal-action references) were saved with that space. One form for the models keeps those
-    loading and playing as they did, with their checkpoints and replay buffers; the network never
-    reads the mask, and a 0/1 mask is the same in either dtype.
-    """
-    if not (isinstance(space, spaces.Dict) and ACTION_MASK_KEY in space.spaces):
-        return space
-    mask = space.spaces[ACTION_MASK_KEY]
-    if not isinstance(mask, spaces.Box) or mask.dtype == np.float32:
-        return space
-    floats = spaces.Box(
-        mask.low.astype(np.float32), mask.high.astype(np.float32), mask.shape, np.float32
-    )
-    return spaces.Dict(
-        {key: floats if key == ACTION_MASK_KEY else sub for key, sub in space.spaces.items()}
-    )
-
-
-def float_action_mask_obs(obs: Any) -> Any:
-    """Observations (one, or a batch: a dict of arrays) with an :data:`ACTION_MASK_KEY` entry
-    that is not float32 cast to float32, in the form of :func:`float_action_mask` (a new dict;
-    anything else as it is)."""
-    if not isinstance(obs, dict) or ACTION_MASK_KEY not in obs:
-        return obs
-    mask = obs[ACTION_MASK_KEY]
-    if isinstance(mask, np.ndarray) and mask.dtype != np.float32:
-        return {**obs, ACTION_MASK_KEY: mask.astype(np.float32)}
-    return obs
 
 
 class _IgnoresActionMask:
@@ -711,7 +673,10 @@ class PerAgentQNetwork(BasePolicy):
         # not contiguous, see _input_major, and a reshape would copy them.)
         norms = th.stack([th.linalg.vector_norm(g, dim=tuple(range(1, g.dim()))) for g in grads])
         scale = (max_norm / (th.linalg.vector_norm(norms, dim=0) + 1e-6)).clamp(max=1.0)
-        if bool((scale < 1.0).any()):  # most steps clip nothing: skip a pass over every gradient
+        # Most steps clip nothing: on the CPU, skip a pass over every gradient then. On an
+        # accelerator asking would wait for the device, and a scale of 1 leaves a gradient as it
+        # is, so every step scales.
+        if scale.device.type != "cpu" or bool((scale < 1.0).any()):
             for g in grads:
                 g.mul_(scale.reshape(-1, *([1] * (g.dim() - 1))))
 

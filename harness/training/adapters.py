@@ -24,10 +24,9 @@ from typing import Any
 
 import numpy as np
 import supersuit as ss
-from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecMonitor
+from stable_baselines3.common.vec_env import VecEnv, VecMonitor
 from stable_baselines3.common.vec_env.base_vec_env import (
     VecEnvIndices,
-    VecEnvObs,
     VecEnvStepReturn,
 )
 from supersuit.vector import MakeCPUAsyncConstructor
@@ -36,7 +35,6 @@ from supersuit.vector.sb3_vector_wrapper import SB3VecEnvWrapper
 from envs.coverage.core import CoverageCore
 from harness.config.schema import VEC_BACKENDS, EnvConfig
 from harness.factory import make_core_spec, make_env
-from harness.sb3.policies import float_action_mask, float_action_mask_obs
 
 #: Env info keys that VecMonitor copies into each finished episode's ``info["episode"]``.
 EPISODE_INFO_KEYS = ("coverage", "new_cells", "wall_hits")
@@ -153,32 +151,6 @@ class CoreVecEnv(VecEnv):
         return [False] * len(self._get_indices(indices))
 
 
-class FloatActionMask(VecEnvWrapper):
-    """A VecEnv whose observations' action mask (PettingZoo's int8) reaches SB3 as float32, the
-    form the harness's models take it in (:func:`harness.sb3.policies.float_action_mask`): its
-    observation space, its observations and its slots' ``terminal_observation``."""
-
-    def __init__(self, venv: VecEnv) -> None:
-        super().__init__(venv, observation_space=float_action_mask(venv.observation_space))
-
-    def reset(self) -> VecEnvObs:
-        return float_action_mask_obs(self.venv.reset())
-
-    def step_wait(self) -> VecEnvStepReturn:
-        obs, rewards, dones, infos = self.venv.step_wait()
-        for info in infos:
-            if "terminal_observation" in info:
-                info["terminal_observation"] = float_action_mask_obs(info["terminal_observation"])
-        return float_action_mask_obs(obs), rewards, dones, infos
-
-
-def _with_float_mask(venv: VecEnv) -> VecEnv:
-    """``venv`` in :class:`FloatActionMask` when its observations carry a mask to convert."""
-    if float_action_mask(venv.observation_space) is venv.observation_space:
-        return venv
-    return FloatActionMask(venv)
-
-
 def _row(obs: np.ndarray | dict[str, np.ndarray], copy: int, agent: int) -> Any:
     """One agent's observation (a fresh array, or a dict of them) from a batch."""
     if isinstance(obs, dict):
@@ -209,13 +181,12 @@ def make_vec_env(
             env, one copy at a time, in ``num_cpus`` processes).
 
     Returns:
-        The VecEnv. Its ``num_envs`` is ``copies * n_agents``; an action mask in its observations
-        is float32 (:class:`FloatActionMask`).
+        The VecEnv. Its ``num_envs`` is ``copies * n_agents``.
     """
     if backend not in VEC_BACKENDS:
         raise ValueError(f"unknown vec backend {backend!r}; known: {', '.join(VEC_BACKENDS)}")
     if backend == "core":
-        venv = _with_float_mask(CoreVecEnv(CoverageCore(make_core_spec(env), copies), seed))
+        venv: VecEnv = CoreVecEnv(CoverageCore(make_core_spec(env), copies), seed)
         return VecMonitor(venv, info_keywords=EPISODE_INFO_KEYS) if monitor else venv
     return _supersuit_vec_env(env, copies, num_cpus, seed, monitor)
 
@@ -237,7 +208,7 @@ def _supersuit_vec_env(
         # SuperSuit's inner VecEnv has no get_attr("render_mode"); SB3 warns and uses None,
         # which is right: training never renders.
         warnings.filterwarnings("ignore", message="The `render_mode` attribute is not defined")
-        venv = _with_float_mask(SB3VecEnvWrapper(inner))
+        venv = SB3VecEnvWrapper(inner)
         if monitor:
             venv = VecMonitor(venv, info_keywords=EPISODE_INFO_KEYS)
     return venv

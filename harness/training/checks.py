@@ -19,7 +19,6 @@ from envs.coverage.goals import GOALS_KEY
 from harness.config.schema import ConfigError
 from harness.sb3.buffers import replay_memory_bytes
 from harness.sb3.dqn import resolve_optimizer_class
-from harness.sb3.policies import float_action_mask
 from harness.sb3.registry import POLICIES
 
 if TYPE_CHECKING:
@@ -182,13 +181,13 @@ def available_memory_bytes() -> int | None:
 
 
 def _slot_spaces(config: ExperimentConfig) -> tuple[Any, Any]:
-    """One VecEnv slot's observation and action spaces as the model sees them (an action mask as
-    float32, :func:`harness.training.adapters.make_vec_env`'s; an env is built, not reset)."""
+    """One VecEnv slot's observation and action spaces, as the model sees them (an env is built,
+    not reset)."""
     from harness.factory import check_env
 
     env = check_env(config.env)
     agent = env.possible_agents[0]
-    return float_action_mask(env.observation_space(agent)), env.action_space(agent)
+    return env.observation_space(agent), env.action_space(agent)
 
 
 def network_parameters(config: ExperimentConfig) -> int:

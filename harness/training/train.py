@@ -51,8 +51,14 @@ from harness.results.rundir import (
     atomic_write_text,
     rewind_logs,
 )
-from harness.sb3.buffers import PrioritizedDictReplayBuffer, PrioritizedReplayBuffer
-from harness.sb3.dqn import DoubleDQN, NonFiniteLossError, resolve_optimizer_class
+from harness.sb3.buffers import PrioritizedReplayBuffer
+from harness.sb3.device_replay import prioritized_buffer_class
+from harness.sb3.dqn import (
+    DoubleDQN,
+    NonFiniteLossError,
+    OldModelError,
+    resolve_optimizer_class,
+)
 from harness.sb3.schedules import PhaseLinearSchedule
 from harness.training.adapters import make_vec_env
 from harness.training.callbacks import (
@@ -111,7 +117,8 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
             "gamma": algo.gamma,
         }
         dict_obs = isinstance(venv.observation_space, spaces.Dict)
-        buffer_class = PrioritizedDictReplayBuffer if dict_obs else PrioritizedReplayBuffer
+        # On an accelerator the buffer lives there too (no host round trip per gradient step).
+        buffer_class = prioritized_buffer_class(algo.device, dict_obs)
     return DoubleDQN(
         policy_class_name(algo),
         venv,
@@ -722,6 +729,8 @@ def load_resume_point(checkpoint: Path, config: ExperimentConfig) -> ResumePoint
     rng = read_rng(checkpoint)
     try:
         model = DoubleDQN.load(files.model, device=config.algo.device)
+    except OldModelError as exc:  # its own line: it names the command that migrates the model
+        raise CheckpointError(str(exc)) from None
     except Exception as exc:  # SB3 raises many kinds on a damaged zip
         raise CheckpointError(f"{files.model}: unreadable ({exc})") from None
     check_replay_buffer(checkpoint)  # a flipped byte could load as NaN observations

@@ -100,17 +100,19 @@ class Step:
     ) -> list[int]:
         """The frontier step: one of the moves the current compass marks (drawn from ``rng``
         when several tie, so teammates at one spot may part), stay when it marks none."""
-        compass = frontier.compass
         out = list(actions)
+        marks = None
         for i, a in enumerate(actions):
             if a == FRONTIER_STEP:
-                moves = np.flatnonzero(compass[i, :4])
-                if moves.size == 0:
+                if marks is None:  # the compass's four moves, read once a step
+                    marks = frontier.compass[:, :4].tolist()
+                moves = [m for m, marked in enumerate(marks[i]) if marked]
+                if not moves:
                     out[i] = STAY
-                elif moves.size == 1:
-                    out[i] = int(moves[0])
+                elif len(moves) == 1:
+                    out[i] = moves[0]
                 else:
-                    out[i] = int(moves[rng.integers(moves.size)])
+                    out[i] = moves[int(rng.integers(len(moves)))]
         return out
 
 

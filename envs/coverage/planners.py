@@ -504,8 +504,7 @@ class CoordinatedPlanner(FrontierPlanner):
         compiled assignment, both in one compiled call (:func:`_coordinated_step`) on the steps
         that only bring the map up to date."""
         incremental = steps != 0 and self.steps <= steps <= self.steps + 1
-        kind = self._compiled_assign
-        if not (incremental and kind is not None and self.candidates == "all"):
+        if not (incremental and self.candidates == "all"):
             self.sync(steps, positions, read_map)
             return self.act(rng)
         n = positions.shape[0]
@@ -513,12 +512,25 @@ class CoordinatedPlanner(FrontierPlanner):
         size = self.passable.size
         if self._distances is None or self._distances.shape != (n, size):
             self._distances = np.empty((n, size))
-        beta, radius = getattr(self, "beta", 0.0), getattr(self, "radius", 1.0)
-        self.n_targets = _coordinated_step(
-            positions, self.window, self.free, self.visited, self.seen, self.passable,
-            self.target, self.n_targets, self.stride, self._horizon(), self._distances,
-            self._scratch_arrays(size)[1], kind, beta, radius, starts, goals, actions,
-        )  # fmt: skip
+        dist, queue = self._distances, self._scratch_arrays(size)[1]
+        kind = self._compiled_assign
+        if kind is not None:
+            beta, radius = getattr(self, "beta", 0.0), getattr(self, "radius", 1.0)
+            self.n_targets = _coordinated_step(
+                positions, self.window, self.free, self.visited, self.seen, self.passable,
+                self.target, self.n_targets, self.stride, self._horizon(), dist, queue,
+                kind, beta, radius, starts, goals, actions,
+            )  # fmt: skip
+        else:  # the assignment in Python (SciPy's), around two compiled calls
+            self.n_targets, cells, costs = _sync_and_costs(
+                positions, self.window, self.free, self.visited, self.seen, self.passable,
+                self.target, self.n_targets, self.stride, self._horizon(), dist, queue, starts,
+            )  # fmt: skip
+            goals[:], actions[:] = -1, STAY
+            if self.n_targets:
+                goal_cells = np.repeat(cells[None, :], n, axis=0)
+                chosen = np.asarray(self.assign(costs, goal_cells), dtype=np.int64)
+                goals, actions = _first_moves(dist, starts, costs, goal_cells, chosen, self.stride)
         self.steps, self.rng = steps, rng
         self.positions, self.goals = starts.tolist(), goals.tolist()
         return actions.tolist()
@@ -754,6 +766,35 @@ def _utility_choices(
     return chosen
 
 
+@njit(cache=True, nogil=True)
+def _sync_and_costs(
+    positions: np.ndarray,
+    window: np.ndarray,
+    free: np.ndarray,
+    visited: np.ndarray,
+    seen: np.ndarray,
+    passable: np.ndarray,
+    target: np.ndarray,
+    n_targets: int,
+    stride: int,
+    horizon: float,
+    dist: np.ndarray,
+    queue: np.ndarray,
+    starts: np.ndarray,
+) -> tuple[int, np.ndarray, np.ndarray]:
+    """A coordinated planner's step up to its assignment: the agents' padded cells
+    (``starts``), the map brought up to date (:func:`_visit_cells`) and, while targets are left,
+    the costs (:func:`_target_costs`). Returns the number of targets now, the target cells and
+    the costs (empty when none is left)."""
+    for i in range(starts.size):
+        starts[i] = (positions[i, 0] + 1) * stride + positions[i, 1] + 1
+    n_targets += _visit_cells(starts, window, free, visited, seen, passable, target)
+    if n_targets == 0:
+        return n_targets, np.empty(0, dtype=np.int64), np.empty((starts.size, 0))
+    cells, costs = _target_costs(passable, target, stride, starts, horizon, dist, queue)
+    return n_targets, cells, costs
+
+
 #: The assignments :func:`_coordinated_step` runs compiled.
 _MINPOS, _UTILITY = 0, 1
 
@@ -785,14 +826,14 @@ def _coordinated_step(
     (:func:`_target_costs`), the assignment and the first moves (:func:`_first_moves`), as
     :meth:`CoordinatedPlanner.act` does them one call after another. Returns the number of
     targets now."""
-    for i in range(starts.size):
-        starts[i] = (positions[i, 0] + 1) * stride + positions[i, 1] + 1
-    n_targets += _visit_cells(starts, window, free, visited, seen, passable, target)
     goals[:] = -1
     actions[:] = STAY
+    n_targets, cells, costs = _sync_and_costs(
+        positions, window, free, visited, seen, passable, target, n_targets, stride, horizon,
+        dist, queue, starts,
+    )  # fmt: skip
     if n_targets == 0:
         return n_targets
-    cells, costs = _target_costs(passable, target, stride, starts, horizon, dist, queue)
     goal_cells = np.empty(costs.shape, dtype=np.int64)
     for i in range(starts.size):
         goal_cells[i] = cells

@@ -175,10 +175,12 @@ class TeamMapObservation(ObservationBuilder):
     crosses unknown ground reaches a source before it leaves it.
 
     Built incrementally: each step only the cells of the agents' new 3x3 windows are looked at,
-    and only those whose category changed update the images and the per-block counts, so a step
-    costs ``O(agents * (crop^2 + G^2))``, whatever the map's size. The ego view counts each
-    agent's ``E^2`` blocks cell by cell in compiled code
-    (:func:`envs.coverage.teammap_kernels.ego_views`, ``O(agents * (E * ego_block)^2)``).
+    and only those whose category changed update the images, the per-block counts and, with
+    the ego view, the counts of every ``ego_block`` x ``ego_block`` window around them, so a
+    step costs ``O(agents * (crop^2 + G^2 + E^2))`` besides the frontier search, whatever the
+    map's size. One compiled call per step builds every agent's views
+    (:func:`envs.coverage.teammap_kernels.teammap_views`); the core calls it for each copy
+    with views of the batch's arrays (:meth:`build_into`).
 
     Args:
         height, width, coords, max_steps: As :class:`ObservationBuilder`.

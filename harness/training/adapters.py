@@ -34,7 +34,7 @@ from supersuit.vector import MakeCPUAsyncConstructor
 from supersuit.vector.sb3_vector_wrapper import SB3VecEnvWrapper
 
 from envs.coverage.core import CoverageCore
-from harness.config.schema import VEC_BACKENDS, EnvConfig
+from harness.config.schema import VEC_BACKENDS, EnvConfig, PettingZooEnvConfig
 from harness.factory import make_core_spec, make_env
 from harness.sb3.policies import float_action_mask, float_action_mask_obs
 
@@ -214,6 +214,9 @@ def make_vec_env(
     """
     if backend not in VEC_BACKENDS:
         raise ValueError(f"unknown vec backend {backend!r}; known: {', '.join(VEC_BACKENDS)}")
+    if backend == "core" and isinstance(env, PettingZooEnvConfig):
+        # (the config picks supersuit for such an env: harness.config.schema)
+        raise ValueError("the batched core is the coverage env's: a pettingzoo env needs supersuit")
     if backend == "core":
         venv = _with_float_mask(CoreVecEnv(CoverageCore(make_core_spec(env), copies), seed))
         return VecMonitor(venv, info_keywords=EPISODE_INFO_KEYS) if monitor else venv
@@ -229,15 +232,21 @@ def _supersuit_vec_env(
         for i in range(copies)
     ]
     probe = make_env(env)
+    agent = probe.possible_agents[0]  # (all agents share their spaces: the config checks it)
     # The same constructor concat_vec_envs_v1 uses, given one seeded function per copy.
     inner = MakeCPUAsyncConstructor(min(num_cpus, copies))(
-        fns, probe.observation_space("agent_0"), probe.action_space("agent_0")
+        fns, probe.observation_space(agent), probe.action_space(agent)
     )
+    if isinstance(env, PettingZooEnvConfig):
+        probe.close()
     with warnings.catch_warnings():
         # SuperSuit's inner VecEnv has no get_attr("render_mode"); SB3 warns and uses None,
         # which is right: training never renders.
         warnings.filterwarnings("ignore", message="The `render_mode` attribute is not defined")
         venv = _with_float_mask(SB3VecEnvWrapper(inner))
         if monitor:
-            venv = VecMonitor(venv, info_keywords=EPISODE_INFO_KEYS)
+            # A PettingZoo env of one's own: return and length (its infos are read from the
+            # last step's infos by the episode log, harness.training.callbacks).
+            keys = () if isinstance(env, PettingZooEnvConfig) else EPISODE_INFO_KEYS
+            venv = VecMonitor(venv, info_keywords=keys)
     return venv

@@ -268,6 +268,17 @@ def median_steps_to(results: list[EpisodeResult], key: str) -> float | None:
     return None if not np.isfinite(median) else median
 
 
+def headline(summary: dict[str, Any], stat: str = "median") -> float:
+    """An evaluation's headline number: the team coverage's ``stat`` (``median``, ``mean``,
+    ``q1``, ``q3``, ``iqr``) for the coverage env, the team return's for a PettingZoo env of
+    one's own (``summary["source"] == "pettingzoo"``). Sweeps, ``harness tune``, ``compare``
+    and seed groups read their number here."""
+    from harness.evaluation.foreign import SOURCE
+
+    prefix = "return" if summary.get("source") == SOURCE else "coverage"
+    return float(summary[f"{prefix}_{stat}"])
+
+
 #: The steps :func:`selection_score` counts for a median episode that never reaches 99 %.
 SLOWEST = 1e5
 

@@ -769,25 +769,42 @@ def read_episodes_csv(path: str | Path) -> Curve:
 
     Returns:
         ``(timesteps, coverage)``: int64 and float64 arrays, one entry per finished episode,
-        in order of timesteps.
+        in order of timesteps (a PettingZoo env's log: ``team_return``).
 
     Raises:
         ValueError: When a column is missing or a value is not a number (naming file and line).
     """
-    # Copies finish out of order only within a step; the sort puts them back.
-    return _read_columns(path, "timesteps", "coverage")
+    # Copies finish out of order only within a step; the sort puts them back. A PettingZoo env
+    # of one's own logs the team return instead (FOREIGN_EPISODE_COLUMNS).
+    return _read_columns(path, "timesteps", _curve_column(path, "coverage", "team_return"))
 
 
 def read_evaluations_csv(path: str | Path) -> Curve:
     """Read a run's ``evaluations.csv`` (the in-training evaluations of the test policy).
 
     Returns:
-        ``(timesteps, coverage_median)`` arrays, one entry per evaluation, in order.
+        ``(timesteps, coverage_median)`` arrays (a PettingZoo env's: ``return_median``), one
+        entry per evaluation, in order.
 
     Raises:
         ValueError: When a column is missing or a value is not a number (naming file and line).
     """
-    return _read_columns(path, "timesteps", "coverage_median")
+    return _read_columns(path, "timesteps", _curve_column(path, "coverage_median", "return_median"))
+
+
+def is_foreign_log(path: str | Path) -> bool:
+    """Whether ``path`` (an ``episodes.csv``) is a PettingZoo env's log of one's own (its header
+    is :data:`FOREIGN_EPISODE_COLUMNS`)."""
+    choices = (EPISODE_COLUMNS, FOREIGN_EPISODE_COLUMNS)
+    return tuple(_columns_of(Path(path), choices)) == FOREIGN_EPISODE_COLUMNS
+
+
+def _curve_column(path: str | Path, coverage: str, foreign: str) -> str:
+    """``foreign`` when ``path``'s header is a PettingZoo env's log (it has that column and not
+    ``coverage``), else ``coverage`` (whose absence the reader then names)."""
+    choices = (EPISODE_COLUMNS, FOREIGN_EPISODE_COLUMNS, EVALUATION_COLUMNS)
+    header = _columns_of(Path(path), (*choices, FOREIGN_EVALUATION_COLUMNS))
+    return foreign if foreign in header and coverage not in header else coverage
 
 
 #: The range of a curve's ``x`` column (int64, as numpy stores it).

@@ -134,8 +134,10 @@ def _is_model(tp: object) -> bool:
 
 def schema_keys(model: type[BaseModel], prefix: str = "") -> set[str]:
     """Every key of ``model`` as a dotted path: nested sections are recursed into (a list of
-    sections as ``key[].``), an optional section is the key itself and its keys, and anything
-    else (plain values, dicts, unions such as ``env.map``) is the key itself."""
+    sections as ``key[].``), an optional section is the key itself and its keys, a union of
+    sections (``env``: the coverage env's or a PettingZoo source's) is the key itself and each
+    section's keys, and anything else (plain values, dicts, unions such as ``env.map``) is the
+    key itself."""
     keys: set[str] = set()
     for name, field in model.model_fields.items():
         key = prefix + name
@@ -151,6 +153,9 @@ def schema_keys(model: type[BaseModel], prefix: str = "") -> set[str]:
             keys.add(key)
             if len(models) == 1 and rest == [type(None)]:  # an optional section
                 keys |= schema_keys(models[0], key + ".")
+            elif len(models) > 1 and not rest:  # sections of several kinds (the env sources)
+                for section in models:
+                    keys |= schema_keys(section, key + ".")
         else:
             keys.add(key)
     return keys

@@ -235,3 +235,17 @@ def test_a_config_error_names_the_pettingzoo_key():
     raw["env"]["pettingzoo"]["kwargs"]["render_mode"] = "human"
     with pytest.raises(ConfigError, match=r"env\.pettingzoo\.kwargs: .*render_mode"):
         config_from_dict(raw, "x.yaml")
+
+
+def test_a_time_limit_reaches_the_replay_buffer_as_a_time_out():
+    from harness.training.adapters import make_vec_env
+
+    config = config_from_dict(meet())
+    venv = make_vec_env(config.env, copies=2, seed=0, backend="supersuit")
+    venv.reset()
+    for step in range(1, 11):
+        _, _, dones, infos = venv.step(np.ones(venv.num_envs, dtype=np.int64))
+        assert dones.all() == (step == 10)
+    assert all(info["TimeLimit.truncated"] is True for info in infos)
+    assert all("terminal_observation" in info and "episode" in info for info in infos)
+    venv.close()

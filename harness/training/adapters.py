@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 import supersuit as ss
+from pettingzoo.utils.wrappers import BaseParallelWrapper
 from stable_baselines3.common.vec_env import VecEnv, VecEnvWrapper, VecMonitor
 from stable_baselines3.common.vec_env.base_vec_env import (
     VecEnvIndices,
@@ -37,6 +38,9 @@ from envs.coverage.core import CoverageCore
 from harness.config.schema import VEC_BACKENDS, EnvConfig, PettingZooEnvConfig
 from harness.factory import make_core_spec, make_env
 from harness.sb3.policies import float_action_mask, float_action_mask_obs
+
+#: The info key of a time-out (SB3's): the replay buffer bootstraps its transition.
+TIME_LIMIT_KEY = "TimeLimit.truncated"
 
 #: Env info keys that VecMonitor copies into each finished episode's ``info["episode"]``.
 EPISODE_INFO_KEYS = ("coverage", "new_cells", "wall_hits")
@@ -61,10 +65,28 @@ def _make_copy(
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         if hasattr(signal, "SIGPIPE"):  # POSIX
             signal.signal(signal.SIGPIPE, signal.SIG_DFL)
-    vec = ss.pettingzoo_env_to_vec_env_v1(make_env(env))
+    built = make_env(env)
+    if isinstance(env, PettingZooEnvConfig):
+        built = TimeLimitInfos(built)
+    vec = ss.pettingzoo_env_to_vec_env_v1(built)
     if seed is not None:
         vec.reset(seed=seed)
     return vec
+
+
+class TimeLimitInfos(BaseParallelWrapper):
+    """A PettingZoo env of one's own whose truncated agents (a time limit: truncated, not
+    terminated) carry ``"TimeLimit.truncated": True`` in their infos, as the coverage env's do:
+    SuperSuit's VecEnv says only "done", and SB3's replay buffers read this key to bootstrap a
+    time-out's last transition rather than treat it as the episode's true end."""
+
+    def step(self, actions: dict[Any, Any]) -> tuple[dict[Any, Any], ...]:
+        obs, rewards, terms, truncs, infos = self.env.step(actions)
+        infos = dict(infos)
+        for agent, truncated in truncs.items():
+            if truncated and not terms.get(agent, False):
+                infos[agent] = {**infos.get(agent, {}), TIME_LIMIT_KEY: True}
+        return obs, rewards, terms, truncs, infos
 
 
 class CoreVecEnv(VecEnv):

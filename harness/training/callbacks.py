@@ -18,6 +18,7 @@ from tqdm.rich import tqdm
 
 from harness.results.rundir import EPISODE_COLUMNS, FOREIGN_EPISODE_COLUMNS, append_csv_rows
 from harness.sb3.schedules import epochs_for
+from harness.training.adapters import TIME_LIMIT_KEY
 
 
 def recent_coverages(ep_info_buffer: Any, episodes: int, n_agents: int) -> list[float]:
@@ -120,8 +121,8 @@ class EpisodeLogCallback(BaseCallback):
         return True
 
 
-#: Info keys that SB3's and SuperSuit's VecEnvs add (not the env's own infos).
-VEC_INFO_KEYS = ("TimeLimit.truncated",)
+#: Info keys that the harness's VecEnvs add (not the env's own infos).
+VEC_INFO_KEYS = (TIME_LIMIT_KEY,)
 
 
 class ForeignEpisodeLogCallback(EpisodeLogCallback):

@@ -52,7 +52,7 @@ from harness.commands import (
     tune,
 )
 from harness.config.loading import load_config
-from harness.config.schema import MAX_SEED, ConfigError, ExperimentConfig, check_name
+from harness.config.schema import MAX_SEED, ConfigError, ExperimentConfig, check_name, is_foreign
 
 # The help names the baselines from their registry (its planners' SciPy costs the start nothing
 # more: the env, which every command imports, has loaded it already).
@@ -631,6 +631,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.plot is not None:
         check_image_output(args.plot, "--plot")
     target = _target(args)
+    if args.plot is not None and is_foreign(target.config.env):
+        raise HarnessError(
+            "--plot draws coverage and wall hits per episode: not for a pettingzoo env"
+        )
     summary, results = evaluate(target, args.episodes, args.overrides)
     if summary["saved"] is not None:
         print(f"saved {summary['saved']}", file=sys.stderr)

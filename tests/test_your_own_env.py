@@ -249,3 +249,21 @@ def test_a_time_limit_reaches_the_replay_buffer_as_a_time_out():
     assert all(info["TimeLimit.truncated"] is True for info in infos)
     assert all("terminal_observation" in info and "episode" in info for info in infos)
     venv.close()
+
+
+def test_the_docs_show_the_tested_env_and_config():
+    page = (ROOT / "docs" / "your-own-env.md").read_text()
+    assert (ROOT / "tests" / "envs" / "meet.py").read_text() in page
+    assert MEET.read_text() in page
+
+
+def test_a_run_repeats_from_its_seed(tmp_path):
+    for name in ("a", "b"):
+        args = ["run", str(MEET), "--no-progress", "--into", str(tmp_path / name)]
+        assert main([*args, "--set", "phases.initial.timesteps=300", "--set", "eval.every=0"]) == 0
+
+    def returns(name: str) -> list[str]:
+        with (tmp_path / name / "episodes.csv").open() as f:
+            return [row["returns"] for row in csv.DictReader(f)]
+
+    assert returns("a") == returns("b") and len(set(returns("a"))) > 1

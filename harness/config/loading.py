@@ -17,7 +17,13 @@ from pydantic import BaseModel, ValidationError
 
 from harness.config.maps import SHA256
 from harness.config.migrate import migrate
-from harness.config.schema import ENV_SOURCES, MAX_CONFIG_BYTES, ConfigError, ExperimentConfig
+from harness.config.schema import (
+    ENV_SECTIONS,
+    ENV_SOURCES,
+    MAX_CONFIG_BYTES,
+    ConfigError,
+    ExperimentConfig,
+)
 
 
 # ---------------------------------------------------------------------- loading
@@ -26,7 +32,7 @@ def _format_error(source: str, err: ValidationError) -> str:
     loc = ".".join(str(p) for p in _config_loc(first["loc"])) or "(top level)"
     msg = first["msg"].removeprefix("Value error, ")
     if first["type"] == "extra_forbidden":
-        guess = _closest_key(_config_loc(first["loc"]))
+        guess = _closest_key(first["loc"])
         msg += f" (did you mean {guess}?)" if guess else ""
     more = f" (and {err.error_count() - 1} more)" if err.error_count() > 1 else ""
     return f"{source}: {loc}: {msg}{more}"
@@ -41,12 +47,16 @@ def _config_loc(loc: Sequence[Any]) -> tuple[Any, ...]:
 
 
 def _closest_key(loc: tuple[Any, ...]) -> str | None:
-    """The key of the schema's section at ``loc[:-1]`` nearest to the unknown ``loc[-1]``
-    (difflib), dotted as a config writes it; ``None`` when nothing is near."""
+    """The key of the schema's section at ``loc[:-1]`` (a validation error's location, with the
+    env source's tag) nearest to the unknown ``loc[-1]`` (difflib), dotted as a config writes
+    it; ``None`` when nothing is near."""
     model: Any = ExperimentConfig
-    for part in loc[:-1]:
+    for i, part in enumerate(loc[:-1]):
         if isinstance(part, int):
             continue  # an item of a list section (phases.0)
+        if i == 1 and loc[0] == "env" and part in ENV_SECTIONS:
+            model = ENV_SECTIONS[part]  # the env section of that source
+            continue
         nested, _ = _field_model(model, str(part))
         if nested is None:
             return None
@@ -55,7 +65,7 @@ def _closest_key(loc: tuple[Any, ...]) -> str | None:
     close = difflib.get_close_matches(str(loc[-1]), names, n=1, cutoff=0.6)
     if not close:
         return None
-    path = [str(p) for p in loc[:-1]] + close
+    path = [str(p) for p in _config_loc(loc)[:-1]] + close
     return f"`{'.'.join(path)}`"
 
 

@@ -353,9 +353,10 @@ class PettingZooEnvConfig(_Section):
         """Nothing to refuse: test maps are the coverage env's."""
 
 
-#: The env sources an ``env`` section can be (the section's tag): the coverage env's keys, or
+#: The env sources an ``env`` section can be, by the section's tag: the coverage env's keys, or
 #: ``{pettingzoo: ...}``.
-ENV_SOURCES = ("coverage", "pettingzoo")
+ENV_SECTIONS: dict[str, type[_Section]] = {"coverage": EnvConfig, "pettingzoo": PettingZooEnvConfig}
+ENV_SOURCES = tuple(ENV_SECTIONS)
 
 
 def _env_source(value: Any) -> str:

@@ -169,6 +169,15 @@ def test_eval_tune_and_render(trained, tmp_path, capsys):
     assert gif.stat().st_size > 0 and (tmp_path / "m.png").is_file()
 
 
+def test_render_refuses_an_env_without_frames(tmp_path, capsys):
+    path = tmp_path / "no_frames.yaml"
+    path.write_text(yaml.safe_dump(meet("tests.envs.odd:no_frames")))
+    args = ["render", "--policy", "random", "--config", str(path), "--out", str(tmp_path / "r.png")]
+    assert main(args) == 2
+    assert "does not render rgb_array frames" in one_error_line(capsys.readouterr().err)
+    assert not (tmp_path / "r.png").exists()
+
+
 def test_seeds_eval_group_and_compare(trained, tmp_path, capsys):
     runs = tmp_path / "runs"
     args = ["run", str(MEET), "--seeds", "2", "--no-progress", "--runs-dir", str(runs)]

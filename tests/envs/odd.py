@@ -47,6 +47,13 @@ def aec(**kwargs):
     return parallel_to_aec(MeetEnv(**kwargs))
 
 
+def no_frames(**kwargs):
+    """The meet env without rgb_array frames."""
+    env = MeetEnv(**kwargs)
+    env.metadata = {"name": "meet_v0", "render_modes": []}
+    return env
+
+
 def failing(**kwargs):
     """A constructor that raises."""
     raise RuntimeError("no such world")

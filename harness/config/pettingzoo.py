@@ -120,7 +120,7 @@ def check_spaces(env: Any) -> EnvSpaces:
     if not isinstance(observation, spaces.Box):
         raise ValueError(
             f"agent {first!r}: observation space {observation} is not a Box (flatten it, e.g. "
-            "with SuperSuit's flatten_v0 or gymnasium's FlattenObservation)"
+            "with gymnasium's spaces.flatten_space and spaces.flatten)"
         )
     for agent in agents[1:]:
         for what, mine, shared in (

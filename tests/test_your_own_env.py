@@ -276,3 +276,30 @@ def test_a_run_repeats_from_its_seed(tmp_path):
             return [row["returns"] for row in csv.DictReader(f)]
 
     assert returns("a") == returns("b") and len(set(returns("a"))) > 1
+
+
+def test_a_stopped_run_resumes_with_consecutive_episodes(tmp_path, monkeypatch):
+    import signal
+
+    from harness.sb3.dqn import DoubleDQN
+
+    original, fired = DoubleDQN.train, []
+
+    def train_then_interrupt(model, gradient_steps, batch_size=100):
+        original(model, gradient_steps, batch_size)
+        if model.num_timesteps >= 400 and not fired:
+            fired.append(model.num_timesteps)
+            os.kill(os.getpid(), signal.SIGINT)
+
+    run = tmp_path / "run"
+    args = ["run", str(MEET), "--no-progress", "--into", str(run), "--set", "checkpoint.every=200"]
+    with monkeypatch.context() as mp:
+        mp.setattr(DoubleDQN, "train", train_then_interrupt)
+        assert main(args) == 128 + signal.SIGINT
+    assert main(["run", "--resume", str(run), "--no-progress"]) == 0
+    with (run / "episodes.csv").open() as f:
+        numbers = [int(row["episode"]) for row in csv.DictReader(f)]
+    # 600 transitions are 30 episodes of 10 steps of 2 agents; those the stop cut are not resumed
+    assert numbers == list(range(len(numbers))) and 26 <= len(numbers) <= 30
+    with (run / "evaluations.csv").open() as f:
+        assert [row["timesteps"] for row in csv.DictReader(f)] == ["400"]

@@ -37,6 +37,8 @@ from harness.commands import (
     DEFAULT_EPISODES,
     DEFAULT_TEMPERATURES,
     DEFAULT_TUNE_EPISODES,
+    OVER_SEEDS,
+    PER_EPISODE_KEYS,
     Target,
     TargetError,
     compare,
@@ -50,11 +52,12 @@ from harness.commands import (
     tune,
 )
 from harness.config.loading import load_config
-from harness.config.schema import MAX_SEED, ConfigError, ExperimentConfig, check_name
+from harness.config.schema import MAX_SEED, ConfigError, ExperimentConfig, check_name, is_foreign
 
 # The help names the baselines from their registry (its planners' SciPy costs the start nothing
 # more: the env, which every command imports, has loaded it already).
 from harness.evaluation.baselines import BASELINES
+from harness.evaluation.foreign import SOURCE
 from harness.results.groups import GroupError, GroupInterrupted, Job
 from harness.results.rundir import (
     RunDir,
@@ -466,7 +469,7 @@ def _group_stopped(exc: GroupInterrupted) -> int:
 def _group_done(group: Path, jobs: Sequence[Job]) -> int:
     """The end of a seed group's command: each seed's state, the last validations; 0 when every
     seed is done."""
-    from harness.results.groups import seed_progress_value
+    from harness.results.groups import seed_progress_metric, seed_progress_value
 
     print(f"group folder: {group}", file=sys.stderr)
     for job in jobs:
@@ -483,10 +486,11 @@ def _group_done(group: Path, jobs: Sequence[Job]) -> int:
     finals = [seed_progress_value(job.run) for job in jobs if job.returncode == 0]
     finals = [f for f in finals if f is not None]
     if finals:
+        what, fmt = seed_progress_metric(jobs[0].run)
         print(
-            f"  last validation over {len(finals)} seed(s): median coverage "
-            + ", ".join(f"{f:.1%}" for f in finals)
-            + f" (mean {sum(finals) / len(finals):.1%}); test them: harness eval {group}",
+            f"  last validation over {len(finals)} seed(s): {what} "
+            + ", ".join(fmt(f) for f in finals)
+            + f" (mean {fmt(sum(finals) / len(finals))}); test them: harness eval {group}",
             file=sys.stderr,
         )
     if any(job.returncode != 0 for job in jobs):
@@ -627,6 +631,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.plot is not None:
         check_image_output(args.plot, "--plot")
     target = _target(args)
+    if args.plot is not None and is_foreign(target.config.env):
+        raise HarnessError(
+            "--plot draws coverage and wall hits per episode: not for a pettingzoo env"
+        )
     summary, results = evaluate(target, args.episodes, args.overrides)
     if summary["saved"] is not None:
         print(f"saved {summary['saved']}", file=sys.stderr)
@@ -636,7 +644,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         plot_eval_episodes(results, None, args.plot, f"{target.label}: {len(results)} episodes")
         print(f"saved {args.plot}", file=sys.stderr)
     if args.json:
-        hidden = ("coverage", "wall_hits", "saved")
+        hidden = (*PER_EPISODE_KEYS, "saved")
         print(json.dumps({k: v for k, v in summary.items() if k not in hidden}))
     else:
         print(format_summary(summary))
@@ -659,14 +667,22 @@ def _eval_group(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     if saved is not None:
-        from harness.results.stats import with_ci
+        from harness.results.stats import plain, with_ci
 
-        over = result["coverage_mean_over_seeds"]
-        ci = over["mean_ci95"]
-        print(
-            f"== over {over['seeds']} seeds: mean coverage {with_ci(over['mean'], ci)}, "
-            f"IQM {with_ci(over['iqm'], over['iqm_ci95'])}"
-        )
+        if OVER_SEEDS in result:
+            over = result[OVER_SEEDS]
+            ci = over["mean_ci95"]
+            print(
+                f"== over {over['seeds']} seeds: mean coverage {with_ci(over['mean'], ci)}, "
+                f"IQM {with_ci(over['iqm'], over['iqm_ci95'])}"
+            )
+        else:  # a PettingZoo env of one's own: the team return
+            over = result["return_mean_over_seeds"]
+            print(
+                f"== over {over['seeds']} seeds: mean team return "
+                f"{with_ci(over['mean'], over['mean_ci95'], plain)}, "
+                f"IQM {with_ci(over['iqm'], over['iqm_ci95'], plain)}"
+            )
         print(f"saved {saved}", file=sys.stderr)
         if args.json:
             print(json.dumps(result))
@@ -718,6 +734,11 @@ def cmd_compare(args: argparse.Namespace) -> int:
                 else "run harness eval"
             )
             print(f"{label:<{wide}}{name:<{runs}}(no {args.eval}.json; {hint})")
+        elif ev.get("source") == SOURCE:  # a PettingZoo env of one's own: team return
+            print(
+                f"{label:<{wide}}{name:<{runs}}{ev['return_median']:>8.4g}"
+                f"{ev['return_iqr']:>8.4g}{'-':>11}"
+            )
         else:
             print(
                 f"{label:<{wide}}{name:<{runs}}{ev['coverage_median']:>8.1%}"

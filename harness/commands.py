@@ -23,16 +23,20 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
 from harness.config.loading import load_config
-from harness.config.schema import ConfigError, ExperimentConfig
+from harness.config.schema import ConfigError, ExperimentConfig, PettingZooEnvConfig
 from harness.evaluation.baselines import BASELINES, make_baseline
 from harness.evaluation.episodes import (
     BatchPolicy,
+    headline,
     model_policy,
     run_episodes,
     selection_score,
     summarize,
 )
+from harness.evaluation.foreign import SOURCE
 from harness.factory import make_env
 from harness.results.rundir import (
     REFERENCE_FILES,
@@ -41,6 +45,7 @@ from harness.results.rundir import (
     RunDirError,
     atomic_write_text,
     check_output_file,
+    is_foreign_log,
     is_reference,
     result_filename,
     results_folder,
@@ -254,6 +259,8 @@ def resolve_target(
         config = load_config(config_path, overrides)
         try:
             BASELINES[policy].check(config.env.frontier_options)
+            if isinstance(config.env, PettingZooEnvConfig):
+                BASELINES[policy].check_foreign()
         except ValueError as exc:
             raise TargetError(f"--policy {policy}: {exc}") from None
         seed = config.eval.seed if seed is None else seed
@@ -275,6 +282,8 @@ def sampling_note(temperature: float | None) -> str:
 
 def format_summary(summary: dict[str, Any]) -> str:
     """A readable table of :func:`harness.evaluation.episodes.summarize`'s numbers."""
+    if summary.get("source") == SOURCE:
+        return format_foreign_summary(summary)
     pct = "{:6.1%}".format
     env = summary["env"]
     where = env["map"] if env["map"] != "random" else f"random {env['height']}x{env['width']}"
@@ -308,8 +317,34 @@ def format_summary(summary: dict[str, Any]) -> str:
     return "\n".join(lines)
 
 
+def format_foreign_summary(summary: dict[str, Any]) -> str:
+    """A readable table of a PettingZoo env's evaluation
+    (:func:`harness.evaluation.foreign.summarize_foreign`)."""
+    how = sampling_note(summary.get("temperature"))
+    low, high = summary["return_mean_ci"]
+    lines = [
+        f"policy    {summary['policy']}{f' ({how})' if how else ''}",
+        f"episodes  {summary['episodes']} (seed {summary['seed']}), "
+        f"{summary['env']['pettingzoo']['make']}",
+        f"team return  median {summary['return_median']:.4g}   mean {summary['return_mean']:.4g}"
+        f" [95 % CI {low:.4g}, {high:.4g}]   IQR {summary['return_iqr']:.4g}"
+        f" ({summary['return_q1']:.4g} .. {summary['return_q3']:.4g})",
+        f"length       mean {summary['length_mean']:.4g} steps",
+    ]
+    for key, value in summary["infos"].items():
+        lines.append(f"info {key:<8}team mean {'-' if value is None else f'{value:.4g}'}")
+    keys = [key for key in summary["per_agent"][0] if key != "agent"]
+    lines += ["", f"{'agent':<12}" + "".join(f"{key:>16}" for key in keys)]
+    for a in summary["per_agent"]:
+        cells = ("-" if a[key] is None else f"{a[key]:.4g}" for key in keys)
+        lines.append(f"{a['agent']:<12}" + "".join(f"{cell:>16}" for cell in cells))
+    return "\n".join(lines)
+
+
 #: Numbers of ``eval.json`` that ``harness compare`` reads.
 COMPARE_KEYS = ("coverage_median", "coverage_iqr", "coverage_mean", "wall_hits_mean")
+#: Those of a PettingZoo env of one's own (``"source": "pettingzoo"``).
+FOREIGN_COMPARE_KEYS = ("return_median", "return_iqr", "return_mean")
 
 
 def read_eval_json(run: Path, name: str = "eval") -> dict[str, Any] | None:
@@ -328,7 +363,7 @@ def read_eval_json(run: Path, name: str = "eval") -> dict[str, Any] | None:
         raise TargetError(str(exc)) from None
     if data is None:
         return None
-    for key in COMPARE_KEYS:
+    for key in FOREIGN_COMPARE_KEYS if data.get("source") == SOURCE else COMPARE_KEYS:
         value = data.get(key)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise TargetError(f"{path}: {key} must be a number, got {value!r}")
@@ -371,6 +406,8 @@ TUNE_KEYS = (
     "wall_hits_mean",
     "wall_hits_episodes",
 )
+#: Those of a PettingZoo env of one's own.
+FOREIGN_TUNE_KEYS = ("source", "return_median", "return_q1", "return_q3", "return_mean")
 
 
 def choose_temperature(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
@@ -400,7 +437,8 @@ def tune_temperature(
         ev = target.config.eval
         policy = model_policy(target.model, temperature, ev.shield)
         summary = summarize(run_episodes(policy, target.config.env, episodes, target.seed))
-        rows.append({"temperature": temperature, **{k: summary[k] for k in TUNE_KEYS}})
+        keys = FOREIGN_TUNE_KEYS if summary.get("source") == SOURCE else TUNE_KEYS
+        rows.append({"temperature": temperature, **{k: summary[k] for k in keys}})
     return {
         "policy": target.label,
         "seed": target.seed,
@@ -418,6 +456,15 @@ def format_tune(result: dict[str, Any]) -> str:
         f"policy    {result['policy']}",
         f"episodes  {result['episodes']} per temperature (seed {result['seed']})",
         "",
+    ]
+    if result["rows"] and result["rows"][0].get("source") == SOURCE:
+        lines.append(f"{'T':>6}{'median':>10}{'q1':>10}{'q3':>10}{'mean':>10}   (team return)")
+        for r in result["rows"]:
+            mark = "  <- chosen" if r["temperature"] == result["chosen"] else ""
+            numbers = (r[f"return_{k}"] for k in ("median", "q1", "q3", "mean"))
+            lines.append(f"{r['temperature']:>6g}" + "".join(f"{v:>10.4g}" for v in numbers) + mark)
+        return "\n".join(lines)
+    lines += [
         f"{'T':>6}{'median':>9}{'q1':>9}{'q3':>9}{'mean':>9}{'wall hits':>11}{'episodes':>10}",
     ]
     for r in result["rows"]:
@@ -580,8 +627,7 @@ def evaluate(target: Target, episodes: int, overrides: Sequence[str]) -> tuple[d
         "overrides": list(overrides),
         "env": target.config.env.model_dump(mode="json"),
         **summarize(results),
-        "coverage": [r.coverage for r in results],
-        "wall_hits": [sum(r.wall_hits) for r in results],
+        **_per_episode(results),
     }
     saved = None
     if target.results_dir is not None:
@@ -589,6 +635,31 @@ def evaluate(target: Target, episodes: int, overrides: Sequence[str]) -> tuple[d
         name = result_filename("eval", overrides, target.model_name, episodes, seed_changed)
         saved = RunDir(target.results_dir).write_result(name, summary)
     return {**summary, "saved": saved}, results
+
+
+def _per_episode(results: list[Any]) -> dict[str, list[Any]]:
+    """The per-episode numbers an evaluation keeps: coverage and wall hits (the coverage env),
+    team return and length (a PettingZoo env of one's own)."""
+    from harness.evaluation.foreign import ForeignEpisodeResult
+
+    if results and isinstance(results[0], ForeignEpisodeResult):
+        return {
+            "team_return": [r.team_return for r in results],
+            "length": [r.length for r in results],
+        }
+    return {
+        "coverage": [r.coverage for r in results],
+        "wall_hits": [sum(r.wall_hits) for r in results],
+    }
+
+
+#: The per-episode lists of :func:`evaluate` that ``--json`` leaves out (the file keeps them).
+PER_EPISODE_KEYS = ("coverage", "wall_hits", "team_return", "length")
+
+
+#: ``group-eval.json``'s key of the numbers over seeds (a PettingZoo env of one's own:
+#: ``return_mean_over_seeds``).
+OVER_SEEDS = "coverage_mean_over_seeds"
 
 
 def evaluate_group(
@@ -612,12 +683,16 @@ def evaluate_group(
             summaries[run.name] = data
     if missing or len(summaries) != len(runs):
         return None, None, missing
-    stats = seed_statistics({"group": [s["coverage_mean"] for s in summaries.values()]})
-    keys = ("seed", "coverage_mean", "coverage_median", "wall_hits_mean")
+    stats = seed_statistics({"group": [headline(s, "mean") for s in summaries.values()]})
+    if any(s.get("source") == SOURCE for s in summaries.values()):
+        keys: tuple[str, ...] = ("seed", "return_mean", "return_median")
+        over = "return_mean_over_seeds"
+    else:
+        keys, over = ("seed", "coverage_mean", "coverage_median", "wall_hits_mean"), OVER_SEEDS
     result = {
         "group": str(group),
         "runs": {name: {k: s[k] for k in keys} for name, s in summaries.items()},
-        "coverage_mean_over_seeds": describe(stats["group"]),
+        over: describe(stats["group"]),
     }
     return result, write_json(group / GROUP_EVAL_FILE, result), []
 
@@ -667,6 +742,8 @@ def render(target: Target, out: Path | None, gif: Path | None, every: int | None
 
     env = target.config.env
     note = sampling_note(target.config.eval.temperature) if target.run_dir else ""
+    if isinstance(env, PettingZooEnvConfig):
+        return _render_foreign(target, out, gif, every)
     if gif is not None:
         every = every or plots.gif_every(env.max_steps)
         largest = make_env(env)  # before its first reset: the largest map its source makes
@@ -704,6 +781,46 @@ def render(target: Target, out: Path | None, gif: Path | None, every: int | None
                 frames, gif, plots.GIF_FPS, hold=plots.GIF_HOLD, palette=plots.gif_palette()
             )
         )
+    return saved
+
+
+#: ``harness render``'s frame interval for a PettingZoo env of one's own when none is given.
+FOREIGN_RENDER_EVERY = 1
+
+
+def _render_foreign(
+    target: Target, out: Path | None, gif: Path | None, every: int | None
+) -> list[Path]:
+    """``harness render`` of a PettingZoo env of one's own: episode 0 of the target's seed
+    played with the env's ``rgb_array`` frames; its last frame as ``out`` (by default
+    ``render.png`` where the target's results go) and, with ``gif``, every ``every``-th frame
+    as an animated GIF. No path picture: paths are the coverage env's.
+
+    Raises:
+        TargetError: when the env does not render ``rgb_array`` frames.
+    """
+    from PIL import Image
+
+    from harness.results import plots
+
+    env = target.config.env
+    probe = make_env(env)
+    modes = (getattr(probe, "metadata", None) or {}).get("render_modes", [])
+    probe.close()
+    if "rgb_array" not in modes:
+        raise TargetError(
+            f"render: {env.pettingzoo.make} does not render rgb_array frames (its "
+            f"metadata['render_modes'] is {list(modes)})"
+        )
+    every = every or FOREIGN_RENDER_EVERY
+    (result,) = run_episodes(target.policy, env, 1, target.seed, copies=1, frames_every=every)
+    frames = [np.asarray(frame, dtype=np.uint8) for frame in result.frames]
+    out = out or RunDir(target.results_dir or Path()).result("render.png")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    Image.fromarray(frames[-1]).save(out)
+    saved = [out]
+    if gif is not None:
+        saved.append(plots.write_gif(frames, gif, plots.GIF_FPS, hold=plots.GIF_HOLD))
     return saved
 
 
@@ -763,8 +880,19 @@ def compare(
             rows.append((label, run.name, found))
             if found is None:
                 others[run.name] = RunDir(run).eval_names()
-    title = "team coverage of the training episodes"
-    saved = [plot_learning_curves(curves, out, title, window=window, evaluations=evaluations)]
+    foreign = [is_foreign_log(RunDir(run).episodes_csv) for run in seen]
+    if any(foreign) and not all(foreign):
+        raise TargetError(
+            "compare: these runs mix the coverage env and a pettingzoo env (coverage and team "
+            "return do not compare)"
+        )
+    metric = "team return" if any(foreign) else None
+    title = f"{metric or 'team coverage'} of the training episodes"
+    saved = [
+        plot_learning_curves(
+            curves, out, title, window=window, evaluations=evaluations, metric=metric
+        )
+    ]
     over_seeds, more = _over_seeds(rows, evaluations, Path(out), reps, eval_name)
     return Comparison(rows, over_seeds, saved + more, others)
 
@@ -781,6 +909,7 @@ def _over_seeds(
         group_colours,
         markdown_table,
         percent,
+        plain,
         plot_curves_with_ci,
         plot_improvement,
         plot_intervals,
@@ -790,17 +919,31 @@ def _over_seeds(
 
     scores: dict[str, list[float]] = {}
     hits: dict[str, list[float]] = {}
+    found = [ev for _, _, ev in rows if ev is not None]
+    foreign = [ev.get("source") == SOURCE for ev in found]
+    if any(foreign) and not all(foreign):
+        raise TargetError(
+            "compare: these runs mix the coverage env's and a pettingzoo env's evaluations "
+            "(coverage and team return do not compare)"
+        )
     for label, _, ev in rows:
         if ev is not None:
-            scores.setdefault(label, []).append(float(ev["coverage_mean"]))
-            hits.setdefault(label, []).append(float(ev["wall_hits_mean"]))
+            scores.setdefault(label, []).append(headline(ev, "mean"))
+            if not any(foreign):
+                hits.setdefault(label, []).append(float(ev["wall_hits_mean"]))
     if not scores:
         return "", []
     stats = seed_statistics(scores, reps)
+    if any(foreign):  # a PettingZoo env of one's own: the team return, as a number
+        metric, fmt, scale, unit = "test team return", plain, 1.0, "team return"
+        table = markdown_table(stats, None, metric, fmt)
+    else:
+        metric, fmt, scale, unit = "test coverage", percent, 100.0, ""
+        table = markdown_table(stats, {k: sum(v) / len(v) for k, v in hits.items()})
     lines = [
-        f"Over seeds: test coverage (each seed's mean over its {eval_name}.json episodes)",
+        f"Over seeds: {metric} (each seed's mean over its {eval_name}.json episodes)",
         "",
-        markdown_table(stats, {k: sum(v) / len(v) for k, v in hits.items()}),
+        table,
     ]
     names = list(scores)
     pairs = {}
@@ -817,10 +960,19 @@ def _over_seeds(
                 pairs[x, y] = (p, ci)
     # One colour per group across every figure of this comparison.
     colours = group_colours(list(dict.fromkeys([*names, *evaluations])))
-    saved = [plot_intervals(stats, out.with_name(f"{out.stem}-intervals.png"), colours)]
+    intervals_png = out.with_name(f"{out.stem}-intervals.png")
+    if unit:
+        xlabel = f"test {unit}, 95 % stratified-bootstrap CIs"
+        saved = [plot_intervals(stats, intervals_png, colours, xlabel, scale)]
+    else:
+        saved = [plot_intervals(stats, intervals_png, colours)]
     if pairs:
         saved.append(plot_improvement(pairs, out.with_name(f"{out.stem}-improvement.png")))
     if evaluations:
         curves_png = out.with_name(f"{out.stem}-curves-ci.png")
-        saved.append(plot_curves_with_ci(evaluations, curves_png, reps, colours))
+        if unit:
+            ylabel = f"validation median {unit}, IQM"
+            saved.append(plot_curves_with_ci(evaluations, curves_png, reps, colours, ylabel, 1.0))
+        else:
+            saved.append(plot_curves_with_ci(evaluations, curves_png, reps, colours))
     return "\n".join(lines), saved

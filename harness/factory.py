@@ -5,6 +5,10 @@ It is also where a config meets the env's own checks: the config's schema valida
 without building anything, and :func:`check_env` builds one env and draws a few maps, once,
 before training or evaluation starts, so that a map too small or too walled for the team is a
 one-line config error rather than a failure part-way through.
+
+A PettingZoo env of one's own (``env: {pettingzoo: ...}``, :class:`PettingZooEnvConfig`) is
+built here too, by its constructor (:func:`harness.config.pettingzoo.build`, which owns the
+contract); it has no batched core.
 """
 
 from __future__ import annotations
@@ -15,9 +19,9 @@ from typing import Any
 from envs import coverage_v0
 from envs.coverage import generators
 from envs.coverage.core import CoreSpec
-from envs.coverage.env import CoverageEnv
 from harness.config.maps import build_source
-from harness.config.schema import ConfigError, EnvConfig
+from harness.config.pettingzoo import build, check_spaces, resolve_constructor
+from harness.config.schema import ConfigError, EnvConfig, PettingZooEnvConfig
 
 #: Maps drawn by :func:`check_env` (random and generated sources).
 CHECK_DRAWS = 3
@@ -48,14 +52,19 @@ def env_kwargs(env: EnvConfig) -> dict[str, Any]:
     return out
 
 
-def make_env(env: EnvConfig | Mapping[str, Any], render_mode: str | None = None) -> CoverageEnv:
+def make_env(
+    env: EnvConfig | PettingZooEnvConfig | Mapping[str, Any], render_mode: str | None = None
+) -> Any:
     """The PettingZoo env of a config's ``env`` section (or of ``parallel_env``'s keyword
-    arguments, for code that builds envs without a config: benchmarks, tests).
+    arguments, for code that builds envs without a config: benchmarks, tests): a
+    :class:`CoverageEnv`, or the ``ParallelEnv`` of a ``pettingzoo`` source.
 
     Raises:
         ConfigError: the env's own ``ValueError`` (a map file's content, start cells on a wall,
             ...), as one line naming ``env``.
     """
+    if isinstance(env, PettingZooEnvConfig):
+        return make_foreign_env(env, render_mode)
     kwargs = env_kwargs(env) if isinstance(env, EnvConfig) else dict(env)
     if render_mode is not None:
         kwargs["render_mode"] = render_mode
@@ -63,6 +72,20 @@ def make_env(env: EnvConfig | Mapping[str, Any], render_mode: str | None = None)
         return coverage_v0.parallel_env(**kwargs)
     except ValueError as exc:
         raise ConfigError(f"env: {exc}") from None
+
+
+def make_foreign_env(env: PettingZooEnvConfig, render_mode: str | None = None) -> Any:
+    """The ``ParallelEnv`` of a ``pettingzoo`` source (``render_mode`` given when not ``None``).
+
+    Raises:
+        ConfigError: the import's or the constructor's error, as one line naming ``env``.
+    """
+    source = env.pettingzoo
+    extra = {} if render_mode is None else {"render_mode": render_mode}
+    try:
+        return build(resolve_constructor(source.make), source.kwargs, **extra)
+    except ValueError as exc:
+        raise ConfigError(f"env.pettingzoo: {exc}") from None
 
 
 def make_core_spec(env: EnvConfig | Mapping[str, Any]) -> CoreSpec:
@@ -76,14 +99,22 @@ def make_core_spec(env: EnvConfig | Mapping[str, Any]) -> CoreSpec:
     return make_env(env).core.spec
 
 
-def check_env(env: EnvConfig) -> CoverageEnv:
+def check_env(env: EnvConfig | PettingZooEnvConfig) -> Any:
     """Build the env once and draw :data:`CHECK_DRAWS` maps of a generated source, so that a map
-    too small or too walled to place the team is a config error; returns the env.
+    too small or too walled to place the team is a config error; returns the env. A
+    ``pettingzoo`` source's env is reset once (seed 0) and its spaces checked again.
 
     Raises:
         ConfigError: naming ``env`` and the problem.
     """
     built = make_env(env)
+    if isinstance(env, PettingZooEnvConfig):
+        try:
+            check_spaces(built)
+            built.reset(seed=0)
+        except Exception as exc:  # the env's own code
+            raise ConfigError(f"env.pettingzoo: {type(exc).__name__}: {exc}") from None
+        return built
     if env.map == "random" or isinstance(env.map, dict):
         for seed in range(CHECK_DRAWS):
             try:

@@ -2,7 +2,9 @@
 overrides (:mod:`~harness.config.loading`), map sources (:mod:`~harness.config.maps`) and the
 migration of old files (:mod:`~harness.config.migrate`).
 
-Imports nothing from training, evaluation or the CLI, and builds no environment.
+Imports nothing from training, evaluation or the CLI, and builds no environment, but for a
+PettingZoo env of one's own (:mod:`~harness.config.pettingzoo`), which validating its config
+imports and builds once to check its spaces.
 """
 
 from harness.config.loading import config_from_dict, load_config

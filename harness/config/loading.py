@@ -10,20 +10,26 @@ import re
 import stat
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any, NoReturn, get_args, get_origin
+from typing import Annotated, Any, NoReturn, get_args, get_origin
 
 import yaml
 from pydantic import BaseModel, ValidationError
 
 from harness.config.maps import SHA256
 from harness.config.migrate import migrate
-from harness.config.schema import MAX_CONFIG_BYTES, ConfigError, ExperimentConfig
+from harness.config.schema import (
+    ENV_SECTIONS,
+    ENV_SOURCES,
+    MAX_CONFIG_BYTES,
+    ConfigError,
+    ExperimentConfig,
+)
 
 
 # ---------------------------------------------------------------------- loading
 def _format_error(source: str, err: ValidationError) -> str:
     first = err.errors()[0]
-    loc = ".".join(str(p) for p in first["loc"]) or "(top level)"
+    loc = ".".join(str(p) for p in _config_loc(first["loc"])) or "(top level)"
     msg = first["msg"].removeprefix("Value error, ")
     if first["type"] == "extra_forbidden":
         guess = _closest_key(first["loc"])
@@ -32,26 +38,34 @@ def _format_error(source: str, err: ValidationError) -> str:
     return f"{source}: {loc}: {msg}{more}"
 
 
+def _config_loc(loc: Sequence[Any]) -> tuple[Any, ...]:
+    """A validation error's location as a config writes it: without the ``env`` section's
+    source tag that pydantic puts after ``env`` (``env.coverage.height`` is ``env.height``)."""
+    if len(loc) >= 2 and loc[0] == "env" and loc[1] in ENV_SOURCES:
+        return (loc[0], *loc[2:])
+    return tuple(loc)
+
+
 def _closest_key(loc: tuple[Any, ...]) -> str | None:
-    """The key of the schema's section at ``loc[:-1]`` nearest to the unknown ``loc[-1]``
-    (difflib), dotted as a config writes it; ``None`` when nothing is near."""
+    """The key of the schema's section at ``loc[:-1]`` (a validation error's location, with the
+    env source's tag) nearest to the unknown ``loc[-1]`` (difflib), dotted as a config writes
+    it; ``None`` when nothing is near."""
     model: Any = ExperimentConfig
-    for part in loc[:-1]:
+    for i, part in enumerate(loc[:-1]):
         if isinstance(part, int):
             continue  # an item of a list section (phases.0)
-        field = getattr(model, "model_fields", {}).get(part)
-        if field is None:
+        if i == 1 and loc[0] == "env" and part in ENV_SECTIONS:
+            model = ENV_SECTIONS[part]  # the env section of that source
+            continue
+        nested, _ = _field_model(model, str(part))
+        if nested is None:
             return None
-        candidates = [field.annotation, *getattr(field.annotation, "__args__", ())]
-        nested = [c for c in candidates if isinstance(c, type) and hasattr(c, "model_fields")]
-        if not nested:
-            return None
-        model = nested[0]
+        model = nested
     names = list(getattr(model, "model_fields", {}))
     close = difflib.get_close_matches(str(loc[-1]), names, n=1, cutoff=0.6)
     if not close:
         return None
-    path = [str(p) for p in loc[:-1]] + close
+    path = [str(p) for p in _config_loc(loc)[:-1]] + close
     return f"`{'.'.join(path)}`"
 
 
@@ -135,6 +149,9 @@ def _field_model(model: type[BaseModel], key: str) -> tuple[type[BaseModel] | No
     annotation = field.annotation
     is_list = get_origin(annotation) is list
     candidates = get_args(annotation) if is_list else (annotation, *get_args(annotation))
+    # A tagged union's members (the env sources) are Annotated: their first argument is the
+    # model; the first model is the default source's (the coverage env's).
+    candidates = tuple(get_args(c)[0] if get_origin(c) is Annotated else c for c in candidates)
     nested = [c for c in candidates if isinstance(c, type) and issubclass(c, BaseModel)]
     return (nested[0] if nested else None), is_list
 

@@ -25,18 +25,20 @@ import hashlib
 import re
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Annotated, Any, Literal, get_args
+from typing import Annotated, Any, Literal, Union, get_args
 
 import yaml
 from pydantic import (
     BaseModel,
     ConfigDict,
+    Discriminator,
     Field,
     NonNegativeFloat,
     NonNegativeInt,
     PositiveFloat,
     PositiveInt,
     PrivateAttr,
+    Tag,
     field_validator,
     model_validator,
 )
@@ -47,6 +49,7 @@ from envs.coverage.frontier import FrontierOptions
 from envs.coverage.maps import check_wall_fraction, shipped_maps
 from envs.coverage.observations import observation_options
 from harness.config.maps import build_source, parse_source
+from harness.config.pettingzoo import EnvSpaces, probe
 from harness.sb3.registry import DEFAULT_POLICY, POLICIES
 
 
@@ -287,6 +290,96 @@ class EnvConfig(_Section):
                 raise ValueError(
                     f"env.map: {self.map!r} is a test-only map (env.test_maps): never trained on"
                 )
+
+
+class PettingZooSource(_Section):
+    """A PettingZoo env of your own: its constructor by import path, and its keyword arguments
+    (``docs/your-own-env.md``). Validating it imports the module and builds the env once, to
+    check its spaces (:func:`harness.config.pettingzoo.probe`): a config that names an import
+    path runs that code (``docs/reliability.md``)."""
+
+    make: str
+    """``package.module:constructor``, e.g. ``mpe2.simple_spread_v3:parallel_env``: a function
+    or class that returns a PettingZoo ``ParallelEnv`` (an AEC env is converted)."""
+    kwargs: dict[str, Any] = {}
+    """Keyword arguments of the constructor (``render_mode`` is the harness's to give)."""
+    _spaces: EnvSpaces | None = PrivateAttr(default=None)
+
+    @field_validator("kwargs")
+    @classmethod
+    def _no_render_mode(cls, v: dict[str, Any]) -> dict[str, Any]:
+        # Training builds its envs without rendering, `harness render` with rgb_array.
+        if "render_mode" in v:
+            raise ValueError("render_mode is given by the harness (harness render), not here")
+        return v
+
+    @model_validator(mode="after")
+    def _probe(self) -> PettingZooSource:
+        self._spaces = probe(self.make, self.kwargs)
+        return self
+
+    @property
+    def spaces(self) -> EnvSpaces:
+        """The env's agents and their (shared) spaces, read when the config was validated."""
+        if self._spaces is None:  # (validated configs always have them)
+            self._spaces = probe(self.make, self.kwargs)
+        return self._spaces
+
+
+class PettingZooEnvConfig(_Section):
+    """The ``env`` section for a PettingZoo env of your own: ``{pettingzoo: {make, kwargs}}``.
+
+    It answers what the rest of the harness asks of an ``env`` section (the team size, no
+    planner, no agent indication); the coverage env's keys do not apply to it."""
+
+    pettingzoo: PettingZooSource
+
+    @property
+    def n_agents(self) -> int:
+        """Agents of the team (the env's ``possible_agents``)."""
+        return self.pettingzoo.spaces.n_agents
+
+    @property
+    def agent_id(self) -> bool:
+        """No agent indication: the env's observations are used as they are."""
+        return False
+
+    @property
+    def frontier_options(self) -> None:
+        """No planner extension (the coverage env's)."""
+        return None
+
+    def check_training_map(self) -> None:
+        """Nothing to refuse: test maps are the coverage env's."""
+
+
+#: The env sources an ``env`` section can be, by the section's tag: the coverage env's keys, or
+#: ``{pettingzoo: ...}``.
+ENV_SECTIONS: dict[str, type[_Section]] = {"coverage": EnvConfig, "pettingzoo": PettingZooEnvConfig}
+ENV_SOURCES = tuple(ENV_SECTIONS)
+
+
+def _env_source(value: Any) -> str:
+    """Which env source an ``env`` section is (a mapping with a ``pettingzoo`` key, or not)."""
+    if isinstance(value, PettingZooEnvConfig) or (
+        isinstance(value, dict) and "pettingzoo" in value
+    ):
+        return "pettingzoo"
+    return "coverage"
+
+
+#: An ``env`` section of either source.
+AnyEnvConfig = Annotated[
+    Union[  # noqa: UP007 (the tagged members are Annotated: `|` does not take them)
+        Annotated[EnvConfig, Tag("coverage")], Annotated[PettingZooEnvConfig, Tag("pettingzoo")]
+    ],
+    Discriminator(_env_source),
+]
+
+
+def is_foreign(env: EnvConfig | PettingZooEnvConfig) -> bool:
+    """Whether an ``env`` section names a PettingZoo env of one's own (not the coverage env)."""
+    return isinstance(env, PettingZooEnvConfig)
 
 
 #: How the env is vectorised (``vec.backend``): the batched core's own VecEnv, or SuperSuit
@@ -537,7 +630,7 @@ class ExperimentConfig(_Section):
 
     name: str = "experiment"
     seed: Seed = 0
-    env: EnvConfig = EnvConfig()
+    env: AnyEnvConfig = EnvConfig()
     vec: VecConfig = VecConfig()
     algo: AlgoConfig = AlgoConfig()
     phases: list[PhaseConfig] = Field(default_factory=thesis_phases)
@@ -551,9 +644,42 @@ class ExperimentConfig(_Section):
         return check_name(v)
 
     @model_validator(mode="after")
+    def _foreign_env_fits(self) -> ExperimentConfig:
+        # What a PettingZoo env of one's own can be trained with: the SuperSuit VecEnv (the
+        # batched core is the coverage env's), one shared network over its vector observations,
+        # no coverage-specific test-time shield.
+        if not isinstance(self.env, PettingZooEnvConfig):
+            return self
+        if self.vec.backend == "core":
+            if "backend" in self.vec.model_fields_set:
+                raise ValueError(
+                    "vec.backend: core is the coverage env's batched core; a pettingzoo env "
+                    "runs on vec.backend: supersuit (the default for it)"
+                )
+            self.vec.backend = "supersuit"
+        if self.algo.sharing != "shared":
+            raise ValueError(
+                f"algo.sharing: {self.algo.sharing} adds the coverage env's agent index to the "
+                "observation; a pettingzoo env trains with sharing: shared"
+            )
+        entry = POLICIES[self.algo.policy]
+        if entry.team_map or entry.slots:
+            vector = [name for name, p in POLICIES.items() if not (p.team_map or p.slots)]
+            raise ValueError(
+                f"algo.policy {self.algo.policy} reads the coverage env's team map; a pettingzoo "
+                f"env's Box observation takes one of {', '.join(vector)}"
+            )
+        if self.eval.shield:
+            raise ValueError(
+                "eval.shield reads the coverage env's observation: not for a pettingzoo env"
+            )
+        return self
+
+    @model_validator(mode="after")
     def _agent_indication(self) -> ExperimentConfig:
         # algo.sharing owns agent indication; the env only carries it out.
-        self.env._agent_id = self.algo.sharing != "shared"
+        if isinstance(self.env, EnvConfig):
+            self.env._agent_id = self.algo.sharing != "shared"
         return self
 
     @model_validator(mode="after")
@@ -572,7 +698,8 @@ class ExperimentConfig(_Section):
     def _n_step_buffer_exists(self) -> ExperimentConfig:
         # SB3's own Dict buffer has no n-step variant; the prioritized ones do.
         if (
-            self.algo.n_steps > 1
+            isinstance(self.env, EnvConfig)
+            and self.algo.n_steps > 1
             and not self.algo.prioritized
             and self.env.observation_kind != "thesis"
         ):
@@ -585,6 +712,8 @@ class ExperimentConfig(_Section):
 
     @model_validator(mode="after")
     def _policy_fits_observation(self) -> ExperimentConfig:
+        if not isinstance(self.env, EnvConfig):  # _foreign_env_fits checks it
+            return self
         wanted = POLICIES[self.algo.policy].observation
         if wanted != self.env.observation_kind:
             fitting = [

@@ -60,16 +60,26 @@ class BaselineEntry:
     """It plays the env's planner-backed action, so it runs only on a config with
     ``env.frontier.action`` (:meth:`check`); without: on any config."""
 
+    any_env: bool = False
+    """It plays a PettingZoo env of one's own too (``env: {pettingzoo: ...}``): it reads
+    nothing of the coverage env."""
+
     def check(self, options: FrontierOptions | None) -> None:
         """``ValueError`` (one line, saying what to set) unless it can play an env with the
         planner extension's ``options`` (``None``: off)."""
         if self.needs_action:
             FrontierStepPolicy.check(options)
 
+    def check_foreign(self) -> None:
+        """``ValueError`` (one line) unless it can play a PettingZoo env of one's own."""
+        if not self.any_env:
+            known = ", ".join(name for name, entry in BASELINES.items() if entry.any_env)
+            raise ValueError(f"plays the coverage env only; a pettingzoo env takes {known}")
+
 
 #: The baselines by the name ``--policy`` takes (the one list of them).
 BASELINES: dict[str, BaselineEntry] = {
-    "random": BaselineEntry(lambda seed: RandomPolicy(seed)),
+    "random": BaselineEntry(lambda seed: RandomPolicy(seed), any_env=True),
     "local": BaselineEntry(lambda seed: LocalPolicy()),
     # One per planner of the registry: frontier, frontier_pocket, frontier_random, ...
     **{
@@ -124,14 +134,19 @@ class FrontierStepPolicy:
 
 
 class RandomPolicy:
-    """Uniform random actions 0..4 from a seeded generator (repeatable for a given seed)."""
+    """Uniform random actions 0..4 from a seeded generator (repeatable for a given seed); of a
+    PettingZoo env of one's own, uniform over its actions."""
 
     def __init__(self, seed: int) -> None:
         self.rng = np.random.default_rng(seed)
 
     def __call__(self, obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
         """One uniform action per agent in the batch."""
-        return self.rng.integers(0, 5, size=batch_len(obs))
+        from harness.evaluation.foreign import EpisodeView
+
+        view = envs[0] if envs else None
+        n_actions = view.n_actions if isinstance(view, EpisodeView) else 5
+        return self.rng.integers(0, n_actions, size=batch_len(obs))
 
 
 #: Window index (row-major 3x3, agent in the centre, 4) of the cell that each move

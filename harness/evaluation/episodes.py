@@ -18,7 +18,7 @@ import numpy as np
 from envs.coverage import CoverageEnv
 from envs.coverage.core import CoverageCore
 from envs.coverage.observations import blocked_moves
-from harness.config.schema import EnvConfig
+from harness.config.schema import EnvConfig, PettingZooEnvConfig
 from harness.factory import make_core_spec
 
 #: A batched policy: ``policy(obs, envs)`` maps the observations ``(len(envs) * n_agents, ...)``
@@ -151,7 +151,7 @@ def episode_draws(envs: Sequence[CoverageEnv], per_copy: int) -> np.ndarray:
 
 def run_episodes(
     policy: BatchPolicy,
-    env: EnvConfig,
+    env: EnvConfig | PettingZooEnvConfig,
     episodes: int,
     seed: int,
     copies: int = 8,
@@ -162,7 +162,10 @@ def run_episodes(
     """Run ``episodes`` seeded episodes with ``policy`` and return their metrics in order.
 
     This is the project's one episode loop: evaluation, ``harness tune``, the in-training
-    evaluations, the baselines, path pictures and GIFs all play their episodes here.
+    evaluations, the baselines, path pictures and GIFs all play their episodes here. A
+    ``pettingzoo`` env section plays its episodes in
+    :func:`harness.evaluation.foreign.run_foreign_episodes` (its results are
+    ``ForeignEpisodeResult`` s).
 
     Args:
         policy: The batched policy.
@@ -181,6 +184,14 @@ def run_episodes(
     """
     if frames_every < 0:
         raise ValueError(f"frames_every must be >= 0, got {frames_every}")
+    if not isinstance(env, EnvConfig):  # a PettingZoo env of one's own: its own loop
+        if record_paths:
+            raise ValueError("paths are the coverage env's: a pettingzoo env has none")
+        from harness.evaluation.foreign import run_foreign_episodes
+
+        return run_foreign_episodes(  # type: ignore[return-value]
+            policy, env, episodes, seed, copies, frames_every, should_stop
+        )
     render_mode = "rgb_array" if frames_every else None
     n_copies = max(1, min(copies, episodes))
     spec = make_core_spec(env)
@@ -254,6 +265,17 @@ def median_steps_to(results: list[EpisodeResult], key: str) -> float | None:
     return None if not np.isfinite(median) else median
 
 
+def headline(summary: dict[str, Any], stat: str = "median") -> float:
+    """An evaluation's headline number: the team coverage's ``stat`` (``median``, ``mean``,
+    ``q1``, ``q3``, ``iqr``) for the coverage env, the team return's for a PettingZoo env of
+    one's own (``summary["source"] == "pettingzoo"``). Sweeps, ``harness tune``, ``compare``
+    and seed groups read their number here."""
+    from harness.evaluation.foreign import SOURCE
+
+    prefix = "return" if summary.get("source") == SOURCE else "coverage"
+    return float(summary[f"{prefix}_{stat}"])
+
+
 #: The steps :func:`selection_score` counts for a median episode that never reaches 99 %.
 SLOWEST = 1e5
 
@@ -271,7 +293,14 @@ def selection_score(summary: dict[str, Any]) -> float:
     smallest difference of two median coverages on maps of up to 500,000 free cells. So the
     order is lexicographic for fewer than 1000 episodes. A single float, because a
     checkpoint's training state keeps it.
+
+    A PettingZoo env of one's own (``summary["source"] == "pettingzoo"``) is scored by its mean
+    team return.
     """
+    from harness.evaluation.foreign import SOURCE
+
+    if summary.get("source") == SOURCE:  # a PettingZoo env of one's own: the team return
+        return float(summary["return_mean"])
     steps = summary.get("steps_to_99")
     speed = -1e-12 * (SLOWEST if steps is None else float(steps))
     return float(summary["coverage_median"]) - 1000.0 * float(summary["wall_hits_mean"]) + speed
@@ -309,7 +338,12 @@ def mean_interval(values: np.ndarray, level: float = 0.95) -> tuple[float, float
 def summarize(results: list[EpisodeResult]) -> dict[str, Any]:
     """The thesis's numbers over a list of episodes (all fractions in [0, 1]), and the physical
     limit beside them: ``bound`` (the mean over episodes of :func:`physical_bound`) and
-    ``efficiency``, ``coverage_mean / bound``."""
+    ``efficiency``, ``coverage_mean / bound``. Episodes of a PettingZoo env of one's own are
+    summarized by :func:`harness.evaluation.foreign.summarize_foreign`."""
+    if results and not isinstance(results[0], EpisodeResult):
+        from harness.evaluation.foreign import summarize_foreign
+
+        return summarize_foreign(results)  # type: ignore[arg-type]
     cov = np.array([r.coverage for r in results])
     q1, q3 = np.percentile(cov, [25, 75])
     n_agents = len(results[0].new_cells)

@@ -553,15 +553,26 @@ def seed_progress(job: Job) -> str:
     parts = [f"seed {job.seed}"]
     steps = _number(_last_value(job.run.episodes_csv, "timesteps"))
     parts.append(f"{int(steps):,} transitions" if steps is not None else "starting")
-    coverage = seed_progress_value(job.run)
-    if coverage is not None:
-        parts.append(f"validation {coverage:.1%}")
+    value = seed_progress_value(job.run)
+    if value is not None:
+        parts.append(f"validation {seed_progress_metric(job.run)[1](value)}")
     return ", ".join(parts)
 
 
 def seed_progress_value(run: RunDir) -> float | None:
-    """The last in-training validation's median coverage of ``run`` (``None``: none yet)."""
-    return _number(_last_value(run.evaluations_csv, "coverage_median"))
+    """The last in-training validation's median coverage of ``run`` (a PettingZoo env of one's
+    own: its median team return; ``None``: none yet)."""
+    value = _last_value(run.evaluations_csv, "coverage_median")
+    if value is None:
+        value = _last_value(run.evaluations_csv, "return_median")
+    return _number(value)
+
+
+def seed_progress_metric(run: RunDir) -> tuple[str, Callable[[float], str]]:
+    """What :func:`seed_progress_value` of ``run`` measures, and how to write it."""
+    if _last_value(run.evaluations_csv, "return_median") is not None:
+        return "median team return", "{:.4g}".format
+    return "median coverage", "{:.1%}".format
 
 
 def _number(text: str | None) -> float | None:

@@ -452,6 +452,7 @@ def plot_learning_curves(
     band: str = "minmax",
     references: Mapping[str, float] | None = None,
     evaluations: Mapping[str, Sequence[tuple[np.ndarray, np.ndarray]]] | None = None,
+    metric: str | None = None,
 ) -> Path:
     """Learning curves of several experiments, each over one or more runs (seeds).
 
@@ -473,6 +474,8 @@ def plot_learning_curves(
             :func:`harness.results.rundir.read_evaluations_csv`: when any run has one, a second
             panel draws the test policy's evaluations during training (median across a label's runs,
             unsmoothed).
+        metric: ``None``: the curves are team coverage (fractions, drawn in %); else what they
+            are (``"team return"``, a PettingZoo env's), drawn as numbers.
 
     Returns:
         The path of the PNG.
@@ -485,19 +488,21 @@ def plot_learning_curves(
     fig = Figure(figsize=(12.0, 4.2) if evaluations else (7.0, 4.2), dpi=DPI)
     ax = fig.add_subplot(1, 2, 1) if evaluations else fig.add_subplot()
     drawn = 0
+    scale = 100.0 if metric is None else 1.0
     for k, (label, runs) in enumerate(curves.items()):
-        drawn += _draw_label_curve(ax, label, runs, colours[k % len(colours)], window, band)
+        drawn += _draw_label_curve(ax, label, runs, colours[k % len(colours)], window, band, scale)
     if drawn == 0:
         raise ValueError("plot_learning_curves: no run has any episode")
     _draw_references(ax, references or {})
     band_note = "" if band == "minmax" else " (band: IQR across runs)"
     _style_timesteps_axes(
         ax,
-        f"team coverage (rolling median of {window} episodes)",
+        f"{metric or 'team coverage'} (rolling median of {window} episodes)",
         (title or "Learning curves") + band_note,
+        percent=metric is None,
     )
     if evaluations:
-        _plot_evaluations(fig.add_subplot(1, 2, 2), evaluations, list(curves), colours)
+        _plot_evaluations(fig.add_subplot(1, 2, 2), evaluations, list(curves), colours, metric)
     fig.tight_layout()
     return _save(fig, out)
 
@@ -509,9 +514,11 @@ def _draw_label_curve(
     colour: str,
     window: int,
     band: str,
+    scale: float = 100.0,
 ) -> bool:
     """One label's curve: the median of its runs' smoothed coverage, with a band across runs
-    when it has several. Returns whether anything was drawn (a label whose runs are empty)."""
+    when it has several (drawn ``scale`` times: in %, or as numbers). Returns whether anything
+    was drawn (a label whose runs are empty)."""
     runs = [(np.asarray(t, dtype=float), np.asarray(c, dtype=float)) for t, c in runs]
     runs = [(t, c) for t, c in runs if len(t)]
     if not runs:
@@ -522,7 +529,7 @@ def _draw_label_curve(
         middle = np.nanmedian(stacked, axis=0)
     n = len(runs)
     ax.plot(
-        grid, 100 * middle, color=colour, lw=1.6, label=f"{label} ({n} runs)" if n > 1 else label
+        grid, scale * middle, color=colour, lw=1.6, label=f"{label} ({n} runs)" if n > 1 else label
     )
     if n > 1:
         ok = reached >= 2
@@ -531,7 +538,7 @@ def _draw_label_curve(
                 lo, hi = np.nanpercentile(stacked[:, ok], [25, 75], axis=0)
             else:
                 lo, hi = np.nanmin(stacked[:, ok], axis=0), np.nanmax(stacked[:, ok], axis=0)
-        ax.fill_between(grid[ok], 100 * lo, 100 * hi, color=colour, alpha=0.2, lw=0)
+        ax.fill_between(grid[ok], scale * lo, scale * hi, color=colour, alpha=0.2, lw=0)
     return True
 
 
@@ -548,12 +555,14 @@ def _draw_references(ax: Any, references: Mapping[str, float]) -> None:
         )
 
 
-def _style_timesteps_axes(ax: Any, ylabel: str, title: str) -> None:
-    """Axes of coverage (in %) over timesteps, shared by both panels of the learning curves."""
+def _style_timesteps_axes(ax: Any, ylabel: str, title: str, percent: bool = True) -> None:
+    """Axes of coverage (in %; ``percent`` false: another score, as numbers) over timesteps,
+    shared by both panels of the learning curves."""
     ax.set_xlabel("timesteps (agent transitions)")
     ax.set_ylabel(ylabel)
-    ax.set_ylim(0, 102)
-    ax.yaxis.set_major_formatter(PercentFormatter(100, decimals=0))
+    if percent:
+        ax.set_ylim(0, 102)
+        ax.yaxis.set_major_formatter(PercentFormatter(100, decimals=0))
     ax.ticklabel_format(axis="x", style="sci", scilimits=(-3, 4), useMathText=True)
     ax.grid(alpha=0.3)
     ax.set_title(title)
@@ -565,8 +574,11 @@ def _plot_evaluations(
     evaluations: Mapping[str, Sequence[tuple[np.ndarray, np.ndarray]]],
     labels: list[str],
     colours: list[str],
+    metric: str | None = None,
 ) -> None:
-    """The evaluations panel: each label in its learning-curve colour."""
+    """The evaluations panel: each label in its learning-curve colour (``metric``: see
+    :func:`plot_learning_curves`)."""
+    scale = 100.0 if metric is None else 1.0
     for label, runs in evaluations.items():
         k = labels.index(label) if label in labels else len(labels)
         grid = np.unique(np.concatenate([np.asarray(t, dtype=float) for t, _ in runs]))
@@ -577,12 +589,13 @@ def _plot_evaluations(
         with _quiet_nan_warnings():
             middle = np.nanmedian(stacked, axis=0)
         ax.plot(
-            grid, 100 * middle, color=colours[k % len(colours)], lw=1.4, marker=".", label=label
+            grid, scale * middle, color=colours[k % len(colours)], lw=1.4, marker=".", label=label
         )
     _style_timesteps_axes(
         ax,
-        "team coverage (median of the evaluation episodes)",
+        f"{metric or 'team coverage'} (median of the evaluation episodes)",
         "test policy during training (evaluations.csv)",
+        percent=metric is None,
     )
 
 

@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from harness.config.schema import ExperimentConfig
+from harness.config.schema import ExperimentConfig, is_foreign
 
 #: Columns of ``episodes.csv``, one row per finished training episode (see README).
 EPISODE_COLUMNS = (
@@ -68,6 +68,51 @@ EVALUATION_COLUMNS = (
     "coverage_mean",
     "wall_hits_mean",
 )
+
+
+#: ``episodes.csv``'s columns for a PettingZoo env of one's own (``env: {pettingzoo: ...}``):
+#: the team's return (the sum of its agents'), each agent's (``a;b;c``), the length, and the
+#: numeric per-agent infos of the episode's last step as JSON (``{"key": [a, b, c]}``).
+FOREIGN_EPISODE_COLUMNS = (
+    "episode",
+    "phase",
+    "timesteps",
+    "copy",
+    "team_return",
+    "returns",
+    "length",
+    "infos",
+)
+
+#: ``evaluations.csv``'s columns for a PettingZoo env of one's own: the team return's numbers.
+FOREIGN_EVALUATION_COLUMNS = (
+    "timesteps",
+    "episodes",
+    "temperature",
+    "return_median",
+    "return_q1",
+    "return_q3",
+    "return_mean",
+    "length_mean",
+)
+
+
+def log_columns(config: ExperimentConfig) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The columns of ``episodes.csv`` and ``evaluations.csv`` of a run of ``config``."""
+    if is_foreign(config.env):
+        return FOREIGN_EPISODE_COLUMNS, FOREIGN_EVALUATION_COLUMNS
+    return EPISODE_COLUMNS, EVALUATION_COLUMNS
+
+
+def _columns_of(path: Path, choices: Sequence[Sequence[str]]) -> Sequence[str]:
+    """The one of ``choices`` that ``path``'s header line names (the first when none does: the
+    reader then names the mismatch)."""
+    try:
+        with path.open(encoding="utf-8", newline="") as f:
+            header = next(csv.reader([f.readline()]), [])
+    except (OSError, UnicodeDecodeError, csv.Error):
+        return choices[0]
+    return next((c for c in choices if tuple(header) == tuple(c)), choices[0])
 
 
 #: Marks a folder made by ``harness export`` (a shipped reference policy): commands read it but
@@ -643,8 +688,13 @@ def rewind_logs(run: RunDir, next_episode: int, num_timesteps: int) -> tuple[int
         LogMismatchError: with one line naming the file, the row and the checkpoint.
     """
     plans: list[tuple[Path, Sequence[str], list[list[str]], int]] = []
+    # (a PettingZoo env of one's own logs other columns: the header says which)
+    episode_columns = _columns_of(run.episodes_csv, (EPISODE_COLUMNS, FOREIGN_EPISODE_COLUMNS))
+    evaluation_columns = _columns_of(
+        run.evaluations_csv, (EVALUATION_COLUMNS, FOREIGN_EVALUATION_COLUMNS)
+    )
     episodes, torn = (
-        read_csv_log(run.episodes_csv, EPISODE_COLUMNS) if run.episodes_csv.exists() else ([], 0)
+        read_csv_log(run.episodes_csv, episode_columns) if run.episodes_csv.exists() else ([], 0)
     )
     keep = []
     for row in episodes:
@@ -672,9 +722,9 @@ def rewind_logs(run: RunDir, next_episode: int, num_timesteps: int) -> tuple[int
             f"{run.episodes_csv}: the checkpoint counts {next_episode} episodes but the log has "
             f"{len(keep)} of them; nothing was changed"
         )
-    plans.append((run.episodes_csv, EPISODE_COLUMNS, keep, len(episodes) - len(keep) + torn))
+    plans.append((run.episodes_csv, episode_columns, keep, len(episodes) - len(keep) + torn))
     evaluations, torn = (
-        read_csv_log(run.evaluations_csv, EVALUATION_COLUMNS)
+        read_csv_log(run.evaluations_csv, evaluation_columns)
         if run.evaluations_csv.exists()
         else ([], 0)
     )
@@ -687,7 +737,7 @@ def rewind_logs(run: RunDir, next_episode: int, num_timesteps: int) -> tuple[int
     plans.append(
         (
             run.evaluations_csv,
-            EVALUATION_COLUMNS,
+            evaluation_columns,
             kept_evals,
             len(evaluations) - len(kept_evals) + torn,
         )
@@ -719,25 +769,42 @@ def read_episodes_csv(path: str | Path) -> Curve:
 
     Returns:
         ``(timesteps, coverage)``: int64 and float64 arrays, one entry per finished episode,
-        in order of timesteps.
+        in order of timesteps (a PettingZoo env's log: ``team_return``).
 
     Raises:
         ValueError: When a column is missing or a value is not a number (naming file and line).
     """
-    # Copies finish out of order only within a step; the sort puts them back.
-    return _read_columns(path, "timesteps", "coverage")
+    # Copies finish out of order only within a step; the sort puts them back. A PettingZoo env
+    # of one's own logs the team return instead (FOREIGN_EPISODE_COLUMNS).
+    return _read_columns(path, "timesteps", _curve_column(path, "coverage", "team_return"))
 
 
 def read_evaluations_csv(path: str | Path) -> Curve:
     """Read a run's ``evaluations.csv`` (the in-training evaluations of the test policy).
 
     Returns:
-        ``(timesteps, coverage_median)`` arrays, one entry per evaluation, in order.
+        ``(timesteps, coverage_median)`` arrays (a PettingZoo env's: ``return_median``), one
+        entry per evaluation, in order.
 
     Raises:
         ValueError: When a column is missing or a value is not a number (naming file and line).
     """
-    return _read_columns(path, "timesteps", "coverage_median")
+    return _read_columns(path, "timesteps", _curve_column(path, "coverage_median", "return_median"))
+
+
+def is_foreign_log(path: str | Path) -> bool:
+    """Whether ``path`` (an ``episodes.csv``) is a PettingZoo env's log of one's own (its header
+    is :data:`FOREIGN_EPISODE_COLUMNS`)."""
+    choices = (EPISODE_COLUMNS, FOREIGN_EPISODE_COLUMNS)
+    return tuple(_columns_of(Path(path), choices)) == FOREIGN_EPISODE_COLUMNS
+
+
+def _curve_column(path: str | Path, coverage: str, foreign: str) -> str:
+    """``foreign`` when ``path``'s header is a PettingZoo env's log (it has that column and not
+    ``coverage``), else ``coverage`` (whose absence the reader then names)."""
+    choices = (EPISODE_COLUMNS, FOREIGN_EPISODE_COLUMNS, EVALUATION_COLUMNS)
+    header = _columns_of(Path(path), (*choices, FOREIGN_EVALUATION_COLUMNS))
+    return foreign if foreign in header and coverage not in header else coverage
 
 
 #: The range of a curve's ``x`` column (int64, as numpy stores it).

@@ -12,7 +12,7 @@ rliable's own (``rliable.plot_utils``).
 from __future__ import annotations
 
 import warnings
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
@@ -137,22 +137,38 @@ def percent(x: float) -> str:
     return f"{100 * x:.1f} %"
 
 
-def with_ci(value: float, ci: tuple[float, float] | None) -> str:
+def plain(x: float) -> str:
+    """A score that is not a fraction (a PettingZoo env's team return): four digits."""
+    return f"{x:.4g}"
+
+
+def with_ci(
+    value: float, ci: tuple[float, float] | None, fmt: Callable[[float], str] = percent
+) -> str:
     if ci is None:
-        return f"{percent(value)} (1 seed: no interval)"
-    return f"{percent(value)} [{percent(ci[0])}, {percent(ci[1])}]"
+        return f"{fmt(value)} (1 seed: no interval)"
+    return f"{fmt(value)} [{fmt(ci[0])}, {fmt(ci[1])}]"
 
 
-def markdown_table(stats: Mapping[str, SeedStats], wall_hits: Mapping[str, float]) -> str:
-    """One row per group: seeds, mean and IQM of test coverage with 95 % CIs, wall hits."""
+def markdown_table(
+    stats: Mapping[str, SeedStats],
+    wall_hits: Mapping[str, float] | None,
+    metric: str = "test coverage",
+    fmt: Callable[[float], str] = percent,
+) -> str:
+    """One row per group: seeds, mean and IQM of test coverage with 95 % CIs, wall hits (or of
+    another ``metric``, formatted by ``fmt``; ``wall_hits`` ``None``: no such column)."""
+    hits = wall_hits is not None
     lines = [
-        "| group | seeds | mean test coverage [95 % CI] | IQM [95 % CI] | wall hits / episode |",
-        "|---|---|---|---|---|",
+        f"| group | seeds | mean {metric} [95 % CI] | IQM [95 % CI] |"
+        + (" wall hits / episode |" if hits else ""),
+        "|---|---|---|---|" + ("---|" if hits else ""),
     ]
     for name, s in stats.items():
         lines.append(
-            f"| {name} | {s.seeds} | {with_ci(s.mean, s.mean_ci)} | {with_ci(s.iqm, s.iqm_ci)}"
-            f" | {wall_hits[name]:.2f} |"
+            f"| {name} | {s.seeds} | {with_ci(s.mean, s.mean_ci, fmt)} | "
+            f"{with_ci(s.iqm, s.iqm_ci, fmt)} |"
+            + (f" {wall_hits[name]:.2f} |" if wall_hits is not None else "")
         )
     return "\n".join(lines)
 
@@ -170,11 +186,16 @@ def group_colours(names: Sequence[str]) -> dict[str, Any]:
 
 
 def plot_intervals(
-    stats: Mapping[str, SeedStats], out: Path, colours: Mapping[str, Any] | None = None
+    stats: Mapping[str, SeedStats],
+    out: Path,
+    colours: Mapping[str, Any] | None = None,
+    xlabel: str = "test coverage (% of free cells), 95 % stratified-bootstrap CIs",
+    scale: float = 100.0,
 ) -> Path:
     """rliable's interval plot (``plot_utils.plot_interval_estimates``) of mean and IQM test
     coverage per group; a group of one seed is drawn as its point alone, labelled so.
-    ``colours``: per group (default :func:`group_colours` of these groups)."""
+    ``colours``: per group (default :func:`group_colours` of these groups); ``xlabel`` and
+    ``scale`` (drawn ``scale * value``) for another score (a PettingZoo env's team return)."""
     import matplotlib.pyplot as plt
     from rliable import plot_utils
 
@@ -183,17 +204,17 @@ def plot_intervals(
     for name, s in stats.items():
         label = _label(name, s.seeds)
         colours[label] = palette[name]
-        points[label] = 100 * np.array([s.mean, s.iqm])
+        points[label] = scale * np.array([s.mean, s.iqm])
         # Zero width for one seed: the bar vanishes and only the point is drawn.
         mean_ci, iqm_ci = s.mean_ci or (s.mean, s.mean), s.iqm_ci or (s.iqm, s.iqm)
-        intervals[label] = 100 * np.array([[mean_ci[0], iqm_ci[0]], [mean_ci[1], iqm_ci[1]]])
+        intervals[label] = scale * np.array([[mean_ci[0], iqm_ci[0]], [mean_ci[1], iqm_ci[1]]])
     row_height = 0.6
     fig, _ = plot_utils.plot_interval_estimates(
         points,
         intervals,
         metric_names=["Mean", "IQM"],
         colors=colours,
-        xlabel="test coverage (% of free cells), 95 % stratified-bootstrap CIs",
+        xlabel=xlabel,
         subfigure_width=4.0,
         row_height=row_height,
         # rliable places the label in figure fractions: half an inch below, whatever the rows.
@@ -269,10 +290,13 @@ def plot_curves_with_ci(
     out: Path,
     reps: int = REPS,
     colours: Mapping[str, Any] | None = None,
+    ylabel: str = "validation coverage, IQM (%)",
+    scale: float = 100.0,
 ) -> Path:
     """Validation coverage during training, IQM over seeds with 95 % bands, one line per group
     (rliable's ``plot_utils.plot_sample_efficiency_curve``; one seed: its line, no band).
-    ``colours``: per group (default :func:`group_colours` of these groups)."""
+    ``colours``: per group (default :func:`group_colours` of these groups); ``ylabel`` and
+    ``scale`` for another score (a PettingZoo env's median team return)."""
     from matplotlib.figure import Figure
     from rliable import plot_utils
 
@@ -287,12 +311,12 @@ def plot_curves_with_ci(
         # The groups evaluated at their own timesteps: one call per group on the same axes.
         plot_utils.plot_sample_efficiency_curve(
             steps,
-            {label: 100 * iqm},
-            {label: 100 * (band if band is not None else np.stack([iqm, iqm]))},
+            {label: scale * iqm},
+            {label: scale * (band if band is not None else np.stack([iqm, iqm]))},
             colors={label: colors[name]},
             ax=ax,
             xlabel="transitions",
-            ylabel="validation coverage, IQM (%)",
+            ylabel=ylabel,
             labelsize="medium",
             ticklabelsize="medium",
         )

@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 import supersuit as ss
+from pettingzoo.utils.wrappers import BaseParallelWrapper
 from stable_baselines3.common.vec_env import VecEnv, VecMonitor
 from stable_baselines3.common.vec_env.base_vec_env import (
     VecEnvIndices,
@@ -33,8 +34,11 @@ from supersuit.vector import MakeCPUAsyncConstructor
 from supersuit.vector.sb3_vector_wrapper import SB3VecEnvWrapper
 
 from envs.coverage.core import CoverageCore
-from harness.config.schema import VEC_BACKENDS, EnvConfig
+from harness.config.schema import VEC_BACKENDS, EnvConfig, PettingZooEnvConfig
 from harness.factory import make_core_spec, make_env
+
+#: The info key of a time-out (SB3's): the replay buffer bootstraps its transition.
+TIME_LIMIT_KEY = "TimeLimit.truncated"
 
 #: Env info keys that VecMonitor copies into each finished episode's ``info["episode"]``.
 EPISODE_INFO_KEYS = ("coverage", "new_cells", "wall_hits")
@@ -59,10 +63,28 @@ def _make_copy(
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         if hasattr(signal, "SIGPIPE"):  # POSIX
             signal.signal(signal.SIGPIPE, signal.SIG_DFL)
-    vec = ss.pettingzoo_env_to_vec_env_v1(make_env(env))
+    built = make_env(env)
+    if isinstance(env, PettingZooEnvConfig):
+        built = TimeLimitInfos(built)
+    vec = ss.pettingzoo_env_to_vec_env_v1(built)
     if seed is not None:
         vec.reset(seed=seed)
     return vec
+
+
+class TimeLimitInfos(BaseParallelWrapper):
+    """A PettingZoo env of one's own whose truncated agents (a time limit: truncated, not
+    terminated) carry ``"TimeLimit.truncated": True`` in their infos, as the coverage env's do:
+    SuperSuit's VecEnv says only "done", and SB3's replay buffers read this key to bootstrap a
+    time-out's last transition rather than treat it as the episode's true end."""
+
+    def step(self, actions: dict[Any, Any]) -> tuple[dict[Any, Any], ...]:
+        obs, rewards, terms, truncs, infos = self.env.step(actions)
+        infos = dict(infos)
+        for agent, truncated in truncs.items():
+            if truncated and not terms.get(agent, False):
+                infos[agent] = {**infos.get(agent, {}), TIME_LIMIT_KEY: True}
+        return obs, rewards, terms, truncs, infos
 
 
 class CoreVecEnv(VecEnv):
@@ -185,6 +207,9 @@ def make_vec_env(
     """
     if backend not in VEC_BACKENDS:
         raise ValueError(f"unknown vec backend {backend!r}; known: {', '.join(VEC_BACKENDS)}")
+    if backend == "core" and isinstance(env, PettingZooEnvConfig):
+        # (the config picks supersuit for such an env: harness.config.schema)
+        raise ValueError("the batched core is the coverage env's: a pettingzoo env needs supersuit")
     if backend == "core":
         venv: VecEnv = CoreVecEnv(CoverageCore(make_core_spec(env), copies), seed)
         return VecMonitor(venv, info_keywords=EPISODE_INFO_KEYS) if monitor else venv
@@ -200,15 +225,21 @@ def _supersuit_vec_env(
         for i in range(copies)
     ]
     probe = make_env(env)
+    agent = probe.possible_agents[0]  # (all agents share their spaces: the config checks it)
     # The same constructor concat_vec_envs_v1 uses, given one seeded function per copy.
     inner = MakeCPUAsyncConstructor(min(num_cpus, copies))(
-        fns, probe.observation_space("agent_0"), probe.action_space("agent_0")
+        fns, probe.observation_space(agent), probe.action_space(agent)
     )
+    if isinstance(env, PettingZooEnvConfig):
+        probe.close()
     with warnings.catch_warnings():
         # SuperSuit's inner VecEnv has no get_attr("render_mode"); SB3 warns and uses None,
         # which is right: training never renders.
         warnings.filterwarnings("ignore", message="The `render_mode` attribute is not defined")
         venv = SB3VecEnvWrapper(inner)
         if monitor:
-            venv = VecMonitor(venv, info_keywords=EPISODE_INFO_KEYS)
+            # A PettingZoo env of one's own: return and length (its infos are read from the
+            # last step's infos by the episode log, harness.training.callbacks).
+            keys = () if isinstance(env, PettingZooEnvConfig) else EPISODE_INFO_KEYS
+            venv = VecMonitor(venv, info_keywords=keys)
     return venv

@@ -16,8 +16,9 @@ from stable_baselines3.common.callbacks import BaseCallback, ProgressBarCallback
 from tqdm import TqdmExperimentalWarning
 from tqdm.rich import tqdm
 
-from harness.results.rundir import EPISODE_COLUMNS, append_csv_rows
+from harness.results.rundir import EPISODE_COLUMNS, FOREIGN_EPISODE_COLUMNS, append_csv_rows
 from harness.sb3.schedules import epochs_for
+from harness.training.adapters import TIME_LIMIT_KEY
 
 
 def recent_coverages(ep_info_buffer: Any, episodes: int, n_agents: int) -> list[float]:
@@ -74,6 +75,9 @@ class EpisodeLogCallback(BaseCallback):
         first_episode: Number of the next episode (continues across phases and resumes).
     """
 
+    #: The table's columns.
+    columns: tuple[str, ...] = EPISODE_COLUMNS
+
     def __init__(self, csv_path: Path, n_agents: int, phase: str, first_episode: int = 0) -> None:
         super().__init__()
         self.csv_path = Path(csv_path)
@@ -82,7 +86,7 @@ class EpisodeLogCallback(BaseCallback):
         self.next_episode = first_episode
 
     def _on_training_start(self) -> None:
-        append_csv_rows(self.csv_path, EPISODE_COLUMNS, [])  # the header, when the file is new
+        append_csv_rows(self.csv_path, self.columns, [])  # the header, when the file is new
 
     def _on_step(self) -> bool:
         dones = self.locals["dones"]
@@ -114,6 +118,77 @@ class EpisodeLogCallback(BaseCallback):
             self.logger.record_mean("rollout/team_reward_mean", row["reward_mean"])
         if rows:
             append_csv_rows(self.csv_path, EPISODE_COLUMNS, rows)
+        return True
+
+
+#: Info keys that the harness's VecEnvs add (not the env's own infos).
+VEC_INFO_KEYS = (TIME_LIMIT_KEY,)
+
+
+class ForeignEpisodeLogCallback(EpisodeLogCallback):
+    """:class:`EpisodeLogCallback` for a PettingZoo env of one's own: each row holds the team's
+    return (the sum of its agents'), each agent's return (``a;b;c``), the length, and the
+    numeric infos each agent reported at the episode's last step (JSON, ``{"key": [a, b, c]}``);
+    TensorBoard gets their means (``rollout/team_return``, ``rollout/<agent>/return``,
+    ``rollout/<agent>/<key>``, ``rollout/info/<key>``, the team's mean)."""
+
+    columns = FOREIGN_EPISODE_COLUMNS
+
+    def __init__(
+        self,
+        csv_path: Path,
+        agents: tuple[str, ...],
+        phase: str,
+        first_episode: int = 0,
+    ) -> None:
+        super().__init__(csv_path, len(agents), phase, first_episode)
+        self.agents = agents
+
+    def _on_step(self) -> bool:
+        import json
+
+        from harness.evaluation.foreign import numeric_infos
+
+        dones = self.locals["dones"]
+        if not dones.any():
+            return True
+        infos = self.locals["infos"]
+        n = self.n_agents
+        rows = []
+        for copy in range(len(dones) // n):
+            slots = range(copy * n, copy * n + n)
+            if not all(dones[k] and "episode" in infos[k] for k in slots):
+                continue
+            returns = [float(infos[k]["episode"]["r"]) for k in slots]
+            # (less the VecEnv's own: the time limit's flag)
+            per_agent = [
+                {k: v for k, v in numeric_infos(infos[k]).items() if k not in VEC_INFO_KEYS}
+                for k in slots
+            ]
+            keys = sorted({key for info in per_agent for key in info})
+            table = {key: [info.get(key) for info in per_agent] for key in keys}
+            row = {
+                "episode": self.next_episode,
+                "phase": self.phase,
+                "timesteps": self.num_timesteps,
+                "copy": copy,
+                "team_return": sum(returns),
+                "returns": ";".join(f"{r:g}" for r in returns),
+                "length": int(infos[slots[0]]["episode"]["l"]),
+                "infos": json.dumps(table, separators=(",", ":")),
+            }
+            rows.append([row[c] for c in self.columns])
+            self.next_episode += 1
+            self.logger.record_mean("rollout/team_return", row["team_return"])
+            for agent, value, info in zip(self.agents, returns, per_agent, strict=True):
+                self.logger.record_mean(f"rollout/{agent}/return", value)
+                for key, number in info.items():
+                    self.logger.record_mean(f"rollout/{agent}/{key}", number)
+            for key, values in table.items():
+                given = [v for v in values if v is not None]
+                self.logger.record_mean(f"rollout/info/{key}", float(np.mean(given)))
+        if rows:
+            append_csv_rows(self.csv_path, self.columns, rows)
         return True
 
 

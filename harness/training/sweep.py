@@ -66,7 +66,7 @@ from typing import Any
 import yaml
 
 from harness.config.loading import load_config, parse_override, parse_yaml
-from harness.config.schema import ConfigError
+from harness.config.schema import ConfigError, is_foreign
 from harness.processes import harness_command
 from harness.results.rundir import RunDir, RunDirError, atomic_write_text
 
@@ -802,7 +802,8 @@ def _objective(
     lock: contextlib.ExitStack,
     started: Callable[[Path], None] = lambda run: None,
 ) -> float:
-    """Train one trial into its own run folder; its value is the median validation coverage.
+    """Train one trial into its own run folder; its value is the median validation coverage
+    (a PettingZoo env of one's own: the median team return, :func:`headline`).
     The folder's lock goes onto ``lock`` (the caller releases it once Optuna has recorded the
     trial's end); ``started`` receives the folder.
 
@@ -812,7 +813,7 @@ def _objective(
     """
     import optuna
 
-    from harness.evaluation.episodes import model_policy, run_episodes, summarize
+    from harness.evaluation.episodes import headline, model_policy, run_episodes, summarize
     from harness.training.train import train
 
     _claim(trial, total)
@@ -825,7 +826,7 @@ def _objective(
     last: dict[str, Any] = {}
 
     def report(timesteps: int, summary: dict[str, Any]) -> None:
-        last.update(timesteps=timesteps, value=float(summary["coverage_median"]))
+        last.update(timesteps=timesteps, value=headline(summary))
         trial.report(last["value"], timesteps)
         if trial.should_prune():
             raise optuna.TrialPruned(f"pruned at {timesteps} transitions")
@@ -843,7 +844,14 @@ def _objective(
         ev.episodes,
         ev.validation_seed,
     )
-    return float(summarize(results)["coverage_median"])
+    return headline(summarize(results))
+
+
+#: What a trial's value is (``best.json``'s ``objective``): :func:`headline` of the validation
+#: episodes of the trained model.
+OBJECTIVE = "median coverage of the config's validation episodes"
+#: ... for a PettingZoo env of one's own.
+FOREIGN_OBJECTIVE = "median team return of the config's validation episodes"
 
 
 def trial_line(study: Any, trial: Any, total: int) -> str:
@@ -895,7 +903,7 @@ def write_best(
         "study": study.study_name,
         "trial": best.number,
         "value": best.value,
-        "objective": "median coverage of the config's validation episodes",
+        "objective": FOREIGN_OBJECTIVE if is_foreign(config.env) else OBJECTIVE,
         "params": best.params,
         "run": best.user_attrs.get("run"),
         "trials": {
@@ -911,7 +919,11 @@ def format_best(result: dict[str, Any] | None) -> str:
     if result is None:
         return "no trial has completed yet"
     params = ", ".join(f"{k}={v!r}" for k, v in result["params"].items())
+    if result.get("objective") == FOREIGN_OBJECTIVE:
+        value = f"validation team return {result['value']:.4g}"
+    else:
+        value = f"validation coverage {result['value']:.1%}"
     return (
-        f"best trial {result['trial']}: validation coverage {result['value']:.1%} ({params}); "
+        f"best trial {result['trial']}: {value} ({params}); "
         f"trials {yaml.safe_dump(result['trials'], default_flow_style=True).strip()}"
     )

@@ -33,7 +33,7 @@ from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 from stable_baselines3.common.utils import set_random_seed
 from stable_baselines3.common.vec_env import VecEnv
 
-from harness.config.schema import ExperimentConfig, PhaseConfig
+from harness.config.schema import ExperimentConfig, PettingZooEnvConfig, PhaseConfig
 from harness.evaluation.episodes import (
     EpisodesStopped,
     model_policy,
@@ -42,13 +42,13 @@ from harness.evaluation.episodes import (
     summarize,
 )
 from harness.results.rundir import (
-    EVALUATION_COLUMNS,
     CheckpointDir,
     LogMismatchError,
     RunDir,
     append_csv_rows,
     atomic_write,
     atomic_write_text,
+    log_columns,
     rewind_logs,
 )
 from harness.sb3.buffers import PrioritizedReplayBuffer
@@ -64,6 +64,7 @@ from harness.training.adapters import make_vec_env
 from harness.training.callbacks import (
     EpisodeLogCallback,
     EpochsByCoverageCallback,
+    ForeignEpisodeLogCallback,
     PeriodicCallback,
     PhaseProgressBar,
 )
@@ -203,9 +204,17 @@ def phase_callbacks(ctx: RunContext, index: int) -> tuple[list[BaseCallback], Ep
     checkpointer and stopper are the same objects in every phase."""
     config, phase = ctx.config, ctx.config.phases[index]
     n_agents = config.env.n_agents
-    episode_log = EpisodeLogCallback(
-        ctx.run.episodes_csv, n_agents, phase.name, ctx.state.next_episode
-    )
+    if isinstance(config.env, PettingZooEnvConfig):
+        episode_log: EpisodeLogCallback = ForeignEpisodeLogCallback(
+            ctx.run.episodes_csv,
+            config.env.pettingzoo.spaces.agents,
+            phase.name,
+            ctx.state.next_episode,
+        )
+    else:
+        episode_log = EpisodeLogCallback(
+            ctx.run.episodes_csv, n_agents, phase.name, ctx.state.next_episode
+        )
     ctx.checkpointer.episode_log = episode_log  # the checkpoints store its episode counter
     callbacks: list[BaseCallback] = [
         EpochsByCoverageCallback(phase.epochs, phase.epochs_window, n_agents),
@@ -276,9 +285,16 @@ class Evaluator(PeriodicCallback):
             return
         self.pending = None
         summary = summarize(results)
-        model.logger.record("eval/coverage_median", summary["coverage_median"])
-        model.logger.record("eval/coverage_mean", summary["coverage_mean"])
-        model.logger.record("eval/wall_hits_mean", summary["wall_hits_mean"])
+        if isinstance(self.config.env, PettingZooEnvConfig):
+            for key in ("return_median", "return_mean", "length_mean"):
+                model.logger.record(f"eval/{key}", summary[key])
+            for key, value in summary["infos"].items():
+                if value is not None:
+                    model.logger.record(f"eval/info/{key}", value)
+        else:
+            model.logger.record("eval/coverage_median", summary["coverage_median"])
+            model.logger.record("eval/coverage_mean", summary["coverage_mean"])
+            model.logger.record("eval/wall_hits_mean", summary["wall_hits_mean"])
         model.logger.dump(step)
         self._append_row(step, summary)
         score = selection_score(summary)
@@ -297,9 +313,8 @@ class Evaluator(PeriodicCallback):
             "episodes": self.config.eval.episodes,
             "temperature": self.config.eval.temperature,
         }
-        append_csv_rows(
-            self.run.evaluations_csv, EVALUATION_COLUMNS, [[row[c] for c in EVALUATION_COLUMNS]]
-        )
+        columns = log_columns(self.config)[1]
+        append_csv_rows(self.run.evaluations_csv, columns, [[row[c] for c in columns]])
 
 
 def save_model(model: DoubleDQN, path: Path) -> None:

@@ -1,0 +1,1 @@
+"""PettingZoo envs of the tests' own (``env: {pettingzoo: {make: "tests.envs.<module>:..."}}``)."""

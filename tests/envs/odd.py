@@ -1,0 +1,62 @@
+"""PettingZoo envs that break (or bend) the contract of docs/your-own-env.md, for the tests:
+spaces that differ between agents, continuous actions, a Dict observation, an AEC env, a
+constructor that fails, a module that fails to import (``tests.envs.broken``)."""
+
+from __future__ import annotations
+
+from gymnasium import spaces
+from pettingzoo.utils.conversions import parallel_to_aec
+
+from tests.envs.meet import MeetEnv
+
+
+class _Spaces(MeetEnv):
+    """:class:`MeetEnv` with the spaces given per agent."""
+
+    def __init__(self, observation=None, action=None, **kwargs):
+        super().__init__(**kwargs)
+        self._per_agent_observation = observation or {}
+        self._per_agent_action = action or {}
+
+    def observation_space(self, agent):
+        return self._per_agent_observation.get(agent, self._observation)
+
+    def action_space(self, agent):
+        return self._per_agent_action.get(agent, self._action)
+
+
+def mixed_actions(**kwargs):
+    """walker_1 has 4 actions where walker_0 has 3."""
+    return _Spaces(action={"walker_1": spaces.Discrete(4)}, **kwargs)
+
+
+def continuous(**kwargs):
+    """Every agent's action is a Box (continuous)."""
+    box = spaces.Box(-1.0, 1.0, (1,))
+    return _Spaces(action={"walker_0": box, "walker_1": box}, **kwargs)
+
+
+def dict_observation(**kwargs):
+    """Every agent observes a Dict."""
+    space = spaces.Dict({"cell": spaces.Discrete(5)})
+    return _Spaces(observation={"walker_0": space, "walker_1": space}, **kwargs)
+
+
+def aec(**kwargs):
+    """The meet env as an AEC env (the harness converts it back with aec_to_parallel)."""
+    return parallel_to_aec(MeetEnv(**kwargs))
+
+
+def no_frames(**kwargs):
+    """The meet env without rgb_array frames."""
+    env = MeetEnv(**kwargs)
+    env.metadata = {"name": "meet_v0", "render_modes": []}
+    return env
+
+
+def failing(**kwargs):
+    """A constructor that raises."""
+    raise RuntimeError("no such world")
+
+
+not_callable = 42

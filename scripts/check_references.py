@@ -122,15 +122,25 @@ def check_baseline(stored: Path, scratch: Path) -> bool:
 
 
 def main(names: list[str]) -> int:
+    if names[:1] in (["-h"], ["--help"]):
+        print(__doc__)
+        return 0
     if names[:1] == ["--baselines"]:
         patterns = names[1:] or ["*"]
         stored = sorted(
             {p for pat in patterns for p in (ROOT / "docs" / "baselines").glob(f"{pat}.json")}
         )
+        if not stored:
+            print(f"error: no docs/baselines/PATTERN.json matches {patterns}", file=sys.stderr)
+            return 2
         with tempfile.TemporaryDirectory() as tmp:
             return 0 if all([check_baseline(p, Path(tmp)) for p in stored]) else 1
-    if not names:
-        names = sorted(p.parent.name for p in (ROOT / "runs" / "reference").glob("*/eval.json"))
+    known = sorted(p.parent.name for p in (ROOT / "runs" / "reference").glob("*/eval.json"))
+    unknown = [name for name in names if name not in known]
+    if unknown:
+        print(f"error: no reference {unknown[0]!r}; known: {', '.join(known)}", file=sys.stderr)
+        return 2
+    names = names or known
     with tempfile.TemporaryDirectory() as tmp:
         results = [check(name, Path(tmp)) for name in names]
     return 0 if all(results) else 1

@@ -95,3 +95,13 @@ def test_check_references_compares_the_figures_both_files_hold() -> None:
     assert same({**stored}, {**stored, "step_bonus": 0.0, "env": {"old": 2}})  # dropped since
     assert not same({**stored, "coverage_mean": 0.51}, {**stored})
     assert not same({"episodes": 2}, {**stored})  # a quoted figure missing
+
+
+def test_check_references_refuses_an_unknown_name_in_one_line(capsys) -> None:
+    import runpy
+
+    script = runpy.run_path(str(ROOT / "scripts" / "check_references.py"))
+    assert script["main"](["ddqn_15x1"]) == 2
+    assert script["main"](["--baselines", "no-such-*"]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 2 and err[0].startswith("error: no reference 'ddqn_15x1'; known: ")

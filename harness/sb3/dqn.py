@@ -45,8 +45,9 @@ class OldModelError(ValueError):
 
 
 def saved_model_format(path: str | Path | io.BufferedIOBase) -> int | None:
-    """The :data:`MODEL_FORMAT` a saved model zip states, 1 for a harness model saved before
-    formats were stated, ``None`` for anything that is not a model zip (left to SB3 to report)."""
+    """The :data:`MODEL_FORMAT` a saved model zip states, 1 for a DQN model saved before
+    formats were stated, ``None`` for anything else: not a model zip, or another algorithm's
+    (left to SB3 to report)."""
     try:
         with zipfile.ZipFile(path) as archive:
             data = json.loads(archive.read("data"))
@@ -55,7 +56,12 @@ def saved_model_format(path: str | Path | io.BufferedIOBase) -> int | None:
     finally:
         if isinstance(path, io.BufferedIOBase):
             path.seek(0)
-    return int(data.get(FORMAT_KEY, 1)) if isinstance(data, dict) else None
+    if not isinstance(data, dict):
+        return None
+    if FORMAT_KEY in data:
+        return int(data[FORMAT_KEY])
+    # Only a DQN model (SB3's or this harness's) can be an older harness model.
+    return 1 if "target_update_interval" in data else None
 
 
 def target_as_online(policy_state: dict[str, th.Tensor]) -> dict[str, th.Tensor]:

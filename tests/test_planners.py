@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.optimize import linear_sum_assignment
 
 from envs.coverage.frontier import PLANNERS
 from envs.coverage.planners import (
@@ -13,6 +16,7 @@ from envs.coverage.planners import (
     HungarianPlanner,
     MinPosPlanner,
     UtilityPlanner,
+    linear_sum_assignment_compiled,
 )
 from harness.config.schema import EnvConfig
 from harness.evaluation.baselines import BASELINES, make_baseline
@@ -225,3 +229,100 @@ def test_the_one_call_step_plays_as_sync_then_act(make) -> None:
             assert moves == plain.act(), f"seed {seed}, step {env.steps}"
             assert fused.goals == plain.goals and fused.n_targets == plain.n_targets
             env.step(dict(zip(env.possible_agents, moves)))
+
+
+# ---------------------------------------------------------------------- the compiled assignment
+@st.composite
+def cost_matrices(draw) -> np.ndarray:
+    """A planner's kind of cost matrix: 1..6 agents by 0..40 candidates, or transposed (tall),
+    of small integers (many ties) with some entries 1e9 (the planner's unreachable), or
+    floats."""
+    short, long = draw(st.integers(1, 6)), draw(st.integers(0, 40))
+    shape = (long, short) if draw(st.booleans()) else (short, long)
+    rng = np.random.default_rng(draw(st.integers(0, 2**32 - 1)))
+    if draw(st.booleans()):
+        cost = rng.integers(0, draw(st.integers(1, 6)), size=shape).astype(float)
+    else:
+        cost = rng.random(shape) * draw(st.sampled_from([1.0, 30.0]))
+    cost[rng.random(shape) < draw(st.sampled_from([0.0, 0.2, 0.6]))] = 1e9
+    return cost
+
+
+@settings(max_examples=500, deadline=None)
+@given(cost=cost_matrices())
+def test_the_compiled_assignment_is_scipys(cost: np.ndarray) -> None:
+    # Not just as cheap: the very rows and columns SciPy picks among tied optima.
+    rows, cols = linear_sum_assignment_compiled(cost)
+    expected_rows, expected_cols = linear_sum_assignment(cost)
+    assert rows.dtype == cols.dtype == np.int64
+    np.testing.assert_array_equal(rows, expected_rows)
+    np.testing.assert_array_equal(cols, expected_cols)
+
+
+def test_the_compiled_assignment_refuses_what_scipy_refuses() -> None:
+    for cost in (np.array([[1.0, np.nan]]), np.array([[-np.inf, 1.0]])):
+        with pytest.raises(ValueError, match="invalid numeric entries"):
+            linear_sum_assignment_compiled(cost)
+    infeasible = np.array([[np.inf, np.inf], [1.0, 2.0]])
+    with pytest.raises(ValueError, match="infeasible"):
+        linear_sum_assignment(infeasible)
+    with pytest.raises(ValueError, match="infeasible"):
+        linear_sum_assignment_compiled(infeasible)
+
+
+def scipy_hungarian(cost: np.ndarray) -> list[int]:
+    """The Hungarian planner's rule as it was written around SciPy's assignment."""
+    finite = np.where(np.isfinite(cost), cost, 1e9)
+    rows, cols = linear_sum_assignment(finite)
+    chosen = finite.argmin(axis=1).tolist()  # the agents the assignment leaves out
+    for r, c in zip(rows.tolist(), cols.tolist()):
+        if finite[r, c] < 1e9:
+            chosen[r] = c
+    return chosen
+
+
+@settings(max_examples=300, deadline=None)
+@given(agents=st.integers(1, 6), candidates=st.integers(1, 40), seed=st.integers(0, 2**32 - 1))
+def test_the_hungarian_rule_is_the_one_around_scipy(agents, candidates, seed) -> None:
+    rng = np.random.default_rng(seed)
+    cost = rng.integers(0, 8, size=(agents, candidates)).astype(float)
+    cost[rng.random(cost.shape) < rng.choice([0.0, 0.3, 0.8])] = np.inf  # beyond the horizon
+    planner = HungarianPlanner(3, 3)
+    assert planner.assign(cost, np.zeros(cost.shape, dtype=np.int64)) == scipy_hungarian(cost)
+
+
+class Farthest(HungarianPlanner):
+    """A user's rule: every agent heads for its farthest reachable candidate."""
+
+    calls = 0
+
+    def assign(self, cost: np.ndarray, goal_cells: np.ndarray) -> list[int]:
+        Farthest.calls += 1
+        return np.where(np.isfinite(cost), cost, -1.0).argmax(axis=1).tolist()
+
+
+class Renamed(HungarianPlanner):
+    """A subclass that keeps the Hungarian rule."""
+
+
+def test_a_subclass_that_overrides_assign_plays_its_own_rule_in_step() -> None:
+    # The compiled assignment would silently replace the subclass's rule: it is switched off.
+    from envs import coverage_v0
+
+    assert Farthest._compiled_assign is None
+    assert Renamed._compiled_assign == HungarianPlanner._compiled_assign is not None
+    env = coverage_v0.parallel_env(height=12, width=12, n_agents=3, max_steps=40)
+    env.reset(seed=5)
+    fused, plain, hungarian = Farthest(12, 12), Farthest(12, 12), HungarianPlanner(12, 12)
+    differs = False
+    while env.agents:
+        read = lambda: (env.walls, env.visited)  # noqa: E731
+        calls = Farthest.calls
+        moves = fused.step(env.steps, env.positions, read)
+        assert Farthest.calls == calls + (fused.n_targets > 0)  # step() asked its assign
+        plain.sync(env.steps, env.positions, read)
+        assert moves == plain.act(), f"step {env.steps}"
+        hungarian.sync(env.steps, env.positions, read)
+        differs |= moves != hungarian.act()
+        env.step(dict(zip(env.possible_agents, moves)))
+    assert differs  # the rule played is not the Hungarian one

@@ -31,7 +31,8 @@ chosen together, from one distance field per agent per step (a compiled breadth-
 through the seen free cells, :mod:`envs.coverage.paths`, reused for every candidate; its rule
 for tied paths is that of SciPy's ``dijkstra``, on which the planners were measured):
 :class:`UtilityPlanner` (Burgard et al. 2005), :class:`MinPosPlanner` (Bautin et al. 2012) and
-:class:`HungarianPlanner` (an optimal assignment by :func:`scipy.optimize.linear_sum_assignment`).
+:class:`HungarianPlanner` (an optimal assignment by :func:`scipy.optimize.linear_sum_assignment`,
+compiled: :func:`linear_sum_assignment_compiled`, SciPy's algorithm step for step).
 """
 
 from __future__ import annotations
@@ -41,7 +42,6 @@ from collections.abc import Callable
 import numpy as np
 from numba import njit
 from scipy.ndimage import label
-from scipy.optimize import linear_sum_assignment
 
 from envs.coverage.paths import distance_fields, first_step, move_towards
 from envs.coverage.types import STAY
@@ -489,9 +489,17 @@ class CoordinatedPlanner(FrontierPlanner):
             raise ValueError(f"horizon must be >= 1 or None, got {horizon!r}")
         self.candidates, self.horizon = candidates, horizon
 
-    #: The compiled assignment of :func:`_coordinated_step` (:data:`_MINPOS`,
-    #: :data:`_UTILITY`), or ``None``: :meth:`assign` in Python, after the compiled costs.
+    #: The compiled assignment of :func:`_coordinated_step` (:data:`_MINPOS`, :data:`_UTILITY`,
+    #: :data:`_HUNGARIAN`) that :meth:`step` runs in place of :meth:`assign`, or ``None``:
+    #: :meth:`assign` in Python, after the compiled costs. A subclass that overrides
+    #: :meth:`assign` without setting it gets ``None`` (:meth:`__init_subclass__`), so its own
+    #: rule is played, not the compiled one of the class it extends.
     _compiled_assign: int | None = None
+
+    def __init_subclass__(cls, **kwargs: object) -> None:
+        super().__init_subclass__(**kwargs)
+        if "assign" in vars(cls) and "_compiled_assign" not in vars(cls):
+            cls._compiled_assign = None
 
     def step(
         self,
@@ -521,7 +529,7 @@ class CoordinatedPlanner(FrontierPlanner):
                 self.target, self.n_targets, self.stride, self._horizon(), dist, queue,
                 kind, beta, radius, starts, goals, actions,
             )  # fmt: skip
-        else:  # the assignment in Python (SciPy's), around two compiled calls
+        else:  # the assignment in Python (a subclass's own), around two compiled calls
             self.n_targets, cells, costs = _sync_and_costs(
                 positions, self.window, self.free, self.visited, self.seen, self.passable,
                 self.target, self.n_targets, self.stride, self._horizon(), dist, queue, starts,
@@ -583,17 +591,14 @@ class CoordinatedPlanner(FrontierPlanner):
 
 class HungarianPlanner(CoordinatedPlanner):
     """Distinct targets minimising the team's total path length, an optimal assignment
-    (:func:`scipy.optimize.linear_sum_assignment`). With fewer reachable candidates than agents
-    the agents left over head for their nearest candidate."""
+    (:func:`scipy.optimize.linear_sum_assignment`, here compiled:
+    :func:`linear_sum_assignment_compiled`). With fewer reachable candidates than agents the
+    agents left over head for their nearest candidate."""
+
+    _compiled_assign = 2  # _HUNGARIAN
 
     def assign(self, cost: np.ndarray, goal_cells: np.ndarray) -> list[int]:
-        finite = np.where(np.isfinite(cost), cost, _UNREACHABLE)
-        rows, cols = linear_sum_assignment(finite)
-        chosen = finite.argmin(axis=1).tolist()  # the agents the assignment leaves out
-        for r, c in zip(rows.tolist(), cols.tolist()):
-            if finite[r, c] < _UNREACHABLE:
-                chosen[r] = c
-        return chosen
+        return _hungarian_choices(cost).tolist()
 
 
 class MinPosPlanner(CoordinatedPlanner):
@@ -766,6 +771,145 @@ def _utility_choices(
     return chosen
 
 
+# SciPy's rectangular linear sum assignment (scipy/optimize/rectangular_lsap/rectangular_lsap.cpp,
+# SciPy 1.17.1; Crouse 2016, "On implementing 2D rectangular assignment algorithms"), compiled so
+# that the Hungarian planner's step runs in one call. Its operations are SciPy's in SciPy's order
+# (the columns scanned from the last, ties to a column with no row yet, the dual updates as
+# written), so on the planner's tie-heavy integer costs it picks SciPy's assignment, not just
+# another optimal one.
+@njit(cache=True, nogil=True)
+def _augmenting_path(
+    cost: np.ndarray,
+    u: np.ndarray,
+    v: np.ndarray,
+    path: np.ndarray,
+    row4col: np.ndarray,
+    shortest: np.ndarray,
+    i: int,
+    in_rows: np.ndarray,
+    in_cols: np.ndarray,
+    remaining: np.ndarray,
+) -> tuple[int, float]:
+    """The sink column of a shortest augmenting path from row ``i`` (-1: infeasible) and its
+    length; ``path``, ``shortest``, ``in_rows`` and ``in_cols`` (SciPy's SR, SC) are left as
+    the dual update needs them."""
+    nc = cost.shape[1]
+    min_val = 0.0
+    n_remaining = nc
+    for it in range(nc):
+        # In reverse, so that a constant matrix is solved by the identity (SciPy's #11602).
+        remaining[it] = nc - it - 1
+    in_rows[:] = False
+    in_cols[:] = False
+    shortest[:] = np.inf
+    sink = -1
+    while sink == -1:
+        index = -1
+        lowest = np.inf
+        in_rows[i] = True
+        for it in range(n_remaining):
+            j = remaining[it]
+            r = min_val + cost[i, j] - u[i] - v[j]
+            if r < shortest[j]:
+                path[j] = i
+                shortest[j] = r
+            # Among equally short, a column with no row yet: it ends the path.
+            if shortest[j] < lowest or (shortest[j] == lowest and row4col[j] == -1):
+                lowest = shortest[j]
+                index = it
+        min_val = lowest
+        if min_val == np.inf:
+            return -1, min_val
+        j = remaining[index]
+        if row4col[j] == -1:
+            sink = j
+        else:
+            i = row4col[j]
+        in_cols[j] = True
+        n_remaining -= 1
+        remaining[index] = remaining[n_remaining]
+    return sink, min_val
+
+
+@njit(cache=True, nogil=True)
+def linear_sum_assignment_compiled(cost: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`scipy.optimize.linear_sum_assignment` (minimising) of a float64 matrix, compiled:
+    the same row and column indices as SciPy 1.17.1 for every matrix, ties included. Raises
+    ``ValueError`` where SciPy does (NaN or -inf entries, no complete assignment of finite
+    cost)."""
+    nr, nc = cost.shape
+    if nr == 0 or nc == 0:
+        return np.empty(0, dtype=np.int64), np.empty(0, dtype=np.int64)
+    transpose = nc < nr  # a tall matrix is solved transposed
+    if transpose:
+        nr, nc = nc, nr
+    work = np.empty((nr, nc))  # SciPy's copy (C order, transposed if tall)
+    for i in range(nr):
+        for j in range(nc):
+            work[i, j] = cost[j, i] if transpose else cost[i, j]
+            if np.isnan(work[i, j]) or work[i, j] == -np.inf:
+                raise ValueError("matrix contains invalid numeric entries")
+    u = np.zeros(nr)
+    v = np.zeros(nc)
+    shortest = np.empty(nc)
+    path = np.full(nc, -1, dtype=np.int64)
+    col4row = np.full(nr, -1, dtype=np.int64)
+    row4col = np.full(nc, -1, dtype=np.int64)
+    in_rows = np.zeros(nr, dtype=np.bool_)
+    in_cols = np.zeros(nc, dtype=np.bool_)
+    remaining = np.empty(nc, dtype=np.int64)
+    for cur_row in range(nr):
+        sink, min_val = _augmenting_path(
+            work, u, v, path, row4col, shortest, cur_row, in_rows, in_cols, remaining
+        )
+        if sink < 0:
+            raise ValueError("cost matrix is infeasible")
+        # The dual variables.
+        u[cur_row] += min_val
+        for i in range(nr):
+            if in_rows[i] and i != cur_row:
+                u[i] += min_val - shortest[col4row[i]]
+        for j in range(nc):
+            if in_cols[j]:
+                v[j] -= min_val - shortest[j]
+        # The augmentation along the path.
+        j = sink
+        while True:
+            i = path[j]
+            row4col[j] = i
+            col4row[i], j = j, col4row[i]
+            if i == cur_row:
+                break
+    if transpose:  # by original row (the columns found are distinct: the order is unique)
+        order = np.argsort(col4row)
+        return col4row[order], order.astype(np.int64)
+    return np.arange(nr, dtype=np.int64), col4row
+
+
+@njit(cache=True, nogil=True)
+def _hungarian_choices(cost: np.ndarray) -> np.ndarray:
+    """The Hungarian planner's candidate per agent, see :class:`HungarianPlanner`: the optimal
+    assignment of the costs with every non-finite one :data:`_UNREACHABLE`; an agent it leaves
+    out, or gives an unreachable candidate, takes its nearest candidate (the first minimum)."""
+    n, m = cost.shape
+    if m == 0:
+        return np.full(n, -1, dtype=np.int64)
+    finite = np.empty((n, m))
+    for i in range(n):
+        for c in range(m):
+            finite[i, c] = cost[i, c] if np.isfinite(cost[i, c]) else _UNREACHABLE
+    chosen = np.zeros(n, dtype=np.int64)
+    for i in range(n):  # the first minimum of each row
+        for c in range(1, m):
+            if finite[i, c] < finite[i, chosen[i]]:
+                chosen[i] = c
+    rows, cols = linear_sum_assignment_compiled(finite)
+    for k in range(rows.size):
+        if finite[rows[k], cols[k]] < _UNREACHABLE:
+            chosen[rows[k]] = cols[k]
+    return chosen
+
+
 @njit(cache=True, nogil=True)
 def _sync_and_costs(
     positions: np.ndarray,
@@ -796,7 +940,7 @@ def _sync_and_costs(
 
 
 #: The assignments :func:`_coordinated_step` runs compiled.
-_MINPOS, _UTILITY = 0, 1
+_MINPOS, _UTILITY, _HUNGARIAN = 0, 1, 2
 
 
 @njit(cache=True, nogil=True)
@@ -821,11 +965,11 @@ def _coordinated_step(
     actions: np.ndarray,
 ) -> int:
     """One step of a coordinated planner with every known unvisited cell a candidate and a
-    compiled assignment (``kind``: :data:`_MINPOS` or :data:`_UTILITY` with ``beta`` and
-    ``radius``), in one call: the map brought up to date (:func:`_visit_cells`), the costs
-    (:func:`_target_costs`), the assignment and the first moves (:func:`_first_moves`), as
-    :meth:`CoordinatedPlanner.act` does them one call after another. Returns the number of
-    targets now."""
+    compiled assignment (``kind``: :data:`_MINPOS`, :data:`_UTILITY` with ``beta`` and
+    ``radius``, or :data:`_HUNGARIAN`), in one call: the map brought up to date
+    (:func:`_visit_cells`), the costs (:func:`_target_costs`), the assignment and the first
+    moves (:func:`_first_moves`), as :meth:`CoordinatedPlanner.act` does them one call after
+    another. Returns the number of targets now."""
     goals[:] = -1
     actions[:] = STAY
     n_targets, cells, costs = _sync_and_costs(
@@ -839,6 +983,8 @@ def _coordinated_step(
         goal_cells[i] = cells
     if kind == _MINPOS:
         chosen = _minpos_choices(costs)
+    elif kind == _HUNGARIAN:
+        chosen = _hungarian_choices(costs)
     else:
         chosen = _utility_choices(costs, goal_cells // stride, goal_cells % stride, beta, radius)
     g, a = _first_moves(dist, starts, costs, goal_cells, chosen, stride)

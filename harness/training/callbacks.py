@@ -99,26 +99,34 @@ class EpisodeLogCallback(BaseCallback):
             slots = range(copy * n, copy * n + n)
             if not all(dones[k] and "episode" in infos[k] for k in slots):
                 continue
-            eps = [infos[k]["episode"] for k in slots]
             row = {
                 "episode": self.next_episode,
                 "phase": self.phase,
                 "timesteps": self.num_timesteps,
                 "copy": copy,
-                "coverage": float(eps[0]["coverage"]),
-                "reward_mean": float(np.mean([e["r"] for e in eps])),
-                "wall_hits": int(sum(e["wall_hits"] for e in eps)),
-                "new_cells": ";".join(str(int(e["new_cells"])) for e in eps),
-                "length": int(eps[0]["l"]),
+                **self._episode(copy, [infos[k] for k in slots]),
             }
-            rows.append([row[c] for c in EPISODE_COLUMNS])
+            rows.append([row[c] for c in self.columns])
             self.next_episode += 1
-            self.logger.record_mean("rollout/coverage", row["coverage"])
-            self.logger.record_mean("rollout/wall_hits", row["wall_hits"])
-            self.logger.record_mean("rollout/team_reward_mean", row["reward_mean"])
         if rows:
-            append_csv_rows(self.csv_path, EPISODE_COLUMNS, rows)
+            append_csv_rows(self.csv_path, self.columns, rows)
         return True
+
+    def _episode(self, copy: int, infos: list[dict[str, Any]]) -> dict[str, Any]:
+        """The row's own columns for an episode that ended, from its agents' last infos (SB3's
+        ``VecMonitor`` put each one's ``episode`` there), and its rollout metrics logged."""
+        eps = [info["episode"] for info in infos]
+        row = {
+            "coverage": float(eps[0]["coverage"]),
+            "reward_mean": float(np.mean([e["r"] for e in eps])),
+            "wall_hits": int(sum(e["wall_hits"] for e in eps)),
+            "new_cells": ";".join(str(int(e["new_cells"])) for e in eps),
+            "length": int(eps[0]["l"]),
+        }
+        self.logger.record_mean("rollout/coverage", row["coverage"])
+        self.logger.record_mean("rollout/wall_hits", row["wall_hits"])
+        self.logger.record_mean("rollout/team_reward_mean", row["reward_mean"])
+        return row
 
 
 #: Info keys that the harness's VecEnvs add (not the env's own infos).
@@ -144,52 +152,33 @@ class ForeignEpisodeLogCallback(EpisodeLogCallback):
         super().__init__(csv_path, len(agents), phase, first_episode)
         self.agents = agents
 
-    def _on_step(self) -> bool:
+    def _episode(self, copy: int, infos: list[dict[str, Any]]) -> dict[str, Any]:
         import json
 
         from harness.evaluation.foreign import numeric_infos
 
-        dones = self.locals["dones"]
-        if not dones.any():
-            return True
-        infos = self.locals["infos"]
-        n = self.n_agents
-        rows = []
-        for copy in range(len(dones) // n):
-            slots = range(copy * n, copy * n + n)
-            if not all(dones[k] and "episode" in infos[k] for k in slots):
-                continue
-            returns = [float(infos[k]["episode"]["r"]) for k in slots]
-            # (less the VecEnv's own: the time limit's flag)
-            per_agent = [
-                {k: v for k, v in numeric_infos(infos[k]).items() if k not in VEC_INFO_KEYS}
-                for k in slots
-            ]
-            keys = sorted({key for info in per_agent for key in info})
-            table = {key: [info.get(key) for info in per_agent] for key in keys}
-            row = {
-                "episode": self.next_episode,
-                "phase": self.phase,
-                "timesteps": self.num_timesteps,
-                "copy": copy,
-                "team_return": sum(returns),
-                "returns": ";".join(f"{r:g}" for r in returns),
-                "length": int(infos[slots[0]]["episode"]["l"]),
-                "infos": json.dumps(table, separators=(",", ":")),
-            }
-            rows.append([row[c] for c in self.columns])
-            self.next_episode += 1
-            self.logger.record_mean("rollout/team_return", row["team_return"])
-            for agent, value, info in zip(self.agents, returns, per_agent, strict=True):
-                self.logger.record_mean(f"rollout/{agent}/return", value)
-                for key, number in info.items():
-                    self.logger.record_mean(f"rollout/{agent}/{key}", number)
-            for key, values in table.items():
-                given = [v for v in values if v is not None]
-                self.logger.record_mean(f"rollout/info/{key}", float(np.mean(given)))
-        if rows:
-            append_csv_rows(self.csv_path, self.columns, rows)
-        return True
+        returns = [float(info["episode"]["r"]) for info in infos]
+        # (less the VecEnv's own: the time limit's flag)
+        per_agent = [
+            {k: v for k, v in numeric_infos(info).items() if k not in VEC_INFO_KEYS}
+            for info in infos
+        ]
+        keys = sorted({key for info in per_agent for key in info})
+        table = {key: [info.get(key) for info in per_agent] for key in keys}
+        self.logger.record_mean("rollout/team_return", sum(returns))
+        for agent, value, info in zip(self.agents, returns, per_agent, strict=True):
+            self.logger.record_mean(f"rollout/{agent}/return", value)
+            for key, number in info.items():
+                self.logger.record_mean(f"rollout/{agent}/{key}", number)
+        for key, values in table.items():
+            given = [v for v in values if v is not None]
+            self.logger.record_mean(f"rollout/info/{key}", float(np.mean(given)))
+        return {
+            "team_return": sum(returns),
+            "returns": ";".join(f"{r:g}" for r in returns),
+            "length": int(infos[0]["episode"]["l"]),
+            "infos": json.dumps(table, separators=(",", ":")),
+        }
 
 
 class PeriodicCallback(BaseCallback):

@@ -47,18 +47,17 @@ from harness.results.stats import paired_difference
 
 
 def clone(planner: FrontierPlanner, free: np.ndarray | None = None) -> FrontierPlanner:
-    """A copy of the planner's map that can be stepped on its own (its ``free`` array is shared
-    read-only; every per-cell state it changes is copied, and so are the searches' scratch
-    arrays). ``free`` replaces the true free cells (a sampled map) for the cells nobody has
-    seen."""
+    """A copy of the planner's map that can be stepped on its own (its per-cell state, ``grid``,
+    is copied, and the searches' scratch arrays are its own). ``free`` replaces the true free
+    cells (a sampled map) for the cells nobody has seen."""
     copy = object.__new__(type(planner))
     copy.__dict__.update(planner.__dict__)
+    copy.grid = planner.grid.copy()
     if free is not None:
-        copy.free = np.asarray(free, dtype=bool)
-    for name in ("visited", "seen", "passable", "target"):
-        setattr(copy, name, getattr(planner, name).copy())
+        copy.grid[0] = np.asarray(free, dtype=bool)
+    copy.free, copy.visited, copy.seen, copy.passable, copy.target = copy.grid
     copy.positions, copy.goals = list(planner.positions), list(planner.goals)
-    copy._scratch = copy._claimed = None
+    copy._scratch = copy._claimed = copy._distances = None
     return copy
 
 

@@ -56,6 +56,8 @@ __all__ = [
     "UtilityPlanner",
 ]
 
+#: Rows of :attr:`FrontierPlanner.grid`: the per-cell state of the team's map.
+_FREE, _VISITED, _SEEN, _PASSABLE, _TARGET = range(5)
 #: How :class:`FrontierPlanner` chooses among equally near unclaimed targets (module docstring).
 TIE_BREAKS = ("order", "pocket", "random")
 
@@ -114,18 +116,12 @@ def nearest_targets(
 
 
 @njit(cache=True, nogil=True)
-def _visit_cells(
-    cells: np.ndarray,
-    window: np.ndarray,
-    free: np.ndarray,
-    visited: np.ndarray,
-    seen: np.ndarray,
-    passable: np.ndarray,
-    target: np.ndarray,
-) -> int:
-    """Mark ``cells`` visited in order, and each one's 3x3 ``window`` seen: a seen free cell
-    becomes passable, and a target until it is visited. Returns the change in the number of
-    targets."""
+def _visit_cells(cells: np.ndarray, window: np.ndarray, grid: np.ndarray) -> int:
+    """Mark ``cells`` visited in order, and each one's 3x3 ``window`` seen, in the planner's
+    ``grid`` (:attr:`FrontierPlanner.grid`): a seen free cell becomes passable, and a target
+    until it is visited. Returns the change in the number of targets."""
+    free, visited, seen = grid[_FREE], grid[_VISITED], grid[_SEEN]
+    passable, target = grid[_PASSABLE], grid[_TARGET]
     change = 0
     for p in cells:
         if visited[p]:
@@ -199,14 +195,21 @@ def _plan(
 
 
 @njit(cache=True, nogil=True)
+def _sync(
+    positions: np.ndarray, stride: int, window: np.ndarray, grid: np.ndarray, starts: np.ndarray
+) -> int:
+    """The agents' padded cells (``starts``) from ``positions`` ``(agents, 2)``, and the map
+    brought up to date (:func:`_visit_cells`); returns the change in the number of targets."""
+    for i in range(starts.size):
+        starts[i] = (positions[i, 0] + 1) * stride + positions[i, 1] + 1
+    return _visit_cells(starts, window, grid)
+
+
+@njit(cache=True, nogil=True)
 def _sync_and_plan(
     positions: np.ndarray,
     window: np.ndarray,
-    free: np.ndarray,
-    visited: np.ndarray,
-    seen: np.ndarray,
-    passable: np.ndarray,
-    target: np.ndarray,
+    grid: np.ndarray,
     n_targets: int,
     offsets: np.ndarray,
     pocket: bool,
@@ -217,20 +220,16 @@ def _sync_and_plan(
     actions: np.ndarray,
 ) -> int:
     """One step of :class:`FrontierPlanner` (``order`` or ``pocket``) in one call: the agents'
-    padded cells (``starts``) from ``positions`` ``(agents, 2)``, the map brought up to date
-    (:func:`_visit_cells`) and, while targets are left, the moves (:func:`_plan`; else every
-    agent stays with no goal). Returns the number of targets now."""
-    stride = offsets[3]
-    for i in range(starts.size):
-        starts[i] = (positions[i, 0] + 1) * stride + positions[i, 1] + 1
-    n_targets += _visit_cells(starts, window, free, visited, seen, passable, target)
+    padded cells and the map (:func:`_sync`) and, while targets are left, the moves
+    (:func:`_plan`; else every agent stays with no goal). Returns the number of targets now."""
+    n_targets += _sync(positions, offsets[3], window, grid, starts)
     if n_targets == 0:
         goals[:] = -1
         actions[:] = STAY
         return n_targets
     _plan(
-        passable, target, seen, starts, offsets, pocket, claimed, n_targets, scratch,
-        goals, actions,
+        grid[_PASSABLE], grid[_TARGET], grid[_SEEN], starts, offsets, pocket, claimed, n_targets,
+        scratch, goals, actions,
     )  # fmt: skip
     return n_targets
 
@@ -242,10 +241,10 @@ class FrontierPlanner:
     Call :meth:`sync` with the episode's state after every reset and step, then :meth:`act`.
     ``tie_break`` is one of :data:`TIE_BREAKS`.
 
-    Padding lets neighbour lookups skip bounds checks. The per-cell state (``free``,
-    ``visited``, ``seen``, ``passable``, ``target``: flat ``bool`` arrays over the padded grid)
-    is kept up to date and searched by compiled functions (:func:`_visit_cells`,
-    :func:`_plan`), one call each per step.
+    Padding lets neighbour lookups skip bounds checks. The per-cell state, ``grid`` (bool
+    ``(5, cells)`` over the padded grid, flat; its rows also named ``free``, ``visited``,
+    ``seen``, ``passable`` and ``target``), is kept up to date and searched by compiled
+    functions, one call per step (:meth:`step`).
     """
 
     def __init__(self, height: int, width: int, tie_break: str = "order") -> None:
@@ -291,10 +290,7 @@ class FrontierPlanner:
         if steps == 0 or not (self.steps <= steps <= self.steps + 1):
             self._rebuild(*read_map())
         else:
-            self.n_targets += _visit_cells(
-                starts, self.window,
-                self.free, self.visited, self.seen, self.passable, self.target,
-            )  # fmt: skip
+            self.n_targets += _visit_cells(starts, self.window, self.grid)
         self.steps = steps
 
     def _rebuild(self, walls: np.ndarray, visited_map: np.ndarray) -> None:
@@ -311,19 +307,13 @@ class FrontierPlanner:
         seen[[0, -1], :] = seen[:, [0, -1]] = True
         passable = (seen & free).ravel()
         target = passable & ~visited.ravel()
-        self.free = free.ravel()
-        self.visited = visited.ravel()
-        self.seen = seen.ravel()
-        self.passable = passable
-        self.target = target
+        self.grid = np.stack([free.ravel(), visited.ravel(), seen.ravel(), passable, target])
+        self.free, self.visited, self.seen, self.passable, self.target = self.grid
         self.n_targets = int(target.sum())
 
     def _visit(self, p: int) -> None:
         """Mark cell ``p`` visited (and its 3x3 window seen), as a step onto it does."""
-        self.n_targets += _visit_cells(
-            np.array([p], dtype=np.int64), self.window,
-            self.free, self.visited, self.seen, self.passable, self.target,
-        )  # fmt: skip
+        self.n_targets += _visit_cells(np.array([p], dtype=np.int64), self.window, self.grid)
 
     # ------------------------------------------------------------------ acting
     def act(self, rng: np.random.Generator | None = None) -> list[int]:
@@ -385,8 +375,8 @@ class FrontierPlanner:
         if self._claimed is None or self._claimed.size != size:
             self._claimed = np.zeros(size, dtype=np.bool_)
         self.n_targets = _sync_and_plan(
-            positions, self.window, self.free, self.visited, self.seen, self.passable,
-            self.target, self.n_targets, self.offsets, self.tie_break == "pocket",
+            positions, self.window, self.grid, self.n_targets, self.offsets,
+            self.tie_break == "pocket",
             self._claimed, self._scratch_arrays(size), starts, goals, actions,
         )  # fmt: skip
         self.steps, self.rng = steps, rng
@@ -525,14 +515,14 @@ class CoordinatedPlanner(FrontierPlanner):
         if kind is not None:
             beta, radius = getattr(self, "beta", 0.0), getattr(self, "radius", 1.0)
             self.n_targets = _coordinated_step(
-                positions, self.window, self.free, self.visited, self.seen, self.passable,
-                self.target, self.n_targets, self.stride, self._horizon(), dist, queue,
+                positions, self.window, self.grid, self.n_targets, self.stride, self._horizon(),
+                dist, queue,
                 kind, beta, radius, starts, goals, actions,
             )  # fmt: skip
         else:  # the assignment in Python (a subclass's own), around two compiled calls
             self.n_targets, cells, costs = _sync_and_costs(
-                positions, self.window, self.free, self.visited, self.seen, self.passable,
-                self.target, self.n_targets, self.stride, self._horizon(), dist, queue, starts,
+                positions, self.window, self.grid, self.n_targets, self.stride, self._horizon(),
+                dist, queue, starts,
             )  # fmt: skip
             goals[:], actions[:] = -1, STAY
             if self.n_targets:
@@ -914,11 +904,7 @@ def _hungarian_choices(cost: np.ndarray) -> np.ndarray:
 def _sync_and_costs(
     positions: np.ndarray,
     window: np.ndarray,
-    free: np.ndarray,
-    visited: np.ndarray,
-    seen: np.ndarray,
-    passable: np.ndarray,
-    target: np.ndarray,
+    grid: np.ndarray,
     n_targets: int,
     stride: int,
     horizon: float,
@@ -926,16 +912,15 @@ def _sync_and_costs(
     queue: np.ndarray,
     starts: np.ndarray,
 ) -> tuple[int, np.ndarray, np.ndarray]:
-    """A coordinated planner's step up to its assignment: the agents' padded cells
-    (``starts``), the map brought up to date (:func:`_visit_cells`) and, while targets are left,
-    the costs (:func:`_target_costs`). Returns the number of targets now, the target cells and
-    the costs (empty when none is left)."""
-    for i in range(starts.size):
-        starts[i] = (positions[i, 0] + 1) * stride + positions[i, 1] + 1
-    n_targets += _visit_cells(starts, window, free, visited, seen, passable, target)
+    """A coordinated planner's step up to its assignment: the agents' padded cells and the map
+    (:func:`_sync`) and, while targets are left, the costs (:func:`_target_costs`). Returns the
+    number of targets now, the target cells and the costs (empty when none is left)."""
+    n_targets += _sync(positions, stride, window, grid, starts)
     if n_targets == 0:
         return n_targets, np.empty(0, dtype=np.int64), np.empty((starts.size, 0))
-    cells, costs = _target_costs(passable, target, stride, starts, horizon, dist, queue)
+    cells, costs = _target_costs(
+        grid[_PASSABLE], grid[_TARGET], stride, starts, horizon, dist, queue
+    )
     return n_targets, cells, costs
 
 
@@ -947,11 +932,7 @@ _MINPOS, _UTILITY, _HUNGARIAN = 0, 1, 2
 def _coordinated_step(
     positions: np.ndarray,
     window: np.ndarray,
-    free: np.ndarray,
-    visited: np.ndarray,
-    seen: np.ndarray,
-    passable: np.ndarray,
-    target: np.ndarray,
+    grid: np.ndarray,
     n_targets: int,
     stride: int,
     horizon: float,
@@ -973,8 +954,7 @@ def _coordinated_step(
     goals[:] = -1
     actions[:] = STAY
     n_targets, cells, costs = _sync_and_costs(
-        positions, window, free, visited, seen, passable, target, n_targets, stride, horizon,
-        dist, queue, starts,
+        positions, window, grid, n_targets, stride, horizon, dist, queue, starts,
     )  # fmt: skip
     if n_targets == 0:
         return n_targets

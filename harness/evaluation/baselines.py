@@ -28,9 +28,9 @@ under its entry's ``baseline`` name: the target with the fewest open neighbours
 (finish a pocket before leaving it), or a random one (from each episode's generator). The
 frontier agent knows the whole team's map, which a learned agent (13 numbers of local view) does
 not: it is a strong reference, not a fair opponent. It only ever steps into seen free cells, so
-it never hits a wall. On a 2-core machine it evaluates about 7-8 episodes/s on 50x50 maps with
-4 agents and 1000 steps (the env alone, stepped with random actions, runs 13-17/s);
-``tests/test_baselines.py`` has the timing command.
+it never hits a wall. Its speed, and every planner's, is ``harness bench eval``'s
+(docs/performance.md: on the 2-core machine 50-75 episodes per CPU second on 50x50 maps with 4
+agents and 1000 steps).
 """
 
 from __future__ import annotations

@@ -368,7 +368,7 @@ def frontier_distances(env) -> np.ndarray:
     return dist
 
 
-@pytest.mark.parametrize("seed", [0, 1])
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
 def test_frontier_views_equal_a_search_through_known_cells_only(seed):
     # The env searches all free cells (built once per episode); unknown ground must never make a
     # path shorter than the one through known cells.
@@ -385,7 +385,7 @@ def test_frontier_views_equal_a_search_through_known_cells_only(seed):
     rng = np.random.default_rng(seed)
     half = crop // 2
     for t in range(400):
-        if t % 50 == 0:
+        if t % 10 == 0:
             dist = frontier_distances(env)
             for i, (r, c) in enumerate(env.positions):
                 o = obs[f"agent_{i}"]

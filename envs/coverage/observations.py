@@ -320,7 +320,7 @@ class TeamMapObservation(ObservationBuilder):
         if self.ego_size:
             self._ego_counts = ego_counts(self.height, self.width, self.ego_block)
         else:
-            self._ego_counts = _NONE_3D
+            self._ego_counts = _NO_EGO_COUNTS
 
     def _update_shares(self, blocks: np.ndarray) -> None:
         """Recompute the share channels of ``blocks`` (repeats allowed) from the counts."""
@@ -344,14 +344,14 @@ class TeamMapObservation(ObservationBuilder):
         of a batch's arrays: the core builds every copy's observation in place)."""
         n = state.positions.shape[0]
         glob = out["global"].reshape(n, self.GLOBAL_CHANNELS, -1)
-        compass = out["frontier"] if self.frontier else _NONE_2D
+        compass = out["frontier"] if self.frontier else _NO_COMPASS
         teammap_views(
             state.cells, state.pad, state.positions, min(state.steps / self.max_steps, 1.0),
             self._cat, self._planes, self._counts, self._block_of, self._block_cells,
             self._shares, self._row_block, self._col_block, self.global_size, self._scale3,
             self._free, self._frontier_scale, self._dist, self._queue, self._needed,
             self._ego_counts, self.ego_block,
-            out["local"], glob, out.get("ego", _NONE_4D), out["vector"], compass,
+            out["local"], glob, out.get("ego", _NO_EGO), out["vector"], compass,
         )  # fmt: skip
         ext = self._frontier_ext
         if ext is None:
@@ -370,9 +370,9 @@ class TeamMapObservation(ObservationBuilder):
 
 # Empty arrays for the views that are off (the compiled call takes every array).
 _NO_CELLS = np.zeros(0, dtype=bool)
-_NONE_2D = np.zeros((0, 5), dtype=np.float32)
-_NONE_3D = np.zeros((4, 0, 0), dtype=np.uint8)
-_NONE_4D = np.zeros((0, 5, 0, 0), dtype=np.uint8)
+_NO_COMPASS = np.zeros((0, 5), dtype=np.float32)
+_NO_EGO_COUNTS = np.zeros((4, 0, 0), dtype=np.uint8)
+_NO_EGO = np.zeros((0, 5, 0, 0), dtype=np.uint8)
 
 
 #: Key of the agent's one-hot index in a ``Dict`` observation (``agent_id=True``).

@@ -55,9 +55,15 @@ GOALS_ENV = TEAMMAP_ENV.model_copy(
 VEC_COPIES = (1, 4, 16, 64)
 
 
-def _rate(count: float, fn: Callable[[], Any]) -> float:
-    start = time.perf_counter()
+def _rate(
+    count: float, fn: Callable[[], Any], cpu: dict[str, float] | None = None, name: str = ""
+) -> float:
+    """``count`` over the wall time ``fn()`` takes; with ``cpu``, also ``cpu[name]``: ``count``
+    over the process's CPU time (all its threads), which a busy machine moves less."""
+    start, start_cpu = time.perf_counter(), time.process_time()
     fn()
+    if cpu is not None:
+        cpu[name] = count / max(time.process_time() - start_cpu, 1e-9)
     return count / (time.perf_counter() - start)
 
 
@@ -397,7 +403,9 @@ def bench_sharing(
 def bench_eval(episodes: int = 8) -> dict[str, Any]:
     """Episodes per second of greedy evaluation (MLP 3x512) and of every planner's baseline
     (``eval_<baseline>_episodes_per_s``, one per entry of ``envs.coverage.frontier.PLANNERS``),
-    with each planner's speed over the classical explorer's (``eval_<baseline>_over_frontier``)."""
+    with each planner's speed over the classical explorer's (``eval_<baseline>_over_frontier``),
+    and every row per CPU second as well (``eval_episodes_per_cpu_s``: ``mlp``, ``random``, each
+    baseline, ``teammap_frontier_step``, ``goals_frontier_step``)."""
     import torch
 
     from envs.coverage.frontier import PLANNERS
@@ -411,21 +419,30 @@ def bench_eval(episodes: int = 8) -> dict[str, Any]:
     # An untrained network of the thesis's size: the weights do not change the speed.
     model = DoubleDQN("MlpPolicy", venv, policy_kwargs={"net_arch": THESIS_NET}, device="cpu")
     venv.close()
-    mlp = _rate(episodes, lambda: run_episodes(model_policy(model), THESIS_ENV, episodes, 0))
+    cpu: dict[str, float] = {}  # the same rates per CPU second, by row
+    mlp = _rate(
+        episodes, lambda: run_episodes(model_policy(model), THESIS_ENV, episodes, 0), cpu, "mlp"
+    )
     random = make_baseline("random", 0)
     # `harness eval --policy random`: 100 episodes, 8 copies side by side (the command's default).
-    rand = _rate(4 * episodes, lambda: run_episodes(random, THESIS_ENV, 4 * episodes, 0))
+    rand = _rate(
+        4 * episodes, lambda: run_episodes(random, THESIS_ENV, 4 * episodes, 0), cpu, "random"
+    )
 
     def planner_rate(name: str) -> float:
         return _rate(
-            episodes, lambda: run_episodes(make_baseline(name, 0), THESIS_ENV, episodes, 0)
+            episodes,
+            lambda: run_episodes(make_baseline(name, 0), THESIS_ENV, episodes, 0),
+            cpu,
+            name,
         )
 
     rates = {entry.baseline: planner_rate(entry.baseline) for entry in PLANNERS.values()}
-    out = {
+    out: dict[str, Any] = {
         "eval_episodes_per_s": mlp,
         "eval_100_episodes_s": 100 / mlp,
         "eval_random_episodes_per_s": rand,
+        "eval_episodes_per_cpu_s": cpu,
     }
     # The planner's step through the team-map env and through the goal action's env (its
     # candidates built every step): `harness eval --policy frontier_step` on such configs.
@@ -434,7 +451,10 @@ def bench_eval(episodes: int = 8) -> dict[str, Any]:
         run_episodes(step, env, 1, 0)  # compiles what the first episode needs
         count = max(1, episodes // 2)
         out[f"eval_{name}_frontier_step_episodes_per_s"] = _rate(
-            count, lambda env=env, count=count: run_episodes(step, env, count, 0)
+            count,
+            lambda env=env, count=count: run_episodes(step, env, count, 0),
+            cpu,
+            f"{name}_frontier_step",
         )
     for name, rate in rates.items():
         out[f"eval_{name}_episodes_per_s"] = rate

@@ -118,6 +118,11 @@ def test_bench_eval_has_a_key_per_planner():
     # The planner's step through the team map and through the goal action's candidates.
     assert out["eval_teammap_frontier_step_episodes_per_s"] > 0
     assert out["eval_goals_frontier_step_episodes_per_s"] > 0
+    # Every row per CPU second too (what a busy machine moves less).
+    rows = {"mlp", "random", *(e.baseline for e in PLANNERS.values())}
+    rows |= {"teammap_frontier_step", "goals_frontier_step"}
+    assert set(out["eval_episodes_per_cpu_s"]) == rows
+    assert all(rate > 0 for rate in out["eval_episodes_per_cpu_s"].values())
 
 
 def test_bench_sharing_reports_gradient_steps_per_mode():

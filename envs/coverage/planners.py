@@ -195,6 +195,43 @@ def _plan(
 
 
 @njit(cache=True, nogil=True)
+def _plan_random(
+    passable: np.ndarray,
+    target: np.ndarray,
+    starts: np.ndarray,
+    offsets: np.ndarray,
+    claimed: np.ndarray,
+    n_targets: int,
+    scratch: np.ndarray,
+    rng: np.random.Generator,
+    goals: np.ndarray,
+    actions: np.ndarray,
+) -> None:
+    """:func:`_plan` with the ``random`` tie-break: among an agent's equally near unclaimed
+    targets, a uniform draw from ``rng`` (``rng.integers(n)``; no draw when there is one), the
+    episode's generator itself (numba's ``Generator`` draws NumPy's numbers from its state)."""
+    stride = offsets[3]
+    first, queue, ties, firsts = scratch[0], scratch[1], scratch[2], scratch[3]
+    for i in range(starts.size):
+        start = starts[i]
+        n = 0
+        if i < n_targets:  # else every target is claimed: no search, no draw
+            n = nearest_targets(passable, target, claimed, start, offsets, True, first, queue,
+                                ties, firsts)  # fmt: skip
+        if n == 0:
+            goals[i], actions[i] = -1, STAY
+            continue
+        pick = 0 if n == 1 else rng.integers(0, n)
+        goal = ties[pick]
+        claimed[goal] = True
+        goals[i] = goal
+        actions[i] = move_towards(firsts[pick], start, stride)
+    for i in range(starts.size):
+        if goals[i] >= 0:
+            claimed[goals[i]] = False
+
+
+@njit(cache=True, nogil=True)
 def _sync(
     positions: np.ndarray, stride: int, window: np.ndarray, grid: np.ndarray, starts: np.ndarray
 ) -> int:
@@ -342,18 +379,14 @@ class FrontierPlanner:
             )  # fmt: skip
             self.goals = goals.tolist()
             return actions_np.tolist()
-        claimed = np.zeros(size, dtype=np.bool_)
-        actions = []
-        for i, start in enumerate(self.positions):
-            found = self._search(start, claimed)
-            if found is None:
-                actions.append(STAY)
-                continue
-            goal, step = found
-            claimed[goal] = True
-            self.goals[i] = goal
-            actions.append(move_towards(step, start, self.stride))
-        return actions
+        goals, actions_np = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
+        _plan_random(
+            self.passable, self.target, np.asarray(self.positions, dtype=np.int64),
+            self.offsets, self._claimed, self.n_targets, self._scratch_arrays(size), rng,
+            goals, actions_np,
+        )  # fmt: skip
+        self.goals = goals.tolist()
+        return actions_np.tolist()
 
     def step(
         self,
@@ -413,20 +446,6 @@ class FrontierPlanner:
         if self._distances is None or self._distances.shape != (n, size):
             self._distances = np.empty((n, size))
         return self._distances, self._scratch_arrays(size)[1:4]
-
-    def _search(self, start: int, claimed: np.ndarray) -> tuple[int, int] | None:
-        """Nearest unclaimed target from ``start`` and the first cell of a shortest path to it,
-        a uniform draw among the equally near ones (the ``"random"`` tie-break; the others run
-        in :func:`_plan`), or ``None`` when no unclaimed target is reachable."""
-        first, queue, ties, firsts = self._scratch_arrays(self.passable.size)
-        n = nearest_targets(
-            self.passable, self.target, claimed, start, self.offsets, True,
-            first, queue, ties, firsts,
-        )  # fmt: skip
-        if n == 0:
-            return None
-        pick = 0 if n == 1 else int(self.rng.integers(n))
-        return int(ties[pick]), int(firsts[pick])
 
 
 # ---------------------------------------------------------------------- coordinated planners

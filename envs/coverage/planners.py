@@ -526,10 +526,8 @@ class CoordinatedPlanner(FrontierPlanner):
             return self.act(rng)
         n = positions.shape[0]
         starts, goals, actions = np.empty((3, n), dtype=np.int64)
-        size = self.passable.size
-        if self._distances is None or self._distances.shape != (n, size):
-            self._distances = np.empty((n, size))
-        dist, queue = self._distances, self._scratch_arrays(size)[1]
+        dist, rows = self.work_arrays()  # the team is the one of the last sync: n agents
+        queue = rows[0]
         kind = self._compiled_assign
         if kind is not None:
             beta, radius = getattr(self, "beta", 0.0), getattr(self, "radius", 1.0)

@@ -165,6 +165,10 @@ def _visit_cells(cells: np.ndarray, window: np.ndarray, grid: np.ndarray) -> int
     return change
 
 
+#: Tie-breaks as the compiled step takes them (:data:`TIE_BREAKS`' order).
+_ORDER, _POCKET, _RANDOM = range(3)
+
+
 @njit(cache=True, nogil=True)
 def _plan(
     passable: np.ndarray,
@@ -172,19 +176,24 @@ def _plan(
     seen: np.ndarray,
     starts: np.ndarray,
     offsets: np.ndarray,
-    pocket: bool,
+    tie: int,
     claimed: np.ndarray,
     n_targets: int,
     scratch: np.ndarray,
+    held: _GeneratorRef | None,
     goals: np.ndarray,
     actions: np.ndarray,
 ) -> None:
-    """The frontier explorer's step for every agent (tie-break ``order``, or ``pocket``):
-    targets claimed in agent index order, each agent's nearest unclaimed target (``goals``, -1
-    for none) and its first move (``actions``). ``claimed`` comes in all False and is left so;
-    ``n_targets`` is the number of targets (once every one is claimed, the agents left stay
-    without a search); ``scratch`` ``(4, cells)`` int64, its first row all -1
-    (:func:`nearest_targets`)."""
+    """The frontier explorer's step for every agent: targets claimed in agent index order, each
+    agent's nearest unclaimed target (``goals``, -1 for none) and its first move (``actions``).
+
+    Ties between equally near targets by ``tie`` (:data:`_ORDER`, :data:`_POCKET` or
+    :data:`_RANDOM`; the module docstring): with ``_RANDOM`` a uniform draw from ``held.rng``
+    (``rng.integers(n)``; no draw when there is one), the episode's generator itself (numba's
+    ``Generator`` draws NumPy's numbers from its state); ``held`` is ``None`` for the others.
+    ``claimed`` comes in all False and is left so; ``n_targets`` is the number of targets (once
+    every one is claimed, the agents left stay without a search); ``scratch`` ``(4, cells)``
+    int64, its first row all -1 (:func:`nearest_targets`)."""
     stride = offsets[3]
     first, queue, ties, firsts = scratch[0], scratch[1], scratch[2], scratch[3]
     for i in range(starts.size):
@@ -192,13 +201,13 @@ def _plan(
         # Once every target is claimed (each agent before claimed at most one), none is left.
         n = 0
         if i < n_targets:
-            n = nearest_targets(passable, target, claimed, start, offsets, pocket, first, queue,
-                                ties, firsts)  # fmt: skip
+            n = nearest_targets(passable, target, claimed, start, offsets, tie != _ORDER, first,
+                                queue, ties, firsts)  # fmt: skip
         if n == 0:
             goals[i], actions[i] = -1, STAY
             continue
         pick = 0
-        if pocket:  # the fewest open neighbours (unseen, or a target); the first of equals
+        if tie == _POCKET:  # the fewest open neighbours (unseen, or a target); the first of equals
             fewest = 5
             for j in range(n):
                 g = ties[j]
@@ -208,49 +217,12 @@ def _plan(
                         count += 1
                 if count < fewest:
                     pick, fewest = j, count
+        elif held is not None and n > 1:  # (compiled away where held is None)
+            pick = held.rng.integers(0, n)
         goal, step = ties[pick], firsts[pick]
         claimed[goal] = True
         goals[i] = goal
         actions[i] = move_towards(step, start, stride)
-    for i in range(starts.size):
-        if goals[i] >= 0:
-            claimed[goals[i]] = False
-
-
-@njit(cache=True, nogil=True)
-def _plan_random(
-    passable: np.ndarray,
-    target: np.ndarray,
-    starts: np.ndarray,
-    offsets: np.ndarray,
-    claimed: np.ndarray,
-    n_targets: int,
-    scratch: np.ndarray,
-    held: _GeneratorRef,
-    goals: np.ndarray,
-    actions: np.ndarray,
-) -> None:
-    """:func:`_plan` with the ``random`` tie-break: among an agent's equally near unclaimed
-    targets, a uniform draw from ``held.rng`` (``rng.integers(n)``; no draw when there is one),
-    the episode's generator itself (numba's ``Generator`` draws NumPy's numbers from its
-    state)."""
-    rng = held.rng
-    stride = offsets[3]
-    first, queue, ties, firsts = scratch[0], scratch[1], scratch[2], scratch[3]
-    for i in range(starts.size):
-        start = starts[i]
-        n = 0
-        if i < n_targets:  # else every target is claimed: no search, no draw
-            n = nearest_targets(passable, target, claimed, start, offsets, True, first, queue,
-                                ties, firsts)  # fmt: skip
-        if n == 0:
-            goals[i], actions[i] = -1, STAY
-            continue
-        pick = 0 if n == 1 else rng.integers(0, n)
-        goal = ties[pick]
-        claimed[goal] = True
-        goals[i] = goal
-        actions[i] = move_towards(firsts[pick], start, stride)
     for i in range(starts.size):
         if goals[i] >= 0:
             claimed[goals[i]] = False
@@ -274,24 +246,26 @@ def _sync_and_plan(
     grid: np.ndarray,
     n_targets: int,
     offsets: np.ndarray,
-    pocket: bool,
+    tie: int,
     claimed: np.ndarray,
     scratch: np.ndarray,
+    held: _GeneratorRef | None,
     starts: np.ndarray,
     goals: np.ndarray,
     actions: np.ndarray,
 ) -> int:
-    """One step of :class:`FrontierPlanner` (``order`` or ``pocket``) in one call: the agents'
-    padded cells and the map (:func:`_sync`) and, while targets are left, the moves
-    (:func:`_plan`; else every agent stays with no goal). Returns the number of targets now."""
+    """One step of :class:`FrontierPlanner` in one call: the agents' padded cells and the map
+    (:func:`_sync`) and, while targets are left, the moves (:func:`_plan`, ``tie`` and
+    ``held`` as there; else every agent stays with no goal). Returns the number of targets
+    now."""
     n_targets += _sync(positions, offsets[3], window, grid, starts)
     if n_targets == 0:
         goals[:] = -1
         actions[:] = STAY
         return n_targets
     _plan(
-        grid[_PASSABLE], grid[_TARGET], grid[_SEEN], starts, offsets, pocket, claimed, n_targets,
-        scratch, goals, actions,
+        grid[_PASSABLE], grid[_TARGET], grid[_SEEN], starts, offsets, tie, claimed, n_targets,
+        scratch, held, goals, actions,
     )  # fmt: skip
     return n_targets
 
@@ -385,8 +359,7 @@ class FrontierPlanner:
         Args:
             rng: Draws the ``"random"`` tie-break (required then, unused otherwise).
         """
-        if self.tie_break == "random" and rng is None:
-            raise ValueError('tie_break="random" needs a generator: act(rng=...)')
+        held = self._held(rng)
         self.rng = rng
         n = len(self.positions)
         self.goals = [-1] * n
@@ -395,24 +368,14 @@ class FrontierPlanner:
         size = self.passable.size
         if self._claimed is None or self._claimed.size != size:
             self._claimed = np.zeros(size, dtype=np.bool_)
-        if self.tie_break != "random":  # no generator: the whole step in one compiled call
-            goals, actions_np = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
-            _plan(
-                self.passable, self.target, self.seen,
-                np.asarray(self.positions, dtype=np.int64), self.offsets,
-                self.tie_break == "pocket", self._claimed, self.n_targets,
-                self._scratch_arrays(size), goals, actions_np,
-            )  # fmt: skip
-            self.goals = goals.tolist()
-            return actions_np.tolist()
-        goals, actions_np = np.empty(n, dtype=np.int64), np.empty(n, dtype=np.int64)
-        _plan_random(
-            self.passable, self.target, np.asarray(self.positions, dtype=np.int64),
-            self.offsets, self._claimed, self.n_targets, self._scratch_arrays(size),
-            self._held(rng), goals, actions_np,
+        goals, actions = np.empty((2, n), dtype=np.int64)
+        _plan(
+            self.passable, self.target, self.seen, np.asarray(self.positions, dtype=np.int64),
+            self.offsets, TIE_BREAKS.index(self.tie_break), self._claimed, self.n_targets,
+            self._scratch_arrays(size), held, goals, actions,
         )  # fmt: skip
         self.goals = goals.tolist()
-        return actions_np.tolist()
+        return actions.tolist()
 
     def step(
         self,
@@ -421,13 +384,13 @@ class FrontierPlanner:
         read_map: Callable[[], tuple[np.ndarray, np.ndarray]],
         rng: np.random.Generator | None = None,
     ) -> list[int]:
-        """:meth:`sync` then :meth:`act`: one action per agent. The ``order`` and ``pocket``
-        explorers do both in one compiled call (:func:`_sync_and_plan`) on the steps that only
-        bring the map up to date."""
+        """:meth:`sync` then :meth:`act`: one action per agent, both in one compiled call
+        (:func:`_sync_and_plan`) on the steps that only bring the map up to date."""
         incremental = steps != 0 and self.steps <= steps <= self.steps + 1
-        if not (incremental and self.tie_break != "random"):
+        if not incremental:
             self.sync(steps, positions, read_map)
             return self.act(rng)
+        held = self._held(rng)
         n = positions.shape[0]
         starts, goals, actions = np.empty((3, n), dtype=np.int64)
         size = self.passable.size
@@ -435,8 +398,8 @@ class FrontierPlanner:
             self._claimed = np.zeros(size, dtype=np.bool_)
         self.n_targets = _sync_and_plan(
             positions, self.window, self.grid, self.n_targets, self.offsets,
-            self.tie_break == "pocket",
-            self._claimed, self._scratch_arrays(size), starts, goals, actions,
+            TIE_BREAKS.index(self.tie_break), self._claimed, self._scratch_arrays(size), held,
+            starts, goals, actions,
         )  # fmt: skip
         self.steps, self.rng = steps, rng
         self.positions, self.goals = starts.tolist(), goals.tolist()
@@ -457,8 +420,17 @@ class FrontierPlanner:
         distance_fields(self.passable, self.stride, starts, np.inf, dist, pred, queue)
         return dist, pred if predecessors else None
 
-    def _held(self, rng: np.random.Generator) -> _GeneratorRef:
-        """``rng`` held for compiled code, made once per generator (an episode's)."""
+    def _held(self, rng: np.random.Generator | None) -> _GeneratorRef | None:
+        """The ``"random"`` tie-break's ``rng`` held for compiled code, made once per generator
+        (an episode's); ``None`` for the other tie-breaks.
+
+        Raises:
+            ValueError: with the ``"random"`` tie-break and no generator.
+        """
+        if self.tie_break != "random":
+            return None
+        if rng is None:
+            raise ValueError('tie_break="random" needs a generator: act(rng=...)')
         if self._held_rng is None or self._held_rng[0] is not rng:
             self._held_rng = (rng, _GeneratorRef(rng))
         return self._held_rng[1]

@@ -21,6 +21,7 @@ from stable_baselines3.common.utils import set_random_seed
 from envs import coverage_v0
 from envs.coverage.frontier import FrontierOptions
 from envs.coverage.goals import ACTION_MASK_KEY, GOAL_FEATURES, GOALS_KEY
+from harness import DoubleDQN
 from harness.cli import main
 from harness.config.schema import EnvConfig
 from harness.evaluation.baselines import make_baseline
@@ -337,3 +338,76 @@ def test_reset_drops_the_pending_transitions(buffer_class) -> None:
     assert buffer.size() == 1 and buffer.pending_steps.tolist() == [1, 0]
     buffer.reset()
     assert buffer.size() == 0 and buffer.pending_steps.tolist() == [0, 0]
+
+
+# ---------------------------------------------------------------------- the config key, a run
+@pytest.mark.parametrize(
+    ("overrides", "message"),
+    [
+        (
+            ["env.frontier.action=step", "algo.policy=TeamMapPolicy"],
+            "algo.per_decision reads the observation's action mask: it needs env.frontier.action",
+        ),
+        (["algo.prioritized=true", "algo.n_steps=3"], "algo.n_steps must be 1, got 3"),
+    ],
+)
+def test_per_decision_is_refused_in_one_line_where_it_cannot_work(
+    overrides: list[str], message: str, capsys, tmp_path: Path
+) -> None:
+    args = ["run", str(ROOT / "configs" / "goals_2agents_hold.yaml"), "--runs-dir", str(tmp_path)]
+    for override in overrides:
+        args += ["--set", override]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("harness: error:") and "\n" not in err
+    assert message in err
+    assert list(tmp_path.iterdir()) == []
+
+
+@pytest.mark.parametrize("prioritized", [False, True])
+def test_a_run_with_hold_and_per_decision_trains_resumes_and_evaluates(
+    prioritized: bool, tmp_path: Path
+) -> None:
+    runs = tmp_path / "runs"
+    args = ["run", str(ROOT / "configs" / "goals_2agents_hold.yaml"), "--runs-dir", str(runs)]
+    args += ["--no-progress"]
+    tiny = {
+        "env.map": "random",
+        "env.height": "12",
+        "env.width": "12",
+        "env.max_steps": "40",
+        "env.test_maps": "[]",
+        "env.observation": "{teammap: {crop: 7, global_size: 6}}",
+        "env.frontier.action.goal.k": "4",
+        "vec.copies": "2",
+        "algo.prioritized": str(prioritized).lower(),
+        "algo.buffer_size": "2000",
+        "algo.learning_starts": "200",
+        "algo.features_dim": "16",
+        "algo.net_arch": "[16]",
+        "phases.0.timesteps": "600",
+        "phases.0.exploration.steps": "400",
+        "eval.every": "600",
+        "eval.episodes": "2",
+        "checkpoint.every": "300",
+    }
+    for key, value in tiny.items():
+        args += ["--set", f"{key}={value}"]
+    assert main(args) == 0
+    (run,) = runs.iterdir()
+    assert (run / "model.zip").is_file()
+    # The last checkpoint's buffer (as a resume loads it) holds every slot-step the model took:
+    # merged into stored transitions (each with gamma ** tau, some tau > 1) or still pending.
+    checkpoint = sorted((run / "checkpoints").glob("step-*"))[-1]
+    model = DoubleDQN.load(checkpoint / "model.zip", device="cpu")
+    with (checkpoint / "replay_buffer.pkl").open("rb") as f:
+        model.load_replay_buffer(f)
+    buffer = model.replay_buffer
+    wanted = PerDecisionPrioritizedDictReplayBuffer if prioritized else PerDecisionDictReplayBuffer
+    assert type(buffer) is wanted and buffer.slots == 4 and buffer.n_envs == 1
+    n = buffer.size()
+    steps = np.rint(np.log(buffer.step_discounts[:n, 0]) / np.log(0.995)).astype(int)
+    assert steps.min() >= 1 and steps.max() > 1
+    assert int(steps.sum()) + int(buffer.pending_steps.sum()) == model.num_timesteps
+    assert n < model.num_timesteps
+    assert main(["eval", str(run), "--episodes", "2"]) == 0

@@ -89,6 +89,8 @@ class Step:
     needs_planner: ClassVar[bool] = False
     #: Its actions are no candidate slots (no feature block for a slot-scoring policy).
     slots: ClassVar[bool] = False
+    #: Its observation carries no action mask.
+    masked: ClassVar[bool] = False
     n_actions: ClassVar[int] = 1
 
     def config(self) -> str:

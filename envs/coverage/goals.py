@@ -120,6 +120,9 @@ class Goal:
     #: Its actions are candidate slots, each with its features in the observation
     #: (:data:`GOALS_KEY`): a policy that scores slots can play it.
     slots: ClassVar[bool] = True
+    #: Its observation carries an action mask (:data:`ACTION_MASK_KEY`: 1 where a slot holds a
+    #: candidate), which a learner may read (masked actions, decisions per goal).
+    masked: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         k = self.k

@@ -53,6 +53,10 @@ _OBSERVATIONS: list[tuple[Any, Any]] = [
     ({"teammap": {"crop": 7, "global_size": 6}}, {"action": "step", "planner": "hungarian"}),
     ({"teammap": {"crop": 7, "global_size": 6}}, {"action": "step", "planner": "utility"}),
     ({"teammap": {"crop": 7, "global_size": 6}}, {"action": "goal", "planner": "pocket"}),
+    (
+        {"teammap": {"crop": 7, "global_size": 6}},
+        {"action": {"goal": {"k": 3, "hold": True}}, "planner": "order"},
+    ),
 ]
 
 

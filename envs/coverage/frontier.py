@@ -89,6 +89,8 @@ class Step:
     needs_planner: ClassVar[bool] = False
     #: Its actions are no candidate slots (no feature block for a slot-scoring policy).
     slots: ClassVar[bool] = False
+    #: Its observation carries no action mask.
+    masked: ClassVar[bool] = False
     n_actions: ClassVar[int] = 1
 
     def config(self) -> str:
@@ -254,6 +256,9 @@ class Frontier:
         self.height, self.width = height, width
         #: The goal action's candidates of the last observation (``None`` without it).
         self.candidates: Candidates | None = None
+        #: ``(agents,)`` each agent's held target (padded flat cell, -1: none), with the goal
+        #: action's ``hold`` (set by :meth:`Goal.resolve`, let go by :func:`gather_candidates`).
+        self.held = np.full(0, -1, dtype=np.int64)
 
     @property
     def goal(self) -> Goal | None:
@@ -268,9 +273,16 @@ class Frontier:
         moves = self.planner.step(
             state.steps, state.positions, lambda: (interior == CELL_WALL, interior == CELL_VISITED)
         )
-        if self.goal is not None:
+        goal = self.goal
+        if goal is not None:
+            held = None
+            if goal.hold:
+                n = len(moves)
+                if state.steps == 0 or self.held.size != n:  # an episode starts: nothing held
+                    self.held = np.full(n, -1, dtype=np.int64)
+                held = self.held
             self.candidates = gather_candidates(
-                self.planner, moves, self.goal.k, self.height, self.width
+                self.planner, moves, goal.k, self.height, self.width, held
             )
         return moves
 

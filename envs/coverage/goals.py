@@ -18,6 +18,16 @@ literature's wins over written planners share (ACE, Yu et al. 2023; ARiADNE, Cao
 * fewer candidates than ``k``: the remaining slots are empty, shown by the ``action_mask`` (0)
   and by all-zero features; an empty slot the policy takes anyway keeps the agent in place.
 
+**Holding a target** (``hold: true``, off by default): an agent that takes a slot >= 1 (a
+deviation from the planner) keeps that target and walks a shortest path to it, a step per env
+step, until the cell is visited (by it or a teammate) or no longer reachable through the seen
+free cells. While it holds, its only candidate is the held target, in slot 0 (the mask allows
+slot 0 alone; taking it walks on), and its teammates' ``heading`` feature reads the held target
+instead of its planner's. Taking slot 0 is never held (the planner walks that step and the agent
+chooses again at the next), so a policy that always takes slot 0 is still the planner. The rule
+is the commitment ``experiments/goal_oracle.py`` measured; a learner stores each choice as one
+transition over the steps it held (``algo.per_decision``, docs/goals.md).
+
 Distances are shortest paths through the cells the team has seen (as the planners plan), from
 one search per step for all agents
 (:meth:`envs.coverage.planners.FrontierPlanner.distance_fields`).
@@ -94,9 +104,12 @@ class Goal:
 
     Attributes:
         k: Candidate slots per agent (the action space is ``Discrete(k)``), 2..64.
+        hold: Keep a target chosen in a slot >= 1 until it is visited or unreachable (module
+            docstring); ``False``: choose again every step.
     """
 
     k: int = 8
+    hold: bool = False
     name: ClassVar[str] = "goal"
     #: The action space is the slots alone: no primitive moves beside them.
     replaces_moves: ClassVar[bool] = True
@@ -107,24 +120,40 @@ class Goal:
     #: Its actions are candidate slots, each with its features in the observation
     #: (:data:`GOALS_KEY`): a policy that scores slots can play it.
     slots: ClassVar[bool] = True
+    #: Its observation carries an action mask (:data:`ACTION_MASK_KEY`: 1 where a slot holds a
+    #: candidate), which a learner may read (masked actions, decisions per goal).
+    masked: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         k = self.k
         if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or not 2 <= k <= MAX_K:
             raise ValueError(f"frontier.action.goal.k must be an integer in 2..{MAX_K}, got {k!r}")
+        if not isinstance(self.hold, (bool, np.bool_)):
+            raise ValueError(f"frontier.action.goal.hold must be true or false, got {self.hold!r}")
 
     @property
     def n_actions(self) -> int:
         return int(self.k)
 
     def config(self) -> dict[str, Any]:
-        """The config form of these options."""
-        return {self.name: {"k": int(self.k)}}
+        """The config form of these options (``hold`` only when on: the form of the configs
+        written before it existed stays as it was)."""
+        options: dict[str, Any] = {"k": int(self.k)}
+        if self.hold:
+            options["hold"] = True
+        return {self.name: options}
 
     def resolve(self, frontier: Any, actions: list[int], rng: np.random.Generator) -> list[int]:
         """Each agent's move: the first step towards its chosen slot's candidate (stay for an
-        empty slot), from the candidates of the last observation (``frontier.candidates``)."""
-        moves = frontier.candidates.moves
+        empty slot), from the candidates of the last observation (``frontier.candidates``).
+        With :attr:`hold`, a candidate taken in a slot >= 1 becomes the agent's held target
+        (``frontier.held``), which the next observation's candidates keep in slot 0."""
+        candidates = frontier.candidates
+        if self.hold:
+            for i, a in enumerate(actions):
+                if a >= 1 and candidates.cells[i, a] >= 0:
+                    frontier.held[i] = candidates.cells[i, a]
+        moves = candidates.moves
         return [int(moves[i, a]) for i, a in enumerate(actions)]
 
 
@@ -160,6 +189,7 @@ def gather_candidates(
     k: int,
     height: int,
     width: int,
+    held: np.ndarray | None = None,
 ) -> Candidates:
     """The candidates of every agent (module docstring), for a planner that has just planned.
 
@@ -168,16 +198,23 @@ def gather_candidates(
         planned: Its moves this step (one per agent), slot 0's moves.
         k: Slots per agent.
         height, width: The map's size (for the features' scales).
+        held: ``(agents,)`` int64, each agent's held target (padded flat cell, -1: none), or
+            ``None`` (no holding). Updated in place: a target that was visited or is no longer
+            reachable is let go (-1); an agent that still holds one gets it as its only
+            candidate.
     """
     n = len(planner.positions)
     out = Candidates.empty(n, k)
+    if held is None:
+        held = np.full(n, -1, dtype=np.int64)
     if planner.n_targets == 0:
+        held[:] = -1  # every seen cell is visited: nothing is left to hold
         return out
     dist, scratch = planner.work_arrays()
     _gather_candidates(
         planner.passable, planner.target, planner.seen, planner.stride,
         np.asarray(planner.positions, dtype=np.int64), np.asarray(planner.goals, dtype=np.int64),
-        np.asarray(planned, dtype=np.int64), _cluster_shares(height, width),
+        np.asarray(planned, dtype=np.int64), held, _cluster_shares(height, width),
         1.0 / (height + width), height, width,
         dist, scratch, out.cells, out.moves, out.features,
     )  # fmt: skip
@@ -201,6 +238,7 @@ def _gather_candidates(
     starts: np.ndarray,
     goals: np.ndarray,
     planned: np.ndarray,
+    held: np.ndarray,
     cluster_shares: np.ndarray,
     scale: float,
     height: int,
@@ -212,11 +250,16 @@ def _gather_candidates(
     features: np.ndarray,
 ) -> None:
     """:func:`gather_candidates` in one compiled call: every agent's distance field through the
-    seen free cells (``dist`` ``(agents, cells)``), the frontier clusters, and the slots with
-    their features (:func:`_fill_candidates`); ``scratch`` ``(>= 3, cells)`` int64."""
+    seen free cells (``dist`` ``(agents, cells)``), the held targets still held (the others set
+    to -1 in ``held``), the frontier clusters, and the slots with their features
+    (:func:`_fill_candidates`); ``scratch`` ``(>= 3, cells)`` int64."""
     size = target.size
     no_predecessors = np.empty((0, 0), dtype=np.int32)
     distance_fields(passable, stride, starts, np.inf, dist, no_predecessors, scratch[0])
+    for i in range(starts.size):
+        # Let go of a target once it is visited (no longer a target) or cannot be reached.
+        if held[i] >= 0 and not (target[held[i]] and dist[i, held[i]] < np.inf):
+            held[i] = -1
     n_targets = 0
     for c in range(size):
         if target[c]:
@@ -243,12 +286,14 @@ def _gather_candidates(
     for i in range(n):
         for j in range(n_targets):
             costs[i, j] = dist[i, targets[j]]
-    goal_cluster = np.zeros(n, dtype=np.int64)
+    goal_cluster = np.zeros(n, dtype=np.int64)  # where each agent heads: held, else planned
     for i in range(n):
-        if goals[i] >= 0:
+        if held[i] >= 0:
+            goal_cluster[i] = labels[held[i]]
+        elif goals[i] >= 0:
             goal_cluster[i] = labels[goals[i]]
     _fill_candidates(
-        costs, targets, ids, n_clusters, goal_cluster, goals, planned, dist, starts, stride,
+        costs, targets, ids, n_clusters, goal_cluster, goals, planned, held, dist, starts, stride,
         column, labels, cluster_share, passable, target, seen, scale, height, width,
         cells, moves, features,
     )  # fmt: skip
@@ -362,6 +407,7 @@ def _fill_candidates(
     goal_cluster: np.ndarray,
     goals: np.ndarray,
     planned: np.ndarray,
+    held: np.ndarray,
     dist: np.ndarray,
     starts: np.ndarray,
     stride: int,
@@ -380,17 +426,23 @@ def _fill_candidates(
 ) -> None:
     """Every agent's slots (``cells``, ``moves``) and their features (module docstring), into
     the empty :class:`Candidates` arrays: slot 0 the planner's target and move, then
-    :func:`_nearest_of_clusters`."""
+    :func:`_nearest_of_clusters`; for an agent that holds a target (``held``), that target and
+    the first step towards it alone."""
     n = starts.size
     for i in range(n):
         m = 0
-        if goals[i] >= 0:  # slot 0: the planner's choice and its own move
-            cells[i, 0], moves[i, 0] = goals[i], planned[i]
+        if held[i] >= 0:  # the held target, its only candidate
+            cells[i, 0] = held[i]
+            moves[i, 0] = move_towards(first_step(dist[i], held[i], stride), starts[i], stride)
             m = 1
-        m += _nearest_of_clusters(
-            costs[i], targets, ids, n_clusters, goal_cluster[i], dist[i], starts[i], stride,
-            cells[i, m:], moves[i, m:],
-        )  # fmt: skip
+        else:
+            if goals[i] >= 0:  # slot 0: the planner's choice and its own move
+                cells[i, 0], moves[i, 0] = goals[i], planned[i]
+                m = 1
+            m += _nearest_of_clusters(
+                costs[i], targets, ids, n_clusters, goal_cluster[i], dist[i], starts[i], stride,
+                cells[i, m:], moves[i, m:],
+            )  # fmt: skip
         if m == 0:
             continue
         row_i, col_i = starts[i] // stride, starts[i] % stride
@@ -413,4 +465,4 @@ def _fill_candidates(
             f[8] = (c // stride - row_i) / height
             f[9] = (c % stride - col_i) / width
         f0 = features[i, 0]
-        f0[1] = 1.0 if goals[i] >= 0 else 0.0
+        f0[1] = 1.0 if goals[i] >= 0 and cells[i, 0] == goals[i] else 0.0

@@ -461,6 +461,13 @@ class AlgoConfig(_Section):
     rewards before it bootstraps, cut at an episode's end. 1: the one-step target (the thesis).
     In the prioritized buffers (any observation), or SB3's ``NStepReplayBuffer`` (thesis
     observation only) when ``prioritized`` is false."""
+    per_decision: bool = False
+    """One transition per decision (temporal abstraction, docs/goals.md): the steps of states
+    whose action mask allows one action (the goal action's held targets, ``env.frontier.action:
+    {goal: {hold: true}}``) are merged into the transition of the decision before them, with the
+    discounted sum of their rewards and the discount ``gamma ** steps``
+    (``harness.sb3.decisions``). Needs an observation with an action mask (the goal action) and
+    ``n_steps: 1``; prioritized or not. The buffer stays on the host on an accelerator too."""
     device: str = "auto"
     threads: Annotated[int, Field(ge=1, le=MAX_THREADS)] | None = None
     """torch CPU threads (``torch.set_num_threads``); ``null`` keeps torch's default (one per
@@ -707,6 +714,25 @@ class ExperimentConfig(_Section):
                 f"algo.n_steps: {self.algo.n_steps} needs algo.prioritized: true with "
                 f"env.observation {self.env.observation!r} (SB3 has no n-step Dict buffer; "
                 "the prioritized one samples uniformly with alpha 0)"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _decisions_are_masked(self) -> ExperimentConfig:
+        # A decision is a state whose action mask allows several actions: without a mask in the
+        # observation there is nothing to merge (the goal action's env carries one).
+        if not self.algo.per_decision:
+            return self
+        options = self.env.frontier_options
+        if options is None or options.action is None or not options.action.masked:
+            raise ValueError(
+                "algo.per_decision reads the observation's action mask: it needs "
+                "env.frontier.action: {goal: {k: K}} (with hold: true its held steps merge)"
+            )
+        if self.algo.n_steps > 1:
+            raise ValueError(
+                f"algo.per_decision stores one transition per decision: algo.n_steps must be 1, "
+                f"got {self.algo.n_steps}"
             )
         return self
 

@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 import torch
 from gymnasium import spaces
+from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.logger import (
     CSVOutputFormat,
@@ -52,6 +53,7 @@ from harness.results.rundir import (
     rewind_logs,
 )
 from harness.sb3.buffers import PrioritizedReplayBuffer
+from harness.sb3.decisions import per_decision_buffer_class
 from harness.sb3.device_replay import prioritized_buffer_class
 from harness.sb3.dqn import (
     DoubleDQN,
@@ -107,7 +109,7 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
         "optimizer_kwargs": optimizer_kwargs_with_foreach(optimizer_class, algo.optimizer_kwargs),
     }
     buffer_kwargs: dict[str, Any] | None = None
-    buffer_class: type[PrioritizedReplayBuffer] | None = None
+    buffer_class: type[ReplayBuffer] | None = None
     if algo.prioritized:
         buffer_kwargs = {
             "alpha": first.alpha,
@@ -120,6 +122,10 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
         dict_obs = isinstance(venv.observation_space, spaces.Dict)
         # On an accelerator the buffer lives there too (no host round trip per gradient step).
         buffer_class = prioritized_buffer_class(algo.device, dict_obs)
+    if algo.per_decision:
+        # One transition per decision (on the host: the device buffer has no such variant).
+        buffer_class = per_decision_buffer_class(algo.prioritized)
+        buffer_kwargs = {**(buffer_kwargs or {}), "gamma": algo.gamma}
     return DoubleDQN(
         policy_class_name(algo),
         venv,

@@ -28,6 +28,7 @@ from harness.evaluation.baselines import make_baseline
 from harness.evaluation.episodes import run_episodes
 from harness.sb3.buffers import PrioritizedReplayBuffer
 from harness.sb3.decisions import (
+    EXPERT_KEY,
     PerDecisionDictReplayBuffer,
     PerDecisionPrioritizedDictReplayBuffer,
 )
@@ -287,6 +288,50 @@ def test_samples_carry_the_discounts_of_their_transitions(buffer_class) -> None:
     if isinstance(buffer, PrioritizedReplayBuffer):  # flat indices are rows of the one column
         assert buffer.n_transitions == 3
         assert samples.indices.max() < 3
+
+
+def test_a_decision_keeps_the_expert_label_given_at_its_step(buffer_class) -> None:
+    buffer = buffer_class(
+        100, SPACE, spaces.Discrete(3), device="cpu", n_envs=2, gamma=GAMMA, labels=True
+    )
+    feed(
+        buffer,
+        [
+            # slot 0: labelled 1 at its decision, then forced (a label given on a forced step
+            # belongs to no decision); slot 1: labelled 2, then a decision without a label.
+            ([0, 10], [DECIDE, DECIDE], [2, 0], [1.0, 5.0], [False, False],
+             [{EXPERT_KEY: 1}, {EXPERT_KEY: 2}]),
+            ([1, 11], [FORCED, DECIDE], [1, 1], [2.0, 6.0], [False, False],
+             [{EXPERT_KEY: 0}, {}]),
+            ([2, 12], [DECIDE, DECIDE], None, None, None, None),
+        ],
+    )  # fmt: skip
+    by_obs = {row[0]: k for k, row in enumerate(stored(buffer))}
+    labels = buffer.expert_actions[:, 0]
+    assert labels[by_obs[0]] == 1
+    assert labels[by_obs[10]] == 2
+    assert labels[by_obs[11]] == -1
+    samples = (
+        buffer._get_samples(np.arange(3))
+        if not isinstance(buffer, PrioritizedReplayBuffer)
+        else buffer._get_samples_at(np.arange(3), np.zeros(3, dtype=np.int64))
+    )
+    xs = samples.observations["x"].flatten().tolist()
+    assert samples.experts.flatten().tolist() == [int(labels[by_obs[x]]) for x in xs]
+    assert samples.discounts.flatten().tolist() == [stored(buffer)[by_obs[x]][6] for x in xs]
+
+
+def test_without_labels_the_samples_carry_no_experts(buffer_class) -> None:
+    buffer = buffer_class(100, SPACE, spaces.Discrete(3), device="cpu", n_envs=2, gamma=GAMMA)
+    feed(
+        buffer,
+        [
+            ([0, 10], [DECIDE, DECIDE], [2, 0], [1.0, 5.0], [False, False],
+             [{EXPERT_KEY: 1}, {EXPERT_KEY: 2}]),
+            ([1, 11], [DECIDE, DECIDE], None, None, None, None),
+        ],
+    )  # fmt: skip
+    assert getattr(buffer.sample(4), "experts", None) is None
 
 
 def test_a_pickled_buffer_continues_its_pending_transitions(buffer_class) -> None:

@@ -132,6 +132,25 @@ def test_margin_loss_hook_hand_computed_and_its_statistics() -> None:
     assert values["expert_agreement"] == pytest.approx([1 / 3])
 
 
+def test_margin_loss_hook_follows_each_sample_s_own_label_and_skips_unlabelled_ones() -> None:
+    model = make_linear_model(margin=0.8, margin_weight=0.5)  # no expert_action: labels only
+    q = th.tensor([[0.0, 0.0], [2.0, 1.0], [1.0, 3.0], [5.0, 0.0]])
+    experts = th.tensor([[1], [0], [1], [-1]])  # the last sample has no label
+    stats = StepStats()
+    samples = batch(rewards=[0.0] * 4, experts=experts)
+    term = model._margin_loss(samples, q, stats)
+    # label 1: max(0.8, 0) - 0 = 0.8; label 0: max(2, 1.8) - 2 = 0; label 1: max(1.8, 3) - 3 =
+    # 0; no label: 0. Times 0.5.
+    th.testing.assert_close(term, column([0.4, 0.0, 0.0, 0.0]))
+    values = stats.read()
+    assert values["margin_loss"] == pytest.approx([0.8 / 3])  # over the 3 labelled
+    # greedy 0, 0, 1 against labels 1, 0, 1: two of three
+    assert values["expert_agreement"] == pytest.approx([2 / 3])
+    # the term is part of the loss whenever the samples carry labels
+    terms = model._loss_terms(samples, q, column([0.0] * 4), column([0.0] * 4))
+    assert len(terms) == 2
+
+
 def test_loss_terms_are_the_td_loss_then_the_margin() -> None:
     q = th.tensor([[2.0, 1.0]])
     current, target = column([1.0]), column([3.0])

@@ -15,6 +15,13 @@ with that observation as the next one and the per-sample discount ``gamma**tau``
 terminal state, as in SB3. Without single-action states every transition is one step, and the
 buffer stores what SB3's would (with ``discounts`` ``gamma``).
 
+**Expert labels** (``labels=True``, DAgger's data: a teacher labels the states the policy
+visits): the info of a decision's step may hold :data:`EXPERT_KEY`, the action a teacher would
+take in the decision's state (set by whoever steps the env, before the step: the training
+layer's teacher); the buffer keeps it with the decision's transition (-1: none given) and the
+samples carry it as ``experts`` ``(batch, 1)``, which :class:`~harness.sb3.dqn.DoubleDQN`'s
+margin term pulls the greedy action towards, on the labelled samples only.
+
 Storage: completed transitions arrive per slot at different steps, so the buffer stores them in
 one flat column (SB3's ``[buffer_size, 1]`` layout: the parent buffer is made with
 ``n_envs=1``, same capacity), in the order they complete, and takes SB3's ``add`` of ``n_envs``
@@ -35,10 +42,15 @@ from harness.sb3.buffers import PrioritizedDictReplayBuffer
 from harness.sb3.policies import ACTION_MASK_KEY
 
 __all__ = [
+    "EXPERT_KEY",
     "PerDecisionDictReplayBuffer",
     "PerDecisionPrioritizedDictReplayBuffer",
     "per_decision_buffer_class",
 ]
+
+
+#: Info key of a slot's expert label for the decision of its step (module docstring).
+EXPERT_KEY = "expert_action"
 
 
 class _PerDecision:
@@ -53,6 +65,8 @@ class _PerDecision:
         optimize_memory_usage: Must be ``False``.
         handle_timeout_termination: As in SB3: a timeout is not a terminal state.
         gamma: Discount factor of the merged rewards (the algorithm's).
+        labels: Keep each decision's expert label (:data:`EXPERT_KEY`) and sample it as
+            ``experts``.
         **kwargs: The parent buffer's own arguments (the prioritized one's ``alpha``, ``beta``,
             ``eps``; its ``n_steps`` must be 1).
 
@@ -76,6 +90,7 @@ class _PerDecision:
         optimize_memory_usage: bool = False,
         handle_timeout_termination: bool = True,
         gamma: float = 0.99,
+        labels: bool = False,
         **kwargs: Any,
     ) -> None:
         masked = isinstance(observation_space, spaces.Dict) and (
@@ -118,6 +133,10 @@ class _PerDecision:
         self.pending_action = np.zeros((self.slots, self.action_dim), dtype=action_space.dtype)
         self.pending_return = np.zeros(self.slots, dtype=np.float64)
         self.pending_steps = np.zeros(self.slots, dtype=np.int64)
+        self.labels = bool(labels)
+        #: Each stored decision's expert label (-1: none), and each pending one's.
+        self.expert_actions = np.full((self.buffer_size, 1), -1, dtype=np.int64)
+        self.pending_expert = np.full(self.slots, -1, dtype=np.int64)
 
     def add(
         self,
@@ -137,6 +156,9 @@ class _PerDecision:
                 pending[new] = np.asarray(obs[key]).reshape(pending.shape)[new]
             self.pending_action[new] = np.asarray(action).reshape(self.pending_action.shape)[new]
             self.pending_return[new] = 0.0
+            if self.labels:
+                for j in np.flatnonzero(new).tolist():
+                    self.pending_expert[j] = int(infos[j].get(EXPERT_KEY, -1))
         self.pending_return += self.gamma**steps * np.asarray(reward, dtype=np.float64).ravel()
         steps += 1
         mask = np.asarray(next_obs[ACTION_MASK_KEY]).reshape(self.slots, -1)
@@ -161,20 +183,43 @@ class _PerDecision:
             [info],
         )
         self.step_discounts[row, 0] = self.gamma ** int(self.pending_steps[slot])
+        self.expert_actions[row, 0] = self.pending_expert[slot]
 
     def _get_samples(self, batch_inds: np.ndarray, env: VecNormalize | None = None) -> Any:
         """SB3's uniform samples with their ``discounts`` ``gamma ** tau``."""
         samples = super()._get_samples(batch_inds, env)  # type: ignore[misc]
-        return samples._replace(discounts=self._discounts(batch_inds, np.zeros_like(batch_inds)))
+        return self._with_decisions(samples, batch_inds, np.zeros_like(batch_inds))
 
-    def _discounts(self, rows: np.ndarray, columns: np.ndarray) -> Any:
-        return self.to_torch(self.step_discounts[rows, columns].reshape(-1, 1))  # type: ignore[attr-defined]
+    def _with_decisions(self, samples: Any, rows: np.ndarray, columns: np.ndarray) -> Any:
+        """``samples`` with their ``discounts`` ``gamma ** tau`` and, with ``labels``, as
+        :class:`LabelledSamples` with their ``experts``."""
+        discounts = self.to_torch(self.step_discounts[rows, columns].reshape(-1, 1))  # type: ignore[attr-defined]
+        samples = samples._replace(discounts=discounts)
+        if not self.labels:
+            return samples
+        experts = self.to_torch(self.expert_actions[rows, columns].reshape(-1, 1))  # type: ignore[attr-defined]
+        return LabelledSamples(samples, experts)
 
     def reset(self) -> None:
         """Empty the buffer and drop the pending transitions."""
         super().reset()  # type: ignore[misc]
         self.pending_steps[:] = 0
         self.pending_return[:] = 0.0
+        self.pending_expert[:] = -1
+        self.expert_actions[:] = -1
+
+
+class LabelledSamples:
+    """A batch of samples (SB3's, or the prioritized buffer's) with each one's expert label:
+    every field of ``samples`` reads through, and ``experts`` is ``(batch, 1)`` int64, -1 where
+    no label was given."""
+
+    def __init__(self, samples: Any, experts: Any) -> None:
+        self.samples = samples
+        self.experts = experts
+
+    def __getattr__(self, name: str) -> Any:
+        return getattr(self.__dict__["samples"], name)
 
 
 class PerDecisionDictReplayBuffer(_PerDecision, DictReplayBuffer):
@@ -190,7 +235,7 @@ class PerDecisionPrioritizedDictReplayBuffer(_PerDecision, PrioritizedDictReplay
     ) -> Any:
         """The prioritized samples at given indices, with their ``discounts``."""
         samples = super()._get_samples_at(batch_inds, env_indices, env)
-        return samples._replace(discounts=self._discounts(batch_inds, env_indices))
+        return self._with_decisions(samples, batch_inds, env_indices)
 
 
 def per_decision_buffer_class(prioritized: bool) -> type[DictReplayBuffer]:

@@ -670,8 +670,8 @@ class DoubleDQN(DQN):
     ) -> list[th.Tensor]:
         """The per-sample loss terms, ``(batch, 1)`` each, summed in this order into the loss
         that :meth:`_weighted_loss` weights: the TD loss (:meth:`_td_loss`), then DQfD's margin
-        (:meth:`_margin_loss`) with ``expert_action``. A new term is one more method, added
-        here.
+        (:meth:`_margin_loss`) with ``expert_action`` or the samples' own ``experts`` labels.
+        A new term is one more method, added here.
 
         Args:
             replay_data: The sampled batch.
@@ -681,7 +681,7 @@ class DoubleDQN(DQN):
             stats: Where the terms record what they log, or ``None``.
         """
         terms = [self._td_loss(current_q, target_q)]
-        if self.expert_action is not None:
+        if self.expert_action is not None or getattr(replay_data, "experts", None) is not None:
             terms.append(self._margin_loss(replay_data, q_values, stats))
         return terms
 
@@ -693,20 +693,36 @@ class DoubleDQN(DQN):
     def _margin_loss(
         self, replay_data: Any, q_values: th.Tensor, stats: StepStats | None = None
     ) -> th.Tensor:
-        """DQfD's large-margin term towards ``expert_action``, times ``margin_weight``,
-        ``(batch, 1)`` (:func:`~harness.sb3.targets.large_margin_loss`). Records the unweighted
-        margin loss and the expert agreement of the greedy actions as ``margin_loss`` and
+        """DQfD's large-margin term towards the expert's action, times ``margin_weight``,
+        ``(batch, 1)`` (:func:`~harness.sb3.targets.large_margin_loss`): towards each sample's
+        own label when the samples carry ``experts`` (a teacher's labels,
+        :mod:`harness.sb3.decisions`; 0 on the samples labelled -1, none), else towards
+        ``expert_action``. Records the unweighted margin loss and the expert agreement of the
+        greedy actions (over the labelled samples) as ``margin_loss`` and
         ``expert_agreement``."""
-        assert self.expert_action is not None
-        margin_loss = large_margin_loss(q_values, self.expert_action, self.margin)
+        experts = getattr(replay_data, "experts", None)
+        if experts is not None:
+            labelled = experts >= 0
+            expert: th.Tensor | int = th.where(labelled, experts, th.zeros_like(experts))
+            margin_loss = large_margin_loss(q_values, expert, self.margin) * labelled
+        else:
+            assert self.expert_action is not None
+            labelled, expert = None, self.expert_action
+            margin_loss = large_margin_loss(q_values, expert, self.margin)
         term = self.margin_weight * margin_loss
         if stats is not None:
             # The agreement of the action the policy would take: the greedy one among the
             # allowed actions when the observations carry a mask.
             allowed_now = allowed_actions(replay_data.observations, int(self.action_space.n))  # type: ignore[attr-defined]
-            greedy = _masked(q_values, allowed_now).argmax(dim=1)  # type: ignore[arg-type]
-            stats.add("margin_loss", margin_loss.mean())
-            stats.add("expert_agreement", (greedy == self.expert_action).float().mean())
+            greedy = _masked(q_values, allowed_now).argmax(dim=1, keepdim=True)  # type: ignore[arg-type]
+            agree = (greedy == expert).float()
+            if labelled is None:
+                stats.add("margin_loss", margin_loss.mean())
+                stats.add("expert_agreement", agree.mean())
+            else:  # over the labelled samples (none labelled: 0)
+                count = labelled.sum().clamp(min=1)
+                stats.add("margin_loss", margin_loss.sum() / count)
+                stats.add("expert_agreement", (agree * labelled).sum() / count)
         return term
 
     def _weighted_loss(self, per_sample_loss: th.Tensor, replay_data: Any) -> th.Tensor:

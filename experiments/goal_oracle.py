@@ -27,7 +27,7 @@ ends every rollout with the same cells).
 The rollouts are the rollout teacher's (:class:`envs.coverage.teacher.RolloutTeacher`, compiled;
 docs/goals.md "The teacher"): one owner of the oracle's rule, which training's labels use too.
 ``--rollouts python`` steps them in Python instead (:func:`python_scores`, the reference the
-teacher was checked against, tests/test_teacher.py): the same choices, about 10 times slower.
+teacher was checked against, tests/test_teacher.py): the same choices, 3 to 12 times slower.
 
     python experiments/goal_oracle.py [--config configs/goals_2agents.yaml] [--episodes 10]
         [--seed 2000003] [--set KEY=VALUE ...] [--horizon H] [--belief true|sampled]

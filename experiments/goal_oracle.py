@@ -24,10 +24,15 @@ scores by speed instead: an option by the steps its rollout takes to coverage ``
 cells), an episode by its steps to ``Q`` (a team that covers the whole map, 4 agents on 50x50,
 ends every rollout with the same cells).
 
+The rollouts are the rollout teacher's (:class:`envs.coverage.teacher.RolloutTeacher`, compiled;
+docs/goals.md "The teacher"): one owner of the oracle's rule, which training's labels use too.
+``--rollouts python`` steps them in Python instead (:func:`python_scores`, the reference the
+teacher was checked against, tests/test_teacher.py): the same choices, 3 to 12 times slower.
+
     python experiments/goal_oracle.py [--config configs/goals_2agents.yaml] [--episodes 10]
         [--seed 2000003] [--set KEY=VALUE ...] [--horizon H] [--belief true|sampled]
         [--samples M] [--margin CELLS] [--model RUN/model.zip] [--save DECISIONS.npz]
-        [--reach Q]
+        [--reach Q] [--rollouts compiled|python]
 """
 
 from __future__ import annotations
@@ -39,7 +44,9 @@ from pathlib import Path
 import numpy as np
 
 from envs.coverage.env import CoverageEnv
+from envs.coverage.goals import Candidates
 from envs.coverage.planners import FrontierPlanner
+from envs.coverage.teacher import RolloutTeacher, shortest_walk
 from harness import DoubleDQN
 from harness.config.loading import load_config
 from harness.factory import make_env
@@ -107,6 +114,50 @@ def path_to(pred: np.ndarray, start: int, goal: int) -> list[int]:
     return cells[::-1]
 
 
+def python_scores(
+    planner: FrontierPlanner,
+    cand: Candidates,
+    i: int,
+    cells: list[int],
+    rests: dict[int, list[int]],
+    steps_left: int,
+    teacher: RolloutTeacher,
+    free: np.ndarray | None = None,
+) -> np.ndarray:
+    """Agent ``i``'s rollout score of each of its candidate slots, stepped in Python
+    (:func:`clone`, :func:`advance`, :func:`rollout`): the reference that
+    :meth:`RolloutTeacher.scores <envs.coverage.teacher.RolloutTeacher.scores>` compiles
+    (``--rollouts python``; tests/test_teacher.py checks that the two agree). ``cells``: every
+    agent's next cell, ``rests``: the committed walks after it; the teacher's ``horizon`` and
+    ``reach`` set the rollouts' length and score."""
+    slots = np.flatnonzero(cand.cells[i] >= 0)
+    pred = planner.distance_fields()[1]
+    options = [[cells[i]]] + [
+        path_to(pred[i], planner.positions[i], int(cand.cells[i, j])) for j in slots[1:]
+    ]
+    left = steps_left - 1
+    if teacher.horizon is not None:
+        left = min(left, teacher.horizon - 1)
+    goal = None  # with ``reach``: cells still to find, on the rollouts' map
+    if teacher.reach is not None:
+        total = sum(planner.free if free is None else free)
+        goal = int(np.ceil(teacher.reach * total)) - sum(planner.visited)
+    scores = np.zeros(len(options))
+    for o, path in enumerate(options):
+        sim = clone(planner, free)
+        first = list(cells)
+        first[i] = path[0]
+        new = advance(sim, first)
+        if goal is None:
+            scores[o] = new + rollout(sim, left, {**rests, i: path[1:]})[0]
+            continue
+        more, step = rollout(sim, left, {**rests, i: path[1:]}, goal - new)
+        # Steps first (not reached: one more than the rollout had), then cells.
+        steps = 1 + (left + 1 if step is None else step)
+        scores[o] = -steps * (len(planner.free) + 1) + new + more
+    return scores
+
+
 def sampled_free(planner: FrontierPlanner, rng: np.random.Generator) -> np.ndarray:
     """The free cells as the team can guess them: the true ones where a cell has been seen,
     elsewhere free with the share of free cells among the seen ones (the outer ring stays
@@ -131,6 +182,7 @@ def play(
     horizon: int | None = None,
     model: DoubleDQN | None = None,
     reach: float | None = None,
+    python: bool = False,
 ) -> tuple[float, int, int | None]:
     """One episode; with ``oracle`` the rollout oracle chooses, with ``model`` a trained goal
     policy (greedy, committed like the oracle), otherwise slot 0 throughout.
@@ -143,6 +195,7 @@ def play(
     asked). ``horizon``: rollouts end after so many steps (``None``: at the episode's end)."""
     obs, _ = env.reset(seed=seed)
     rng = np.random.default_rng(seed)
+    teacher = RolloutTeacher(horizon, margin, reach)
     n = env.n_agents
     walk: list[list[int]] = [[] for _ in range(n)]  # each agent's committed path
     deviations = 0
@@ -162,45 +215,36 @@ def play(
         rests = {a: walk[a][1:] for a in range(n) if walk[a]}
         deciding = [a for a in range(n) if not walk[a] and (cand.cells[a] >= 0).sum() > 1]
         if oracle and deciding:
-            pred = planner.distance_fields()[1]
-            left = env.max_steps - env.steps - 1
-            if horizon is not None:
-                left = min(left, horizon - 1)
+            # Steps left in the episode, this one included: the rollouts' length (at most
+            # ``horizon``).
+            steps_left = env.max_steps - env.steps
             for i in deciding:
                 slots = np.flatnonzero(cand.cells[i] >= 0)
-                options = [[cells[i]]] + [
-                    path_to(pred[i], planner.positions[i], int(cand.cells[i, j])) for j in slots[1:]
-                ]
-                scores = np.zeros(len(options))
-                visited = sum(planner.visited)  # the env's count: visited free cells
+                scores = np.zeros(len(slots))
                 for _ in range(samples if belief == "sampled" else 1):
                     # One map for every option of a sample: their differences are paired.
                     free = sampled_free(planner, rng) if belief == "sampled" else None
-                    goal = None  # with ``reach``: cells still to find, on the rollouts' map
-                    if reach is not None:
-                        total = sum(planner.free if free is None else free)
-                        goal = int(np.ceil(reach * total)) - visited
-                    for o, path in enumerate(options):
-                        sim = clone(planner, free)
-                        first = list(cells)
-                        first[i] = path[0]
-                        new = advance(sim, first)
-                        if goal is None:
-                            scores[o] += new + rollout(sim, left, {**rests, i: path[1:]})[0]
-                            continue
-                        more, step = rollout(sim, left, {**rests, i: path[1:]}, goal - new)
-                        # Steps first (not reached: one more than the rollout had), then cells.
-                        steps = 1 + (left + 1 if step is None else step)
-                        scores[o] += -steps * (len(planner.free) + 1) + new + more
+                    if python:
+                        scores += python_scores(
+                            planner, cand, i, cells, rests, steps_left, teacher, free
+                        )
+                    else:
+                        walks = {a: w for a, w in enumerate(walk) if w}
+                        scores += teacher.scores(planner, cand, i, steps_left, walks, free)[slots]
                 scores /= samples if belief == "sampled" else 1
                 if records is not None:
                     adv = np.full(cand.cells.shape[1], np.nan)
                     adv[slots] = scores - scores[0]
                     records.append((cand.features[i].copy(), adv, env.steps / env.max_steps))
-                best = int(np.argmax(scores))
-                unit = 1 if reach is None else len(planner.free) + 1  # a cell, or a step
-                if scores[best] > scores[0] + margin * unit:
-                    cells[i], rests[i], walk[i] = options[best][0], options[best][1:], options[best]
+                best = teacher.pick(scores, len(planner.free))
+                if best != 0:
+                    goal = int(cand.cells[i, best])
+                    if python:
+                        pred = planner.distance_fields()[1]
+                        path = path_to(pred[i], planner.positions[i], goal)
+                    else:
+                        path = shortest_walk(planner, i, goal)
+                    cells[i], rests[i], walk[i] = path[0], path[1:], path
                     deviations += 1
         elif model is not None and deciding:
             batch = {
@@ -261,6 +305,12 @@ def main() -> None:
         type=float,
         help="score by the steps to this coverage (e.g. 0.99) instead of the cells at the end",
     )
+    parser.add_argument(
+        "--rollouts",
+        choices=("compiled", "python"),
+        default="compiled",
+        help="the rollouts' code: the teacher's compiled one or the Python reference",
+    )
     args = parser.parse_args()
     if not any(o.startswith("env.map=") for o in args.overrides):
         args.overrides.insert(0, "env.map=random")
@@ -283,6 +333,7 @@ def main() -> None:
             horizon=args.horizon,
             model=model,
             reach=args.reach,
+            python=args.rollouts == "python",
         )
         rows.append((planner, oracle))
         steps.append((planner_steps, oracle_steps))

@@ -17,7 +17,10 @@ counts as much as one at the top):
   by ``harness/training/state.py``: only it (and ``harness/training/train.py``, which loads the
   checkpoint a resume continues from) reads a run's checkpoints to tell where it stands, and
   outside the training package nothing of ``harness/training/checkpoints.py`` but its errors is
-  used.
+  used;
+* the rollout teacher (``envs/coverage/teacher.py``), which sees the true map, is for training
+  only: no code of evaluation (``harness/evaluation``, ``harness/commands.py``, the CLI's
+  ``eval``, ``compare`` and ``render``, and the env they play) reaches it through its imports.
 """
 
 from __future__ import annotations
@@ -57,6 +60,12 @@ def imports(path: Path) -> set[str]:
     tree = ast.parse(path.read_text(), str(path))
     name = module_name(path) if path.is_relative_to(ROOT) else path.stem
     package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    return imports_in(tree, package)
+
+
+def imports_in(tree: ast.AST, package: str) -> set[str]:
+    """Every module the code of ``tree`` (a module's, or one function's) imports, absolute
+    names (relative imports resolved against ``package``)."""
     found: set[str] = set()
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
@@ -272,3 +281,108 @@ def test_the_run_state_check_finds_a_breach(tmp_path: Path) -> None:
         "from harness.training.state import run_state\n"
     )
     assert state_rule_breaches(asker) == ["check_config"]
+
+
+# ------------------------------------------------------------------ the teacher, training only
+#: The rollout teacher: it chooses with the true map, so it may label training's states but
+#: must never choose in evaluation.
+TEACHER = "envs.coverage.teacher"
+#: The CLI's commands that evaluate (functions of ``harness/cli.py``).
+EVALUATING_COMMANDS = ("cmd_eval", "cmd_compare", "cmd_render")
+
+
+def module_path(name: str) -> Path | None:
+    """The file of module ``name`` of this repository (``None``: no such module, e.g. a name
+    imported from one, or a third-party module)."""
+    base = ROOT.joinpath(*name.split("."))
+    for path in (base / "__init__.py", base.with_suffix(".py")):
+        if path.is_file():
+            return path
+    return None
+
+
+def reached(names: set[str]) -> set[str]:
+    """``names`` and everything they import, transitively through this repository's modules
+    (lazy imports included): what their code can reach."""
+    seen: set[str] = set()
+    todo = list(names)
+    while todo:
+        name = todo.pop()
+        if name not in seen:
+            seen.add(name)
+            path = module_path(name)
+            if path is not None:
+                todo.extend(imports(path))
+    return seen
+
+
+def command_imports(path: Path, commands: tuple[str, ...]) -> set[str]:
+    """What the functions ``commands`` of the module at ``path`` import: the imports in their
+    bodies and in the bodies of the module's functions they call (transitively), and the
+    modules whose module-level imports give the names they use (``from a.b import c``: ``a.b``
+    and ``a.b.c``). The module's other functions (a CLI's training commands) are left out."""
+    tree = ast.parse(path.read_text(), str(path))
+    package = module_name(path).rpartition(".")[0] if path.is_relative_to(ROOT) else ""
+    functions = {node.name: node for node in tree.body if isinstance(node, ast.FunctionDef)}
+    given: dict[str, set[str]] = {}  # a module-level imported name -> where it comes from
+    for node in tree.body:
+        if isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            for alias in node.names:
+                given[alias.asname or alias.name] = {node.module, f"{node.module}.{alias.name}"}
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                given[alias.asname or alias.name.split(".")[0]] = {alias.name}
+    found: set[str] = set()
+    todo, done = list(commands), set()
+    while todo:
+        name = todo.pop()
+        if name in done:
+            continue
+        done.add(name)
+        found |= imports_in(functions[name], package)
+        for node in ast.walk(functions[name]):
+            if isinstance(node, ast.Name) and node.id in functions:
+                todo.append(node.id)
+            elif isinstance(node, ast.Name) and node.id in given:
+                found |= given[node.id]
+    return found
+
+
+def evaluation_code() -> set[str]:
+    """The modules and names the evaluation code starts from (see the module docstring)."""
+    starts = {module_name(path) for path in modules("harness/evaluation")}
+    starts |= {"harness.commands", "envs.coverage.env", "envs.coverage.core"}
+    return starts | command_imports(ROOT / "harness" / "cli.py", EVALUATING_COMMANDS)
+
+
+def test_evaluation_never_reaches_the_teacher() -> None:
+    code = reached(evaluation_code())
+    # The reader follows the imports through (the env's planners, the commands' evaluation).
+    assert {"harness.commands", "harness.evaluation.episodes", "envs.coverage.planners"} <= code
+    bad = sorted(n for n in code if n == TEACHER or n.startswith(TEACHER + "."))
+    assert not bad, f"evaluation code reaches the rollout teacher ({bad}): it is for training only"
+
+
+def test_the_teacher_check_finds_a_way_in(tmp_path: Path) -> None:
+    cli = tmp_path / "cli.py"
+    cli.write_text(
+        "from harness.commands import evaluate\n"
+        "from envs.coverage.teacher import shortest_walk\n"
+        "def cmd_run(args):\n"
+        "    from envs.coverage.teacher import RolloutTeacher\n"
+        "    return shortest_walk\n"
+        "def _helper():\n"
+        "    from envs.coverage import teacher\n"
+        "def cmd_eval(args):\n"
+        "    return evaluate(_helper())\n"
+        "def cmd_compare(args):\n"
+        "    from experiments.goal_oracle import play\n"
+        "    return play\n"
+    )
+    assert command_imports(cli, ("cmd_run",)) >= {TEACHER, "envs.coverage.teacher.shortest_walk"}
+    found = command_imports(cli, ("cmd_eval",))
+    assert {"harness.commands", "harness.commands.evaluate", TEACHER} <= found
+    assert "envs.coverage.teacher.shortest_walk" not in found  # used by cmd_run alone
+    # An import in a module the code imports counts too (the oracle script imports it).
+    found = command_imports(cli, ("cmd_compare",))
+    assert TEACHER not in found and TEACHER in reached(found)

@@ -50,7 +50,9 @@ from envs.coverage.goals import Candidates
 from envs.coverage.paths import distance_fields
 from envs.coverage.planners import (
     _FREE,
+    _ORDER,
     _PASSABLE,
+    _POCKET,
     _SEEN,
     _TARGET,
     _VISITED,
@@ -143,8 +145,9 @@ def _rollout(
             if n_targets == 0:
                 actions[:] = STAY
             elif kind == _EXPLORER:
-                _plan(g[_PASSABLE], g[_TARGET], g[_SEEN], pos, offsets, pocket, claimed,
-                      n_targets, scratch, goals, actions)  # fmt: skip
+                _plan(g[_PASSABLE], g[_TARGET], g[_SEEN], pos, offsets,
+                      _POCKET if pocket else _ORDER, claimed, n_targets, scratch, None, goals,
+                      actions)  # fmt: skip
             else:
                 for a in range(n):
                     rowcol[a, 0] = pos[a] // stride - 1

@@ -614,7 +614,7 @@ def _train(config: ExperimentConfig, run: RunDir, args: argparse.Namespace, mode
 
 def _target(args: argparse.Namespace) -> Target:
     target = resolve_target(args.target, args.policy, args.config, args.overrides, args.seed)
-    from harness.training.train import configure_torch
+    from harness.training.threads import configure_torch
 
     # One torch thread, whatever algo.threads says (that is for training): the test policy runs
     # the network on a few dozen observations per step, where a second thread only adds

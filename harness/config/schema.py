@@ -428,6 +428,33 @@ class ImitationConfig(_Section):
     """The loss's weight beside the TD (Huber) loss: DQfD's lambda_2."""
 
 
+class TeacherConfig(_Section):
+    """A teacher that sees the true map, for training only (DAgger, docs/goals.md "The
+    teacher"): at the decisions of a share of the copies' steps, the rollout teacher
+    (``envs.coverage.teacher``: every candidate slot tried on a copy of the episode with the
+    true walls, the best kept) labels the slot it would take; the label is stored with the
+    decision's transition and DQfD's large-margin loss pulls the network's greedy choice
+    towards it, beside the TD loss. The policy never sees the true map, and evaluation never
+    builds the teacher."""
+
+    share: Annotated[float, Field(gt=0.0, le=1.0)] = 1.0
+    """Share of the copies' steps whose decisions are labelled (a copy's step is labelled or
+    not as a whole, drawn from the run's own generator): the teacher's rollouts are the cost."""
+    horizon: PositiveInt | None = None
+    """Steps a rollout runs at most; ``null``: to the episode's end (the oracle's room is
+    measured over whole episodes, docs/experiment-log.md)."""
+    reach: Annotated[float, Field(gt=0.0, le=1.0)] | None = None
+    """Score a slot by the steps its rollout takes to this coverage (e.g. 0.99, for teams that
+    cover whole maps) instead of the cells found; ``null``: cells."""
+    gain: Annotated[float, Field(ge=0.0)] = 0.0
+    """What a slot must gain over slot 0 (the planner's) to be the label: cells, or steps with
+    ``reach``."""
+    margin: Annotated[float, Field(ge=0.0)] = 0.8
+    """The loss's margin: the lead the label's Q-value must have over every other slot's."""
+    weight: Annotated[float, Field(ge=0.0)] = 1.0
+    """The loss's weight beside the TD (Huber) loss (DQfD's lambda_2), on labelled samples."""
+
+
 class AlgoConfig(_Section):
     """The learner: ``DoubleDQN`` with its policy, buffer and optimizer (thesis §2.9-2.11, §3.4)."""
 
@@ -476,6 +503,10 @@ class AlgoConfig(_Section):
     imitation: ImitationConfig | None = None
     """DQfD's large-margin loss towards the planner-backed action (needs ``env.frontier.action``);
     ``null``: none."""
+    teacher: TeacherConfig | None = None
+    """DQfD's large-margin loss towards a true-map teacher's labels of the policy's own
+    decisions (needs the goal action, ``per_decision: true`` and the core backend); ``null``:
+    none."""
 
     features_dim: PositiveInt = 256
     """TeamMap policies: width of the layer that joins the image branches and the vector."""
@@ -698,6 +729,28 @@ class ExperimentConfig(_Section):
             raise ValueError(
                 "algo.imitation needs env.frontier.action (the planner-backed action is the "
                 "expert's)"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _teacher_labels_decisions(self) -> ExperimentConfig:
+        # The teacher labels decisions of the core's copies (it reads their planners and true
+        # walls), stored by the per-decision buffer; its loss is the imitation loss's.
+        if self.algo.teacher is None:
+            return self
+        if not self.algo.per_decision:
+            raise ValueError(
+                "algo.teacher labels decisions: it needs algo.per_decision: true (and the goal "
+                "action, env.frontier.action: {goal: {k: K}})"
+            )
+        if self.algo.imitation is not None:
+            raise ValueError(
+                "algo.teacher and algo.imitation are two experts for one margin loss: set one"
+            )
+        if self.vec.backend != "core":
+            raise ValueError(
+                f"algo.teacher reads the batched core's copies: it needs vec.backend: core, got "
+                f"{self.vec.backend!r}"
             )
         return self
 

@@ -19,7 +19,7 @@ import functools
 import os
 import signal
 import warnings
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import Any
 
 import numpy as np
@@ -36,6 +36,7 @@ from supersuit.vector.sb3_vector_wrapper import SB3VecEnvWrapper
 from envs.coverage.core import CoverageCore
 from harness.config.schema import VEC_BACKENDS, EnvConfig, PettingZooEnvConfig
 from harness.factory import make_core_spec, make_env
+from harness.sb3.decisions import EXPERT_KEY
 
 #: The info key of a time-out (SB3's): the replay buffer bootstraps its transition.
 TIME_LIMIT_KEY = "TimeLimit.truncated"
@@ -99,10 +100,20 @@ class CoreVecEnv(VecEnv):
         seed: Copy ``i`` is seeded with ``seed + i`` at once, as
             :func:`make_vec_env`'s SuperSuit copies are, so that both backends draw the same
             episodes; later resets continue each copy's generator.
+        labeller: Called with the core before each step (on the state the actions were chosen
+            in): ``(copies, agents)`` expert labels, -1 for none; each label >= 0 is put in its
+            slot's info of the step under :data:`~harness.sb3.decisions.EXPERT_KEY` (the
+            teacher, :mod:`harness.training.teacher`). ``None``: no labels.
     """
 
-    def __init__(self, core: CoverageCore, seed: int | None = None) -> None:
+    def __init__(
+        self,
+        core: CoverageCore,
+        seed: int | None = None,
+        labeller: Callable[[CoverageCore], np.ndarray] | None = None,
+    ) -> None:
         self.core = core
+        self.labeller = labeller
         self.n_agents = core.n_agents
         if seed is not None:
             for copy in range(core.copies):
@@ -137,9 +148,13 @@ class CoreVecEnv(VecEnv):
         if actions is None:
             raise RuntimeError("step_wait() without step_async()")
         self._actions = None
+        labels = None if self.labeller is None else self.labeller(core).reshape(-1)
         rewards, done = core.step(actions)
         obs = core.observe()
         infos = [info for copy in range(core.copies) for info in core.infos(copy)]
+        if labels is not None:
+            for k in np.flatnonzero(labels >= 0).tolist():
+                infos[k][EXPERT_KEY] = int(labels[k])
         for copy in np.flatnonzero(done).tolist():
             for i in range(n):  # the slot's own last observation, as SuperSuit gives it
                 infos[copy * n + i]["terminal_observation"] = _row(obs, copy, i)
@@ -187,6 +202,7 @@ def make_vec_env(
     seed: int | None = None,
     monitor: bool = True,
     backend: str = "core",
+    labeller: Callable[[CoverageCore], np.ndarray] | None = None,
 ) -> VecEnv:
     """Build the SB3 VecEnv of ``copies × n_agents`` slots.
 
@@ -201,6 +217,8 @@ def make_vec_env(
         backend: One of :data:`harness.config.schema.VEC_BACKENDS`: ``"core"`` (the batched
             core, one call steps every copy) or ``"supersuit"`` (SuperSuit over the PettingZoo
             env, one copy at a time, in ``num_cpus`` processes).
+        labeller: The core's expert labels before each step (:class:`CoreVecEnv`; the core
+            backend only).
 
     Returns:
         The VecEnv. Its ``num_envs`` is ``copies * n_agents``.
@@ -210,8 +228,10 @@ def make_vec_env(
     if backend == "core" and isinstance(env, PettingZooEnvConfig):
         # (the config picks supersuit for such an env: harness.config.schema)
         raise ValueError("the batched core is the coverage env's: a pettingzoo env needs supersuit")
+    if labeller is not None and backend != "core":
+        raise ValueError("expert labels come from the batched core's copies: backend 'core'")
     if backend == "core":
-        venv: VecEnv = CoreVecEnv(CoverageCore(make_core_spec(env), copies), seed)
+        venv: VecEnv = CoreVecEnv(CoverageCore(make_core_spec(env), copies), seed, labeller)
         return VecMonitor(venv, info_keywords=EPISODE_INFO_KEYS) if monitor else venv
     return _supersuit_vec_env(env, copies, num_cpus, seed, monitor)
 

@@ -21,7 +21,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import torch
 from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
@@ -91,12 +90,8 @@ from harness.training.checks import (
     optimizer_kwargs_with_foreach,
     policy_class_name,
 )
-
-
-def configure_torch(threads: int | None) -> None:
-    """Set torch's CPU thread count (``None`` keeps torch's default, one per core)."""
-    if threads is not None:
-        torch.set_num_threads(threads)
+from harness.training.teacher import TeacherLabeller
+from harness.training.threads import configure_torch
 
 
 def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
@@ -125,7 +120,9 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
     if algo.per_decision:
         # One transition per decision (on the host: the device buffer has no such variant).
         buffer_class = per_decision_buffer_class(algo.prioritized)
-        buffer_kwargs = {**(buffer_kwargs or {}), "gamma": algo.gamma}
+        # With a teacher, each decision keeps its label (harness.training.teacher).
+        labels = algo.teacher is not None
+        buffer_kwargs = {**(buffer_kwargs or {}), "gamma": algo.gamma, "labels": labels}
     return DoubleDQN(
         policy_class_name(algo),
         venv,
@@ -158,7 +155,11 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
 
 def _imitation_kwargs(config: ExperimentConfig) -> dict[str, Any]:
     """DoubleDQN's arguments for ``algo.imitation``: DQfD's margin loss with the env's
-    planner-backed action as the expert's; none (DoubleDQN's defaults) without it."""
+    planner-backed action as the expert's; for ``algo.teacher`` the loss's margin and weight
+    (the samples carry the teacher's labels); none (DoubleDQN's defaults) without either."""
+    teacher = config.algo.teacher
+    if teacher is not None:
+        return {"margin": teacher.margin, "margin_weight": teacher.weight}
     imitation, options = config.algo.imitation, config.env.frontier_options
     if imitation is None or options is None:
         return {}
@@ -167,6 +168,15 @@ def _imitation_kwargs(config: ExperimentConfig) -> dict[str, Any]:
         "margin": imitation.margin,
         "margin_weight": imitation.weight,
     }
+
+
+def _labeller(config: ExperimentConfig, state: TrainingState) -> TeacherLabeller | None:
+    """``algo.teacher``'s labeller, its draws seeded by the run's seed and its resumes (as the
+    episodes are, :func:`_env_seed`); ``None`` without a teacher."""
+    teacher = config.algo.teacher
+    if teacher is None:
+        return None
+    return TeacherLabeller(teacher, seed=[config.seed, state.resumes])
 
 
 def _lr_start(phase: PhaseConfig) -> float:
@@ -603,6 +613,7 @@ def train(
         config.vec.num_cpus,
         seed=_env_seed(config, state),
         backend=config.vec.backend,
+        labeller=_labeller(config, state),
     )
     logger = make_logger(run, state, restart=restart)
     try:

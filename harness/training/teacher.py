@@ -1,0 +1,64 @@
+"""The teacher's labels in training (DAgger, docs/goals.md "The teacher"): the policy plays, a
+teacher that sees the true map labels the decisions it meets, and the replay buffer keeps each
+label with its decision (``harness.sb3.decisions``), for DQfD's margin loss.
+
+:class:`TeacherLabeller` is called by the core's VecEnv (:class:`~harness.training.adapters.
+CoreVecEnv`) before each step, on the state the policy has just chosen in: for a share of the
+copies (``algo.teacher.share``, drawn from a generator of its own, so the episodes are those of
+a run without a teacher), :meth:`envs.coverage.teacher.RolloutTeacher.label` gives every
+deciding agent's slot, its teammates' held targets being walks they have committed to. Only
+training builds it: evaluation never does (``tests/test_architecture.py``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from envs.coverage.core import CoverageCore
+from envs.coverage.teacher import RolloutTeacher, shortest_walk
+from harness.config.schema import TeacherConfig
+
+__all__ = ["TeacherLabeller"]
+
+
+class TeacherLabeller:
+    """Labels the decisions of a core's copies with a :class:`RolloutTeacher`'s slots.
+
+    Args:
+        config: ``algo.teacher``.
+        seed: Seeds the draw of the labelled copies.
+
+    Attributes:
+        labels: Decisions labelled so far.
+        deviations: Of those, the ones whose label is not slot 0 (the planner's choice).
+    """
+
+    def __init__(self, config: TeacherConfig, seed: int | None = None) -> None:
+        self.teacher = RolloutTeacher(config.horizon, config.gain, config.reach)
+        self.share = config.share
+        self.rng = np.random.default_rng(seed)
+        self.labels = 0
+        self.deviations = 0
+
+    def __call__(self, core: CoverageCore) -> np.ndarray:
+        """The label of every agent of every copy at the core's current state, ``(copies,
+        agents)``: the teacher's slot for a deciding agent of a labelled copy, -1 elsewhere."""
+        out = np.full((core.copies, core.n_agents), -1, dtype=np.int64)
+        drawn = self.rng.random(core.copies) < self.share
+        for b in np.flatnonzero(drawn).tolist():
+            frontier = core.frontiers[b]
+            if frontier is None or frontier.candidates is None:
+                continue
+            planner = frontier.planner
+            walks = {
+                a: shortest_walk(planner, a, int(cell))
+                for a, cell in enumerate(frontier.held.tolist())
+                if cell >= 0
+            }
+            steps_left = core.max_steps - int(core.steps[b])
+            slots, _ = self.teacher.label(planner, frontier.candidates, steps_left, walks)
+            out[b] = slots
+        given = out[out >= 0]
+        self.labels += int(given.size)
+        self.deviations += int((given > 0).sum())
+        return out

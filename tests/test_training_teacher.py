@@ -155,4 +155,6 @@ def test_a_run_with_a_teacher_stores_its_labels_and_evaluates(tmp_path: Path) ->
     labels = buffer.expert_actions[:n, 0]
     assert buffer.labels and (labels >= 0).any()  # every copy-step labelled (share 1)
     assert ((labels >= -1) & (labels < 4)).all()
+    logged = (run / "tb" / "progress.csv").read_text().splitlines()[0].split(",")
+    assert {"teacher/labels", "teacher/deviations", "train/expert_agreement"} <= set(logged)
     assert main(["eval", str(run), "--episodes", "2"]) == 0

@@ -17,6 +17,7 @@ from tqdm import TqdmExperimentalWarning
 from tqdm.rich import tqdm
 
 from harness.results.rundir import EPISODE_COLUMNS, FOREIGN_EPISODE_COLUMNS, append_csv_rows
+from harness.sb3.decisions import EXPERT_KEY
 from harness.sb3.schedules import epochs_for
 from harness.training.adapters import TIME_LIMIT_KEY
 
@@ -89,10 +90,14 @@ class EpisodeLogCallback(BaseCallback):
         append_csv_rows(self.csv_path, self.columns, [])  # the header, when the file is new
 
     def _on_step(self) -> bool:
+        infos = self.locals["infos"]
+        labels = [info[EXPERT_KEY] for info in infos if EXPERT_KEY in info]
+        if labels:  # a teacher labelled decisions of this step (algo.teacher)
+            self.logger.record_mean("teacher/labels", len(labels))
+            self.logger.record_mean("teacher/deviations", sum(label > 0 for label in labels))
         dones = self.locals["dones"]
         if not dones.any():
             return True
-        infos = self.locals["infos"]
         n = self.n_agents
         rows = []
         for copy in range(len(dones) // n):

@@ -21,6 +21,7 @@ from harness.sb3.buffers import (
     PrioritizedReplayBuffer,
     PrioritizedReplayBufferSamples,
     SumTree,
+    _last_occurrences,
     importance_weights,
     n_step_returns,
 )
@@ -204,6 +205,109 @@ def test_sum_tree_rejects_bad_input() -> None:
         tree.update(np.array([0]), np.array([-1.0]))
     with pytest.raises(ValueError, match="empty"):
         tree.find_prefixsum(np.array([0.0]))
+
+
+class NumpySumTree:
+    """The reference for :class:`SumTree`'s compiled loops: its former NumPy implementation,
+    vectorised over the items, one pass per tree level."""
+
+    def __init__(self, capacity: int) -> None:
+        self.size = 1 << (capacity - 1).bit_length()
+        self.depth = self.size.bit_length() - 1
+        self.nodes = np.zeros(2 * self.size)
+
+    def update(self, indices: np.ndarray, values: np.ndarray) -> None:
+        unique, first_in_reversed = np.unique(indices[::-1], return_index=True)
+        nodes = unique + self.size
+        self.nodes[nodes] = values[::-1][first_in_reversed]
+        for _ in range(self.depth):
+            nodes = nodes >> 1
+            self.nodes[nodes] = self.nodes[2 * nodes] + self.nodes[2 * nodes + 1]
+
+    def find_prefixsum(self, values: np.ndarray) -> np.ndarray:
+        queries = np.maximum(np.asarray(values, dtype=np.float64), 0.0)
+        idx = np.ones(queries.shape, dtype=np.int64)
+        for _ in range(self.depth):
+            left = 2 * idx
+            left_sum = self.nodes[left]
+            go_right = (queries >= left_sum) & (self.nodes[left + 1] > 0.0)
+            queries = np.where(go_right, queries - left_sum, queries)
+            idx = left + go_right
+        return idx - self.size
+
+
+# Real-valued priorities (as raw ** alpha makes them), zeros (empty slots) and repeated values.
+priority_strategy = st.one_of(
+    st.just(0.0),
+    st.sampled_from([0.25, 1e-6]),
+    st.floats(1e-12, 1e6, allow_nan=False, allow_infinity=False),
+)
+
+
+@settings(max_examples=80, deadline=None)
+@given(
+    capacity=st.integers(1, 70),
+    batches=st.lists(
+        st.lists(st.tuples(st.integers(0, 10_000), priority_strategy), min_size=1, max_size=40),
+        min_size=1,
+        max_size=5,
+    ),
+    offsets=st.lists(st.floats(0.0, 1.0, exclude_max=True), min_size=1, max_size=40),
+    extra=st.lists(st.floats(-1e7, 1e7, allow_nan=False), max_size=10),
+)
+def test_compiled_sum_tree_equals_the_numpy_one_bit_for_bit(
+    capacity: int,
+    batches: list[list[tuple[int, float]]],
+    offsets: list[float],
+    extra: list[float],
+) -> None:
+    # The same nodes after every update (duplicates included), the same leaves for any query,
+    # the same strata, and the smallest positive leaf the updates track equals a scan's.
+    tree, reference = SumTree(capacity), NumpySumTree(capacity)
+    for batch in batches:
+        indices = np.array([i % capacity for i, _ in batch], dtype=np.int64)
+        values = np.array([v for _, v in batch])
+        tree.update(indices, values)
+        reference.update(indices, values)
+        np.testing.assert_array_equal(tree.nodes, reference.nodes)
+        positive = tree.leaves[tree.leaves > 0]
+        assert tree.min_leaf == (positive.min() if positive.size else np.inf)
+    if tree.total <= 0:
+        return
+    fractions = np.array(offsets)
+    queries = np.concatenate([fractions * tree.total, extra, [tree.total, np.nan]])
+    np.testing.assert_array_equal(tree.find_prefixsum(queries), reference.find_prefixsum(queries))
+    n = len(fractions)
+    strata = (np.arange(n) + fractions) * (tree.total / n)
+    np.testing.assert_array_equal(tree.stratified(fractions), reference.find_prefixsum(strata))
+
+
+def test_min_leaf_after_the_minimum_is_raised_emptied_and_rebuilt() -> None:
+    tree = SumTree(4)
+    assert tree.min_leaf == np.inf
+    tree.update(np.array([0, 1, 2]), np.array([3.0, 1.0, 1.0]))
+    assert tree.min_leaf == 1.0
+    tree.update(np.array([1]), np.array([5.0]))  # one of the two minima raised
+    assert tree.min_leaf == 1.0
+    tree.update(np.array([2, 3]), np.array([0.0, 2.0]))  # the other emptied, a new leaf
+    assert tree.min_leaf == 2.0
+    tree.update(np.array([3, 3]), np.array([0.5, 4.0]))  # lowered, then raised: last wins
+    assert tree.min_leaf == 3.0
+    tree.rebuild(np.array([0.0, 0.0, 7.0, 0.0]))
+    assert tree.min_leaf == 7.0
+    tree.rebuild(np.zeros(4))
+    assert tree.min_leaf == np.inf
+
+
+@settings(max_examples=60, deadline=None)
+@given(indices=st.lists(st.integers(0, 20), max_size=50))
+def test_last_occurrences_equal_numpys_unique_of_the_reversed_indices(indices: list[int]) -> None:
+    flat = np.array(indices, dtype=np.int64)
+    code, unique, last = _last_occurrences(flat, np.zeros(len(flat)), 21)
+    want_unique, first_in_reversed = np.unique(flat[::-1], return_index=True)
+    assert code == 0
+    np.testing.assert_array_equal(unique, want_unique)
+    np.testing.assert_array_equal(last, len(flat) - 1 - first_in_reversed)
 
 
 # ------------------------------------------------------------------- PrioritizedReplayBuffer

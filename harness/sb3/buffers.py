@@ -12,6 +12,7 @@ from typing import Any, NamedTuple
 import numpy as np
 import torch as th
 from gymnasium import spaces
+from numba import njit
 from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
 from stable_baselines3.common.type_aliases import DictReplayBufferSamples, ReplayBufferSamples
 from stable_baselines3.common.vec_env import VecNormalize
@@ -27,17 +28,148 @@ __all__ = [
 ]
 
 
+# Codes the kernels below return for bad input (0: none); the caller raises the message.
+_BAD_INDEX = 1
+_BAD_VALUE = 2
+
+
+@njit(cache=True, nogil=True)
+def _tree_set(
+    nodes: np.ndarray,
+    size: int,
+    capacity: int,
+    indices: np.ndarray,
+    values: np.ndarray,
+    min_leaf: float,
+) -> tuple[int, float]:
+    """Check, then write ``values`` into the leaves ``indices`` in order (the last write of an
+    index wins) and recompute their ancestors; :class:`SumTree.update`'s kernel.
+
+    Each leaf's ancestors are recomputed bottom-up as ``left + right`` after its own write. A
+    node shared by several leaves' paths is written last by the last of them, when every node
+    below it is final, so each ends as the sum of its final children: the same floats as a
+    level-by-level pass after all the writes.
+
+    ``min_leaf`` (the smallest positive leaf, ``inf``: none, NaN: unknown) follows the writes:
+    a write can only lower it, unless it replaces a leaf equal to it by a larger value or a
+    zero; then it becomes unknown (NaN) and the next read scans the leaves.
+
+    Returns:
+        0, or :data:`_BAD_INDEX` / :data:`_BAD_VALUE` (then nothing is written); and the new
+        ``min_leaf``.
+    """
+    for k in range(indices.size):
+        if indices[k] < 0 or indices[k] >= capacity:
+            return _BAD_INDEX, min_leaf
+    for k in range(values.size):
+        # NaN fails both comparisons: not finite.
+        if not (0.0 <= values[k] < np.inf):
+            return _BAD_VALUE, min_leaf
+    for k in range(indices.size):
+        node = size + indices[k]
+        value = values[k]
+        if min_leaf == min_leaf:  # known
+            if nodes[node] == min_leaf and (value > min_leaf or value == 0.0):
+                min_leaf = np.nan
+            elif 0.0 < value < min_leaf:
+                min_leaf = value
+        nodes[node] = value
+        node >>= 1
+        while node >= 1:
+            nodes[node] = nodes[2 * node] + nodes[2 * node + 1]
+            node >>= 1
+    return 0, min_leaf
+
+
+@njit(cache=True, nogil=True)
+def _tree_descend(nodes: np.ndarray, size: int, queries: np.ndarray, out: np.ndarray) -> None:
+    """:meth:`SumTree.find_prefixsum` of each of ``queries`` into ``out`` (a query at a time,
+    the same comparisons and subtractions as a descent of all queries together)."""
+    for k in range(queries.size):
+        query = queries[k]
+        if query < 0.0:  # np.maximum(query, 0): a NaN stays NaN and always goes left
+            query = 0.0
+        node = 1
+        while node < size:
+            left = 2 * node
+            left_sum = nodes[left]
+            if query >= left_sum and nodes[left + 1] > 0.0:
+                query = query - left_sum
+                node = left + 1
+            else:
+                node = left
+        out[k] = node - size
+
+
+@njit(cache=True, nogil=True)
+def _stratified_queries(total: float, offsets: np.ndarray) -> np.ndarray:
+    """``(k + offsets[k]) * total / n`` for ``k < n = len(offsets)``: one query per stratum."""
+    n = offsets.size
+    segment = total / n
+    queries = np.empty(n, dtype=np.float64)
+    for k in range(n):
+        queries[k] = (k + offsets[k]) * segment
+    return queries
+
+
+@njit(cache=True, nogil=True)
+def _min_positive(values: np.ndarray) -> float:
+    """The smallest positive entry of ``values``, ``inf`` when there is none."""
+    smallest = np.inf
+    for k in range(values.size):
+        if 0.0 < values[k] < smallest:
+            smallest = values[k]
+    return smallest
+
+
+@njit(cache=True, nogil=True)
+def _last_occurrences(
+    indices: np.ndarray, errors: np.ndarray, capacity: int
+) -> tuple[int, np.ndarray, np.ndarray]:
+    """:meth:`PrioritizedReplayBuffer.update_priorities`'s checks and dedupe in one pass: the
+    distinct ``indices`` in increasing order and, for each, the position of its last occurrence
+    (what ``np.unique`` of the reversed array gives), after checking that ``errors`` are finite
+    (:data:`_BAD_VALUE`) and ``indices`` lie in ``[0, capacity)`` (:data:`_BAD_INDEX`)."""
+    empty = np.empty(0, dtype=np.int64)
+    for k in range(errors.size):
+        if not np.isfinite(errors[k]):
+            return _BAD_VALUE, empty, empty
+    for k in range(indices.size):
+        if indices[k] < 0 or indices[k] >= capacity:
+            return _BAD_INDEX, empty, empty
+    # A stable sort keeps equal indices in their order: the last of a run is the last occurrence.
+    order = np.argsort(indices, kind="mergesort")
+    n = indices.size
+    unique = np.empty(n, dtype=np.int64)
+    last = np.empty(n, dtype=np.int64)
+    count = 0
+    for k in range(n):
+        position = order[k]
+        if k + 1 < n and indices[order[k + 1]] == indices[position]:
+            continue
+        unique[count] = indices[position]
+        last[count] = position
+        count += 1
+    return 0, unique[:count], last[:count]
+
+
 class SumTree:
     """Binary sum tree over ``capacity`` non-negative leaves, in float64.
 
     Node ``1`` is the root, node ``i`` has children ``2i`` and ``2i + 1`` and the leaves live at
     ``[size, 2 * size)`` where ``size`` is the smallest power of two ``>= capacity``; padding
-    leaves stay zero. Every operation works on whole index/query arrays and loops only over
-    the ``log2(size)`` tree levels, never over items.
+    leaves stay zero. Updates and searches are numba-compiled loops over the items and their
+    ``log2(size)`` ancestors (a NumPy pass per tree level cost more in call overhead, for a
+    batch of 32, than the arithmetic); the smallest positive leaf (:attr:`min_leaf`) is kept
+    up to date by the updates, so that reading it costs no pass over the leaves.
 
     Args:
         capacity: Number of leaves.
     """
+
+    # The smallest positive leaf (inf: none) or NaN when an update may have raised it (the next
+    # read scans the leaves). A class default, so that a tree pickled without it scans once.
+    _min_leaf: float = float("nan")
 
     def __init__(self, capacity: int) -> None:
         if capacity < 1:
@@ -47,6 +179,7 @@ class SumTree:
         # Number of levels below the root; a query descends exactly this many times.
         self.depth = self.size.bit_length() - 1
         self.nodes = np.zeros(2 * self.size, dtype=np.float64)
+        self._min_leaf = float("inf")
 
     @property
     def total(self) -> float:
@@ -58,13 +191,16 @@ class SumTree:
         """View of the ``capacity`` leaf values."""
         return self.nodes[self.size : self.size + self.capacity]
 
+    @property
+    def min_leaf(self) -> float:
+        """The smallest positive leaf, ``inf`` when every leaf is zero."""
+        if self._min_leaf != self._min_leaf:  # NaN: an update may have raised the minimum
+            self._min_leaf = float(_min_positive(self.leaves))
+        return self._min_leaf
+
     def get(self, indices: np.ndarray) -> np.ndarray:
         """Leaf values at ``indices``."""
         return self.nodes[self.size + np.asarray(indices, dtype=np.int64)]
-
-    def _check_indices(self, indices: np.ndarray) -> None:
-        if indices.size and (indices.min() < 0 or indices.max() >= self.capacity):
-            raise IndexError(f"SumTree indices must lie in [0, {self.capacity})")
 
     @staticmethod
     def _check_values(values: np.ndarray) -> None:
@@ -81,19 +217,18 @@ class SumTree:
             indices: Leaf indices, any integer array.
             values: One value per index, or a scalar for all of them.
         """
-        indices = np.asarray(indices, dtype=np.int64).ravel()
-        values = np.broadcast_to(np.asarray(values, dtype=np.float64), indices.shape).ravel()
-        self._check_indices(indices)
-        self._check_values(values)
-        # np.unique keeps the first occurrence, so run it on the reversed arrays for last-wins.
-        unique, first_in_reversed = np.unique(indices[::-1], return_index=True)
-        nodes = unique + self.size
-        self.nodes[nodes] = values[::-1][first_in_reversed]
-        for _ in range(self.depth):
-            # Siblings share a parent, so `nodes` may repeat here: every write of one parent
-            # stores the same sum of its (already final) children, so no np.unique is needed.
-            nodes = nodes >> 1
-            self.nodes[nodes] = self.nodes[2 * nodes] + self.nodes[2 * nodes + 1]
+        indices = np.ascontiguousarray(indices, dtype=np.int64).ravel()
+        values = np.asarray(values, dtype=np.float64)
+        if values.shape != indices.shape:  # a scalar, or a shape that broadcasts (or raises)
+            values = np.broadcast_to(values, indices.shape)
+        values = np.ascontiguousarray(values).ravel()
+        code, self._min_leaf = _tree_set(
+            self.nodes, self.size, self.capacity, indices, values, self._min_leaf
+        )
+        if code == _BAD_INDEX:
+            raise IndexError(f"SumTree indices must lie in [0, {self.capacity})")
+        if code == _BAD_VALUE:
+            raise ValueError("SumTree values must be finite and non-negative")
 
     def rebuild(self, values: np.ndarray) -> None:
         """Replace all ``capacity`` leaves and recompute every internal node, level by level.
@@ -112,14 +247,14 @@ class SumTree:
             self.nodes[start:end] = (
                 self.nodes[2 * start : 2 * end : 2] + self.nodes[2 * start + 1 : 2 * end : 2]
             )
+        self._min_leaf = float("nan")
 
     def find_prefixsum(self, values: np.ndarray) -> np.ndarray:
         """For each query ``v``, the leaf ``i`` with ``sum(leaves[:i]) <= v < sum(leaves[:i + 1])``.
 
-        All queries descend together, one tree level per iteration. Queries are clipped to
-        ``>= 0``; a query ``>= total`` (e.g. rounding at the upper edge) returns the last
-        non-zero leaf. A zero leaf is never returned, because the descent only goes right into
-        a subtree with a positive sum.
+        Queries are clipped to ``>= 0``; a query ``>= total`` (e.g. rounding at the upper edge)
+        returns the last non-zero leaf. A zero leaf is never returned, because the descent only
+        goes right into a subtree with a positive sum.
 
         Args:
             values: Prefix-sum queries, any float array.
@@ -129,17 +264,27 @@ class SumTree:
         """
         if self.total <= 0.0:
             raise ValueError("cannot search an empty SumTree (total is 0)")
-        queries = np.maximum(np.asarray(values, dtype=np.float64), 0.0)
-        shape = queries.shape
-        queries = queries.ravel().copy()
-        idx = np.ones(queries.shape, dtype=np.int64)
-        for _ in range(self.depth):
-            left = 2 * idx
-            left_sum = self.nodes[left]
-            go_right = (queries >= left_sum) & (self.nodes[left + 1] > 0.0)
-            queries = np.where(go_right, queries - left_sum, queries)
-            idx = left + go_right
-        return (idx - self.size).reshape(shape)
+        queries = np.asarray(values, dtype=np.float64)
+        out = np.empty(queries.shape, dtype=np.int64)
+        _tree_descend(self.nodes, self.size, np.ascontiguousarray(queries).ravel(), out.ravel())
+        return out
+
+    def stratified(self, offsets: np.ndarray) -> np.ndarray:
+        """Stratified search: ``[0, total)`` split into ``n = len(offsets)`` equal strata, and in
+        stratum ``k`` the leaf at ``(k + offsets[k]) * total / n`` (:meth:`find_prefixsum`).
+
+        Args:
+            offsets: One position in ``[0, 1)`` per stratum, float64 ``(n,)``.
+
+        Returns:
+            Leaf indices (int64), ``(n,)``.
+        """
+        if self.total <= 0.0:
+            raise ValueError("cannot search an empty SumTree (total is 0)")
+        offsets = np.ascontiguousarray(offsets, dtype=np.float64)
+        out = np.empty(offsets.shape, dtype=np.int64)
+        _tree_descend(self.nodes, self.size, _stratified_queries(self.total, offsets), out)
+        return out
 
 
 def replay_memory_bytes(
@@ -427,13 +572,13 @@ class PrioritizedReplayBuffer(ReplayBuffer):
     def min_probability(self) -> float:
         """Sampling probability of the lowest-priority stored transition (for the IS weights).
 
-        One vectorised pass over the leaves per call; empty slots (zero leaves) are skipped.
+        Empty slots (zero leaves) are skipped; the sum tree keeps the smallest positive leaf
+        (:attr:`SumTree.min_leaf`).
         """
-        leaves = self._tree.leaves
-        stored = leaves[leaves > 0.0]
-        if stored.size == 0:
+        smallest = self._tree.min_leaf
+        if smallest == np.inf:
             raise ValueError("the buffer holds no transition")
-        return float(stored.min()) / self._tree.total
+        return smallest / self._tree.total
 
     def _set_raw_priorities(self, flat_indices: np.ndarray, raw: np.ndarray) -> None:
         """Write unique ``flat_indices`` with raw priorities ``raw`` to the array and the tree."""
@@ -466,19 +611,20 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         """
         if isinstance(td_errors, th.Tensor):
             td_errors = td_errors.detach().cpu().numpy()
-        indices = np.asarray(indices, dtype=np.int64).ravel()
-        errors = np.abs(np.asarray(td_errors, dtype=np.float64)).ravel()
+        indices = np.ascontiguousarray(indices, dtype=np.int64).ravel()
+        errors = np.ascontiguousarray(td_errors, dtype=np.float64).ravel()
         if errors.shape != indices.shape:
             raise ValueError(f"got {indices.size} indices but {errors.size} TD errors")
-        if not np.all(np.isfinite(errors)):
+        # The checks, then the dedupe (last wins, so that the raw array and the tree agree), in
+        # one compiled pass: increasing distinct indices and their last positions.
+        code, unique, last = _last_occurrences(indices, errors, self._raw_priorities.size)
+        if code == _BAD_VALUE:
             raise ValueError("TD errors must be finite")
+        if code == _BAD_INDEX:
+            raise IndexError(f"flat indices must lie in [0, {self._raw_priorities.size})")
         if indices.size == 0:
             return
-        if indices.min() < 0 or indices.max() >= self._raw_priorities.size:
-            raise IndexError(f"flat indices must lie in [0, {self._raw_priorities.size})")
-        # Dedupe here (last wins) so that the raw array and the tree agree.
-        unique, first_in_reversed = np.unique(indices[::-1], return_index=True)
-        raw = errors[::-1][first_in_reversed] + self.eps
+        raw = np.abs(errors[last]) + self.eps
         self._set_raw_priorities(unique, raw)
         self.max_priority = max(self.max_priority, float(raw.max()))
 
@@ -498,21 +644,28 @@ class PrioritizedReplayBuffer(ReplayBuffer):
         if n_stored == 0:
             raise ValueError("cannot sample from an empty PrioritizedReplayBuffer")
         total = self._tree.total
-        segment = total / batch_size
         # Global np.random, as SB3's own buffers: seeded by set_random_seed.
         offsets = np.random.random_sample(batch_size)  # noqa: NPY002
-        queries = (np.arange(batch_size) + offsets) * segment
-        # Only stored slots have non-zero leaves, and find_prefixsum never returns a zero leaf.
-        flat = self._tree.find_prefixsum(queries)
+        # Only stored slots have non-zero leaves, and the search never returns a zero leaf.
+        flat = self._tree.stratified(offsets)
         probabilities = self._tree.get(flat) / total
         weights = importance_weights(probabilities, self.min_probability, self._beta)
         batch_inds, env_inds = np.divmod(flat, self.n_envs)
         samples = self._get_samples_at(batch_inds, env_inds, env=env)
         return PrioritizedReplayBufferSamples(
             *samples,
-            weights=self.to_torch(weights.astype(np.float32).reshape(-1, 1)),
+            weights=self._batch_tensor(weights.astype(np.float32).reshape(-1, 1)),
             indices=flat,
         )
+
+    def _batch_tensor(self, array: np.ndarray) -> th.Tensor:
+        """A sampled batch's ``array`` as a tensor on the buffer's device. Every such array is
+        made afresh by the sample (fancy indexing or arithmetic, never a view of the storage), so
+        on the CPU the tensor shares its memory instead of copying it as SB3's ``to_torch`` does
+        (a copy per field and gradient step, for nothing)."""
+        if self.device.type == "cpu":
+            return th.from_numpy(array)
+        return self.to_torch(array)
 
     def _get_samples_at(
         self,
@@ -534,8 +687,8 @@ class PrioritizedReplayBuffer(ReplayBuffer):
             rewards,
         )
         return ReplayBufferSamples(
-            *tuple(map(self.to_torch, data)),  # type: ignore[arg-type]
-            discounts=None if discounts is None else self.to_torch(discounts),
+            *tuple(map(self._batch_tensor, data)),  # type: ignore[arg-type]
+            discounts=None if discounts is None else self._batch_tensor(discounts),
         )
 
     def _targets_at(
@@ -599,10 +752,10 @@ class PrioritizedDictReplayBuffer(PrioritizedReplayBuffer, DictReplayBuffer):
         )
         assert isinstance(obs, dict) and isinstance(next_obs, dict)
         return DictReplayBufferSamples(
-            observations={key: self.to_torch(o) for key, o in obs.items()},
-            actions=self.to_torch(self.actions[batch_inds, env_indices]),
-            next_observations={key: self.to_torch(o) for key, o in next_obs.items()},
-            dones=self.to_torch(dones),
-            rewards=self.to_torch(rewards),
-            discounts=None if discounts is None else self.to_torch(discounts),
+            observations={key: self._batch_tensor(o) for key, o in obs.items()},
+            actions=self._batch_tensor(self.actions[batch_inds, env_indices]),
+            next_observations={key: self._batch_tensor(o) for key, o in next_obs.items()},
+            dones=self._batch_tensor(dones),
+            rewards=self._batch_tensor(rewards),
+            discounts=None if discounts is None else self._batch_tensor(discounts),
         )

@@ -311,14 +311,15 @@ def test_a_decision_keeps_the_expert_label_given_at_its_step(buffer_class) -> No
     assert labels[by_obs[0]] == 1
     assert labels[by_obs[10]] == 2
     assert labels[by_obs[11]] == -1
-    samples = (
-        buffer._get_samples(np.arange(3))
-        if not isinstance(buffer, PrioritizedReplayBuffer)
-        else buffer._get_samples_at(np.arange(3), np.zeros(3, dtype=np.int64))
-    )
+    set_random_seed(0)
+    samples = buffer.sample(64)  # the learner's path (prioritized: weights and indices too)
     xs = samples.observations["x"].flatten().tolist()
+    assert set(xs) == {0.0, 10.0, 11.0}
     assert samples.experts.flatten().tolist() == [int(labels[by_obs[x]]) for x in xs]
     assert samples.discounts.flatten().tolist() == [stored(buffer)[by_obs[x]][6] for x in xs]
+    if isinstance(buffer, PrioritizedReplayBuffer):
+        assert samples.weights.shape == (64, 1)
+        assert samples.indices.tolist() == [by_obs[x] for x in xs]
 
 
 def test_without_labels_the_samples_carry_no_experts(buffer_class) -> None:

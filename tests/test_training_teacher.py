@@ -125,13 +125,17 @@ def test_a_teacher_that_cannot_work_is_refused_in_one_line(
     assert list(tmp_path.iterdir()) == []
 
 
-def test_a_run_with_a_teacher_stores_its_labels_and_evaluates(tmp_path: Path) -> None:
+@pytest.mark.parametrize("prioritized", [False, True])
+def test_a_run_with_a_teacher_stores_its_labels_and_evaluates(
+    prioritized: bool, tmp_path: Path
+) -> None:
     runs = tmp_path / "runs"
     args = ["run", str(CONFIG), "--runs-dir", str(runs), "--no-progress"]
     tiny = {
         **SMALL,
         "env.max_steps": "40",
         "vec.copies": "2",
+        "algo.prioritized": str(prioritized).lower(),
         "algo.buffer_size": "2000",
         "algo.learning_starts": "200",
         "algo.features_dim": "16",

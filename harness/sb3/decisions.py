@@ -190,11 +190,18 @@ class _PerDecision:
         samples = super()._get_samples(batch_inds, env)  # type: ignore[misc]
         return self._with_decisions(samples, batch_inds, np.zeros_like(batch_inds))
 
-    def _with_decisions(self, samples: Any, rows: np.ndarray, columns: np.ndarray) -> Any:
-        """``samples`` with their ``discounts`` ``gamma ** tau`` and, with ``labels``, as
-        :class:`LabelledSamples` with their ``experts``."""
+    def _with_decisions(
+        self, samples: Any, rows: np.ndarray, columns: np.ndarray, labelled: bool = True
+    ) -> Any:
+        """``samples`` with their ``discounts`` ``gamma ** tau`` and, with ``labels`` (and
+        ``labelled``), as :class:`LabelledSamples` with their ``experts``."""
         discounts = self.to_torch(self.step_discounts[rows, columns].reshape(-1, 1))  # type: ignore[attr-defined]
         samples = samples._replace(discounts=discounts)
+        return self._labelled(samples, rows, columns) if labelled else samples
+
+    def _labelled(self, samples: Any, rows: np.ndarray, columns: np.ndarray) -> Any:
+        """``samples`` as :class:`LabelledSamples` with their ``experts`` when the buffer keeps
+        labels, else as they are."""
         if not self.labels:
             return samples
         experts = self.to_torch(self.expert_actions[rows, columns].reshape(-1, 1))  # type: ignore[attr-defined]
@@ -233,9 +240,16 @@ class PerDecisionPrioritizedDictReplayBuffer(_PerDecision, PrioritizedDictReplay
     def _get_samples_at(  # type: ignore[override]
         self, batch_inds: np.ndarray, env_indices: np.ndarray, env: VecNormalize | None = None
     ) -> Any:
-        """The prioritized samples at given indices, with their ``discounts``."""
+        """The prioritized samples at given indices, with their ``discounts`` (their labels
+        are added by :meth:`sample`, once the parent has added the IS weights)."""
         samples = super()._get_samples_at(batch_inds, env_indices, env)
-        return self._with_decisions(samples, batch_inds, env_indices)
+        return self._with_decisions(samples, batch_inds, env_indices, labelled=False)
+
+    def sample(self, batch_size: int, env: VecNormalize | None = None) -> Any:  # type: ignore[override]
+        """The parent's prioritized batch (weights, indices, discounts), with its ``experts``
+        when the buffer keeps labels (rows of the one column: the flat indices)."""
+        samples = super().sample(batch_size, env)
+        return self._labelled(samples, samples.indices, np.zeros_like(samples.indices))
 
 
 def per_decision_buffer_class(prioritized: bool) -> type[DictReplayBuffer]:

@@ -141,6 +141,28 @@ def test_greedy_action_is_the_best_allowed_one(kind: str) -> None:
     np.testing.assert_array_equal(model.policy.predict(obs, deterministic=True)[0], [3] * 5)
 
 
+def test_forced_rows_take_their_one_action_without_the_network(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    model = make_model(q=Q_ONLINE)
+    seen: list[int] = []
+    forward = type(model.q_net).forward
+
+    def counting(net: Any, obs: Any) -> Any:
+        seen.append(len(obs["obs"]))
+        return forward(net, obs)
+
+    monkeypatch.setattr(type(model.q_net), "forward", counting)
+    masks = [[0, 1, 0, 0], [0, 1, 1, 0], [0, 0, 0, 1], [1, 1, 1, 1]]  # rows 0 and 2 are forced
+    obs = observations(masks)
+    np.testing.assert_array_equal(model.predict(obs, deterministic=True)[0], [1, 2, 3, 3])
+    assert seen == [2]  # the network saw the two rows with a choice
+    seen.clear()
+    forced = observations([[0, 1, 0, 0], [0, 0, 1, 0]])
+    np.testing.assert_array_equal(model.predict(forced, deterministic=True)[0], [1, 2])
+    assert seen == []  # no choice anywhere: no pass of the network
+
+
 def test_random_actions_are_uniform_over_the_allowed_actions() -> None:
     model = make_model(q=Q_ONLINE)
     model.exploration_rate = 1.0

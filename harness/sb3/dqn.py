@@ -789,15 +789,28 @@ class DoubleDQN(DQN):
     ) -> tuple[np.ndarray, np.ndarray | None]:
         """The greedy action among the actions the observation's mask allows, shaped as SB3's
         ``policy.predict`` shapes it, and the ``(batch, n_actions)`` allowed mask (``None``, and
-        no masking, for an observation that comes without its mask)."""
+        no masking, for an observation that comes without its mask).
+
+        A row whose mask allows one action (a forced step: a held goal) takes it without a pass
+        of the network, which runs on the other rows only (the same actions: the masked argmax
+        of a row with one allowed action is that action)."""
         self.policy.set_training_mode(False)
         obs, vectorized = self.policy.obs_to_tensor(observation)
+        n_actions = int(self.action_space.n)  # type: ignore[attr-defined]
         with th.no_grad():
-            q = self.q_net(obs)
-            allowed = allowed_actions(obs, q.shape[1])
-            action = _masked(q, allowed).argmax(dim=1).cpu().numpy()  # type: ignore[arg-type]
+            allowed = allowed_actions(obs, n_actions)
+            assert isinstance(allowed, th.Tensor)
+            deciding = allowed.sum(dim=1) > 1
+            if bool(deciding.all()):
+                action = _masked(self.q_net(obs), allowed).argmax(dim=1)
+            else:
+                action = allowed.to(th.int8).argmax(dim=1)  # a forced row's one action
+                if bool(deciding.any()):
+                    rows = {key: value[deciding] for key, value in obs.items()}  # type: ignore[union-attr]
+                    action[deciding] = _masked(self.q_net(rows), allowed[deciding]).argmax(dim=1)
+            action = action.cpu().numpy()
         action = action if vectorized else action.squeeze(axis=0)
-        return action, None if allowed is None else allowed.cpu().numpy()  # type: ignore[union-attr]
+        return action, allowed.cpu().numpy()
 
     def _sample_action(
         self,

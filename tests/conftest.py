@@ -1,7 +1,9 @@
-"""Shared fixtures and helpers: small hand-built grids and envs made for them, and the check of a
-one-line error."""
+"""Shared fixtures and helpers: small hand-built grids and envs made for them, the check of a
+one-line error, and the overrides of a tiny goal-action run."""
 
 from __future__ import annotations
+
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -36,3 +38,36 @@ def one_error_line(err: str) -> str:
     assert len(lines) == 1, err
     assert lines[0].startswith("harness: error: ") and "Traceback" not in err
     return lines[0]
+
+
+#: ``--set`` overrides that make a goal-action config (``configs/goals_*.yaml``) a run of a few
+#: seconds: 12x12 random maps of 40 steps, 4 slots, a 16-wide network, 600 transitions.
+TINY_GOAL_RUN = {
+    "env.map": "random",
+    "env.height": "12",
+    "env.width": "12",
+    "env.max_steps": "40",
+    "env.test_maps": "[]",
+    "env.observation": "{teammap: {crop: 7, global_size: 6}}",
+    "env.frontier.action.goal.k": "4",
+    "vec.copies": "2",
+    "algo.buffer_size": "2000",
+    "algo.learning_starts": "200",
+    "algo.features_dim": "16",
+    "algo.net_arch": "[16]",
+    "phases.0.timesteps": "600",
+    "phases.0.exploration.steps": "400",
+    "eval.every": "600",
+    "eval.episodes": "2",
+    "checkpoint.every": "600",
+}
+
+
+def tiny_goal_run(config: Path, runs: Path, **changes: str) -> list[str]:
+    """``harness run`` arguments of ``config`` with :data:`TINY_GOAL_RUN` (updated by
+    ``changes``, keys with ``__`` for ``.``) into ``runs``, without a progress bar."""
+    args = ["run", str(config), "--runs-dir", str(runs), "--no-progress"]
+    overrides = {**TINY_GOAL_RUN, **{k.replace("__", "."): v for k, v in changes.items()}}
+    for key, value in overrides.items():
+        args += ["--set", f"{key}={value}"]
+    return args

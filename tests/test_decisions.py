@@ -32,6 +32,7 @@ from harness.sb3.decisions import (
     PerDecisionDictReplayBuffer,
     PerDecisionPrioritizedDictReplayBuffer,
 )
+from tests.conftest import tiny_goal_run
 
 ROOT = Path(__file__).resolve().parents[1]
 F = {name: i for i, name in enumerate(GOAL_FEATURES)}
@@ -415,30 +416,12 @@ def test_a_run_with_hold_and_per_decision_trains_resumes_and_evaluates(
     prioritized: bool, tmp_path: Path
 ) -> None:
     runs = tmp_path / "runs"
-    args = ["run", str(ROOT / "configs" / "goals_2agents_hold.yaml"), "--runs-dir", str(runs)]
-    args += ["--no-progress"]
-    tiny = {
-        "env.map": "random",
-        "env.height": "12",
-        "env.width": "12",
-        "env.max_steps": "40",
-        "env.test_maps": "[]",
-        "env.observation": "{teammap: {crop: 7, global_size: 6}}",
-        "env.frontier.action.goal.k": "4",
-        "vec.copies": "2",
-        "algo.prioritized": str(prioritized).lower(),
-        "algo.buffer_size": "2000",
-        "algo.learning_starts": "200",
-        "algo.features_dim": "16",
-        "algo.net_arch": "[16]",
-        "phases.0.timesteps": "600",
-        "phases.0.exploration.steps": "400",
-        "eval.every": "600",
-        "eval.episodes": "2",
-        "checkpoint.every": "300",
-    }
-    for key, value in tiny.items():
-        args += ["--set", f"{key}={value}"]
+    args = tiny_goal_run(
+        ROOT / "configs" / "goals_2agents_hold.yaml",
+        runs,
+        algo__prioritized=str(prioritized).lower(),
+        checkpoint__every="300",
+    )
     assert main(args) == 0
     (run,) = runs.iterdir()
     assert (run / "model.zip").is_file()

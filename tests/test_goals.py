@@ -32,6 +32,7 @@ from harness.evaluation.episodes import run_episodes
 from harness.factory import make_env
 from harness.sb3.policies import SlotQNetwork, SlotTeamMapPolicy
 from harness.training.adapters import make_vec_env
+from tests.conftest import tiny_goal_run
 
 UP, DOWN, LEFT, RIGHT, STAY = range(5)
 ROOT = Path(__file__).resolve().parents[1]
@@ -289,29 +290,7 @@ def test_slot_model_saves_and_loads(slot_model, tmp_path: Path) -> None:
 
 def test_a_goal_run_trains_and_evaluates_end_to_end(tmp_path: Path) -> None:
     runs = tmp_path / "runs"
-    args = ["run", str(ROOT / "configs" / "goals_2agents.yaml"), "--runs-dir", str(runs)]
-    args += ["--no-progress"]
-    tiny = {
-        "env.map": "random",
-        "env.height": "12",
-        "env.width": "12",
-        "env.max_steps": "40",
-        "env.test_maps": "[]",
-        "env.observation": "{teammap: {crop: 7, global_size: 6}}",
-        "env.frontier.action.goal.k": "4",
-        "vec.copies": "2",
-        "algo.buffer_size": "2000",
-        "algo.learning_starts": "200",
-        "algo.features_dim": "16",
-        "algo.net_arch": "[16]",
-        "phases.0.timesteps": "600",
-        "phases.0.exploration.steps": "400",
-        "eval.every": "600",
-        "eval.episodes": "2",
-        "checkpoint.every": "600",
-    }
-    for key, value in tiny.items():
-        args += ["--set", f"{key}={value}"]
+    args = tiny_goal_run(ROOT / "configs" / "goals_2agents.yaml", runs)
     assert main(args) == 0
     (run,) = runs.iterdir()
     assert (run / "model.zip").is_file()

@@ -19,6 +19,7 @@ from harness.factory import make_core_spec
 from harness.sb3.decisions import EXPERT_KEY
 from harness.training.adapters import CoreVecEnv
 from harness.training.teacher import TeacherLabeller
+from tests.conftest import tiny_goal_run
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "goals_2agents_teacher.yaml"
@@ -130,24 +131,9 @@ def test_a_run_with_a_teacher_stores_its_labels_and_evaluates(
     prioritized: bool, tmp_path: Path
 ) -> None:
     runs = tmp_path / "runs"
-    args = ["run", str(CONFIG), "--runs-dir", str(runs), "--no-progress"]
-    tiny = {
-        **SMALL,
-        "env.max_steps": "40",
-        "vec.copies": "2",
-        "algo.prioritized": str(prioritized).lower(),
-        "algo.buffer_size": "2000",
-        "algo.learning_starts": "200",
-        "algo.features_dim": "16",
-        "algo.net_arch": "[16]",
-        "phases.0.timesteps": "600",
-        "phases.0.exploration.steps": "400",
-        "eval.every": "600",
-        "eval.episodes": "2",
-        "checkpoint.every": "300",
-    }
-    for key, value in tiny.items():
-        args += ["--set", f"{key}={value}"]
+    args = tiny_goal_run(
+        CONFIG, runs, algo__prioritized=str(prioritized).lower(), checkpoint__every="300"
+    )
     assert main(args) == 0
     (run,) = runs.iterdir()
     checkpoint = sorted((run / "checkpoints").glob("step-*"))[-1]

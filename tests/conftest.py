@@ -40,6 +40,20 @@ def one_error_line(err: str) -> str:
     return lines[0]
 
 
+def refused_run(config: Path, overrides: list[str], runs: Path, capsys) -> str:
+    """The one error line of ``harness run config --set ...`` into ``runs``, checked to exit
+    with 2 and to leave no run folder behind."""
+    from harness.cli import main
+
+    args = ["run", str(config), "--runs-dir", str(runs)]
+    for override in overrides:
+        args += ["--set", override]
+    assert main(args) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert list(runs.iterdir()) == []
+    return line
+
+
 #: ``--set`` overrides that make a goal-action config (``configs/goals_*.yaml``) a run of a few
 #: seconds: 12x12 random maps of 40 steps, 4 slots, a 16-wide network, 600 transitions.
 TINY_GOAL_RUN = {

@@ -32,7 +32,7 @@ from harness.sb3.decisions import (
     PerDecisionDictReplayBuffer,
     PerDecisionPrioritizedDictReplayBuffer,
 )
-from tests.conftest import tiny_goal_run
+from tests.conftest import refused_run, tiny_goal_run
 
 ROOT = Path(__file__).resolve().parents[1]
 F = {name: i for i, name in enumerate(GOAL_FEATURES)}
@@ -401,14 +401,9 @@ def test_reset_drops_the_pending_transitions(buffer_class) -> None:
 def test_per_decision_is_refused_in_one_line_where_it_cannot_work(
     overrides: list[str], message: str, capsys, tmp_path: Path
 ) -> None:
-    args = ["run", str(ROOT / "configs" / "goals_2agents_hold.yaml"), "--runs-dir", str(tmp_path)]
-    for override in overrides:
-        args += ["--set", override]
-    assert main(args) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("harness: error:") and "\n" not in err
-    assert message in err
-    assert list(tmp_path.iterdir()) == []
+    assert message in refused_run(
+        ROOT / "configs" / "goals_2agents_hold.yaml", overrides, tmp_path, capsys
+    )
 
 
 @pytest.mark.parametrize("prioritized", [False, True])

@@ -19,7 +19,7 @@ from harness.factory import make_core_spec
 from harness.sb3.decisions import EXPERT_KEY
 from harness.training.adapters import CoreVecEnv
 from harness.training.teacher import TeacherLabeller
-from tests.conftest import tiny_goal_run
+from tests.conftest import refused_run, tiny_goal_run
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIG = ROOT / "configs" / "goals_2agents_teacher.yaml"
@@ -116,14 +116,7 @@ def test_the_core_vecenv_puts_the_labels_in_the_step_s_infos() -> None:
 def test_a_teacher_that_cannot_work_is_refused_in_one_line(
     overrides: list[str], message: str, capsys, tmp_path: Path
 ) -> None:
-    args = ["run", str(CONFIG), "--runs-dir", str(tmp_path)]
-    for override in overrides:
-        args += ["--set", override]
-    assert main(args) == 2
-    err = capsys.readouterr().err.strip()
-    assert err.startswith("harness: error:") and "\n" not in err
-    assert message in err
-    assert list(tmp_path.iterdir()) == []
+    assert message in refused_run(CONFIG, overrides, tmp_path, capsys)
 
 
 @pytest.mark.parametrize("prioritized", [False, True])

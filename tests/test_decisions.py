@@ -388,6 +388,10 @@ def test_reset_drops_the_pending_transitions(buffer_class) -> None:
 
 
 # ---------------------------------------------------------------------- the config key, a run
+#: The shipped config with hold and per_decision (its teacher switched off where a test says so).
+HOLD_CONFIG = ROOT / "configs" / "goals_2agents_teacher.yaml"
+
+
 @pytest.mark.parametrize(
     ("overrides", "message"),
     [
@@ -401,9 +405,7 @@ def test_reset_drops_the_pending_transitions(buffer_class) -> None:
 def test_per_decision_is_refused_in_one_line_where_it_cannot_work(
     overrides: list[str], message: str, capsys, tmp_path: Path
 ) -> None:
-    assert message in refused_run(
-        ROOT / "configs" / "goals_2agents_hold.yaml", overrides, tmp_path, capsys
-    )
+    assert message in refused_run(HOLD_CONFIG, ["algo.teacher=null", *overrides], tmp_path, capsys)
 
 
 @pytest.mark.parametrize("prioritized", [False, True])
@@ -412,8 +414,9 @@ def test_a_run_with_hold_and_per_decision_trains_resumes_and_evaluates(
 ) -> None:
     runs = tmp_path / "runs"
     args = tiny_goal_run(
-        ROOT / "configs" / "goals_2agents_hold.yaml",
+        HOLD_CONFIG,
         runs,
+        algo__teacher="null",
         algo__prioritized=str(prioritized).lower(),
         checkpoint__every="300",
     )

@@ -440,15 +440,6 @@ class TeacherConfig(_Section):
     share: Annotated[float, Field(gt=0.0, le=1.0)] = 1.0
     """Share of the copies' steps whose decisions are labelled (a copy's step is labelled or
     not as a whole, drawn from the run's own generator): the teacher's rollouts are the cost."""
-    horizon: PositiveInt | None = None
-    """Steps a rollout runs at most; ``null``: to the episode's end (the oracle's room is
-    measured over whole episodes, docs/experiment-log.md)."""
-    reach: Annotated[float, Field(gt=0.0, le=1.0)] | None = None
-    """Score a slot by the steps its rollout takes to this coverage (e.g. 0.99, for teams that
-    cover whole maps) instead of the cells found; ``null``: cells."""
-    gain: Annotated[float, Field(ge=0.0)] = 0.0
-    """What a slot must gain over slot 0 (the planner's) to be the label: cells, or steps with
-    ``reach``."""
     margin: Annotated[float, Field(ge=0.0)] = 0.8
     """The loss's margin: the lead the label's Q-value must have over every other slot's."""
     weight: Annotated[float, Field(ge=0.0)] = 1.0

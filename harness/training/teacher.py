@@ -34,7 +34,9 @@ class TeacherLabeller:
     """
 
     def __init__(self, config: TeacherConfig, seed: int | None = None) -> None:
-        self.teacher = RolloutTeacher(config.horizon, config.gain, config.reach)
+        # The oracle's measured setting: rollouts to the episode's end, scored by the cells found,
+        # any gain over slot 0 (docs/experiment-log.md "The room in the candidates").
+        self.teacher = RolloutTeacher()
         self.share = config.share
         self.rng = np.random.default_rng(seed)
         self.labels = 0

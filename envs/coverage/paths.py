@@ -26,7 +26,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["UNREACHED", "distance_fields", "first_step", "move_towards"]
+__all__ = ["UNREACHED", "distance_fields", "first_step", "move_towards", "walk_back"]
 
 #: Predecessor of a cell no path reaches (and of each start), as SciPy writes it.
 UNREACHED = -9999
@@ -93,20 +93,40 @@ def distance_fields(
 
 
 @njit(cache=True, nogil=True)
+def _nearer(dist: np.ndarray, cell: int, stride: int) -> int:
+    """``cell``'s predecessor in one row of :func:`distance_fields` (``0 < dist[cell] < inf``),
+    from the distances alone: its highest-index neighbour one step nearer (the module's rule)."""
+    before = dist[cell] - 1.0
+    for u in (cell + stride, cell + 1, cell - 1, cell - stride):
+        if dist[u] == before:
+            return u
+    return cell  # not reached: a reached cell always has a nearer neighbour
+
+
+@njit(cache=True, nogil=True)
 def first_step(dist: np.ndarray, goal: int, stride: int) -> int:
     """The first cell of the path to ``goal`` (reached: ``0 < dist[goal] < inf``) in one row
     of :func:`distance_fields`: the path its predecessors give, walked back from the distances
     alone (each cell's predecessor is its highest-index neighbour one step nearer)."""
-    offsets = (stride, 1, -1, -stride)
     step = goal
     while dist[step] > 1.0:
-        before = dist[step] - 1.0
-        for k in range(4):
-            u = step + offsets[k]
-            if dist[u] == before:
-                step = u
-                break
+        step = _nearer(dist, step, stride)
     return step
+
+
+@njit(cache=True, nogil=True)
+def walk_back(dist: np.ndarray, goal: int, stride: int, out: np.ndarray) -> int:
+    """The cells of the shortest path to ``goal`` in one row of :func:`distance_fields` (from
+    its start, which is left out), walked back as :func:`first_step` walks, into ``out``;
+    returns how many (0: ``goal`` is the start or not reached)."""
+    if not dist[goal] < np.inf:
+        return 0
+    length = int(dist[goal])
+    step = goal
+    for j in range(length - 1, -1, -1):
+        out[j] = step
+        step = _nearer(dist, step, stride)
+    return length
 
 
 @njit(cache=True, nogil=True)

@@ -47,7 +47,7 @@ import numpy as np
 from numba import njit
 
 from envs.coverage.goals import Candidates
-from envs.coverage.paths import distance_fields
+from envs.coverage.paths import distance_fields, walk_back
 from envs.coverage.planners import (
     _FREE,
     _ORDER,
@@ -69,28 +69,6 @@ __all__ = ["RolloutTeacher", "shortest_walk"]
 #: The planners a rollout steps (:func:`_planner_kind`): the frontier explorer (``order`` or
 #: ``pocket``), or a coordinated planner's compiled step.
 _EXPLORER, _COORDINATED = 0, 1
-
-
-@njit(cache=True, nogil=True)
-def _walk_back(dist: np.ndarray, goal: int, stride: int, out: np.ndarray) -> int:
-    """The cells of the shortest path to ``goal`` in one row of
-    :func:`~envs.coverage.paths.distance_fields` (from its start, which is left out; the
-    predecessors' rule: each cell's is its highest-index neighbour one step nearer), into
-    ``out``; returns how many (0: ``goal`` is the start or not reached)."""
-    if not dist[goal] < np.inf:
-        return 0
-    length = int(dist[goal])
-    offsets = (stride, 1, -1, -stride)
-    step = goal
-    for j in range(length - 1, -1, -1):
-        out[j] = step
-        before = dist[step] - 1.0
-        for k in range(4):
-            u = step + offsets[k]
-            if dist[u] == before:
-                step = u
-                break
-    return length
 
 
 @njit(cache=True, nogil=True)
@@ -210,7 +188,7 @@ def _slot_scores(
     own = lengths.copy()
     for s in range(targets.size):
         if s > 0:
-            own[agent] = _walk_back(dist[0], targets[s], stride, work[agent])
+            own[agent] = walk_back(dist[0], targets[s], stride, work[agent])
         new, step = _rollout(grid, n_targets, positions, work, own, steps, by_reach, goal,
                              window, offsets, kind, pocket, assign, horizon, beta,
                              radius)  # fmt: skip
@@ -258,7 +236,7 @@ def shortest_walk(planner: FrontierPlanner, agent: int, cell: int) -> list[int]:
     distance_fields(planner.passable, planner.stride, start, np.inf, dist, no_pred,
                     np.empty(size, dtype=np.int64))  # fmt: skip
     out = np.empty(size, dtype=np.int64)
-    return out[: _walk_back(dist[0], int(cell), planner.stride, out)].tolist()
+    return out[: walk_back(dist[0], int(cell), planner.stride, out)].tolist()
 
 
 class RolloutTeacher:

@@ -27,10 +27,6 @@ class TeacherLabeller:
     Args:
         config: ``algo.teacher``.
         seed: Seeds the draw of the labelled copies.
-
-    Attributes:
-        labels: Decisions labelled so far.
-        deviations: Of those, the ones whose label is not slot 0 (the planner's choice).
     """
 
     def __init__(self, config: TeacherConfig, seed: int | None = None) -> None:
@@ -39,8 +35,6 @@ class TeacherLabeller:
         self.teacher = RolloutTeacher()
         self.share = config.share
         self.rng = np.random.default_rng(seed)
-        self.labels = 0
-        self.deviations = 0
 
     def __call__(self, core: CoverageCore) -> np.ndarray:
         """The label of every agent of every copy at the core's current state, ``(copies,
@@ -60,7 +54,4 @@ class TeacherLabeller:
             steps_left = core.max_steps - int(core.steps[b])
             slots, _ = self.teacher.label(planner, frontier.candidates, steps_left, walks)
             out[b] = slots
-        given = out[out >= 0]
-        self.labels += int(given.size)
-        self.deviations += int((given > 0).sum())
         return out

@@ -288,7 +288,7 @@ class FrontierPlanner:
             raise ValueError(f"unknown tie_break {tie_break!r}; known: {', '.join(TIE_BREAKS)}")
         self.tie_break = tie_break
         self.rng: np.random.Generator | None = None  # act()'s generator, for "random" ties
-        self._held_rng: tuple[np.random.Generator, _GeneratorRef] | None = None  # for _plan_random
+        self._held_rng: tuple[np.random.Generator, _GeneratorRef] | None = None  # for _plan
         self.shape = (height, width)
         self.stride = width + 2
         # Neighbour offsets in ascending index order (up, left, right, down); the compiled search

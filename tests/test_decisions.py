@@ -323,6 +323,24 @@ def test_a_decision_keeps_the_expert_label_given_at_its_step(buffer_class) -> No
         assert samples.indices.tolist() == [by_obs[x] for x in xs]
 
 
+@pytest.mark.parametrize("label", [3, -2])
+def test_a_label_that_is_no_action_is_refused_where_it_enters(buffer_class, label) -> None:
+    # The margin loss trusts the stored labels (it reads no device for a range check).
+    buffer = buffer_class(
+        100, SPACE, spaces.Discrete(3), device="cpu", n_envs=2, gamma=GAMMA, labels=True
+    )
+    refused = rf"slot 1's {EXPERT_KEY} {label} is no action in \[0, 3\)"
+    with pytest.raises(ValueError, match=refused):
+        feed(
+            buffer,
+            [
+                ([0, 10], [DECIDE, DECIDE], [2, 0], [1.0, 5.0], [False, False],
+                 [{EXPERT_KEY: 1}, {EXPERT_KEY: label}]),
+                ([1, 11], [DECIDE, DECIDE], None, None, None, None),
+            ],
+        )  # fmt: skip
+
+
 def test_without_labels_the_samples_carry_no_experts(buffer_class) -> None:
     buffer = buffer_class(100, SPACE, spaces.Discrete(3), device="cpu", n_envs=2, gamma=GAMMA)
     feed(

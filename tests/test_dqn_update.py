@@ -151,6 +151,16 @@ def test_margin_loss_hook_follows_each_sample_s_own_label_and_skips_unlabelled_o
     assert len(terms) == 2
 
 
+def test_margin_loss_hook_reads_no_device_for_the_labels(monkeypatch: pytest.MonkeyPatch) -> None:
+    # The labels' range is the buffer's check, where they enter (harness.sb3.decisions): the
+    # term itself reads nothing back from the device, so a training call keeps its one read.
+    model = make_linear_model(margin=0.8, margin_weight=0.5)
+    samples = batch(rewards=[0.0] * 2, experts=th.tensor([[1], [-1]]))
+    counts = count_host_reads(monkeypatch)
+    model._margin_loss(samples, th.tensor([[0.0, 0.0], [2.0, 1.0]]), StepStats())
+    assert counts == {}
+
+
 def test_loss_terms_are_the_td_loss_then_the_margin() -> None:
     q = th.tensor([[2.0, 1.0]])
     current, target = column([1.0]), column([3.0])

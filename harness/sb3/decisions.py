@@ -157,8 +157,17 @@ class _PerDecision:
             self.pending_action[new] = np.asarray(action).reshape(self.pending_action.shape)[new]
             self.pending_return[new] = 0.0
             if self.labels:
+                n_actions = int(self.action_space.n)  # type: ignore[attr-defined]
                 for j in np.flatnonzero(new).tolist():
-                    self.pending_expert[j] = int(infos[j].get(EXPERT_KEY, -1))
+                    label = int(infos[j].get(EXPERT_KEY, -1))
+                    # Checked here, where it enters: the margin loss then reads no device
+                    # for a range check (DoubleDQN._margin_loss).
+                    if not -1 <= label < n_actions:
+                        raise ValueError(
+                            f"slot {j}'s {EXPERT_KEY} {label} is no action in [0, {n_actions}) "
+                            "and not -1 (no label)"
+                        )
+                    self.pending_expert[j] = label
         self.pending_return += self.gamma**steps * np.asarray(reward, dtype=np.float64).ravel()
         steps += 1
         mask = np.asarray(next_obs[ACTION_MASK_KEY]).reshape(self.slots, -1)

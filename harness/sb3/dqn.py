@@ -704,7 +704,9 @@ class DoubleDQN(DQN):
         if experts is not None:
             labelled = experts >= 0
             expert: th.Tensor | int = th.where(labelled, experts, th.zeros_like(experts))
-            margin_loss = large_margin_loss(q_values, expert, self.margin) * labelled
+            # The labels' range was checked as they entered the buffer: no device read here.
+            margin_loss = large_margin_loss(q_values, expert, self.margin, check_range=False)
+            margin_loss = margin_loss * labelled
         else:
             assert self.expert_action is not None
             labelled, expert = None, self.expert_action

@@ -130,6 +130,7 @@ def large_margin_loss(
     expert_actions: th.Tensor | int,
     margin: float,
     expert_set: th.Tensor | None = None,
+    check_range: bool = True,
 ) -> th.Tensor:
     """DQfD's supervised large-margin loss (Hester et al., 2018, eq. 2), per sample.
 
@@ -150,6 +151,9 @@ def large_margin_loss(
         margin: ``l``, the lead asked of the expert's action (>= 0).
         expert_set: ``(batch, n_actions)`` bool, True for the actions equivalent to the expert's
             (the expert's own action is always counted), or ``None``.
+        check_range: Refuse a tensor of expert actions outside ``[0, n_actions)``; the check
+            reads the tensor's device (a host round trip on a GPU), so a caller whose actions
+            were checked where they were made passes ``False``.
 
     Returns:
         The loss per sample, ``(batch, 1)``, >= 0.
@@ -167,7 +171,7 @@ def large_margin_loss(
         expert = th.full((batch_size, 1), expert_actions, dtype=th.long, device=q.device)
     else:
         expert = _as_column(expert_actions, "expert_actions", batch_size).long()
-        if bool(((expert < 0) | (expert >= n_actions)).any()):
+        if check_range and bool(((expert < 0) | (expert >= n_actions)).any()):
             raise ValueError(out_of_range)
     in_set = th.zeros_like(q, dtype=th.bool).scatter(1, expert, True)
     if expert_set is not None:

@@ -85,9 +85,9 @@ from harness.training.checkpoints import (
 )
 from harness.training.checks import (
     check_replay_memory,
+    fast_optimizer_kwargs,
     format_bytes,
     network_kwargs,
-    optimizer_kwargs_with_foreach,
     policy_class_name,
 )
 from harness.training.teacher import TeacherLabeller
@@ -101,7 +101,9 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
     policy_kwargs: dict[str, Any] = {
         **network_kwargs(algo, config.env.n_agents),
         "optimizer_class": optimizer_class,
-        "optimizer_kwargs": optimizer_kwargs_with_foreach(optimizer_class, algo.optimizer_kwargs),
+        "optimizer_kwargs": fast_optimizer_kwargs(
+            optimizer_class, algo.optimizer_kwargs, algo.device
+        ),
     }
     buffer_kwargs: dict[str, Any] | None = None
     buffer_class: type[ReplayBuffer] | None = None

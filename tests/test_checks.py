@@ -1,0 +1,44 @@
+"""harness/training/checks.py: the optimizer's fastest implementation of its own step."""
+
+from __future__ import annotations
+
+import pytest
+import torch as th
+
+from harness.training.checks import fast_optimizer_kwargs
+
+
+def test_adam_gets_the_fused_step_and_rmsprop_the_multi_tensor_one() -> None:
+    # Adam has a fused CPU kernel in the pinned torch; RMSprop has none.
+    assert fast_optimizer_kwargs(th.optim.Adam, {"eps": 1e-5}) == {"fused": True, "eps": 1e-5}
+    assert fast_optimizer_kwargs(th.optim.RMSprop, {}) == {"foreach": True}
+    # An optimizer with neither keeps its arguments as they are.
+    assert fast_optimizer_kwargs(th.optim.LBFGS, {"history_size": 5}) == {"history_size": 5}
+
+
+@pytest.mark.parametrize("named", [{"foreach": False}, {"fused": False}, {"foreach": True}])
+def test_a_choice_named_in_the_config_is_kept(named: dict) -> None:
+    assert fast_optimizer_kwargs(th.optim.Adam, named) == named
+
+
+def test_a_setting_the_fused_step_lacks_falls_back_to_foreach() -> None:
+    # torch refuses fused=True with differentiable=True: the multi-tensor step is used.
+    kwargs = {"differentiable": True}
+    assert fast_optimizer_kwargs(th.optim.Adam, kwargs) == {"foreach": True, **kwargs}
+
+
+def test_the_fused_step_is_the_same_update() -> None:
+    """Ten Adam steps fused and in torch's default loop give the same weights (to rounding:
+    the fused kernel orders a few operations differently)."""
+    start = th.randn(64, 33, generator=th.Generator().manual_seed(0))
+    weights = []
+    for kwargs in ({"foreach": False}, fast_optimizer_kwargs(th.optim.Adam, {})):
+        param = th.nn.Parameter(start.clone())
+        optimizer = th.optim.Adam([param], lr=1e-2, **kwargs)
+        grads = th.Generator().manual_seed(1)
+        for _ in range(10):
+            param.grad = th.randn(param.shape, generator=grads)
+            optimizer.step()
+        weights.append(param.detach())
+    assert not th.equal(weights[1], start)
+    th.testing.assert_close(weights[1], weights[0], rtol=0, atol=1e-6)

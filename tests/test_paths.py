@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import dijkstra
 
-from envs.coverage.paths import UNREACHED, distance_fields, first_step
+from envs.coverage.paths import UNREACHED, breadth_first, distance_fields, first_step
 
 
 def scipy_graph(passable: np.ndarray, stride: int, all_edges: bool) -> csr_matrix:
@@ -139,3 +139,24 @@ def test_no_predecessors_asked_for() -> None:
     queue = np.empty(passable.size, np.int64)
     distance_fields(passable, 5, np.array([6]), np.inf, dist, none, queue)
     assert dist[0, 13] == 3 and first_step(dist[0], 13, 5) == 11  # via the cell below the start
+
+
+def test_breadth_first_stops_once_every_target_is_reached_and_passes_the_limit_for_one() -> None:
+    # A 1x7 corridor, start at its left end (padded: stride 9, the corridor cells 10-16).
+    passable = padded(np.ones((1, 7), dtype=bool))
+    queue = np.empty(passable.size, np.int64)
+    d = np.empty(passable.size)
+    target = np.zeros(passable.size, dtype=bool)
+    target[12] = True  # 2 steps away
+    reached = breadth_first(passable, 9, 10, np.inf, d, queue, target, 1)
+    # cells 10, 11, 12 reached, then the search ends: the farther cells keep no length
+    assert reached == 3 and queue[:3].tolist() == [10, 11, 12]
+    assert d[12] == 2 and d[13] == np.inf
+    # No target within a limit of 2: it goes on until the one 5 steps away, the same lengths.
+    target[:] = False
+    target[15] = True
+    assert breadth_first(passable, 9, 10, 2.0, d, queue, target, 1) == 6
+    assert d[15] == 5 and d[16] == np.inf
+    # Without targets the limit ends it: 0, 1 and 2 steps.
+    assert breadth_first(passable, 9, 10, 2.0, d, queue, target, 0) == 3
+    assert d[13] == np.inf

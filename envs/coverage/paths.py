@@ -26,10 +26,69 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-__all__ = ["UNREACHED", "distance_fields", "first_step", "move_towards", "walk_back"]
+__all__ = [
+    "UNREACHED",
+    "breadth_first",
+    "distance_fields",
+    "first_step",
+    "move_towards",
+    "walk_back",
+]
 
 #: Predecessor of a cell no path reaches (and of each start), as SciPy writes it.
 UNREACHED = -9999
+
+
+@njit(cache=True, nogil=True)
+def breadth_first(
+    passable: np.ndarray,
+    stride: int,
+    start: int,
+    limit: float,
+    d: np.ndarray,
+    queue: np.ndarray,
+    target: np.ndarray,
+    n_targets: int,
+) -> int:
+    """One start's path lengths into ``d`` (``inf`` where not reached), breadth first through
+    ``passable`` cells, neighbours highest index first (the module's rule); the one search of
+    :func:`distance_fields` and of the coordinated planners' costs.
+
+    Paths longer than ``limit`` are not followed. With ``n_targets > 0`` (the number of
+    ``target`` cells) the search ends as soon as every target is reached (a farther cell is no
+    target's path length, and a path to a target runs through nearer cells only, all reached
+    by then), and goes on past ``limit`` from where it stopped while no target lies within it
+    (the same lengths as a new search without a limit). Returns how many cells it reached; they
+    are ``queue``'s first, in the order reached (the start first).
+    """
+    offsets = (stride, 1, -1, -stride)  # highest neighbour index first: the predecessor rule
+    d[:] = np.inf
+    d[start] = 0.0
+    queue[0] = start
+    found = 1 if n_targets > 0 and target[start] else 0
+    if not passable[start] or (n_targets > 0 and found == n_targets):
+        return 1
+    bound = float(limit)
+    head, tail = 0, 1
+    while head < tail:
+        v = queue[head]
+        nd = d[v] + 1.0
+        if nd > bound:  # cells leave the queue in distance order: the rest are as far
+            if n_targets == 0 or found > 0:
+                return tail
+            bound = np.inf  # no target within the limit: on over the whole map
+        head += 1
+        for k in range(4):
+            w = v + offsets[k]
+            if passable[w] and d[w] == np.inf:
+                d[w] = nd
+                queue[tail] = w
+                tail += 1
+                if n_targets > 0 and target[w]:
+                    found += 1
+        if n_targets > 0 and found == n_targets:
+            return tail
+    return tail
 
 
 @njit(cache=True, nogil=True)
@@ -47,8 +106,8 @@ def distance_fields(
     Args:
         passable: ``bool (cells,)``, the padded flat grid (its outer ring never passable).
         stride: Row length of the padded grid.
-        starts: Start cells, one search each (a start need not be passable: then it reaches
-            nothing but itself).
+        starts: Start cells, one search each (:func:`breadth_first`; a start need not be
+            passable: then it reaches nothing but itself).
         limit: Paths longer than this are not followed (``inf``: the whole map).
         dist: ``float64 (len(starts), cells)``, written: path lengths, ``inf`` where none.
         pred: ``int32 (len(starts), cells)``, written: predecessors, :data:`UNREACHED` where
@@ -57,27 +116,10 @@ def distance_fields(
         queue: ``int64 (cells,)`` scratch.
     """
     with_pred = pred.shape[0] > 0
-    offsets = (stride, 1, -1, -stride)  # highest neighbour index first: the predecessor rule
+    offsets = (stride, 1, -1, -stride)
     for i in range(starts.size):
         d = dist[i]
-        d[:] = np.inf
-        s = starts[i]
-        d[s] = 0.0
-        head, tail = 0, 1
-        queue[0] = s
-        if passable[s]:
-            while head < tail:
-                v = queue[head]
-                head += 1
-                nd = d[v] + 1.0
-                if nd > limit:
-                    break  # cells leave the queue in distance order: the rest are as far
-                for k in range(4):
-                    w = v + offsets[k]
-                    if passable[w] and d[w] == np.inf:
-                        d[w] = nd
-                        queue[tail] = w
-                        tail += 1
+        tail = breadth_first(passable, stride, starts[i], limit, d, queue, passable, 0)
         if not with_pred:
             continue
         p = pred[i]

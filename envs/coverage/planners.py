@@ -44,7 +44,7 @@ from numba import njit, types
 from numba.experimental import structref
 from scipy.ndimage import label
 
-from envs.coverage.paths import distance_fields, first_step, move_towards
+from envs.coverage.paths import breadth_first, distance_fields, first_step, move_towards
 from envs.coverage.types import STAY
 
 __all__ = [
@@ -665,52 +665,6 @@ class UtilityPlanner(CoordinatedPlanner):
 # A coordinated planner's step around its assignment, compiled (the searches, the costs of the
 # targets, the walk back along the chosen paths).
 @njit(cache=True, nogil=True)
-def _cost_field(
-    passable: np.ndarray,
-    target: np.ndarray,
-    n_targets: int,
-    stride: int,
-    start: int,
-    horizon: float,
-    d: np.ndarray,
-    queue: np.ndarray,
-) -> None:
-    """One agent's distance field for :func:`_target_costs` into ``d``: breadth first from
-    ``start`` in :func:`~envs.coverage.paths.distance_fields`'s order, up to ``horizon``, on
-    over the whole map when no target lies within it (the search goes on from where it
-    stopped: the same distances as a new whole-map search), and stopped as soon as all
-    ``n_targets`` targets are reached: a farther cell is no target's cost, and a path to a
-    target runs through nearer cells only, which are all reached by then."""
-    offsets = (stride, 1, -1, -stride)
-    d[:] = np.inf
-    d[start] = 0.0
-    found = 1 if target[start] else 0
-    if found == n_targets or not passable[start]:
-        return
-    limit = horizon
-    head, tail = 0, 1
-    queue[0] = start
-    while head < tail:
-        v = queue[head]
-        nd = d[v] + 1.0
-        if nd > limit:  # cells leave the queue in distance order: the rest are as far
-            if found > 0:
-                return
-            limit = np.inf  # nothing within the horizon: the whole map
-        head += 1
-        for k in range(4):
-            w = v + offsets[k]
-            if passable[w] and d[w] == np.inf:
-                d[w] = nd
-                queue[tail] = w
-                tail += 1
-                if target[w]:
-                    found += 1
-        if found == n_targets:
-            return
-
-
-@njit(cache=True, nogil=True)
 def _target_costs(
     passable: np.ndarray,
     target: np.ndarray,
@@ -720,13 +674,14 @@ def _target_costs(
     dist: np.ndarray,
     queue: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Every agent's distance field up to ``horizon`` (the whole map for an agent with no
-    target within it; :func:`_cost_field`) into ``dist``; returns the target cells (ascending)
+    """Every agent's distance field up to ``horizon`` (on over the whole map for an agent with
+    no target within it, and only until every target is reached:
+    :func:`~envs.coverage.paths.breadth_first`) into ``dist``; returns the target cells (ascending)
     and the agents' path lengths to them ``(agents, targets)``."""
     cells = np.flatnonzero(target)
     costs = np.empty((starts.size, cells.size))
     for i in range(starts.size):
-        _cost_field(passable, target, cells.size, stride, starts[i], horizon, dist[i], queue)
+        breadth_first(passable, stride, starts[i], horizon, dist[i], queue, target, cells.size)
         for j in range(cells.size):
             costs[i, j] = dist[i, cells[j]]
     return cells, costs

@@ -44,12 +44,14 @@ def small_core(copies: int = 3) -> CoverageCore:
     return core
 
 
-def test_the_labeller_gives_the_teacher_s_slot_to_every_deciding_agent() -> None:
+@pytest.mark.parametrize("reach", [None, 0.3])
+def test_the_labeller_gives_the_teacher_s_slot_to_every_deciding_agent(reach) -> None:
+    # reach: the rollouts scored by the steps to that coverage (the 4-agent measure).
     core = small_core()
     rng = np.random.default_rng(0)
-    teacher = RolloutTeacher()
+    teacher = RolloutTeacher(reach=reach)
     for _ in range(12):  # a few steps in, with some targets held
-        labels = TeacherLabeller(TeacherConfig(), seed=1)(core)
+        labels = TeacherLabeller(TeacherConfig(reach=reach), seed=1)(core)
         assert labels.shape == (3, 2)
         for b in range(3):
             frontier = core.frontiers[b]

@@ -8,8 +8,8 @@ planner extension (``frontier: {action: step, planner: pocket}``).
 
 Retired (docs/experiment-log.md says what each measured and which commit had it): ``env.trail``,
 ``eval.step_bonus``, ``algo.imitation.same_moves``, ``algo.action_mask``,
-``env.frontier.action.goal.gather``, ``algo.teacher.horizon``, ``reach`` and ``gain`` (the
-teacher's rollouts to the episode's end, scored by cells, any gain). A file that leaves
+``env.frontier.action.goal.gather``, ``algo.teacher.horizon`` and ``gain`` (the teacher's
+rollouts go to the episode's end, any gain counts). A file that leaves
 them at their old defaults (as every saved ``config.yaml`` does) loads; a file that turns one on
 is refused, naming the key, since what it asked for no longer exists.
 """
@@ -31,7 +31,6 @@ RETIRED = {
     ("algo", "imitation", "same_moves"): False,
     ("env", "frontier", "action", "goal", "gather"): "clusters",
     ("algo", "teacher", "horizon"): None,
-    ("algo", "teacher", "reach"): None,
     ("algo", "teacher", "gain"): 0.0,
 }
 

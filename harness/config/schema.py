@@ -444,6 +444,10 @@ class TeacherConfig(_Section):
     """The loss's margin: the lead the label's Q-value must have over every other slot's."""
     weight: Annotated[float, Field(ge=0.0)] = 1.0
     """The loss's weight beside the TD (Huber) loss (DQfD's lambda_2), on labelled samples."""
+    reach: Annotated[float, Field(gt=0.0, le=1.0)] | None = None
+    """Score the rollouts by the steps they take to this coverage (fewer is better; e.g. 0.99,
+    the 4-agent settings' measure, where every rollout covers the whole map) instead of the
+    cells found by the episode's end."""
 
 
 class AlgoConfig(_Section):

@@ -21,9 +21,10 @@ def test_a_choice_named_in_the_config_is_kept(named: dict) -> None:
     assert fast_optimizer_kwargs(th.optim.Adam, named) == named
 
 
-def test_a_setting_the_fused_step_lacks_falls_back_to_foreach() -> None:
-    # torch refuses fused=True with differentiable=True: the multi-tensor step is used.
-    kwargs = {"differentiable": True}
+@pytest.mark.parametrize("flag", ["differentiable", "capturable"])
+def test_settings_of_torch_s_loops_keep_the_multi_tensor_step(flag: str) -> None:
+    # As before the fused step was used: capturable on the CPU stays refused by the checks.
+    kwargs = {flag: True}
     assert fast_optimizer_kwargs(th.optim.Adam, kwargs) == {"foreach": True, **kwargs}
 
 

@@ -92,13 +92,17 @@ def fast_optimizer_kwargs(
 
     Both are the same update as torch's default loop, not another optimizer (the fused step
     rounds some weights one unit in the last place differently). Measured on the 2-core
-    machine (``harness bench``, docs/performance.md): foreach gives ~20 % more gradient steps/s
-    for the thesis's 3x512 net with RMSprop; fused Adam ~20 % more than foreach for the goal
-    action's slot-scoring network. torch enables either by itself only on a GPU.
+    machine (docs/performance.md): foreach gives ~20 % more gradient steps/s for the thesis's
+    3x512 net with RMSprop (``harness bench``); fused Adam took 7-15 % off the CPU time of a
+    short ``goals_2agents`` run against foreach ("The learner's optimizer step"). torch enables
+    either by itself only on a GPU.
     """
     if "fused" in kwargs or "foreach" in kwargs:
         return dict(kwargs)
-    if _fused_runs(optimizer_class, kwargs, str(get_device(device))):
+    # capturable (CUDA graphs) and differentiable (autograd through the step) ask for features
+    # of torch's loops: the step keeps the implementation it had before the fused one was used.
+    wants_loop = "capturable" in kwargs or "differentiable" in kwargs
+    if not wants_loop and _fused_runs(optimizer_class, kwargs, str(get_device(device))):
         return {"fused": True, **kwargs}
     if "foreach" in inspect.signature(optimizer_class.__init__).parameters:
         return {"foreach": True, **kwargs}

@@ -803,11 +803,12 @@ class DoubleDQN(DQN):
             allowed = allowed_actions(obs, n_actions)
             assert isinstance(allowed, th.Tensor)
             deciding = allowed.sum(dim=1) > 1
-            if bool(deciding.all()):
+            n_deciding = int(deciding.sum())  # one read of the device for both cases below
+            if n_deciding == deciding.numel():
                 action = _masked(self.q_net(obs), allowed).argmax(dim=1)
             else:
                 action = allowed.to(th.int8).argmax(dim=1)  # a forced row's one action
-                if bool(deciding.any()):
+                if n_deciding > 0:
                     rows = {key: value[deciding] for key, value in obs.items()}  # type: ignore[union-attr]
                     action[deciding] = _masked(self.q_net(rows), allowed[deciding]).argmax(dim=1)
             action = action.cpu().numpy()

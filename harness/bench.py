@@ -198,6 +198,8 @@ TRAIN_NETS: dict[str, TrainNet] = {
 REPORT_NET = "mlp_3x512"
 #: The learners of each row, in the order they are timed: ours, then SB3's.
 TRAIN_LEARNERS = ("doubledqn_per", "dqn")
+#: On CUDA, ours is timed a third time without its recorded step (``cuda_graph=False``).
+NO_GRAPH = "doubledqn_per_no_graph"
 
 
 def train_devices() -> tuple[str, ...]:
@@ -293,7 +295,8 @@ def bench_train(
             steps = max(1, round(grad_steps * net.steps_share))
             ours, plain, venv = _models(net, 1, device)
             try:
-                for model in (ours, plain):  # warm-up: first calls allocate (and on CUDA, load)
+                for model in (ours, plain):  # warm-up: first calls allocate (and on CUDA, load);
+                    model.train(4, net.batch)  # on CUDA the second call records ours's step
                     model.train(2, net.batch)
                 rates: dict[str, list[float]] = {learner: [] for learner in TRAIN_LEARNERS}
                 # The report's net on the CPU also gives its transitions/s.
@@ -301,6 +304,12 @@ def bench_train(
                 for _ in range(rounds):
                     for learner, model in zip(TRAIN_LEARNERS, (ours, plain)):
                         rates[learner].append(_grad_rate(model, steps, net.batch, device))
+                    if device == "cuda":
+                        # Ours again without the recorded step (harness.sb3.graphs).
+                        ours.cuda_graph = False
+                        rate = _grad_rate(ours, steps, net.batch, device)
+                        rates.setdefault(NO_GRAPH, []).append(rate)
+                        ours.cuda_graph = True
                     if learn:
                         for learner, model in zip(TRAIN_LEARNERS, (ours, plain)):
                             flat.setdefault(learner, []).append(
@@ -313,6 +322,8 @@ def bench_train(
                 venv.close()
             row = {learner: float(np.median(r)) for learner, r in rates.items()}
             row["ratio"] = row["doubledqn_per"] / row["dqn"]
+            if NO_GRAPH in row:
+                row["graph_gain"] = row["doubledqn_per"] / row[NO_GRAPH]
             by_device[device][name] = row
     out: dict[str, Any] = {"train_grad_steps_by_device": by_device}
     mlp = by_device["cpu"].get(REPORT_NET)
@@ -574,13 +585,16 @@ def format_bench(r: dict[str, Any]) -> str:
             "",
             "gradient steps/s by device and network (same batch and device, alternately; "
             "CPU: 1 torch thread)",
-            f"  {'device':<8}{'network':<13}{'DDQN+PER':>10}{'SB3 DQN':>10}{'ratio':>8}",
+            f"  {'device':<8}{'network':<13}{'DDQN+PER':>10}{'SB3 DQN':>10}{'ratio':>8}"
+            f"{'no graph':>10}",
         ]
         for device, by_net in r["train_grad_steps_by_device"].items():
             for net, row in by_net.items():
+                # DDQN+PER without the CUDA graph (harness.sb3.graphs): CUDA rows only.
+                no_graph = f"{row[NO_GRAPH]:>10,.0f}" if NO_GRAPH in row else f"{'-':>10}"
                 lines.append(
                     f"  {device:<8}{net:<13}{row['doubledqn_per']:>10,.0f}{row['dqn']:>10,.0f}"
-                    f"{row['ratio']:>8.2f}"
+                    f"{row['ratio']:>8.2f}{no_graph}"
                 )
     if "train_grad_steps_per_s_by_setting" in r:
         lines += ["", "gradient steps/s by network, batch and torch threads (DoubleDQN + PER)"]

@@ -58,7 +58,15 @@ def test_bench_report_shows_every_section_with_targets():
                 "mlp_3x512": {"doubledqn_per": 200.0, "dqn": 240.0, "ratio": 200 / 240},
                 "teammap_cnn": {"doubledqn_per": 36.0, "dqn": 45.0, "ratio": 0.8},
             },
-            "cuda": {"teammap_cnn": {"doubledqn_per": 1_500.0, "dqn": 1_250.0, "ratio": 1.2}},
+            "cuda": {
+                "teammap_cnn": {
+                    "doubledqn_per": 1_500.0,
+                    "dqn": 1_250.0,
+                    "doubledqn_per_no_graph": 300.0,
+                    "ratio": 1.2,
+                    "graph_gain": 5.0,
+                }
+            },
         },
         "train_grad_steps_per_s_by_setting": {
             "2x64/batch32/threads1": 500.0,
@@ -88,9 +96,9 @@ def test_bench_report_shows_every_section_with_targets():
         assert expected in text, expected
     assert "2x64" in text and "450" in text
     (line,) = [line for line in text.splitlines() if "cpu" in line and "teammap_cnn" in line]
-    assert line.split()[2:] == ["36", "45", "0.80"]
+    assert line.split()[2:] == ["36", "45", "0.80", "-"]  # no CUDA graph on a CPU
     (line,) = [line for line in text.splitlines() if "cuda" in line and "teammap_cnn" in line]
-    assert line.split()[2:] == ["1,500", "1,250", "1.20"]
+    assert line.split()[2:] == ["1,500", "1,250", "1.20", "300"]
     (line,) = [line for line in text.splitlines() if "VecEnv, 16 copies" in line]
     assert "520,000" in line and "SuperSuit    52,000" in line and "10.0 x SuperSuit" in line
     (line,) = [line for line in text.splitlines() if "teammap + frontier field" in line]

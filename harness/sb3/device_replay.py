@@ -16,7 +16,11 @@ touches stays where the network is:
 * the priorities of a step's samples are written from its TD errors on the device, before the
   next sample, as the host buffer's are;
 * the uniform draws come from the buffer's own generator on the device, saved with the buffer,
-  so a resumed run draws what the uninterrupted one drew.
+  so a resumed run draws what the uninterrupted one drew;
+* what a sample reads besides the transitions and the priorities (the number stored, the newest
+  row, beta) is on the device too, and every write is in place, so that a sample can be part of
+  a captured CUDA graph (:class:`harness.sb3.graphs.GraphedStep`): :meth:`sample_at` draws at
+  given offsets, and :meth:`graph_key` changes when a graph of it must be captured again.
 
 The host path stays the one for the CPU (a sum tree costs ``log N`` per sample; a cumulative sum
 over every stored priority costs ``N``, which an accelerator does in parallel): see
@@ -60,6 +64,9 @@ _TENSORS = (
     "_max_priority",
     "_last_use",
 )
+#: Copies on the device of the buffer's own numbers that a sample reads (made again, not
+#: pickled): the stored count and the newest row, and beta.
+_SCALARS = ("_cursor", "_beta_tensor")
 
 
 def prioritized_buffer_class(
@@ -87,7 +94,7 @@ def n_step_returns_on_device(
     envs: th.Tensor,
     n_steps: int,
     gamma: float,
-    newest_row: int,
+    newest_row: int | th.Tensor,
 ) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor]:
     """:func:`harness.sb3.buffers.n_step_returns` on tensors: the same arithmetic (a sum in
     float64 of float32 rewards), the same results, where the tensors are."""
@@ -143,6 +150,7 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
         self._raw_priorities = th.zeros(capacity, dtype=th.float64, device=self.device)
         self._leaves = th.zeros(capacity, dtype=th.float64, device=self.device)
         self._max_priority = th.ones((), dtype=th.float64, device=self.device)
+        self._make_scalars()
         # Scratch for update_priorities (the last position of each index in a batch).
         self._last_use = th.empty(capacity, dtype=th.int64, device=self.device)
         self._generator = th.Generator(device=self.device)
@@ -171,6 +179,7 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
             return
         for name in _TENSORS:
             setattr(self, name, _to(getattr(self, name), new))
+        self._make_scalars()
         if old is None or old.type != new.type:
             # A generator's state is the device kind's own: continue from a seed drawn from it.
             seed = int(th.randint(2**62, (), generator=self._generator, device=old).item())
@@ -181,6 +190,8 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
         state = self.__dict__.copy()
         for name in _TENSORS:
             state[name] = _to(state[name], th.device("cpu"))
+        for name in _SCALARS:
+            state.pop(name, None)
         state["_generator"] = (str(self._device), self._generator.get_state())
         return state
 
@@ -195,6 +206,13 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
         for name in _TENSORS:
             setattr(self, name, _to(getattr(self, name), saved))
         self._device = saved
+        self._make_scalars()
+
+    def _make_scalars(self) -> None:
+        """Make the device's copies of the stored count, the newest row and beta."""
+        self._cursor = th.zeros(2, dtype=th.int64, device=self.device)
+        self._move_cursor()
+        self._beta_tensor = th.tensor(self._beta, dtype=th.float64, device=self.device)
 
     # ------------------------------------------------------------------ priorities
     @property
@@ -207,7 +225,19 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
         self._alpha = self._check_exponent("alpha", value)
         raw = self._raw_priorities
         # Empty slots stay zero: 0 ** 0 == 1 would make them sampleable when alpha == 0.
-        self._leaves = th.where(raw > 0, raw**self._alpha, th.zeros_like(raw))
+        # In place: a captured graph reads the leaves where they are.
+        self._leaves.copy_(th.where(raw > 0, raw**self._alpha, th.zeros_like(raw)))
+
+    @property
+    def beta(self) -> float:
+        """Importance-sampling exponent, read at every ``sample()`` (from the device)."""
+        return self._beta
+
+    @beta.setter
+    def beta(self, value: float) -> None:
+        self._beta = self._check_exponent("beta", value)
+        if getattr(self, "_storage_ready", False):
+            self._beta_tensor.fill_(self._beta)
 
     @property
     def max_priority(self) -> float:  # type: ignore[override]
@@ -234,15 +264,16 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
     def min_probability(self) -> float:
         """Sampling probability of the lowest-priority stored transition (read from the
         device)."""
-        n_stored = self.n_transitions
-        if n_stored == 0:
+        if self.n_transitions == 0:
             raise ValueError("the buffer holds no transition")
-        return float(self._min_probability(n_stored, self._leaves.sum()))
+        return float(self._min_probability(self._leaves.sum()))
 
-    def _min_probability(self, n_stored: int, total: th.Tensor) -> th.Tensor:
-        # The stored transitions are the first n_stored flat slots (rows [0, pos) until the
-        # buffer is full), and each has a positive priority (raw >= eps).
-        return self._leaves[:n_stored].amin() / total
+    def _min_probability(self, total: th.Tensor) -> th.Tensor:
+        # Every stored transition has a positive priority (raw >= eps > 0) and every empty slot
+        # a zero one (as the host tree's smallest positive leaf): no count, no sync, no shape
+        # that depends on the data.
+        leaves = self._leaves
+        return th.where(leaves > 0, leaves, th.inf).amin() / total
 
     def _set_raw_priorities(self, flat_indices: th.Tensor, raw: th.Tensor) -> None:  # type: ignore[override]
         self._raw_priorities[flat_indices] = raw
@@ -296,9 +327,15 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
         if self.pos == self.buffer_size:
             self.full = True
             self.pos = 0
+        self._move_cursor()
         flat = row * self.n_envs + th.arange(self.n_envs, device=self.device)
         # On wrap-around this overwrites the priorities of the replaced transitions too.
         self._set_raw_priorities(flat, self._max_priority.expand(self.n_envs))
+
+    def _move_cursor(self) -> None:
+        """Copy the stored count and the newest row to the device (kernels, no wait)."""
+        self._cursor[0].fill_(self.n_transitions)
+        self._cursor[1].fill_((self.pos - 1) % self.buffer_size)
 
     def _tensor(self, array: np.ndarray) -> th.Tensor:
         # (A read-only array, a broadcast view say, is copied first: torch wants writable ones.)
@@ -321,19 +358,24 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
         """
         if env is not None:
             raise ValueError("the device replay buffer does not support VecNormalize")
-        n_stored = self.n_transitions
-        if n_stored == 0:
+        if self.n_transitions == 0:
             raise ValueError("cannot sample from an empty PrioritizedReplayBuffer")
+        return self.sample_at(self._uniform(batch_size))
+
+    def sample_at(self, offsets: th.Tensor) -> PrioritizedReplayBufferSamples:
+        """The stratified batch at the draws ``offsets`` (``(batch,)`` in ``[0, 1)``, float64,
+        as :meth:`sample` draws them): the work of a sample without the draws, reading nothing
+        from the host that a captured graph would keep (no count, no shape from the data)."""
+        batch_size = offsets.shape[0]
         leaves = self._leaves
         cumulative = th.cumsum(leaves, dim=0)
         total = cumulative[-1]
-        offsets = self._uniform(batch_size)
         queries = (th.arange(batch_size, device=self.device) + offsets) * (total / batch_size)
         # The slot whose interval [cumulative[i-1], cumulative[i]) holds the query: never an
         # empty (zero) slot; a query at the top edge (rounding) takes the last stored slot.
-        flat = th.searchsorted(cumulative, queries, right=True).clamp_(max=n_stored - 1)
+        flat = th.minimum(th.searchsorted(cumulative, queries, right=True), self._cursor[0] - 1)
         probabilities = leaves[flat] / total
-        weights = (self._min_probability(n_stored, total) / probabilities) ** self._beta
+        weights = (self._min_probability(total) / probabilities) ** self._beta_tensor
         rows, columns = flat // self.n_envs, flat % self.n_envs
         samples = self._samples_at(rows, columns)
         return PrioritizedReplayBufferSamples(
@@ -350,9 +392,23 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
         rows = th.as_tensor(batch_inds, device=self.device).long()
         return self._samples_at(rows, th.as_tensor(env_indices, device=self.device).long())
 
-    def _uniform(self, n: int) -> th.Tensor:
-        """``n`` uniform draws in ``[0, 1)``, float64, from the buffer's generator."""
+    def _uniform(self, n: int, out: th.Tensor | None = None) -> th.Tensor:
+        """``n`` uniform draws in ``[0, 1)``, float64, from the buffer's generator (into
+        ``out`` when given)."""
+        if out is not None:
+            return th.rand(n, generator=self._generator, out=out)
         return th.rand(n, generator=self._generator, device=self.device, dtype=th.float64)
+
+    def graph_key(self) -> tuple[Any, ...]:
+        """What a captured sample or priority update holds fixed: where each tensor lives and
+        the constants they read (alpha, eps, n-step's length and gamma, the envs per row).
+        A graph captured under another key is stale."""
+        pointers = tuple(
+            tensor.data_ptr()
+            for name in (*_TENSORS, *_SCALARS)
+            for tensor in _flat(getattr(self, name))
+        )
+        return (pointers, self._alpha, self.eps, self.n_steps, self.gamma, self.n_envs)
 
     def _samples_at(self, rows: th.Tensor, columns: th.Tensor) -> ReplayBufferSamples:
         next_rows, dones, rewards, discounts = self._device_targets_at(rows, columns)
@@ -386,7 +442,7 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
             columns,
             self.n_steps,
             self.gamma,
-            newest_row=(self.pos - 1) % self.buffer_size,
+            newest_row=self._cursor[1],
         )
         return last, terminal.reshape(-1, 1), returns.reshape(-1, 1), discounts.reshape(-1, 1)
 
@@ -397,6 +453,7 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
         self._raw_priorities.zero_()
         self._leaves.zero_()
         self._max_priority.fill_(1.0)
+        self._move_cursor()
 
 
 class DevicePrioritizedDictReplayBuffer(DevicePrioritizedReplayBuffer, PrioritizedDictReplayBuffer):
@@ -407,6 +464,11 @@ class DevicePrioritizedDictReplayBuffer(DevicePrioritizedReplayBuffer, Prioritiz
     ) -> DictReplayBufferSamples:
         samples = super()._samples_at(rows, columns)
         return DictReplayBufferSamples(*samples)
+
+
+def _flat(value: Any) -> list[th.Tensor]:
+    """The tensors of a storage (a tensor, or a dict of them)."""
+    return list(value.values()) if isinstance(value, dict) else [value]
 
 
 def _to(value: Any, device: th.device) -> Any:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import io
 import json
+import warnings
 import zipfile
 from pathlib import Path
 from typing import Any, ClassVar
@@ -22,6 +23,7 @@ from torch.nn import functional as F
 
 from harness.sb3.buffers import PrioritizedReplayBuffer
 from harness.sb3.device_replay import DevicePrioritizedReplayBuffer
+from harness.sb3.graphs import GraphedStep, side_stream
 from harness.sb3.policies import ACTION_MASK_KEY, MultiInputPolicy, PerAgentQNetwork
 from harness.sb3.registry import POLICIES
 from harness.sb3.targets import double_q_target, large_margin_loss, max_q_target
@@ -197,6 +199,15 @@ class StepStats:
         """Record one step's ``value`` (a one-element tensor) under ``name``; reads nothing."""
         self._values.setdefault(name, []).append(value.detach().reshape(()))
 
+    def extend(self, values: dict[str, th.Tensor]) -> None:
+        """:meth:`add` each of ``values`` (one step's, by name)."""
+        for name, value in values.items():
+            self.add(name, value)
+
+    def latest(self) -> dict[str, th.Tensor]:
+        """Every name's last value, in the order the names were first added."""
+        return {name: values[-1] for name, values in self._values.items()}
+
     def read(self) -> dict[str, np.ndarray]:
         """Every name's values in the order added, float64, in one transfer; then forgets them.
 
@@ -306,6 +317,10 @@ class DoubleDQN(DQN):
         expert_action: The action DQfD's large-margin loss favours; ``None``: no such loss.
         margin: The lead over every other action's value the loss asks of ``expert_action``.
         margin_weight: The loss's weight beside the TD loss (DQfD's lambda_2).
+        cuda_graph: On CUDA with the device replay buffer, record a gradient step once as a
+            CUDA graph and launch it again for every later step (:mod:`harness.sb3.graphs`):
+            the same results, several times the gradient steps/s. Without effect elsewhere;
+            a step that cannot be recorded warns once and trains without a graph.
         _init_setup_model: Build the networks now (``False`` is used by ``load``).
     """
 
@@ -361,6 +376,7 @@ class DoubleDQN(DQN):
         expert_action: int | None = None,
         margin: float = 0.8,
         margin_weight: float = 1.0,
+        cuda_graph: bool = True,
         _init_setup_model: bool = True,
     ) -> None:
         # Copy: the caller's dict must not change, and the resolved class (not a string) is
@@ -409,6 +425,10 @@ class DoubleDQN(DQN):
         self.expert_action = expert_action
         self.margin = float(margin)
         self.margin_weight = float(margin_weight)
+        self.cuda_graph = bool(cuda_graph)
+        # The recorded step (rebuilt, never saved), and whether recording failed in this run.
+        self._graph: GraphedStep | None = None
+        self._graph_failed = False
         # Saved with the model (SB3 saves the instance's attributes): load checks it.
         setattr(self, FORMAT_KEY, MODEL_FORMAT)
         if _init_setup_model:
@@ -517,6 +537,8 @@ class DoubleDQN(DQN):
             *super()._excluded_save_params(),
             "exploration_schedule",
             "beta_schedule",
+            "_graph",
+            "_graph_failed",
         ]
 
     @property
@@ -549,27 +571,27 @@ class DoubleDQN(DQN):
         buffer = self.replay_buffer
         assert buffer is not None
         prioritized = isinstance(buffer, PrioritizedReplayBuffer)
-        on_device = isinstance(buffer, DevicePrioritizedReplayBuffer)
+        batch = batch_size * self.agent_sets
 
         stats = StepStats()
+        graphs = self._graphs_wanted()
         for step in range(gradient_steps):
-            replay_data = buffer.sample(batch_size * self.agent_sets, env=self._vec_normalize_env)
-            loss, abs_td = self._gradient_step(replay_data, stats)
-            stats.add("loss", loss)
-            stats.add("td_error", abs_td.mean())
-            if on_device:
-                # Errors from before this step's update, as in Schaul et al. (Algorithm 1),
-                # written where the buffer is: nothing is read (a non-finite one makes this
-                # step's loss non-finite, which the call's one read below reports).
-                buffer.update_priorities(replay_data.indices, abs_td)  # type: ignore[union-attr]
-            elif prioritized:
-                # The same, for the host buffer: its next sample needs them, one transfer a step.
+            graph = self._graphed_step(batch) if graphs else None
+            if graph is not None:
+                # The sample, the loss, the gradients and the new priorities in one launch.
+                stats.extend(graph.replay())
+                self.policy.optimizer.step()
+                continue
+            with side_stream(graphs):  # the steps before a recording, as torch asks
+                abs_td, indices = self._sampled_step(batch, stats)
+            if prioritized and not isinstance(buffer, DevicePrioritizedReplayBuffer):
+                # The host buffer's next sample needs the new priorities: a transfer a step.
                 priorities = _to_host(abs_td)
                 if not np.isfinite(priorities).all():
                     self._check_finite(stats.read())  # raises, naming the loss when it is bad
                     bad = priorities[~np.isfinite(priorities)][0]
                     raise self._non_finite("TD error", float(bad), step)
-                buffer.update_priorities(replay_data.indices, priorities)  # type: ignore[union-attr]
+                buffer.update_priorities(indices, priorities)  # type: ignore[union-attr]
 
         values = stats.read()  # the call's one read of the device
         self._check_finite(values)
@@ -583,6 +605,100 @@ class DoubleDQN(DQN):
         if prioritized:
             self.logger.record("train/beta", buffer.beta)  # type: ignore[union-attr]
             self.logger.record("train/alpha", buffer.alpha)  # type: ignore[union-attr]
+
+    def _sampled_step(self, batch: int, stats: StepStats) -> tuple[th.Tensor, Any]:
+        """Sample ``batch`` transitions and take :meth:`_gradient_step` on them, recording the
+        loss and the mean TD error; with the device buffer also write the new priorities.
+
+        Returns the samples' ``|TD error|`` and their buffer indices (``None`` for a buffer
+        without priorities): what the host buffer's priority update needs.
+        """
+        buffer = self.replay_buffer
+        assert buffer is not None
+        replay_data = buffer.sample(batch, env=self._vec_normalize_env)
+        loss, abs_td = self._gradient_step(replay_data, stats)
+        stats.add("loss", loss)
+        stats.add("td_error", abs_td.mean())
+        if isinstance(buffer, DevicePrioritizedReplayBuffer):
+            # Errors from before this step's update, as in Schaul et al. (Algorithm 1), written
+            # where the buffer is: nothing is read (a non-finite one makes this step's loss
+            # non-finite, which the call's one read reports).
+            buffer.update_priorities(replay_data.indices, abs_td)
+        return abs_td, getattr(replay_data, "indices", None)
+
+    # ------------------------------------------------------------------ CUDA graphs
+    #: Gradient steps taken without a graph before one is recorded (the first steps set up the
+    #: optimizer's state and cuBLAS's work spaces, which must not happen inside a recording).
+    GRAPH_WARMUP_STEPS: ClassVar[int] = 3
+
+    def _graphs_wanted(self) -> bool:
+        """Whether this call's steps go through a recorded graph (:mod:`harness.sb3.graphs`):
+        ``cuda_graph``, the device buffer, a CUDA device, and no failed recording so far."""
+        return (
+            self.cuda_graph
+            and not self._graph_failed
+            and isinstance(self.replay_buffer, DevicePrioritizedReplayBuffer)
+            and self.device.type == "cuda"
+        )
+
+    def _graph_key(self, batch: int) -> tuple[Any, ...]:
+        """What a recorded step of ``batch`` samples holds fixed (see :mod:`harness.sb3.graphs`):
+        a step recorded under another key is recorded again."""
+        buffer = self.replay_buffer
+        assert isinstance(buffer, DevicePrioritizedReplayBuffer)
+        return (
+            batch,
+            buffer.graph_key(),
+            self.gamma,
+            self.double_q,
+            self.expert_action,
+            self.margin,
+            self.margin_weight,
+            self.max_grad_norm,
+            tuple(p.data_ptr() for p in self.policy.parameters()),
+        )
+
+    def _graphed_step(self, batch: int) -> GraphedStep | None:
+        """The recorded step for ``batch`` samples, recorded now when there is none under
+        today's key; ``None`` while warming up or after a recording failed (with a warning)."""
+        if self._n_updates < self.GRAPH_WARMUP_STEPS:
+            # Counts the steps of earlier calls only: a call warms up whole.
+            return None
+        key = self._graph_key(batch)
+        if self._graph is not None and self._graph.key == key:
+            return self._graph
+        buffer = self.replay_buffer
+        assert isinstance(buffer, DevicePrioritizedReplayBuffer)
+        self._graph = None  # free the stale graph's memory first
+
+        def step(draws: th.Tensor) -> dict[str, th.Tensor]:
+            recorded = StepStats()
+            replay_data = buffer.sample_at(draws)
+            loss, abs_td = self._backward(replay_data, recorded)
+            recorded.add("loss", loss)
+            recorded.add("td_error", abs_td.mean())
+            buffer.update_priorities(replay_data.indices, abs_td)
+            return recorded.latest()
+
+        try:
+            self._graph = GraphedStep(
+                key,
+                step,
+                batch,
+                lambda n, out: buffer._uniform(n, out=out),
+                list(self.policy.parameters()),
+                self.device,
+            )
+        except RuntimeError as error:
+            self._graph_failed = True
+            warnings.warn(
+                f"DoubleDQN: the gradient step could not be recorded as a CUDA graph "
+                f"({str(error).splitlines()[0]}); training goes on without one",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+            self.policy.optimizer.zero_grad()
+        return self._graph
 
     def _reported_losses(self, values: dict[str, np.ndarray]) -> np.ndarray:
         """The logged loss of each step: per agent set, the mean over the sets (the minimised
@@ -613,6 +729,16 @@ class DoubleDQN(DQN):
         buffer, and ``discounts`` from SB3's n-step buffer. ``stats`` collects what the loss
         terms log (:meth:`_margin_loss`).
         """
+        loss, abs_td = self._backward(replay_data, stats)
+        self.policy.optimizer.step()
+        return loss, abs_td
+
+    def _backward(
+        self, replay_data: Any, stats: StepStats | None = None
+    ) -> tuple[th.Tensor, th.Tensor]:
+        """:meth:`_gradient_step` up to the optimizer's step: the loss from the hooks, its
+        gradients, clipped, in the parameters' ``grad`` (what a CUDA graph records); the same
+        returns."""
         target_q = self._td_target(replay_data)
         q_values = self.q_net(replay_data.observations)
         current_q = th.gather(q_values, dim=1, index=replay_data.actions.long())
@@ -628,7 +754,6 @@ class DoubleDQN(DQN):
             self.q_net.clip_grad_norm_(self.max_grad_norm)
         else:
             th.nn.utils.clip_grad_norm_(self.policy.parameters(), self.max_grad_norm)
-        self.policy.optimizer.step()
         return loss.detach(), (current_q.detach() - target_q).abs().reshape(-1)
 
     # ------------------------------------------------------------------ the update's hooks

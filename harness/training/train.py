@@ -143,6 +143,7 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
         # ε, β and the learning rate's schedules are installed by apply_phase, in one place.
         max_grad_norm=algo.max_grad_norm,
         double_q=algo.double_q,
+        cuda_graph=algo.cuda_graph,
         **_imitation_kwargs(config),
         # Enough finished episodes for the epochs table's median (one entry per slot).
         stats_window_size=max(

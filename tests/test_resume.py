@@ -14,6 +14,7 @@ import pickle
 import shutil
 import signal
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
@@ -392,3 +393,116 @@ def test_a_full_disk_at_start_removes_the_new_run_folder(tmp_path, capsys, monke
     assert err[-1].startswith("harness: error: No space left on device"), err
     assert "; removed the run folder " in err[-1] and "(nothing was trained)" in err[-1]
     assert list(runs.iterdir()) == []
+
+
+# ------------------------------------------------------------------ the buffer's file
+
+
+class _BufferHolder:
+    """What SB3's save_replay_buffer / load_replay_buffer use of a model."""
+
+    import torch
+
+    verbose = 0
+    device = torch.device("cpu")
+
+    def __init__(self, buffer: Any) -> None:
+        self.replay_buffer = buffer
+
+    from stable_baselines3.common.off_policy_algorithm import OffPolicyAlgorithm
+
+    save_replay_buffer = OffPolicyAlgorithm.save_replay_buffer
+    load_replay_buffer = OffPolicyAlgorithm.load_replay_buffer
+
+
+def _same(a: Any, b: Any) -> bool:
+    """Deep equality of a buffer's state: arrays and tensors by value, dtype and shape."""
+    import numpy as np
+    import torch as th
+
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, np.ndarray):
+        return isinstance(b, np.ndarray) and a.dtype == b.dtype and np.array_equal(a, b)
+    if isinstance(a, th.Tensor):
+        return isinstance(b, th.Tensor) and a.dtype == b.dtype and th.equal(a, b)
+    if hasattr(a, "__dict__") and type(a).__module__.startswith("harness"):
+        return _same(vars(a), vars(b))
+    if isinstance(a, th.Generator):
+        return th.equal(a.get_state(), b.get_state())
+    return type(a) is type(b)
+
+
+OBS = 64
+
+
+def _buffers() -> dict[str, Any]:
+    import numpy as np
+    from gymnasium import spaces
+    from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
+
+    from harness.sb3.buffers import PrioritizedReplayBuffer
+    from harness.sb3.decisions import PerDecisionPrioritizedDictReplayBuffer
+    from harness.sb3.device_replay import DevicePrioritizedReplayBuffer
+    from harness.sb3.policies import ACTION_MASK_KEY
+
+    # Observations large beside the sum tree and the scratch, as a real buffer's are.
+    box = spaces.Box(-1, 1, shape=(OBS,), dtype=np.float32)
+    act = spaces.Discrete(3)
+    masked = spaces.Dict({"x": box, ACTION_MASK_KEY: spaces.Box(0, 1, shape=(3,), dtype=np.int8)})
+    return {
+        "sb3": ReplayBuffer(400, box, act, n_envs=2),
+        "sb3_dict": DictReplayBuffer(400, spaces.Dict({"x": box}), act, n_envs=2),
+        "prioritized": PrioritizedReplayBuffer(400, box, act, n_envs=2, n_steps=3),
+        "device": DevicePrioritizedReplayBuffer(400, box, act, device="cpu", n_envs=2),
+        "per_decision": PerDecisionPrioritizedDictReplayBuffer(
+            400, masked, act, n_envs=2, labels=True
+        ),
+    }
+
+
+@pytest.mark.parametrize("kind", ["sb3", "sb3_dict", "prioritized", "device", "per_decision"])
+@pytest.mark.parametrize("steps", [0, 7, 200, 230])  # empty, part-filled, full, wrapped round
+def test_a_saved_buffer_leaves_out_its_unfilled_rows_and_loads_equal(
+    tmp_path: Path, kind: str, steps: int
+) -> None:
+    import numpy as np
+
+    from harness.training.checkpoints import save_replay_buffer
+
+    buffer = _buffers()[kind]
+    rng = np.random.default_rng(0)
+    for _ in range(steps):
+        x, x2 = rng.uniform(-1, 1, (2, OBS)).astype(np.float32), rng.uniform(-1, 1, (2, OBS))
+        if kind.startswith("sb3_dict"):
+            x, x2 = {"x": x}, {"x": x2.astype(np.float32)}
+        elif kind == "per_decision":
+            mask = np.ones((2, 3), dtype=np.int8)
+            x, x2 = {"x": x, "action_mask": mask}, {"x": x2.astype(np.float32), "action_mask": mask}
+        infos = [{"expert_action": 1}, {}] if kind == "per_decision" else [{}, {}]
+        buffer.add(
+            x, x2, rng.integers(0, 3, (2, 1)), rng.normal(size=2), rng.random(2) < 0.1, infos
+        )
+    if kind in ("prioritized", "device") and steps:
+        buffer.update_priorities(np.arange(4), np.array([0.5, 2.0, 1.0, 3.0]))
+    before = dict(vars(buffer))
+    path = tmp_path / "buffer.pkl"
+    with path.open("wb") as f:
+        save_replay_buffer(_BufferHolder(buffer), f)
+    assert all(vars(buffer)[name] is value for name, value in before.items())  # untouched
+    whole = len(pickle.dumps(buffer, protocol=pickle.HIGHEST_PROTOCOL))
+    if 0 < steps < 200:  # a part-filled buffer's file holds about its stored share
+        assert path.stat().st_size < whole * 0.2
+    elif steps >= 200:  # full: nothing to leave out
+        assert path.stat().st_size >= whole * 0.95
+    # SB3's loader and a plain unpickling both give the whole buffer back.
+    loaded = _BufferHolder(None)
+    with path.open("rb") as f:
+        loaded.load_replay_buffer(f)
+    with path.open("rb") as f:
+        unpickled = pickle.load(f)
+    for other in (loaded.replay_buffer, unpickled):
+        assert type(other) is type(buffer)
+        assert vars(other).keys() == vars(buffer).keys()
+        for name, value in vars(buffer).items():
+            assert _same(value, getattr(other, name)), name

@@ -132,6 +132,17 @@ def test_no_graph_is_recorded_on_the_cpu() -> None:
     assert not model._graphs_wanted() and model._graph is None
 
 
+def test_a_loaded_model_warms_up_again_before_recording(tmp_path: Any) -> None:
+    # A resumed run's steps so far were another process's: its first steps set up this one.
+    model = _model("cpu")
+    _fill(model, 20)
+    model.train(gradient_steps=6, batch_size=8)
+    assert (model._n_updates, model._steps_here) == (6, 6)
+    model.save(tmp_path / "model")
+    loaded = DoubleDQN.load(tmp_path / "model", device="cpu")
+    assert (loaded._n_updates, loaded._steps_here) == (6, 0)
+
+
 def test_step_stats_latest_and_extend() -> None:
     stats = StepStats()
     for value in (1.0, 2.0):
@@ -197,7 +208,7 @@ def test_a_new_batch_size_or_alpha_records_the_step_again_and_saving_leaves_it_o
     assert model._graph is not second
     model.save(tmp_path / "model")
     loaded = DoubleDQN.load(tmp_path / "model", device="cuda")
-    assert loaded._graph is None and loaded.cuda_graph
+    assert loaded._graph is None and loaded.cuda_graph and loaded._steps_here == 0
 
 
 @cuda

@@ -426,9 +426,11 @@ class DoubleDQN(DQN):
         self.margin = float(margin)
         self.margin_weight = float(margin_weight)
         self.cuda_graph = bool(cuda_graph)
-        # The recorded step (rebuilt, never saved), and whether recording failed in this run.
+        # The recorded step (rebuilt, never saved), whether recording failed in this process,
+        # and the gradient steps this process has taken (a loaded model warms up again).
         self._graph: GraphedStep | None = None
         self._graph_failed = False
+        self._steps_here = 0
         # Saved with the model (SB3 saves the instance's attributes): load checks it.
         setattr(self, FORMAT_KEY, MODEL_FORMAT)
         if _init_setup_model:
@@ -539,6 +541,7 @@ class DoubleDQN(DQN):
             "beta_schedule",
             "_graph",
             "_graph_failed",
+            "_steps_here",
         ]
 
     @property
@@ -596,6 +599,7 @@ class DoubleDQN(DQN):
         values = stats.read()  # the call's one read of the device
         self._check_finite(values)
         self._n_updates += gradient_steps
+        self._steps_here += gradient_steps
         self.logger.record("train/n_updates", self._n_updates, exclude="tensorboard")
         self.logger.record("train/loss", np.mean(self._reported_losses(values)))
         self.logger.record("train/mean_td_error", np.mean(values.get("td_error", [])))
@@ -627,8 +631,8 @@ class DoubleDQN(DQN):
         return abs_td, getattr(replay_data, "indices", None)
 
     # ------------------------------------------------------------------ CUDA graphs
-    #: Gradient steps taken without a graph before one is recorded (the first steps set up the
-    #: optimizer's state and cuBLAS's work spaces, which must not happen inside a recording).
+    #: Gradient steps taken without a graph before one is recorded, in each process (the first
+    #: steps set up the optimizer's state and cuBLAS's work spaces, not to be done in a recording).
     GRAPH_WARMUP_STEPS: ClassVar[int] = 3
 
     def _graphs_wanted(self) -> bool:
@@ -661,8 +665,9 @@ class DoubleDQN(DQN):
     def _graphed_step(self, batch: int) -> GraphedStep | None:
         """The recorded step for ``batch`` samples, recorded now when there is none under
         today's key; ``None`` while warming up or after a recording failed (with a warning)."""
-        if self._n_updates < self.GRAPH_WARMUP_STEPS:
-            # Counts the steps of earlier calls only: a call warms up whole.
+        if self._steps_here < self.GRAPH_WARMUP_STEPS:
+            # Counts the steps of earlier calls only: a call warms up whole. A resumed run
+            # warms up too: its steps so far were another process's.
             return None
         key = self._graph_key(batch)
         if self._graph is not None and self._graph.key == key:

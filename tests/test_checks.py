@@ -43,3 +43,14 @@ def test_the_fused_step_is_the_same_update() -> None:
         weights.append(param.detach())
     assert not th.equal(weights[1], start)
     th.testing.assert_close(weights[1], weights[0], rtol=0, atol=1e-6)
+
+
+def test_the_optimizer_is_checked_on_the_models_device() -> None:
+    # Capturable Adam steps on a GPU only: refused for the CPU, and for a CUDA model accepted
+    # where there is a GPU (the check's probe runs where the model will).
+    from harness.training.checks import check_optimizer
+
+    with pytest.raises(ValueError, match=r"algo\.optimizer"):
+        check_optimizer("Adam", {"capturable": True}, "cpu")
+    if th.cuda.is_available():
+        check_optimizer("Adam", {"capturable": True}, "cuda")

@@ -77,8 +77,10 @@ def check_runtime(config: ExperimentConfig) -> None:
     Raises:
         ValueError: one line naming the key (``algo.optimizer: ...``).
     """
-    check_optimizer(config.algo.optimizer, config.algo.optimizer_kwargs)
     check_device(config.algo.device)
+    # On the device the model will use: some settings (capturable) work on a GPU alone.
+    device = str(get_device(config.algo.device))
+    check_optimizer(config.algo.optimizer, config.algo.optimizer_kwargs, device)
     check_network_memory(config)
     check_replay_memory(config)
 
@@ -127,8 +129,9 @@ def _fused_runs(
     return True
 
 
-def check_optimizer(name: str, kwargs: dict[str, Any]) -> None:
-    """The optimizer exists in ``torch.optim``, accepts ``kwargs`` and can take a plain step.
+def check_optimizer(name: str, kwargs: dict[str, Any], device: str = "cpu") -> None:
+    """The optimizer exists in ``torch.optim``, accepts ``kwargs`` and can take a plain step on
+    ``device`` (the model's).
 
     One step on a throw-away parameter with a dense gradient catches what torch accepts by name
     but DQN cannot use: the abstract ``Optimizer``, ``LBFGS`` (needs a closure), ``SparseAdam``
@@ -146,17 +149,17 @@ def check_optimizer(name: str, kwargs: dict[str, Any]) -> None:
         raise ValueError(
             "algo.optimizer_kwargs: lr is set by each phase's learning_rate; remove it here"
         )
-    param = th.nn.Parameter(th.zeros(2))
+    param = th.nn.Parameter(th.zeros(2, device=device))
     # Built as SB3's DQNPolicy builds it (lr from the schedule, then the kwargs). torch reports
     # unusable settings with any of several exception types (TypeError, ValueError,
     # RuntimeError, AssertionError for capturable/differentiable on CPU): all of them mean no.
     try:
         optimizer = optimizer_class(
-            [param], lr=1e-3, **fast_optimizer_kwargs(optimizer_class, kwargs)
+            [param], lr=1e-3, **fast_optimizer_kwargs(optimizer_class, kwargs, device)
         )
     except Exception as exc:
         raise ValueError(f"algo.optimizer_kwargs: {name} does not take {kwargs} ({exc})") from None
-    param.grad = th.ones(2)
+    param.grad = th.ones(2, device=device)
     try:
         optimizer.step()
     except Exception as exc:

@@ -578,8 +578,9 @@ class DoubleDQN(DQN):
 
         stats = StepStats()
         graphs = self._graphs_wanted()
+        # Nothing a step does changes the key: one look per call.
+        graph = self._graphed_step(batch) if graphs else None
         for step in range(gradient_steps):
-            graph = self._graphed_step(batch) if graphs else None
             if graph is not None:
                 # The sample, the loss, the gradients and the new priorities in one launch.
                 stats.extend(graph.replay())
@@ -666,8 +667,8 @@ class DoubleDQN(DQN):
         """The recorded step for ``batch`` samples, recorded now when there is none under
         today's key; ``None`` while warming up or after a recording failed (with a warning)."""
         if self._steps_here < self.GRAPH_WARMUP_STEPS:
-            # Counts the steps of earlier calls only: a call warms up whole. A resumed run
-            # warms up too: its steps so far were another process's.
+            # A call warms up whole; a resumed run warms up too (its steps so far were another
+            # process's).
             return None
         key = self._graph_key(batch)
         if self._graph is not None and self._graph.key == key:

@@ -167,6 +167,7 @@ def test_n_step_returns_reach_the_buffer_from_the_config(
         *(teammap if observation == "teammap" else []),
         "phases.initial.timesteps=600", "phases.optimizing.timesteps=200",
         "eval.every=0", "checkpoint.every=400",
+        "algo.device=cpu",  # the host buffers (a GPU machine's run keeps its buffer there)
     )  # fmt: skip
     with (latest_checkpoint(path / "checkpoints") / "replay_buffer.pkl").open("rb") as f:
         buffer = pickle.load(f)

@@ -420,7 +420,6 @@ def test_the_spy_sees_a_read_in_the_update(monkeypatch: pytest.MonkeyPatch) -> N
 def test_one_cuda_synchronisation_per_training_call_on_the_device_path(n_steps: int) -> None:
     # What the spy counts on CPU tensors, counted by CUDA itself: every synchronising operation
     # warns in torch's sync debug mode.
-    import warnings
 
     model = make_linear_model(
         learning_rate=1e-3,
@@ -432,12 +431,19 @@ def test_one_cuda_synchronisation_per_training_call_on_the_device_path(n_steps: 
     for reward in (1.0, 3.0, 2.0):
         add_transition(model, reward=reward)
     model.train(gradient_steps=2, batch_size=4)  # first call: CUDA's lazy set-up
+    syncs = cuda_synchronisations(lambda: model.train(gradient_steps=5, batch_size=4))
+    assert len(syncs) == 1, syncs
+
+
+def cuda_synchronisations(call: Any) -> list[str]:
+    """The synchronising operations CUDA's sync debug mode reports while ``call()`` runs."""
+    import warnings
+
     th.cuda.set_sync_debug_mode("warn")
     try:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
-            model.train(gradient_steps=5, batch_size=4)
+            call()
     finally:
         th.cuda.set_sync_debug_mode("default")
-    syncs = [w for w in caught if "synchroniz" in str(w.message)]
-    assert len(syncs) == 1, [str(w.message) for w in syncs]
+    return [str(w.message) for w in caught if "synchroniz" in str(w.message)]

@@ -20,6 +20,7 @@ from harness import DoubleDQN
 from harness.sb3.device_replay import DevicePrioritizedReplayBuffer
 from harness.sb3.dqn import StepStats
 from tests.test_double_dqn import TinyEnv
+from tests.test_dqn_update import cuda_synchronisations
 
 cuda = pytest.mark.skipif(not th.cuda.is_available(), reason="needs CUDA")
 
@@ -178,15 +179,8 @@ def test_one_cuda_synchronisation_per_call_with_the_recorded_step() -> None:
     model.train(gradient_steps=4, batch_size=8)
     model.train(gradient_steps=2, batch_size=8)  # records the step
     assert model._graph is not None
-    th.cuda.set_sync_debug_mode("warn")
-    try:
-        with warnings.catch_warnings(record=True) as caught:
-            warnings.simplefilter("always")
-            model.train(gradient_steps=5, batch_size=8)
-    finally:
-        th.cuda.set_sync_debug_mode("default")
-    syncs = [w for w in caught if "synchroniz" in str(w.message)]
-    assert len(syncs) == 1, [str(w.message) for w in syncs]
+    syncs = cuda_synchronisations(lambda: model.train(gradient_steps=5, batch_size=8))
+    assert len(syncs) == 1, syncs
 
 
 @cuda

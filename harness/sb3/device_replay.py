@@ -228,15 +228,10 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
         # In place: a captured graph reads the leaves where they are.
         self._leaves.copy_(th.where(raw > 0, raw**self._alpha, th.zeros_like(raw)))
 
-    @property
-    def beta(self) -> float:
-        """Importance-sampling exponent, read at every ``sample()`` (from the device)."""
-        return self._beta
-
-    @beta.setter
+    @PrioritizedReplayBuffer.beta.setter
     def beta(self, value: float) -> None:
-        self._beta = self._check_exponent("beta", value)
-        if getattr(self, "_storage_ready", False):
+        PrioritizedReplayBuffer.beta.fset(self, value)  # type: ignore[attr-defined]
+        if getattr(self, "_storage_ready", False):  # the copy a sample reads
             self._beta_tensor.fill_(self._beta)
 
     @property

@@ -241,7 +241,9 @@ class _BufferPickler(pickle.Pickler):
                 if tail.shape[0] == 0 or not _all_equal(tail, tail.reshape(-1)[0]):
                     continue  # nothing to leave out, or rows written before a reset
                 head = array[:keep]
-                head = head.clone() if hasattr(head, "clone") else head.copy()  # these bytes only
+                if hasattr(head, "clone"):
+                    head = head.clone()  # torch pickles a view's whole storage
+                # (A numpy view pickles its own bytes, written from where they are: protocol 5.)
                 if key is None:
                     state[name] = head
                 else:

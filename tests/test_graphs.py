@@ -95,6 +95,7 @@ def test_the_buffers_numbers_on_the_device_follow_its_own() -> None:
     capacity_rows = buffer.buffer_size  # 32 rows of 2 envs
 
     def cursor() -> list[int]:
+        buffer._sync_cursor()  # as a sample does before it reads the cursor
         return buffer._cursor.tolist()
 
     assert cursor() == [0, capacity_rows - 1]
@@ -103,6 +104,7 @@ def test_the_buffers_numbers_on_the_device_follow_its_own() -> None:
     _fill(model, capacity_rows)  # wraps around: full, newest row 4 again
     assert cursor() == [2 * capacity_rows, 4]
     restored = pickle.loads(pickle.dumps(buffer))
+    restored._sync_cursor()
     assert restored._cursor.tolist() == [2 * capacity_rows, 4]
     buffer.reset()
     assert cursor() == [0, capacity_rows - 1]

@@ -211,7 +211,7 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
     def _make_scalars(self) -> None:
         """Make the device's copies of the stored count, the newest row and beta."""
         self._cursor = th.zeros(2, dtype=th.int64, device=self.device)
-        self._move_cursor()
+        self._cursor_at: tuple[int, bool] | None = None  # (pos, full) the cursor holds
         self._beta_tensor = th.tensor(self._beta, dtype=th.float64, device=self.device)
 
     # ------------------------------------------------------------------ priorities
@@ -322,15 +322,18 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
         if self.pos == self.buffer_size:
             self.full = True
             self.pos = 0
-        self._move_cursor()
         flat = row * self.n_envs + th.arange(self.n_envs, device=self.device)
         # On wrap-around this overwrites the priorities of the replaced transitions too.
         self._set_raw_priorities(flat, self._max_priority.expand(self.n_envs))
 
-    def _move_cursor(self) -> None:
-        """Copy the stored count and the newest row to the device (kernels, no wait)."""
-        self._cursor[0].fill_(self.n_transitions)
-        self._cursor[1].fill_((self.pos - 1) % self.buffer_size)
+    def _sync_cursor(self) -> None:
+        """Bring the device's copy of the stored count and the newest row up to date (kernels,
+        no wait), before a sample reads it: once per training call, not per env step."""
+        at = (self.pos, self.full)
+        if at != self._cursor_at:
+            self._cursor[0].fill_(self.n_transitions)
+            self._cursor[1].fill_((self.pos - 1) % self.buffer_size)
+            self._cursor_at = at
 
     def _tensor(self, array: np.ndarray) -> th.Tensor:
         # (A read-only array, a broadcast view say, is copied first: torch wants writable ones.)
@@ -355,7 +358,7 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
             raise ValueError("the device replay buffer does not support VecNormalize")
         if self.n_transitions == 0:
             raise ValueError("cannot sample from an empty PrioritizedReplayBuffer")
-        return self.sample_at(self._uniform(batch_size))
+        return self.sample_at(self.draw(batch_size))
 
     def sample_at(self, offsets: th.Tensor) -> PrioritizedReplayBufferSamples:
         """The stratified batch at the draws ``offsets`` (``(batch,)`` in ``[0, 1)``, float64,
@@ -385,7 +388,15 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
         if env is not None:
             raise ValueError("the device replay buffer does not support VecNormalize")
         rows = th.as_tensor(batch_inds, device=self.device).long()
+        self._sync_cursor()  # n-step returns read the newest row
         return self._samples_at(rows, th.as_tensor(env_indices, device=self.device).long())
+
+    def draw(self, n: int, out: th.Tensor | None = None) -> th.Tensor:
+        """The draws of one sample of ``n`` (:meth:`_uniform`), the cursor that sample reads
+        brought up to date first (:meth:`_sync_cursor`): what :meth:`sample` and a recorded
+        step (before each launch) call."""
+        self._sync_cursor()
+        return self._uniform(n) if out is None else self._uniform(n, out)
 
     def _uniform(self, n: int, out: th.Tensor | None = None) -> th.Tensor:
         """``n`` uniform draws in ``[0, 1)``, float64, from the buffer's generator (into
@@ -448,7 +459,6 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
         self._raw_priorities.zero_()
         self._leaves.zero_()
         self._max_priority.fill_(1.0)
-        self._move_cursor()
 
 
 class DevicePrioritizedDictReplayBuffer(DevicePrioritizedReplayBuffer, PrioritizedDictReplayBuffer):

@@ -691,7 +691,7 @@ class DoubleDQN(DQN):
                 key,
                 step,
                 batch,
-                lambda n, out: buffer._uniform(n, out=out),
+                buffer.draw,
                 list(self.policy.parameters()),
                 self.device,
             )

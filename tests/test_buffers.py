@@ -26,10 +26,13 @@ from harness.sb3.buffers import (
     n_step_returns,
 )
 from harness.sb3.device_replay import (
+    DeviceDictReplayBuffer,
     DevicePrioritizedDictReplayBuffer,
     DevicePrioritizedReplayBuffer,
+    DeviceReplayBuffer,
     n_step_returns_on_device,
     prioritized_buffer_class,
+    uniform_buffer_class,
 )
 
 OBS_SPACE = spaces.Box(-1e6, 1e6, shape=(2,), dtype=np.float32)
@@ -772,3 +775,96 @@ def test_the_prioritized_buffer_is_the_devices_on_cuda_and_the_hosts_elsewhere()
     if th.cuda.is_available():
         assert prioritized_buffer_class("cuda", False) is DevicePrioritizedReplayBuffer
         assert prioritized_buffer_class("cuda", True) is DevicePrioritizedDictReplayBuffer
+
+
+# ------------------------------------------------------------------ uniform replay on the device
+
+
+def _uniform(buffer_size: int = 8, n_envs: int = 2, **kwargs: Any) -> DeviceReplayBuffer:
+    return DeviceReplayBuffer(
+        buffer_size, OBS_SPACE, ACTION_SPACE, device="cpu", n_envs=n_envs, **kwargs
+    )
+
+
+def test_the_uniform_device_sampler_hand_computed_at_given_draws() -> None:
+    buffer = _uniform()  # 4 rows of 2 envs
+    for step in range(3):  # 6 transitions: flat index row * 2 + env
+        add_step(buffer, step)
+    draws = buffer.draw(4)  # brings the cursor up to date; the draws themselves replaced:
+    draws.copy_(th.tensor([0.0, 0.2, 0.5, 0.999], dtype=th.float64))
+    batch = buffer.sample_at(draws)
+    # floor(u * 6) = 0, 1, 3, 5 -> (row, env) (0, 0), (0, 1), (1, 1), (2, 1): reward 100 row + env
+    assert batch.rewards.ravel().tolist() == [0.0, 1.0, 101.0, 201.0]
+    assert first_values(batch.next_observations).tolist() == [0.5, 1.5, 11.5, 21.5]
+    assert batch.discounts is None and not hasattr(batch, "weights")
+
+
+def test_the_uniform_device_sampler_draws_every_stored_transition_alike() -> None:
+    buffer = _uniform(buffer_size=16, n_envs=2)  # 8 rows of 2 envs
+    for step in range(5):  # 10 stored, rows 5-7 empty
+        add_step(buffer, step)
+    buffer._generator.manual_seed(0)
+    rewards = th.cat([buffer.sample(1000).rewards.ravel() for _ in range(20)])
+    values, counts = th.unique(rewards, return_counts=True)
+    assert values.tolist() == [100.0 * s + e for s in range(5) for e in range(2)]
+    # 20,000 draws over 10 transitions: each within 5 standard deviations of 2,000.
+    assert (counts - 2000).abs().max() < 5 * (20000 * 0.1 * 0.9) ** 0.5
+
+
+def test_uniform_device_n_step_samples_match_sb3s_n_step_buffer() -> None:
+    ours = _uniform(8, n_envs=1, n_steps=3, gamma=0.9)
+    sb3 = NStepReplayBuffer(8, OBS_SPACE, ACTION_SPACE, device="cpu", n_steps=3, gamma=0.9)
+    ends = {2: (True, False), 6: (True, True), 9: (True, False)}  # step: (done, truncated)
+    for step in range(11):  # wraps around
+        done, truncated = ends.get(step, (False, False))
+        add_step(ours, step, done, truncated)
+        add_step(sb3, step, done, truncated)
+    rows = np.arange(8)
+    expected = sb3._get_samples(rows)
+    got = ours._get_samples_at(rows, np.zeros(8, dtype=np.int64))
+    for name in ("rewards", "discounts", "dones"):
+        th.testing.assert_close(getattr(got, name), getattr(expected, name))
+    np.testing.assert_array_equal(
+        first_values(got.next_observations), first_values(expected.next_observations)
+    )
+
+
+def test_the_uniform_device_buffer_pickles_resets_and_refuses_what_it_cannot_do() -> None:
+    buffer = _uniform()
+    with pytest.raises(ValueError, match="empty DeviceReplayBuffer"):
+        buffer.sample(2)
+    for step in range(6):  # wraps: full
+        add_step(buffer, step)
+    buffer._sync_cursor()  # as a sample does before it reads the cursor
+    assert buffer.full and buffer._cursor.tolist() == [8, 1]
+    restored = pickle.loads(pickle.dumps(buffer))
+    want = buffer.sample(5)  # the restored copy draws what the original draws
+    assert th.equal(restored.sample(5).rewards, want.rewards)
+    buffer.reset()
+    buffer._sync_cursor()
+    assert buffer._cursor.tolist() == [0, 3] and buffer.size() == 0
+    with pytest.raises(ValueError, match="VecNormalize"):
+        restored.sample(2, env=object())  # type: ignore[arg-type]
+    for bad in ({"n_steps": 0}, {"gamma": 0.0}, {"optimize_memory_usage": True}):
+        with pytest.raises(ValueError):
+            _uniform(**bad)
+
+
+def test_the_uniform_device_dict_buffer_samples_dicts() -> None:
+    space = spaces.Dict({"vec": OBS_SPACE})
+    buffer = DeviceDictReplayBuffer(4, space, ACTION_SPACE, device="cpu", n_envs=1)
+    for step in range(2):
+        obs = {"vec": np.array([[step, 0.0]], dtype=np.float32)}
+        buffer.add(obs, obs, np.array([[1]]), np.array([step]), np.array([False]), [{}])
+    draws = buffer.draw(2)
+    draws.copy_(th.tensor([0.0, 0.9], dtype=th.float64))
+    batch = buffer.sample_at(draws)
+    assert batch.observations["vec"][:, 0].tolist() == [0.0, 1.0]
+
+
+def test_the_uniform_buffer_is_the_devices_on_cuda_and_sb3s_choice_elsewhere() -> None:
+    assert uniform_buffer_class("cpu", False) is None
+    assert uniform_buffer_class("cpu", True) is None
+    if th.cuda.is_available():
+        assert uniform_buffer_class("cuda", False) is DeviceReplayBuffer
+        assert uniform_buffer_class("cuda", True) is DeviceDictReplayBuffer

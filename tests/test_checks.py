@@ -54,3 +54,24 @@ def test_the_optimizer_is_checked_on_the_models_device() -> None:
         check_optimizer("Adam", {"capturable": True}, "cpu")
     if th.cuda.is_available():
         check_optimizer("Adam", {"capturable": True}, "cuda")
+
+
+def test_a_buffer_kept_on_the_gpu_is_checked_against_the_gpus_free_memory(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # On CUDA the replay buffer is allocated on the GPU (harness.sb3.device_replay): a buffer
+    # larger than the GPU's free memory is one line, not an out-of-memory error at the start.
+    import harness.training.checks as checks
+    from harness.config.schema import ExperimentConfig
+
+    config = ExperimentConfig.model_validate(
+        {"env": {"observation": "teammap"}, "vec": {"copies": 2},
+         "algo": {"policy": "TeamMapPolicy", "buffer_size": 100_000, "prioritized": False}}
+    )  # fmt: skip
+    need = checks.check_replay_memory(config, available=2**40)  # about 0.4 GB
+    monkeypatch.setattr(checks, "buffer_on_device", lambda device: True)
+    monkeypatch.setattr(th.cuda, "mem_get_info", lambda device=None: (need // 2, 2 * need))
+    with pytest.raises(ValueError, match=r"free on the GPU$"):
+        checks.check_replay_memory(config)
+    monkeypatch.setattr(th.cuda, "mem_get_info", lambda device=None: (2 * need, 4 * need))
+    assert checks.check_replay_memory(config) == need

@@ -17,7 +17,7 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from harness import DoubleDQN
-from harness.sb3.device_replay import DevicePrioritizedReplayBuffer
+from harness.sb3.device_replay import DevicePrioritizedReplayBuffer, DeviceReplayBuffer
 from harness.sb3.dqn import StepStats
 from tests.test_double_dqn import TinyEnv
 from tests.test_dqn_update import cuda_synchronisations
@@ -25,7 +25,11 @@ from tests.test_dqn_update import cuda_synchronisations
 cuda = pytest.mark.skipif(not th.cuda.is_available(), reason="needs CUDA")
 
 
-def _model(device: str, *, graph: bool = True, **buffer_kwargs: Any) -> DoubleDQN:
+def _model(
+    device: str, *, graph: bool = True, uniform: bool = False, **buffer_kwargs: Any
+) -> DoubleDQN:
+    """A small DoubleDQN with the prioritized device buffer (``uniform``: the uniform one)."""
+    per = {} if uniform else {"alpha": 0.6, "beta": 0.4}
     model = DoubleDQN(
         "MlpPolicy",
         DummyVecEnv([TinyEnv, TinyEnv]),
@@ -33,8 +37,8 @@ def _model(device: str, *, graph: bool = True, **buffer_kwargs: Any) -> DoubleDQ
         learning_rate=1e-3,
         buffer_size=64,
         device=device,
-        replay_buffer_class=DevicePrioritizedReplayBuffer,
-        replay_buffer_kwargs={"alpha": 0.6, "beta": 0.4, **buffer_kwargs},
+        replay_buffer_class=DeviceReplayBuffer if uniform else DevicePrioritizedReplayBuffer,
+        replay_buffer_kwargs={**per, **buffer_kwargs},
         cuda_graph=graph,
         seed=0,
     )
@@ -127,8 +131,9 @@ def test_a_new_alpha_is_written_where_the_priorities_are_and_changes_the_key() -
     assert buffer.graph_key() == buffer.graph_key()
 
 
-def test_no_graph_is_recorded_on_the_cpu() -> None:
-    model = _model("cpu")
+@pytest.mark.parametrize("uniform", [False, True])
+def test_no_graph_is_recorded_on_the_cpu(uniform: bool) -> None:
+    model = _model("cpu", uniform=uniform)
     _fill(model, 20)
     for _ in range(3):
         model.train(gradient_steps=2, batch_size=8)
@@ -158,20 +163,38 @@ def test_step_stats_latest_and_extend() -> None:
 
 
 @cuda
+@pytest.mark.parametrize("uniform", [False, True], ids=["prioritized", "uniform"])
 @pytest.mark.parametrize("n_steps", [1, 3])
-def test_the_recorded_step_trains_as_the_step_without_it(n_steps: int) -> None:
-    graphed, plain = _twins(n_steps=n_steps)
+def test_the_recorded_step_trains_as_the_step_without_it(n_steps: int, uniform: bool) -> None:
+    graphed, plain = _twins(n_steps=n_steps, uniform=uniform)
     losses: dict[str, list[float]] = {"graphed": [], "plain": []}
     for call, steps in enumerate([2, 2, 5, 5, 3]):
         for name, model in (("graphed", graphed), ("plain", plain)):
-            model.replay_buffer.beta = 0.4 + 0.1 * call  # type: ignore[union-attr]
+            if not uniform:
+                model.replay_buffer.beta = 0.4 + 0.1 * call  # type: ignore[union-attr]
             model.train(gradient_steps=steps, batch_size=8)
             losses[name].append(model.logger.name_to_value["train/loss"])
     assert graphed._graph is not None and plain._graph is None
     assert losses["graphed"] == pytest.approx(losses["plain"], rel=1e-5)
     for a, b in zip(graphed.policy.parameters(), plain.policy.parameters()):
         th.testing.assert_close(a, b)
-    th.testing.assert_close(graphed.replay_buffer._leaves, plain.replay_buffer._leaves)  # type: ignore[union-attr]
+    if not uniform:
+        th.testing.assert_close(graphed.replay_buffer._leaves, plain.replay_buffer._leaves)  # type: ignore[union-attr]
+
+
+@cuda
+def test_a_cuda_run_keeps_uniform_replay_on_the_device(tmp_path: Any) -> None:
+    from harness.cli import main
+    from harness.sb3.device_replay import DeviceReplayBuffer as Uniform
+    from harness.training.checkpoints import complete_checkpoints
+
+    args = ["run", "configs/smoke.yaml", "--runs-dir", str(tmp_path), "--no-progress"]
+    for override in ("algo.prioritized=false", "algo.device=cuda", "checkpoint.every=400"):
+        args += ["--set", override]
+    assert main(args) == 0
+    (run,) = tmp_path.iterdir()
+    with (complete_checkpoints(run / "checkpoints")[-1] / "replay_buffer.pkl").open("rb") as f:
+        assert type(pickle.load(f)) is Uniform
 
 
 @cuda

@@ -443,7 +443,7 @@ def _buffers() -> dict[str, Any]:
 
     from harness.sb3.buffers import PrioritizedReplayBuffer
     from harness.sb3.decisions import PerDecisionPrioritizedDictReplayBuffer
-    from harness.sb3.device_replay import DevicePrioritizedReplayBuffer
+    from harness.sb3.device_replay import DevicePrioritizedReplayBuffer, DeviceReplayBuffer
     from harness.sb3.policies import ACTION_MASK_KEY
 
     # Observations large beside the sum tree and the scratch, as a real buffer's are.
@@ -455,13 +455,16 @@ def _buffers() -> dict[str, Any]:
         "sb3_dict": DictReplayBuffer(400, spaces.Dict({"x": box}), act, n_envs=2),
         "prioritized": PrioritizedReplayBuffer(400, box, act, n_envs=2, n_steps=3),
         "device": DevicePrioritizedReplayBuffer(400, box, act, device="cpu", n_envs=2),
+        "device_uniform": DeviceReplayBuffer(400, box, act, device="cpu", n_envs=2, n_steps=2),
         "per_decision": PerDecisionPrioritizedDictReplayBuffer(
             400, masked, act, n_envs=2, labels=True
         ),
     }
 
 
-@pytest.mark.parametrize("kind", ["sb3", "sb3_dict", "prioritized", "device", "per_decision"])
+@pytest.mark.parametrize(
+    "kind", ["sb3", "sb3_dict", "prioritized", "device", "device_uniform", "per_decision"]
+)
 @pytest.mark.parametrize("steps", [0, 7, 200, 230])  # empty, part-filled, full, wrapped round
 def test_a_saved_buffer_leaves_out_its_unfilled_rows_and_loads_equal(
     tmp_path: Path, kind: str, steps: int

@@ -492,10 +492,10 @@ class AlgoConfig(_Section):
     ``n_steps: 1``; prioritized or not. The buffer stays on the host on an accelerator too."""
     device: str = "auto"
     cuda_graph: bool = True
-    """On CUDA with prioritized replay (the buffer then lives on the GPU), record a gradient step
-    once as a CUDA graph and launch it again for every later step (``harness.sb3.graphs``): the
-    same updates, several times the gradient steps/s (docs/performance.md). Without effect on a
-    CPU and with uniform replay; ``false`` for debugging."""
+    """On CUDA (the replay buffer then lives on the GPU, prioritized or uniform; not the
+    per-decision one), record a gradient step once as a CUDA graph and launch it again for every
+    later step (``harness.sb3.graphs``): the same updates, several times the gradient steps/s
+    (docs/performance.md). Without effect on a CPU; ``false`` for debugging."""
     threads: Annotated[int, Field(ge=1, le=MAX_THREADS)] | None = None
     """torch CPU threads (``torch.set_num_threads``); ``null`` keeps torch's default (one per
     core). On a 2-core machine 2 threads train the 3x512 net ~20 % faster than 1 (harness bench)."""

@@ -29,10 +29,12 @@ over every stored priority costs ``N``, which an accelerator does in parallel): 
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, ClassVar
 
 import numpy as np
 import torch as th
+from gymnasium import spaces
+from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
 from stable_baselines3.common.type_aliases import DictReplayBufferSamples, ReplayBufferSamples
 from stable_baselines3.common.utils import get_device
 from stable_baselines3.common.vec_env import VecNormalize
@@ -44,29 +46,28 @@ from harness.sb3.buffers import (
 )
 
 __all__ = [
+    "DeviceDictReplayBuffer",
     "DevicePrioritizedDictReplayBuffer",
     "DevicePrioritizedReplayBuffer",
+    "DeviceReplayBuffer",
+    "DeviceStorage",
+    "buffer_on_device",
     "n_step_returns_on_device",
     "prioritized_buffer_class",
+    "uniform_buffer_class",
 ]
 
-#: The attributes of a device buffer that hold tensors (moved with :attr:`device`, and pickled as
-#: host tensors).
-_TENSORS = (
-    "observations",
-    "next_observations",
-    "actions",
-    "rewards",
-    "dones",
-    "timeouts",
-    "_raw_priorities",
-    "_leaves",
-    "_max_priority",
-    "_last_use",
-)
-#: Copies on the device of the buffer's own numbers that a sample reads (made again, not
-#: pickled): the stored count and the newest row, and beta.
-_SCALARS = ("_cursor", "_beta_tensor")
+#: The transitions' tensors of every device buffer.
+_STORAGE = ("observations", "next_observations", "actions", "rewards", "dones", "timeouts")
+#: The prioritized one's priorities (and its scratch), tensors too.
+_PRIORITIES = ("_raw_priorities", "_leaves", "_max_priority", "_last_use")
+
+
+def buffer_on_device(device: th.device | str) -> bool:
+    """Whether a model on ``device`` keeps its replay buffer there: on CUDA (where a training
+    call then never waits for the host), not on the CPU nor on Apple's MPS (no float64 there
+    for the priorities' sums)."""
+    return get_device(device).type == "cuda"
 
 
 def prioritized_buffer_class(
@@ -80,10 +81,26 @@ def prioritized_buffer_class(
         device: The model's device (``"auto"`` as SB3 resolves it).
         dict_observations: Whether the observations are a ``Dict``.
     """
-    on_device = get_device(device).type == "cuda"
+    on_device = buffer_on_device(device)
     if dict_observations:
         return DevicePrioritizedDictReplayBuffer if on_device else PrioritizedDictReplayBuffer
     return DevicePrioritizedReplayBuffer if on_device else PrioritizedReplayBuffer
+
+
+def uniform_buffer_class(
+    device: th.device | str, dict_observations: bool
+) -> type[DeviceReplayBuffer] | None:
+    """The uniform buffer for a model on ``device``: the device buffer on CUDA (its sample can
+    be part of a recorded gradient step, :mod:`harness.sb3.graphs`), ``None`` elsewhere (SB3
+    chooses its own: ``ReplayBuffer``, ``DictReplayBuffer`` or ``NStepReplayBuffer``).
+
+    Args:
+        device: The model's device (``"auto"`` as SB3 resolves it).
+        dict_observations: Whether the observations are a ``Dict``.
+    """
+    if not buffer_on_device(device):
+        return None
+    return DeviceDictReplayBuffer if dict_observations else DeviceReplayBuffer
 
 
 def n_step_returns_on_device(
@@ -121,7 +138,318 @@ def _torch_dtype(dtype: Any) -> th.dtype:
     return th.from_numpy(np.zeros(0, dtype=dtype)).dtype
 
 
-class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
+class DeviceStorage:
+    """The transitions of an SB3 buffer as tensors on its ``device`` (mixed in before the
+    buffer's class): what the device buffers share. An env step's transitions are copied there
+    when added, a batch is gathered there, n-step targets are computed there
+    (:func:`n_step_returns_on_device`), and the buffer's own numbers a sample reads (the stored
+    count, the newest row) are kept there too, so that :meth:`sample_at` can be part of a
+    recorded CUDA graph (:mod:`harness.sb3.graphs`). The uniform draws come from the buffer's
+    own generator on the device, saved with it."""
+
+    #: The attributes that hold tensors (moved with :attr:`device`, pickled as host tensors).
+    _tensors: ClassVar[tuple[str, ...]] = _STORAGE
+    #: Device copies of the buffer's own numbers (made again, not pickled).
+    _scalars: ClassVar[tuple[str, ...]] = ("_cursor",)
+
+    buffer_size: int
+    n_envs: int
+    pos: int
+    full: bool
+    n_steps: int
+    gamma: float
+    action_dim: int
+    handle_timeout_termination: bool
+    observations: Any
+    next_observations: Any
+
+    def _storage_to_device(self) -> None:
+        """Turn the host storage SB3 allocated (untouched zeros: no memory is used) into tensors
+        on the device, and make the generator (seeded from numpy's global state, which SB3
+        seeds: a seeded run repeats)."""
+        self.observations = self._empty_like(self.observations)
+        self.next_observations = self._empty_like(self.next_observations)
+        for name in ("actions", "rewards", "dones", "timeouts"):
+            setattr(self, name, self._empty_like(getattr(self, name)))
+        self._generator = th.Generator(device=self.device)
+        self._generator.manual_seed(int(np.random.randint(2**62)))  # noqa: NPY002
+
+    def _empty_like(self, array: np.ndarray | dict[str, np.ndarray]) -> Any:
+        if isinstance(array, dict):
+            return {key: self._empty_like(value) for key, value in array.items()}
+        return th.zeros(array.shape, dtype=_torch_dtype(array.dtype), device=self.device)
+
+    @property
+    def n_transitions(self) -> int:
+        """Number of stored transitions over all envs."""
+        return self.size() * self.n_envs  # type: ignore[attr-defined]
+
+    # ------------------------------------------------------------------ device and pickling
+    @property
+    def device(self) -> th.device:
+        """Where the storage is; assigning moves it (SB3 assigns the model's device to a loaded
+        buffer)."""
+        return self._device
+
+    @device.setter
+    def device(self, value: th.device | str) -> None:
+        new = get_device(value)
+        old = getattr(self, "_device", None)
+        self._device = new
+        if not getattr(self, "_storage_ready", False) or old == new:
+            return
+        for name in self._tensors:
+            setattr(self, name, _to(getattr(self, name), new))
+        self._make_scalars()
+        if old is None or old.type != new.type:
+            # A generator's state is the device kind's own: continue from a seed drawn from it.
+            seed = int(th.randint(2**62, (), generator=self._generator, device=old).item())
+            self._generator = th.Generator(device=new)
+            self._generator.manual_seed(seed)
+
+    def __getstate__(self) -> dict[str, Any]:
+        state = self.__dict__.copy()
+        for name in self._tensors:
+            state[name] = _to(state[name], th.device("cpu"))
+        for name in self._scalars:
+            state.pop(name, None)
+        state["_generator"] = (str(self._device), self._generator.get_state())
+        return state
+
+    def __setstate__(self, state: dict[str, Any]) -> None:
+        device, generator_state = state.pop("_generator")
+        self.__dict__.update(state)
+        self._device = th.device("cpu")  # where the tensors were pickled
+        self._generator = th.Generator(device=device)
+        self._generator.set_state(generator_state)
+        # Back where they were saved from (SB3 then assigns the model's device).
+        saved = th.device(device)
+        for name in self._tensors:
+            setattr(self, name, _to(getattr(self, name), saved))
+        self._device = saved
+        self._make_scalars()
+
+    def _make_scalars(self) -> None:
+        """Make the device's copies of the stored count and the newest row."""
+        self._cursor = th.zeros(2, dtype=th.int64, device=self.device)
+        self._cursor_at: tuple[int, bool] | None = None  # (pos, full) the cursor holds
+
+    def _sync_cursor(self) -> None:
+        """Bring the device's copy of the stored count and the newest row up to date (kernels,
+        no wait), before a sample reads it: once per training call, not per env step."""
+        at = (self.pos, self.full)
+        if at != self._cursor_at:
+            self._cursor[0].fill_(self.n_transitions)
+            self._cursor[1].fill_((self.pos - 1) % self.buffer_size)
+            self._cursor_at = at
+
+    # ------------------------------------------------------------------ storage
+    def _store(
+        self,
+        obs: np.ndarray | dict[str, np.ndarray],
+        next_obs: np.ndarray | dict[str, np.ndarray],
+        action: np.ndarray,
+        reward: np.ndarray,
+        done: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> int:
+        """Store one step of all ``n_envs`` envs on the device, as SB3's ``add``; returns the
+        row written."""
+        row = self.pos
+        self._write(self.observations, obs, row)
+        self._write(self.next_observations, next_obs, row)
+        self.actions[row] = self._tensor(np.asarray(action).reshape(self.n_envs, self.action_dim))
+        self.rewards[row] = self._tensor(np.asarray(reward, dtype=np.float32))
+        self.dones[row] = self._tensor(np.asarray(done, dtype=np.float32))
+        if self.handle_timeout_termination:
+            timeouts = [info.get("TimeLimit.truncated", False) for info in infos]
+            self.timeouts[row] = self._tensor(np.asarray(timeouts, dtype=np.float32))
+        self.pos += 1
+        if self.pos == self.buffer_size:
+            self.full = True
+            self.pos = 0
+        return row
+
+    def _tensor(self, array: np.ndarray) -> th.Tensor:
+        # (A read-only array, a broadcast view say, is copied first: torch wants writable ones.)
+        return th.as_tensor(np.require(array, requirements="W")).to(self.device)
+
+    def _write(self, storage: Any, values: Any, row: int) -> None:
+        if isinstance(storage, dict):
+            for key, column in storage.items():
+                self._write(column, values[key], row)
+            return
+        storage[row] = self._tensor(np.asarray(values).reshape(storage.shape[1:]))
+
+    def sample_at(self, draws: th.Tensor) -> ReplayBufferSamples:
+        """The batch at the uniform ``draws`` (``(batch,)`` in ``[0, 1)``, float64, as
+        ``sample`` draws them from the buffer's generator), reading nothing from the host: the
+        part of a sample a recorded step holds (each buffer says how draws become samples)."""
+        raise NotImplementedError
+
+    def _check_sampleable(self, env: VecNormalize | None) -> None:
+        if env is not None:
+            raise ValueError("the device replay buffer does not support VecNormalize")
+        if self.n_transitions == 0:
+            raise ValueError(f"cannot sample from an empty {type(self).__name__}")
+
+    def _get_samples_at(  # type: ignore[override]
+        self, batch_inds: Any, env_indices: Any, env: VecNormalize | None = None
+    ) -> ReplayBufferSamples:
+        """The transitions at ``(batch_inds, env_indices)`` (arrays or tensors), as
+        :meth:`PrioritizedReplayBuffer._get_samples_at` gives them."""
+        if env is not None:
+            raise ValueError("the device replay buffer does not support VecNormalize")
+        rows = th.as_tensor(batch_inds, device=self.device).long()
+        self._sync_cursor()  # n-step returns read the newest row
+        return self._samples_at(rows, th.as_tensor(env_indices, device=self.device).long())
+
+    def draw(self, n: int, out: th.Tensor | None = None) -> th.Tensor:
+        """The draws of one sample of ``n`` (:meth:`_uniform`), the cursor that sample reads
+        brought up to date first (:meth:`_sync_cursor`): what ``sample`` and a recorded step
+        (before each launch) call."""
+        self._sync_cursor()
+        return self._uniform(n) if out is None else self._uniform(n, out)
+
+    def _uniform(self, n: int, out: th.Tensor | None = None) -> th.Tensor:
+        """``n`` uniform draws in ``[0, 1)``, float64, from the buffer's generator (into
+        ``out`` when given)."""
+        if out is not None:
+            return th.rand(n, generator=self._generator, out=out)
+        return th.rand(n, generator=self._generator, device=self.device, dtype=th.float64)
+
+    def graph_key(self) -> tuple[Any, ...]:
+        """What a recorded sample (or priority update) holds fixed: where each tensor lives and
+        the constants it reads (n-step's length and gamma, the envs per row). A graph recorded
+        under another key is stale."""
+        pointers = tuple(
+            tensor.data_ptr()
+            for name in (*self._tensors, *self._scalars)
+            for tensor in _flat(getattr(self, name))
+        )
+        return (pointers, self.n_steps, self.gamma, self.n_envs)
+
+    def _samples_at(self, rows: th.Tensor, columns: th.Tensor) -> ReplayBufferSamples:
+        next_rows, dones, rewards, discounts = self._device_targets_at(rows, columns)
+        return ReplayBufferSamples(
+            self._gather(self.observations, rows, columns),
+            self.actions[rows, columns],
+            self._gather(self.next_observations, next_rows, columns),
+            dones,
+            rewards,
+            discounts=discounts,
+        )
+
+    @staticmethod
+    def _gather(storage: Any, rows: th.Tensor, columns: th.Tensor) -> Any:
+        if isinstance(storage, dict):
+            return {key: column[rows, columns] for key, column in storage.items()}
+        return storage[rows, columns]
+
+    def _device_targets_at(
+        self, rows: th.Tensor, columns: th.Tensor
+    ) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor | None]:
+        """:meth:`PrioritizedReplayBuffer._targets_at` on the device."""
+        if self.n_steps == 1:
+            done = self.dones[rows, columns] * (1 - self.timeouts[rows, columns])
+            return rows, done.reshape(-1, 1), self.rewards[rows, columns].reshape(-1, 1), None
+        returns, discounts, last, terminal = n_step_returns_on_device(
+            self.rewards,
+            self.dones,
+            self.timeouts,
+            rows,
+            columns,
+            self.n_steps,
+            self.gamma,
+            newest_row=self._cursor[1],
+        )
+        return last, terminal.reshape(-1, 1), returns.reshape(-1, 1), discounts.reshape(-1, 1)
+
+
+class DeviceReplayBuffer(DeviceStorage, ReplayBuffer):
+    """SB3's ``ReplayBuffer`` on the device: uniform sampling with replacement over the stored
+    transitions (each stored transition equally likely, as SB3 draws a row and an env), with
+    n-step returns as SB3's ``NStepReplayBuffer`` computes them (``n_steps``, ``gamma``), the
+    storage and the draws on ``device`` (:class:`DeviceStorage`). ``VecNormalize`` is not
+    supported. ``device="cpu"`` gives the same buffer on CPU tensors (the tests).
+
+    Raises:
+        ValueError: for ``optimize_memory_usage``, an ``n_steps`` that is no integer >= 1 or a
+            ``gamma`` outside ``(0, 1]``.
+    """
+
+    def __init__(
+        self,
+        buffer_size: int,
+        observation_space: spaces.Space,
+        action_space: spaces.Space,
+        device: th.device | str = "auto",
+        n_envs: int = 1,
+        optimize_memory_usage: bool = False,
+        handle_timeout_termination: bool = True,
+        n_steps: int = 1,
+        gamma: float = 0.99,
+    ) -> None:
+        if optimize_memory_usage:
+            raise ValueError("the device replay buffer does not support optimize_memory_usage")
+        if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
+            raise ValueError(f"n_steps must be an integer >= 1, got {n_steps!r}")
+        if not 0.0 < gamma <= 1.0:
+            raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
+        self._storage_ready = False
+        super().__init__(
+            buffer_size,
+            observation_space,
+            action_space,
+            device=device,
+            n_envs=n_envs,
+            handle_timeout_termination=handle_timeout_termination,
+        )
+        self.n_steps = n_steps
+        self.gamma = float(gamma)
+        self._storage_to_device()
+        self._make_scalars()
+        self._storage_ready = True
+
+    def add(  # type: ignore[override]
+        self,
+        obs: np.ndarray | dict[str, np.ndarray],
+        next_obs: np.ndarray | dict[str, np.ndarray],
+        action: np.ndarray,
+        reward: np.ndarray,
+        done: np.ndarray,
+        infos: list[dict[str, Any]],
+    ) -> None:
+        """Store one step of all ``n_envs`` envs on the device."""
+        self._store(obs, next_obs, action, reward, done, infos)
+
+    def sample(  # type: ignore[override]
+        self, batch_size: int, env: VecNormalize | None = None
+    ) -> ReplayBufferSamples:
+        """Draw ``batch_size`` stored transitions uniformly, with replacement, on the device."""
+        self._check_sampleable(env)
+        return self.sample_at(self.draw(batch_size))
+
+    def sample_at(self, draws: th.Tensor) -> ReplayBufferSamples:
+        """The batch at the uniform ``draws`` (``(batch,)`` in ``[0, 1)``, float64, as
+        :meth:`sample` draws them): draw ``u`` takes the stored transition ``floor(u * N)`` of
+        the ``N`` stored ones (flat index ``row * n_envs + env``), reading nothing from the
+        host."""
+        stored = self._cursor[0]
+        flat = th.minimum((draws * stored).long(), stored - 1)
+        return self._samples_at(flat // self.n_envs, flat % self.n_envs)
+
+
+class DeviceDictReplayBuffer(DeviceReplayBuffer, DictReplayBuffer):
+    """:class:`DeviceReplayBuffer` for ``Dict`` observations (one tensor per key)."""
+
+    def _samples_at(  # type: ignore[override]
+        self, rows: th.Tensor, columns: th.Tensor
+    ) -> DictReplayBufferSamples:
+        return DictReplayBufferSamples(*super()._samples_at(rows, columns))
+
+
+class DevicePrioritizedReplayBuffer(DeviceStorage, PrioritizedReplayBuffer):
     """:class:`~harness.sb3.buffers.PrioritizedReplayBuffer` whose transitions, priorities and
     sampler are tensors on ``device`` (see the module docstring): the same arguments, the same
     sampling distribution and IS weights, the same priority updates; ``sample`` returns the flat
@@ -137,14 +465,13 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
     path, and not faster than it there.
     """
 
+    _tensors: ClassVar[tuple[str, ...]] = (*_STORAGE, *_PRIORITIES)
+    _scalars: ClassVar[tuple[str, ...]] = ("_cursor", "_beta_tensor")
+
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         self._storage_ready = False
         super().__init__(*args, **kwargs)
-        # The host storage SB3 allocated (untouched zeros: no memory is used) becomes tensors.
-        self.observations = self._empty_like(self.observations)
-        self.next_observations = self._empty_like(self.next_observations)
-        for name in ("actions", "rewards", "dones", "timeouts"):
-            setattr(self, name, self._empty_like(getattr(self, name)))
+        self._storage_to_device()
         capacity = self.buffer_size * self.n_envs
         self._tree = None  # the sum tree is the host path's
         self._raw_priorities = th.zeros(capacity, dtype=th.float64, device=self.device)
@@ -153,66 +480,16 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
         self._make_scalars()
         # Scratch for update_priorities (the last position of each index in a batch).
         self._last_use = th.empty(capacity, dtype=th.int64, device=self.device)
-        self._generator = th.Generator(device=self.device)
-        # Seeded from numpy's global state, which SB3 seeds: a seeded run repeats.
-        self._generator.manual_seed(int(np.random.randint(2**62)))  # noqa: NPY002
         self._storage_ready = True
-
-    def _empty_like(self, array: np.ndarray | dict[str, np.ndarray]) -> Any:
-        if isinstance(array, dict):
-            return {key: self._empty_like(value) for key, value in array.items()}
-        return th.zeros(array.shape, dtype=_torch_dtype(array.dtype), device=self.device)
-
-    # ------------------------------------------------------------------ device and pickling
-    @property  # type: ignore[override]
-    def device(self) -> th.device:
-        """Where the storage is; assigning moves it (SB3 assigns the model's device to a loaded
-        buffer)."""
-        return self._device
-
-    @device.setter
-    def device(self, value: th.device | str) -> None:
-        new = get_device(value)
-        old = getattr(self, "_device", None)
-        self._device = new
-        if not getattr(self, "_storage_ready", False) or old == new:
-            return
-        for name in _TENSORS:
-            setattr(self, name, _to(getattr(self, name), new))
-        self._make_scalars()
-        if old is None or old.type != new.type:
-            # A generator's state is the device kind's own: continue from a seed drawn from it.
-            seed = int(th.randint(2**62, (), generator=self._generator, device=old).item())
-            self._generator = th.Generator(device=new)
-            self._generator.manual_seed(seed)
-
-    def __getstate__(self) -> dict[str, Any]:
-        state = self.__dict__.copy()
-        for name in _TENSORS:
-            state[name] = _to(state[name], th.device("cpu"))
-        for name in _SCALARS:
-            state.pop(name, None)
-        state["_generator"] = (str(self._device), self._generator.get_state())
-        return state
-
-    def __setstate__(self, state: dict[str, Any]) -> None:
-        device, generator_state = state.pop("_generator")
-        self.__dict__.update(state)
-        self._device = th.device("cpu")  # where the tensors were pickled
-        self._generator = th.Generator(device=device)
-        self._generator.set_state(generator_state)
-        # Back where they were saved from (SB3 then assigns the model's device).
-        saved = th.device(device)
-        for name in _TENSORS:
-            setattr(self, name, _to(getattr(self, name), saved))
-        self._device = saved
-        self._make_scalars()
 
     def _make_scalars(self) -> None:
         """Make the device's copies of the stored count, the newest row and beta."""
-        self._cursor = th.zeros(2, dtype=th.int64, device=self.device)
-        self._cursor_at: tuple[int, bool] | None = None  # (pos, full) the cursor holds
+        super()._make_scalars()
         self._beta_tensor = th.tensor(self._beta, dtype=th.float64, device=self.device)
+
+    def graph_key(self) -> tuple[Any, ...]:
+        """:meth:`DeviceStorage.graph_key` and the priorities' constants (alpha, eps)."""
+        return (*super().graph_key(), self._alpha, self.eps)
 
     # ------------------------------------------------------------------ priorities
     @property
@@ -309,42 +586,10 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
         infos: list[dict[str, Any]],
     ) -> None:
         """Store one step of all ``n_envs`` envs on the device and give them the max priority."""
-        row = self.pos
-        self._write(self.observations, obs, row)
-        self._write(self.next_observations, next_obs, row)
-        self.actions[row] = self._tensor(np.asarray(action).reshape(self.n_envs, self.action_dim))
-        self.rewards[row] = self._tensor(np.asarray(reward, dtype=np.float32))
-        self.dones[row] = self._tensor(np.asarray(done, dtype=np.float32))
-        if self.handle_timeout_termination:
-            timeouts = [info.get("TimeLimit.truncated", False) for info in infos]
-            self.timeouts[row] = self._tensor(np.asarray(timeouts, dtype=np.float32))
-        self.pos += 1
-        if self.pos == self.buffer_size:
-            self.full = True
-            self.pos = 0
+        row = self._store(obs, next_obs, action, reward, done, infos)
         flat = row * self.n_envs + th.arange(self.n_envs, device=self.device)
         # On wrap-around this overwrites the priorities of the replaced transitions too.
         self._set_raw_priorities(flat, self._max_priority.expand(self.n_envs))
-
-    def _sync_cursor(self) -> None:
-        """Bring the device's copy of the stored count and the newest row up to date (kernels,
-        no wait), before a sample reads it: once per training call, not per env step."""
-        at = (self.pos, self.full)
-        if at != self._cursor_at:
-            self._cursor[0].fill_(self.n_transitions)
-            self._cursor[1].fill_((self.pos - 1) % self.buffer_size)
-            self._cursor_at = at
-
-    def _tensor(self, array: np.ndarray) -> th.Tensor:
-        # (A read-only array, a broadcast view say, is copied first: torch wants writable ones.)
-        return th.as_tensor(np.require(array, requirements="W")).to(self.device)
-
-    def _write(self, storage: Any, values: Any, row: int) -> None:
-        if isinstance(storage, dict):
-            for key, column in storage.items():
-                self._write(column, values[key], row)
-            return
-        storage[row] = self._tensor(np.asarray(values).reshape(storage.shape[1:]))
 
     def sample(  # type: ignore[override]
         self, batch_size: int, env: VecNormalize | None = None
@@ -354,10 +599,7 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
         Returns:
             The batch, with IS ``weights`` and flat ``indices`` (a tensor on the device).
         """
-        if env is not None:
-            raise ValueError("the device replay buffer does not support VecNormalize")
-        if self.n_transitions == 0:
-            raise ValueError("cannot sample from an empty PrioritizedReplayBuffer")
+        self._check_sampleable(env)
         return self.sample_at(self.draw(batch_size))
 
     def sample_at(self, offsets: th.Tensor) -> PrioritizedReplayBufferSamples:
@@ -379,78 +621,6 @@ class DevicePrioritizedReplayBuffer(PrioritizedReplayBuffer):
         return PrioritizedReplayBufferSamples(
             *samples, weights=weights.float().reshape(-1, 1), indices=flat
         )
-
-    def _get_samples_at(  # type: ignore[override]
-        self, batch_inds: Any, env_indices: Any, env: VecNormalize | None = None
-    ) -> ReplayBufferSamples:
-        """The transitions at ``(batch_inds, env_indices)`` (arrays or tensors), as
-        :meth:`PrioritizedReplayBuffer._get_samples_at` gives them."""
-        if env is not None:
-            raise ValueError("the device replay buffer does not support VecNormalize")
-        rows = th.as_tensor(batch_inds, device=self.device).long()
-        self._sync_cursor()  # n-step returns read the newest row
-        return self._samples_at(rows, th.as_tensor(env_indices, device=self.device).long())
-
-    def draw(self, n: int, out: th.Tensor | None = None) -> th.Tensor:
-        """The draws of one sample of ``n`` (:meth:`_uniform`), the cursor that sample reads
-        brought up to date first (:meth:`_sync_cursor`): what :meth:`sample` and a recorded
-        step (before each launch) call."""
-        self._sync_cursor()
-        return self._uniform(n) if out is None else self._uniform(n, out)
-
-    def _uniform(self, n: int, out: th.Tensor | None = None) -> th.Tensor:
-        """``n`` uniform draws in ``[0, 1)``, float64, from the buffer's generator (into
-        ``out`` when given)."""
-        if out is not None:
-            return th.rand(n, generator=self._generator, out=out)
-        return th.rand(n, generator=self._generator, device=self.device, dtype=th.float64)
-
-    def graph_key(self) -> tuple[Any, ...]:
-        """What a captured sample or priority update holds fixed: where each tensor lives and
-        the constants they read (alpha, eps, n-step's length and gamma, the envs per row).
-        A graph captured under another key is stale."""
-        pointers = tuple(
-            tensor.data_ptr()
-            for name in (*_TENSORS, *_SCALARS)
-            for tensor in _flat(getattr(self, name))
-        )
-        return (pointers, self._alpha, self.eps, self.n_steps, self.gamma, self.n_envs)
-
-    def _samples_at(self, rows: th.Tensor, columns: th.Tensor) -> ReplayBufferSamples:
-        next_rows, dones, rewards, discounts = self._device_targets_at(rows, columns)
-        return ReplayBufferSamples(
-            self._gather(self.observations, rows, columns),
-            self.actions[rows, columns],
-            self._gather(self.next_observations, next_rows, columns),
-            dones,
-            rewards,
-            discounts=discounts,
-        )
-
-    @staticmethod
-    def _gather(storage: Any, rows: th.Tensor, columns: th.Tensor) -> Any:
-        if isinstance(storage, dict):
-            return {key: column[rows, columns] for key, column in storage.items()}
-        return storage[rows, columns]
-
-    def _device_targets_at(
-        self, rows: th.Tensor, columns: th.Tensor
-    ) -> tuple[th.Tensor, th.Tensor, th.Tensor, th.Tensor | None]:
-        """:meth:`PrioritizedReplayBuffer._targets_at` on the device."""
-        if self.n_steps == 1:
-            done = self.dones[rows, columns] * (1 - self.timeouts[rows, columns])
-            return rows, done.reshape(-1, 1), self.rewards[rows, columns].reshape(-1, 1), None
-        returns, discounts, last, terminal = n_step_returns_on_device(
-            self.rewards,
-            self.dones,
-            self.timeouts,
-            rows,
-            columns,
-            self.n_steps,
-            self.gamma,
-            newest_row=self._cursor[1],
-        )
-        return last, terminal.reshape(-1, 1), returns.reshape(-1, 1), discounts.reshape(-1, 1)
 
     def reset(self) -> None:
         """Empty the buffer, its priorities and the max-priority tracker."""

@@ -22,7 +22,7 @@ from stable_baselines3.dqn.policies import DQNPolicy
 from torch.nn import functional as F
 
 from harness.sb3.buffers import PrioritizedReplayBuffer
-from harness.sb3.device_replay import DevicePrioritizedReplayBuffer
+from harness.sb3.device_replay import DevicePrioritizedReplayBuffer, DeviceStorage
 from harness.sb3.graphs import GraphedStep, side_stream
 from harness.sb3.policies import ACTION_MASK_KEY, MultiInputPolicy, PerAgentQNetwork
 from harness.sb3.registry import POLICIES
@@ -317,8 +317,9 @@ class DoubleDQN(DQN):
         expert_action: The action DQfD's large-margin loss favours; ``None``: no such loss.
         margin: The lead over every other action's value the loss asks of ``expert_action``.
         margin_weight: The loss's weight beside the TD loss (DQfD's lambda_2).
-        cuda_graph: On CUDA with the device replay buffer, record a gradient step once as a
-            CUDA graph and launch it again for every later step (:mod:`harness.sb3.graphs`):
+        cuda_graph: On CUDA with a device replay buffer (prioritized or uniform,
+            :class:`~harness.sb3.device_replay.DeviceStorage`), record a gradient step once as
+            a CUDA graph and launch it again for every later step (:mod:`harness.sb3.graphs`):
             the same results, several times the gradient steps/s. Without effect elsewhere;
             a step that cannot be recorded warns once and trains without a graph.
         _init_setup_model: Build the networks now (``False`` is used by ``load``).
@@ -638,11 +639,12 @@ class DoubleDQN(DQN):
 
     def _graphs_wanted(self) -> bool:
         """Whether this call's steps go through a recorded graph (:mod:`harness.sb3.graphs`):
-        ``cuda_graph``, the device buffer, a CUDA device, and no failed recording so far."""
+        ``cuda_graph``, a device buffer (prioritized or uniform), a CUDA device, and no failed
+        recording so far."""
         return (
             self.cuda_graph
             and not self._graph_failed
-            and isinstance(self.replay_buffer, DevicePrioritizedReplayBuffer)
+            and isinstance(self.replay_buffer, DeviceStorage)
             and self.device.type == "cuda"
         )
 
@@ -650,7 +652,7 @@ class DoubleDQN(DQN):
         """What a recorded step of ``batch`` samples holds fixed (see :mod:`harness.sb3.graphs`):
         a step recorded under another key is recorded again."""
         buffer = self.replay_buffer
-        assert isinstance(buffer, DevicePrioritizedReplayBuffer)
+        assert isinstance(buffer, DeviceStorage)
         return (
             batch,
             buffer.graph_key(),
@@ -674,7 +676,7 @@ class DoubleDQN(DQN):
         if self._graph is not None and self._graph.key == key:
             return self._graph
         buffer = self.replay_buffer
-        assert isinstance(buffer, DevicePrioritizedReplayBuffer)
+        assert isinstance(buffer, DeviceStorage)
         self._graph = None  # free the stale graph's memory first
 
         def step(draws: th.Tensor) -> dict[str, th.Tensor]:
@@ -683,7 +685,8 @@ class DoubleDQN(DQN):
             loss, abs_td = self._backward(replay_data, recorded)
             recorded.add("loss", loss)
             recorded.add("td_error", abs_td.mean())
-            buffer.update_priorities(replay_data.indices, abs_td)
+            if isinstance(buffer, DevicePrioritizedReplayBuffer):
+                buffer.update_priorities(replay_data.indices, abs_td)
             return recorded.latest()
 
         try:

@@ -19,6 +19,7 @@ from stable_baselines3.common.utils import get_device
 from envs.coverage.goals import GOALS_KEY
 from harness.config.schema import ConfigError
 from harness.sb3.buffers import replay_memory_bytes
+from harness.sb3.device_replay import buffer_on_device
 from harness.sb3.dqn import resolve_optimizer_class
 from harness.sb3.registry import POLICIES
 
@@ -279,11 +280,18 @@ def check_replay_memory(config: ExperimentConfig, available: int | None = None) 
         config.n_slots,
         prioritized=config.algo.prioritized,
     )
+    where = "available"
+    if available is None and buffer_on_device(config.algo.device) and not config.algo.per_decision:
+        # The buffer is allocated on the GPU (harness.sb3.device_replay), all at once.
+        available, where = (
+            int(th.cuda.mem_get_info(get_device(config.algo.device))[0]),
+            "free on the GPU",
+        )
     available = available_memory_bytes() if available is None else available
     if available is not None and need > available:
         raise ValueError(
             f"algo.buffer_size: a replay buffer of {config.algo.buffer_size:,} transitions needs "
-            f"about {format_bytes(need)}, more than the {format_bytes(available)} available"
+            f"about {format_bytes(need)}, more than the {format_bytes(available)} {where}"
         )
     return need
 

@@ -53,7 +53,7 @@ from harness.results.rundir import (
 )
 from harness.sb3.buffers import PrioritizedReplayBuffer
 from harness.sb3.decisions import per_decision_buffer_class
-from harness.sb3.device_replay import prioritized_buffer_class
+from harness.sb3.device_replay import prioritized_buffer_class, uniform_buffer_class
 from harness.sb3.dqn import (
     DoubleDQN,
     NonFiniteLossError,
@@ -107,6 +107,13 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
     }
     buffer_kwargs: dict[str, Any] | None = None
     buffer_class: type[ReplayBuffer] | None = None
+    dict_obs = isinstance(venv.observation_space, spaces.Dict)
+    if not algo.prioritized and not algo.per_decision:
+        # On CUDA uniform replay lives there too (and its sample joins the recorded step);
+        # elsewhere SB3 chooses its own buffer (n-step returns: its NStepReplayBuffer).
+        buffer_class = uniform_buffer_class(algo.device, dict_obs)
+        if buffer_class is not None:
+            buffer_kwargs = {"n_steps": algo.n_steps, "gamma": algo.gamma}
     if algo.prioritized:
         buffer_kwargs = {
             "alpha": first.alpha,
@@ -116,7 +123,6 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
             "n_steps": algo.n_steps,
             "gamma": algo.gamma,
         }
-        dict_obs = isinstance(venv.observation_space, spaces.Dict)
         # On an accelerator the buffer lives there too (no host round trip per gradient step).
         buffer_class = prioritized_buffer_class(algo.device, dict_obs)
     if algo.per_decision:
@@ -138,7 +144,7 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
         replay_buffer_class=buffer_class,
         replay_buffer_kwargs=buffer_kwargs,
         # SB3 builds its NStepReplayBuffer from this when no buffer class is given.
-        n_steps=1 if algo.prioritized else algo.n_steps,
+        n_steps=algo.n_steps if buffer_class is None else 1,
         target_update_interval=algo.target_update_interval,
         # ε, β and the learning rate's schedules are installed by apply_phase, in one place.
         max_grad_norm=algo.max_grad_norm,

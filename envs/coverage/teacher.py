@@ -42,6 +42,7 @@ agent's choice binds the agents after it, as the oracle decides).
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from typing import NamedTuple
 
 import numpy as np
 from numba import njit
@@ -66,9 +67,23 @@ from envs.coverage.types import STAY
 
 __all__ = ["RolloutTeacher", "shortest_walk"]
 
-#: The planners a rollout steps (:func:`_planner_kind`): the frontier explorer (``order`` or
+#: The planners a rollout steps (:func:`_planner_step`): the frontier explorer (``order`` or
 #: ``pocket``), or a coordinated planner's compiled step.
 _EXPLORER, _COORDINATED = 0, 1
+
+
+class _PlannerStep(NamedTuple):
+    """What a rollout needs to play the episode's planner (:func:`_planner_step`), one argument
+    of the compiled functions (numba passes a named tuple as it is)."""
+
+    window: np.ndarray  # the planner's map-upkeep window (FrontierPlanner.window)
+    offsets: np.ndarray  # its neighbour offsets (offsets[3]: the padded grid's row length)
+    kind: int  # _EXPLORER or _COORDINATED
+    pocket: bool  # the explorer's pocket tie-break (else order)
+    assign: int  # a coordinated planner's compiled assignment
+    horizon: float  # its search horizon
+    beta: float  # its utility weight (the utility planner)
+    radius: float  # its utility radius
 
 
 @njit(cache=True, nogil=True)
@@ -81,21 +96,15 @@ def _rollout(
     steps: int,
     by_reach: bool,
     goal: int,
-    window: np.ndarray,
-    offsets: np.ndarray,
-    kind: int,
-    pocket: bool,
-    assign: int,
-    horizon: float,
-    beta: float,
-    radius: float,
+    planner: _PlannerStep,
 ) -> tuple[int, int]:
     """One rollout on a copy of ``grid`` (:attr:`FrontierPlanner.grid`) for ``steps`` steps:
     each agent walks ``paths[a, :lengths[a]]`` first (padded cells, one a step), then follows
-    the planner (``kind``: the explorer with ``pocket`` or not, or a coordinated planner's
-    compiled ``assign`` with its ``horizon``, ``beta`` and ``radius``). Returns the cells newly
-    visited and, with ``by_reach``, the step (1-based) on which they reached ``goal`` (the
-    rollout then ends), -1 when not reached (and without ``by_reach``)."""
+    the ``planner`` (the explorer with its tie-break, or a coordinated planner's compiled
+    assignment). Returns the cells newly visited and, with ``by_reach``, the step (1-based) on
+    which they reached ``goal`` (the rollout then ends), -1 when not reached (and without
+    ``by_reach``)."""
+    window, offsets, kind = planner.window, planner.offsets, planner.kind
     g = grid.copy()
     visited = g[_VISITED]
     size = visited.size
@@ -123,17 +132,17 @@ def _rollout(
             if n_targets == 0:
                 actions[:] = STAY
             elif kind == _EXPLORER:
-                _plan(g[_PASSABLE], g[_TARGET], g[_SEEN], pos, offsets,
-                      _POCKET if pocket else _ORDER, claimed, n_targets, scratch, None, goals,
-                      actions)  # fmt: skip
+                tie_break = _POCKET if planner.pocket else _ORDER
+                _plan(g[_PASSABLE], g[_TARGET], g[_SEEN], pos, offsets, tie_break, claimed,
+                      n_targets, scratch, None, goals, actions)  # fmt: skip
             else:
                 for a in range(n):
                     rowcol[a, 0] = pos[a] // stride - 1
                     rowcol[a, 1] = pos[a] % stride - 1
                 # Its map upkeep finds these cells visited: it only plans.
-                _coordinated_step(rowcol, window, g, n_targets, stride, horizon, dist,
-                                  scratch[1], assign, beta, radius, starts, goals,
-                                  actions)  # fmt: skip
+                _coordinated_step(rowcol, window, g, n_targets, stride, planner.horizon,
+                                  dist, scratch[1], planner.assign, planner.beta,
+                                  planner.radius, starts, goals, actions)  # fmt: skip
         for a in range(n):
             if at[a] < lengths[a]:
                 cells[a] = paths[a, at[a]]
@@ -165,21 +174,14 @@ def _slot_scores(
     steps: int,
     by_reach: bool,
     goal: int,
-    window: np.ndarray,
-    offsets: np.ndarray,
-    kind: int,
-    pocket: bool,
-    assign: int,
-    horizon: float,
-    beta: float,
-    radius: float,
+    planner: _PlannerStep,
     scores: np.ndarray,
 ) -> None:
     """Every slot's rollout score into ``scores`` (module docstring): slot 0 with the agent's
     row of ``paths`` as it comes (its one step), slot ``s`` of ``targets[1:]`` with the
     shortest path to ``targets[s]`` in that row; the other rows are the teammates' walks."""
     size = grid.shape[1]
-    stride = offsets[3]
+    stride = planner.offsets[3]
     dist = np.empty((1, size))
     distance_fields(grid[_PASSABLE], stride, positions[agent : agent + 1], np.inf, dist,
                     np.empty((0, 0), dtype=np.int32), np.empty(size, dtype=np.int64))  # fmt: skip
@@ -190,8 +192,7 @@ def _slot_scores(
         if s > 0:
             own[agent] = walk_back(dist[0], targets[s], stride, work[agent])
         new, step = _rollout(grid, n_targets, positions, work, own, steps, by_reach, goal,
-                             window, offsets, kind, pocket, assign, horizon, beta,
-                             radius)  # fmt: skip
+                             planner)  # fmt: skip
         if by_reach:
             # Steps first (not reached: one more than the rollout has), then cells.
             taken = steps + 1 if step < 0 else step
@@ -200,9 +201,8 @@ def _slot_scores(
             scores[s] = new
 
 
-def _planner_kind(planner: FrontierPlanner) -> tuple[int, bool, int, float, float, float]:
-    """The compiled step a rollout plays for ``planner``: ``(kind, pocket, assign, horizon,
-    beta, radius)``.
+def _planner_step(planner: FrontierPlanner) -> _PlannerStep:
+    """The compiled step a rollout plays for ``planner``.
 
     Raises:
         ValueError: for a planner whose step is not compiled (the ``random`` tie-break, a
@@ -214,14 +214,20 @@ def _planner_kind(planner: FrontierPlanner) -> tuple[int, bool, int, float, floa
                 f"the rollout teacher needs a compiled planner step; {type(planner).__name__} "
                 f"with candidates={planner.candidates!r} has none"
             )
-        beta, radius = getattr(planner, "beta", 0.0), getattr(planner, "radius", 1.0)
-        return _COORDINATED, False, planner._compiled_assign, planner._horizon(), beta, radius
+        return _PlannerStep(
+            planner.window, planner.offsets, _COORDINATED, False, planner._compiled_assign,
+            float(planner._horizon()), float(getattr(planner, "beta", 0.0)),
+            float(getattr(planner, "radius", 1.0)),
+        )  # fmt: skip
     if planner.tie_break not in ("order", "pocket"):
         raise ValueError(
             f"the rollout teacher plays the order and pocket explorers and the coordinated "
             f"planners, not tie_break={planner.tie_break!r} (its ties are drawn)"
         )
-    return _EXPLORER, planner.tie_break == "pocket", 0, np.inf, 0.0, 1.0
+    return _PlannerStep(
+        planner.window, planner.offsets, _EXPLORER, planner.tie_break == "pocket", 0, np.inf,
+        0.0, 1.0,
+    )  # fmt: skip
 
 
 def shortest_walk(planner: FrontierPlanner, agent: int, cell: int) -> list[int]:
@@ -297,13 +303,11 @@ class RolloutTeacher:
         if self.reach is not None:  # cells still to find, on the rollouts' map
             goal = int(np.ceil(self.reach * int(grid[_FREE].sum()))) - int(planner.visited.sum())
         paths, lengths = _walk_arrays(planner, candidates, agent, walks)
-        kind, pocket, assign, horizon, beta, radius = _planner_kind(planner)
         scores = np.empty(valid.size)
         _slot_scores(
             grid, int(planner.n_targets), np.asarray(planner.positions, dtype=np.int64),
             paths, lengths, int(agent), cells[valid].astype(np.int64), int(steps),
-            self.reach is not None, goal, planner.window, planner.offsets,
-            kind, pocket, assign, horizon, beta, radius, scores,
+            self.reach is not None, goal, _planner_step(planner), scores,
         )  # fmt: skip
         out[valid] = scores
         return out

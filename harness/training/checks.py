@@ -121,13 +121,24 @@ def _fused_runs(
     if "fused" not in inspect.signature(optimizer_class.__init__).parameters:
         return False
     try:
-        param = th.nn.Parameter(th.zeros(2, device=device))
-        optimizer = optimizer_class([param], lr=1e-3, fused=True, **kwargs)
-        param.grad = th.ones(2, device=device)
+        optimizer, _ = _throwaway(optimizer_class, {"fused": True, **kwargs}, device)
         optimizer.step()
     except Exception:  # torch says no with several exception types: all of them mean no
         return False
     return True
+
+
+def _throwaway(
+    optimizer_class: type[th.optim.Optimizer], kwargs: dict[str, Any], device: str
+) -> tuple[th.optim.Optimizer, th.nn.Parameter]:
+    """``optimizer_class`` over a throw-away parameter on ``device`` with a dense gradient,
+    built as SB3's DQNPolicy builds it (lr from the schedule, then ``kwargs``): the probes of
+    :func:`fast_optimizer_kwargs` and :func:`check_optimizer` step it. Raises what torch
+    raises."""
+    param = th.nn.Parameter(th.zeros(2, device=device))
+    optimizer = optimizer_class([param], lr=1e-3, **kwargs)
+    param.grad = th.ones(2, device=device)
+    return optimizer, param
 
 
 def check_optimizer(name: str, kwargs: dict[str, Any], device: str = "cpu") -> None:
@@ -150,17 +161,15 @@ def check_optimizer(name: str, kwargs: dict[str, Any], device: str = "cpu") -> N
         raise ValueError(
             "algo.optimizer_kwargs: lr is set by each phase's learning_rate; remove it here"
         )
-    param = th.nn.Parameter(th.zeros(2, device=device))
-    # Built as SB3's DQNPolicy builds it (lr from the schedule, then the kwargs). torch reports
-    # unusable settings with any of several exception types (TypeError, ValueError,
-    # RuntimeError, AssertionError for capturable/differentiable on CPU): all of them mean no.
+    # torch reports unusable settings with any of several exception types (TypeError,
+    # ValueError, RuntimeError, AssertionError for capturable/differentiable on CPU): all of
+    # them mean no.
     try:
-        optimizer = optimizer_class(
-            [param], lr=1e-3, **fast_optimizer_kwargs(optimizer_class, kwargs, device)
+        optimizer, param = _throwaway(
+            optimizer_class, fast_optimizer_kwargs(optimizer_class, kwargs, device), device
         )
     except Exception as exc:
         raise ValueError(f"algo.optimizer_kwargs: {name} does not take {kwargs} ({exc})") from None
-    param.grad = th.ones(2, device=device)
     try:
         optimizer.step()
     except Exception as exc:

@@ -509,3 +509,16 @@ def test_a_saved_buffer_leaves_out_its_unfilled_rows_and_loads_equal(
         assert vars(other).keys() == vars(buffer).keys()
         for name, value in vars(buffer).items():
             assert _same(value, getattr(other, name)), name
+
+
+def test_a_device_buffers_state_keeps_its_tensors_until_the_checkpoint_has_cut_them() -> None:
+    # A checkpoint cuts the unfilled rows where the tensors are (on a GPU), then copies only
+    # the kept rows to the host: stored_state hands over the buffer's own tensors, not copies.
+    buffer = _buffers()["device"]
+    state = buffer.stored_state()
+    assert state["observations"] is buffer.observations
+    assert state["_raw_priorities"] is buffer._raw_priorities
+    assert "_cursor" not in state  # made again on loading
+    host = buffer.host_state(state)
+    assert all(host[name].device.type == "cpu" for name in buffer._tensors)
+    assert host["pos"] == buffer.pos and host["_generator"] == state["_generator"]

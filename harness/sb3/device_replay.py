@@ -208,13 +208,25 @@ class DeviceStorage:
             self._generator.manual_seed(seed)
 
     def __getstate__(self) -> dict[str, Any]:
+        return self.host_state(self.stored_state())
+
+    def stored_state(self) -> dict[str, Any]:
+        """What pickling writes, the tensors still where they are: a checkpoint cuts the rows
+        not yet filled there (``harness.training.checkpoints``) before :meth:`host_state`
+        copies only the rest to the host."""
         state = self.__dict__.copy()
-        for name in self._tensors:
-            state[name] = _to(state[name], th.device("cpu"))
         for name in self._scalars:
             state.pop(name, None)
         state["_generator"] = (str(self._device), self._generator.get_state())
         return state
+
+    def host_state(self, state: dict[str, Any]) -> dict[str, Any]:
+        """``state`` (:meth:`stored_state`) with its tensors on the host, as they are pickled:
+        a buffer saved from a GPU loads on a machine without one."""
+        return {
+            name: _to(value, th.device("cpu")) if name in self._tensors else value
+            for name, value in state.items()
+        }
 
     def __setstate__(self, state: dict[str, Any]) -> None:
         device, generator_state = state.pop("_generator")

@@ -232,8 +232,14 @@ class _BufferPickler(pickle.Pickler):
     def reducer_override(self, obj: Any) -> Any:
         if obj is not self._buffer:
             return NotImplemented
-        reduced = obj.__reduce_ex__(pickle.HIGHEST_PROTOCOL)
-        state = dict(reduced[2])  # the attributes, as the buffer's class pickles them
+        # A device buffer (harness.sb3.device_replay.DeviceStorage) gives its state with the
+        # tensors where they are, and moves them to the host after the cut: only kept rows travel.
+        on_device = hasattr(obj, "stored_state")
+        if on_device:
+            state = obj.stored_state()
+        else:
+            reduced = obj.__reduce_ex__(pickle.HIGHEST_PROTOCOL)
+            state = dict(reduced[2])  # the attributes, as the buffer's class pickles them
         cut = []
         if not state["full"]:
             for name, key, array, keep in _row_arrays(state):
@@ -241,14 +247,17 @@ class _BufferPickler(pickle.Pickler):
                 if tail.shape[0] == 0 or not _all_equal(tail, tail.reshape(-1)[0]):
                     continue  # nothing to leave out, or rows written before a reset
                 head = array[:keep]
-                if hasattr(head, "clone"):
+                if hasattr(head, "clone") and head.device.type == "cpu":
                     head = head.clone()  # torch pickles a view's whole storage
+                # (A view on a GPU is copied alone to the host by host_state.)
                 # (A numpy view pickles its own bytes, written from where they are: protocol 5.)
                 if key is None:
                     state[name] = head
                 else:
                     state[name] = {**state[name], key: head}
                 cut.append((name, key, array.shape[0], tail.reshape(-1)[0].item()))
+        if on_device:
+            state = obj.host_state(state)
         return restore_replay_buffer, (type(obj), state, cut)
 
 

@@ -15,7 +15,10 @@ With ``--belief true`` (the default) the copies hold the *true* walls: one step 
 improvement over the planner with a perfect model of the map, an estimate of the room in the
 candidate set rather than a policy anyone can run. With ``--belief sampled`` the cells nobody
 has seen are drawn (free with the share of free cells among the seen ones), ``--samples`` maps
-per decision: a rollout planner that sees only what the agents see.
+per decision: a rollout planner that sees only what the agents see. An option's value then
+moves by tens of cells from one sampled map to the next, and the best of several noisy means
+is biased upwards: ``--sigmas Z`` lets an option replace slot 0 only where its mean paired gain
+over the maps exceeds ``Z`` standard errors.
 
 ``--model`` plays a trained goal policy the same way (a slot other than 0 is walked to until
 visited). ``--save`` writes every decision's candidate features and each slot's advantage (its
@@ -31,7 +34,7 @@ teacher was checked against, tests/test_teacher.py): the same choices, 3 to 12 t
 
     python experiments/goal_oracle.py [--config configs/goals_2agents.yaml] [--episodes 10]
         [--seed 2000003] [--set KEY=VALUE ...] [--horizon H] [--belief true|sampled]
-        [--samples M] [--margin CELLS] [--model RUN/model.zip] [--save DECISIONS.npz]
+        [--samples M] [--sigmas Z] [--margin CELLS] [--model RUN/model.zip] [--save DECISIONS.npz]
         [--reach Q] [--rollouts compiled|python]
 """
 
@@ -183,6 +186,7 @@ def play(
     model: DoubleDQN | None = None,
     reach: float | None = None,
     python: bool = False,
+    sigmas: float = 0.0,
 ) -> tuple[float, int, int | None]:
     """One episode; with ``oracle`` the rollout oracle chooses, with ``model`` a trained goal
     policy (greedy, committed like the oracle), otherwise slot 0 throughout.
@@ -192,7 +196,9 @@ def play(
     0.99): the options are scored by the steps their rollout takes to reach it instead (fewer
     is better, ties by cells; ``margin`` then counts steps). Returns the coverage, the number
     of deviations from slot 0 and the steps to ``reach`` (``None`` when not reached or not
-    asked). ``horizon``: rollouts end after so many steps (``None``: at the episode's end)."""
+    asked). ``horizon``: rollouts end after so many steps (``None``: at the episode's end).
+    ``sigmas``: with several sampled maps, a slot replaces slot 0 only where its mean paired
+    gain exceeds so many standard errors over the maps."""
     obs, _ = env.reset(seed=seed)
     rng = np.random.default_rng(seed)
     teacher = RolloutTeacher(horizon, margin, reach)
@@ -220,18 +226,30 @@ def play(
             steps_left = env.max_steps - env.steps
             for i in deciding:
                 slots = np.flatnonzero(cand.cells[i] >= 0)
-                scores = np.zeros(len(slots))
-                for _ in range(samples if belief == "sampled" else 1):
+                n_maps = samples if belief == "sampled" else 1
+                per_map = np.zeros((n_maps, len(slots)))
+                for m in range(n_maps):
                     # One map for every option of a sample: their differences are paired.
                     free = sampled_free(planner, rng) if belief == "sampled" else None
                     if python:
-                        scores += python_scores(
+                        per_map[m] = python_scores(
                             planner, cand, i, cells, rests, steps_left, teacher, free
                         )
                     else:
                         walks = {a: w for a, w in enumerate(walk) if w}
-                        scores += teacher.scores(planner, cand, i, steps_left, walks, free)[slots]
-                scores /= samples if belief == "sampled" else 1
+                        per_map[m] = teacher.scores(planner, cand, i, steps_left, walks, free)[
+                            slots
+                        ]
+                scores = per_map.mean(axis=0)
+                if sigmas and n_maps > 1:
+                    # Only gains clear of the sampled maps' noise: a slot's mean paired gain
+                    # over slot 0 must exceed `sigmas` standard errors, else it scores as
+                    # slot 0 (the best of several noisy means is biased upwards).
+                    gains = per_map - per_map[:, :1]
+                    se = gains.std(axis=0, ddof=1) / np.sqrt(n_maps)
+                    noisy = gains.mean(axis=0) <= sigmas * se
+                    noisy[0] = False
+                    scores = np.where(noisy, scores[0], scores)
                 if records is not None:
                     adv = np.full(cand.cells.shape[1], np.nan)
                     adv[slots] = scores - scores[0]
@@ -294,6 +312,12 @@ def main() -> None:
         "--margin", type=float, default=0.0, help="cells an option must gain over slot 0"
     )
     parser.add_argument(
+        "--sigmas",
+        type=float,
+        default=0.0,
+        help="with --samples > 1: the standard errors an option's mean gain must clear",
+    )
+    parser.add_argument(
         "--horizon", type=int, help="steps a rollout looks ahead (default: to the episode's end)"
     )
     parser.add_argument(
@@ -334,6 +358,7 @@ def main() -> None:
             model=model,
             reach=args.reach,
             python=args.rollouts == "python",
+            sigmas=args.sigmas,
         )
         rows.append((planner, oracle))
         steps.append((planner_steps, oracle_steps))

@@ -174,6 +174,21 @@ def sampled_free(planner: FrontierPlanner, rng: np.random.Generator) -> np.ndarr
     return guess.ravel()
 
 
+def clear_of_noise(per_map: np.ndarray, sigmas: float) -> np.ndarray:
+    """The options' mean scores over the sampled maps ``per_map`` ``(maps, options)``, slot 0
+    first; with ``sigmas`` (and two maps or more) an option whose mean paired gain over slot 0
+    is not above ``sigmas`` standard errors of that gain scores as slot 0 (the best of several
+    noisy means is biased upwards)."""
+    scores = per_map.mean(axis=0)
+    if not sigmas or per_map.shape[0] < 2:
+        return scores
+    gains = per_map - per_map[:, :1]
+    se = gains.std(axis=0, ddof=1) / np.sqrt(per_map.shape[0])
+    noisy = gains.mean(axis=0) <= sigmas * se
+    noisy[0] = False
+    return np.where(noisy, scores[0], scores)
+
+
 def play(
     env: CoverageEnv,
     seed: int,
@@ -240,16 +255,7 @@ def play(
                         per_map[m] = teacher.scores(planner, cand, i, steps_left, walks, free)[
                             slots
                         ]
-                scores = per_map.mean(axis=0)
-                if sigmas and n_maps > 1:
-                    # Only gains clear of the sampled maps' noise: a slot's mean paired gain
-                    # over slot 0 must exceed `sigmas` standard errors, else it scores as
-                    # slot 0 (the best of several noisy means is biased upwards).
-                    gains = per_map - per_map[:, :1]
-                    se = gains.std(axis=0, ddof=1) / np.sqrt(n_maps)
-                    noisy = gains.mean(axis=0) <= sigmas * se
-                    noisy[0] = False
-                    scores = np.where(noisy, scores[0], scores)
+                scores = clear_of_noise(per_map, sigmas)
                 if records is not None:
                     adv = np.full(cand.cells.shape[1], np.nan)
                     adv[slots] = scores - scores[0]

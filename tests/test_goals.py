@@ -388,6 +388,19 @@ def test_one_agents_oracle_scored_by_steps_is_never_slower_than_the_planner() ->
     assert deviations > 0 and oracle_steps <= planner_steps
 
 
+def test_the_sampled_oracle_keeps_only_gains_clear_of_the_maps_noise() -> None:
+    oracle = _script("goal_oracle")
+    # Four sampled maps, slot 0 first. Slot 1 gains 2, 4, 6, 8 (mean 5, sd 2.582, se 1.291):
+    # 3.87 standard errors. Slot 2 gains +30, -20, +30, -20 (mean 5, se 14.43): noise.
+    per_map = np.array(
+        [[100.0, 102.0, 130.0], [100.0, 104.0, 80.0], [100.0, 106.0, 130.0], [100.0, 108.0, 80.0]]
+    )
+    np.testing.assert_allclose(oracle.clear_of_noise(per_map, 0.0), [100.0, 105.0, 105.0])
+    np.testing.assert_allclose(oracle.clear_of_noise(per_map, 3.0), [100.0, 105.0, 100.0])
+    np.testing.assert_allclose(oracle.clear_of_noise(per_map, 4.0), [100.0, 100.0, 100.0])
+    np.testing.assert_allclose(oracle.clear_of_noise(per_map[:1], 3.0), [100.0, 102.0, 130.0])
+
+
 def test_the_oracle_walks_the_shortest_path_of_the_predecessors() -> None:
     oracle = _script("goal_oracle")
     # Cells 0 -> 1 -> 2 -> 5 (a predecessor array as SciPy returns it; -9999: none).

@@ -22,6 +22,7 @@ __all__ = [
     "PrioritizedReplayBuffer",
     "PrioritizedReplayBufferSamples",
     "SumTree",
+    "check_n_step_returns",
     "importance_weights",
     "n_step_returns",
     "replay_memory_bytes",
@@ -351,6 +352,19 @@ def importance_weights(
     return (min_probability / probabilities) ** beta
 
 
+def check_n_step_returns(n_steps: int, gamma: float) -> None:
+    """The n-step settings every buffer of this package takes (:func:`n_step_returns`).
+
+    Raises:
+        ValueError: for an ``n_steps`` that is no integer >= 1, or a ``gamma`` outside
+            ``(0, 1]``.
+    """
+    if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
+        raise ValueError(f"n_steps must be an integer >= 1, got {n_steps!r}")
+    if not 0.0 < gamma <= 1.0:
+        raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
+
+
 def n_step_returns(
     rewards: np.ndarray,
     dones: np.ndarray,
@@ -498,10 +512,7 @@ class PrioritizedReplayBuffer(ReplayBuffer):
             )
         if eps <= 0:
             raise ValueError(f"eps must be > 0, got {eps}")
-        if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
-            raise ValueError(f"n_steps must be an integer >= 1, got {n_steps!r}")
-        if not 0.0 < gamma <= 1.0:
-            raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
+        check_n_step_returns(n_steps, gamma)
         super().__init__(
             buffer_size,
             observation_space,

@@ -38,7 +38,7 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import DictReplayBuffer
 from stable_baselines3.common.vec_env import VecNormalize
 
-from harness.sb3.buffers import PrioritizedDictReplayBuffer
+from harness.sb3.buffers import PrioritizedDictReplayBuffer, check_n_step_returns
 from harness.sb3.policies import ACTION_MASK_KEY
 
 __all__ = [
@@ -108,8 +108,7 @@ class _PerDecision:
                 f"a per-decision buffer stores one transition per decision; n_steps must be 1, "
                 f"got {kwargs['n_steps']!r}"
             )
-        if not 0.0 < gamma <= 1.0:
-            raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
+        check_n_step_returns(1, gamma)
         super().__init__(  # type: ignore[call-arg]
             buffer_size,
             observation_space,

@@ -43,6 +43,7 @@ from harness.sb3.buffers import (
     PrioritizedDictReplayBuffer,
     PrioritizedReplayBuffer,
     PrioritizedReplayBufferSamples,
+    check_n_step_returns,
 )
 
 __all__ = [
@@ -404,10 +405,7 @@ class DeviceReplayBuffer(DeviceStorage, ReplayBuffer):
     ) -> None:
         if optimize_memory_usage:
             raise ValueError("the device replay buffer does not support optimize_memory_usage")
-        if isinstance(n_steps, bool) or not isinstance(n_steps, int) or n_steps < 1:
-            raise ValueError(f"n_steps must be an integer >= 1, got {n_steps!r}")
-        if not 0.0 < gamma <= 1.0:
-            raise ValueError(f"gamma must lie in (0, 1], got {gamma}")
+        check_n_step_returns(n_steps, gamma)
         self._storage_ready = False
         super().__init__(
             buffer_size,

@@ -257,7 +257,7 @@ class DeviceStorage:
             self._cursor_at = at
 
     # ------------------------------------------------------------------ storage
-    def _store(
+    def add(
         self,
         obs: np.ndarray | dict[str, np.ndarray],
         next_obs: np.ndarray | dict[str, np.ndarray],
@@ -265,9 +265,9 @@ class DeviceStorage:
         reward: np.ndarray,
         done: np.ndarray,
         infos: list[dict[str, Any]],
-    ) -> int:
-        """Store one step of all ``n_envs`` envs on the device, as SB3's ``add``; returns the
-        row written."""
+    ) -> None:
+        """Store one step of all ``n_envs`` envs on the device, as SB3's ``add`` (then
+        :meth:`_added` with the row written)."""
         row = self.pos
         self._write(self.observations, obs, row)
         self._write(self.next_observations, next_obs, row)
@@ -281,7 +281,11 @@ class DeviceStorage:
         if self.pos == self.buffer_size:
             self.full = True
             self.pos = 0
-        return row
+        self._added(row)
+
+    def _added(self, row: int) -> None:
+        """What a buffer keeps beside the transitions of a step stored at ``row`` (nothing
+        here; the prioritized one gives them the max priority)."""
 
     def _tensor(self, array: np.ndarray) -> th.Tensor:
         # (A read-only array, a broadcast view say, is copied first: torch wants writable ones.)
@@ -420,18 +424,6 @@ class DeviceReplayBuffer(DeviceStorage, ReplayBuffer):
         self._storage_to_device()
         self._make_scalars()
         self._storage_ready = True
-
-    def add(  # type: ignore[override]
-        self,
-        obs: np.ndarray | dict[str, np.ndarray],
-        next_obs: np.ndarray | dict[str, np.ndarray],
-        action: np.ndarray,
-        reward: np.ndarray,
-        done: np.ndarray,
-        infos: list[dict[str, Any]],
-    ) -> None:
-        """Store one step of all ``n_envs`` envs on the device."""
-        self._store(obs, next_obs, action, reward, done, infos)
 
     def sample(  # type: ignore[override]
         self, batch_size: int, env: VecNormalize | None = None
@@ -586,17 +578,8 @@ class DevicePrioritizedReplayBuffer(DeviceStorage, PrioritizedReplayBuffer):
         self._max_priority.copy_(th.maximum(self._max_priority, raw.max()))
 
     # ------------------------------------------------------------------ storage
-    def add(  # type: ignore[override]
-        self,
-        obs: np.ndarray | dict[str, np.ndarray],
-        next_obs: np.ndarray | dict[str, np.ndarray],
-        action: np.ndarray,
-        reward: np.ndarray,
-        done: np.ndarray,
-        infos: list[dict[str, Any]],
-    ) -> None:
-        """Store one step of all ``n_envs`` envs on the device and give them the max priority."""
-        row = self._store(obs, next_obs, action, reward, done, infos)
+    def _added(self, row: int) -> None:
+        """Give the transitions just stored at ``row`` the max priority."""
         flat = row * self.n_envs + th.arange(self.n_envs, device=self.device)
         # On wrap-around this overwrites the priorities of the replaced transitions too.
         self._set_raw_priorities(flat, self._max_priority.expand(self.n_envs))

@@ -441,6 +441,9 @@ def bench_eval(episodes: int = 8) -> dict[str, Any]:
     )
 
     def planner_rate(name: str) -> float:
+        # One episode first: compiling (or loading from numba's cache) what it needs is not
+        # the planner's speed, and would fall on whichever planner needs it first.
+        run_episodes(make_baseline(name, 0), THESIS_ENV, 1, 0)
         return _rate(
             episodes,
             lambda: run_episodes(make_baseline(name, 0), THESIS_ENV, episodes, 0),

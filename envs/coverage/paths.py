@@ -61,34 +61,41 @@ def breadth_first(
     (the same lengths as a new search without a limit). Returns how many cells it reached; they
     are ``queue``'s first, in the order reached (the start first).
     """
-    offsets = (stride, 1, -1, -stride)  # highest neighbour index first: the predecessor rule
+    # Two things make the loop about a quarter faster than its plain form (docs/performance.md,
+    # "The searches' inner loop"): unsigned cell indices (numba adds a wrap-around for negative
+    # indices to every signed one), and one byte per cell, "passable and not yet reached",
+    # tested in place of two arrays (passable, then d against inf).
     d[:] = np.inf
-    d[start] = 0.0
+    unseen = passable.copy()
+    down, right = np.uint64(stride), np.uint64(1)
+    first = np.uint64(start)
+    d[first] = 0.0
+    unseen[first] = False
     queue[0] = start
-    found = 1 if n_targets > 0 and target[start] else 0
-    if not passable[start] or (n_targets > 0 and found == n_targets):
+    found = 1 if n_targets > 0 and target[first] else 0
+    if not passable[first] or (n_targets > 0 and found == n_targets):
         return 1
     bound = float(limit)
-    head, tail = 0, 1
+    head, tail = np.uint64(0), np.uint64(1)
     while head < tail:
-        v = queue[head]
+        v = np.uint64(queue[head])
         nd = d[v] + 1.0
         if nd > bound:  # cells leave the queue in distance order: the rest are as far
             if n_targets == 0 or found > 0:
-                return tail
+                break
             bound = np.inf  # no target within the limit: on over the whole map
-        head += 1
-        for k in range(4):
-            w = v + offsets[k]
-            if passable[w] and d[w] == np.inf:
+        head += right
+        for w in (v + down, v + right, v - right, v - down):  # highest index first
+            if unseen[w]:
+                unseen[w] = False
                 d[w] = nd
                 queue[tail] = w
-                tail += 1
+                tail += right
                 if n_targets > 0 and target[w]:
                     found += 1
         if n_targets > 0 and found == n_targets:
-            return tail
-    return tail
+            break
+    return int(tail)
 
 
 @njit(cache=True, nogil=True)

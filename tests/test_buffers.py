@@ -613,12 +613,10 @@ def test_n_step_returns_wrap_around_a_full_buffer_but_not_past_the_newest_row() 
     np.testing.assert_array_equal(terminal, [0, 0, 0, 0])
 
 
-def test_n_step_samples_match_sb3s_n_step_buffer(
-    make_buffer: Callable[..., PrioritizedReplayBuffer],
-) -> None:
-    # Same transitions in SB3's NStepReplayBuffer (one env: its env draw is always 0) and in
-    # ours: every row gives the same return, discount, bootstrap state and terminal flag.
-    ours = make_buffer(8, n_steps=3, gamma=0.9)
+def assert_n_step_samples_match_sb3(ours: Any) -> None:
+    """``ours`` (8 rows, one env, n_steps=3, gamma=0.9) against SB3's NStepReplayBuffer given the
+    same transitions (one env: its env draw is always 0): every row gives the same return,
+    discount, bootstrap state and terminal flag."""
     sb3 = NStepReplayBuffer(8, OBS_SPACE, ACTION_SPACE, device="cpu", n_steps=3, gamma=0.9)
     ends = {2: (True, False), 6: (True, True), 9: (True, False)}  # step: (done, truncated)
     for step in range(11):  # wraps around: rows hold steps 3..10, pos = 3
@@ -628,14 +626,19 @@ def test_n_step_samples_match_sb3s_n_step_buffer(
     rows = np.arange(8)
     expected = sb3._get_samples(rows)
     got = ours._get_samples_at(rows, np.zeros(8, dtype=np.int64))
-    th.testing.assert_close(got.rewards, expected.rewards)
-    th.testing.assert_close(got.discounts, expected.discounts)
-    th.testing.assert_close(got.dones, expected.dones)
+    for name in ("rewards", "discounts", "dones"):
+        th.testing.assert_close(getattr(got, name), getattr(expected, name))
     np.testing.assert_array_equal(
         first_values(got.next_observations), first_values(expected.next_observations)
     )
     assert got.rewards.shape == got.discounts.shape == got.dones.shape == (8, 1)
     assert (got.discounts < 0.9).any() and (got.discounts == 0.9).any()  # mixed lengths
+
+
+def test_n_step_samples_match_sb3s_n_step_buffer(
+    make_buffer: Callable[..., PrioritizedReplayBuffer],
+) -> None:
+    assert_n_step_samples_match_sb3(make_buffer(8, n_steps=3, gamma=0.9))
 
 
 def test_prioritized_n_step_sample_carries_discounts_and_one_step_none(
@@ -812,21 +815,7 @@ def test_the_uniform_device_sampler_draws_every_stored_transition_alike() -> Non
 
 
 def test_uniform_device_n_step_samples_match_sb3s_n_step_buffer() -> None:
-    ours = _uniform(8, n_envs=1, n_steps=3, gamma=0.9)
-    sb3 = NStepReplayBuffer(8, OBS_SPACE, ACTION_SPACE, device="cpu", n_steps=3, gamma=0.9)
-    ends = {2: (True, False), 6: (True, True), 9: (True, False)}  # step: (done, truncated)
-    for step in range(11):  # wraps around
-        done, truncated = ends.get(step, (False, False))
-        add_step(ours, step, done, truncated)
-        add_step(sb3, step, done, truncated)
-    rows = np.arange(8)
-    expected = sb3._get_samples(rows)
-    got = ours._get_samples_at(rows, np.zeros(8, dtype=np.int64))
-    for name in ("rewards", "discounts", "dones"):
-        th.testing.assert_close(getattr(got, name), getattr(expected, name))
-    np.testing.assert_array_equal(
-        first_values(got.next_observations), first_values(expected.next_observations)
-    )
+    assert_n_step_samples_match_sb3(_uniform(8, n_envs=1, n_steps=3, gamma=0.9))
 
 
 def test_the_uniform_device_buffer_pickles_resets_and_refuses_what_it_cannot_do() -> None:

@@ -104,6 +104,8 @@ def bench_env(episodes: int = 3) -> dict[str, Any]:
         )
         env.reset(seed=0)
         actions = [dict(zip(env.possible_agents, a)) for a in moves]
+        for a in actions[:10]:  # compiling (or loading from numba's cache) is not the step's speed
+            env.step(a)
 
         def bare() -> None:
             for _ in range(episodes):
@@ -139,6 +141,8 @@ def bench_env(episodes: int = 3) -> dict[str, Any]:
             venv.reset()
             n_steps = max(200, (episodes * steps * n) // venv.num_envs)
             acts = rng.integers(0, 5, (n_steps, venv.num_envs))
+            for a in acts[:10]:  # as bare_rate: the first steps compile
+                venv.step(a)
 
             def run() -> None:
                 for a in acts:
@@ -431,10 +435,12 @@ def bench_eval(episodes: int = 8) -> dict[str, Any]:
     model = DoubleDQN("MlpPolicy", venv, policy_kwargs={"net_arch": THESIS_NET}, device="cpu")
     venv.close()
     cpu: dict[str, float] = {}  # the same rates per CPU second, by row
+    random = make_baseline("random", 0)
+    for policy in (model_policy(model), random):  # every row's first episode is untimed
+        run_episodes(policy, THESIS_ENV, 1, 0)
     mlp = _rate(
         episodes, lambda: run_episodes(model_policy(model), THESIS_ENV, episodes, 0), cpu, "mlp"
     )
-    random = make_baseline("random", 0)
     # `harness eval --policy random`: 100 episodes, 8 copies side by side (the command's default).
     rand = _rate(
         4 * episodes, lambda: run_episodes(random, THESIS_ENV, 4 * episodes, 0), cpu, "random"
@@ -442,7 +448,7 @@ def bench_eval(episodes: int = 8) -> dict[str, Any]:
 
     def planner_rate(name: str) -> float:
         # One episode first: compiling (or loading from numba's cache) what it needs is not
-        # the planner's speed, and would fall on whichever planner needs it first.
+        # the planner's speed, and would fall on whichever row needs it first.
         run_episodes(make_baseline(name, 0), THESIS_ENV, 1, 0)
         return _rate(
             episodes,

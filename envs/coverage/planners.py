@@ -530,8 +530,10 @@ class CoordinatedPlanner(FrontierPlanner):
             return self.act(rng)
         n = positions.shape[0]
         starts, goals, actions = np.empty((3, n), dtype=np.int64)
-        dist, rows = self.work_arrays()  # the team is the one of the last sync: n agents
-        queue = rows[0]
+        dist = self._distances  # work_arrays(), without its checks on the steps that need none
+        if dist is None or dist.shape[0] != n or dist.shape[1] != self.passable.size:
+            dist = self.work_arrays()[0]  # the team is the one of the last sync: n agents
+        queue = self._scratch[1]
         kind = self._compiled_assign
         if kind is not None:
             beta, radius = getattr(self, "beta", 0.0), getattr(self, "radius", 1.0)

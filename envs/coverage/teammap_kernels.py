@@ -54,8 +54,14 @@ def frontier_views(
     for i in range(n):
         compass[i, 4] = 1.0
     tail = 0
+    # "Free and not yet reached", one byte per cell: the search tests it alone (as
+    # envs.coverage.paths.breadth_first does, on unsigned indices; docs/performance.md, "The
+    # searches' inner loop").
+    unseen = np.empty(n_cells, dtype=np.bool_)
     for k in range(n_cells):
-        if cat[k] == _KNOWN_FREE:
+        source = cat[k] == _KNOWN_FREE
+        unseen[k] = free[k] and not source
+        if source:
             dist[k] = 0.0
             queue[tail] = k
             tail += 1
@@ -77,17 +83,18 @@ def frontier_views(
                     needed[k] = True
                     if dist[k] == np.inf:  # not a frontier cell itself
                         remaining += 1
-    head = 0
-    while head < tail and remaining > 0:
-        u = queue[head]
-        head += 1
+    head, end = np.uint64(0), np.uint64(tail)
+    down, right = np.uint64(wp), np.uint64(1)
+    while head < end and remaining > 0:
+        u = np.uint64(queue[head])
+        head += right
         d = dist[u] + 1.0
-        for m in moves:
-            v = u + m
-            if free[v] and dist[v] == np.inf:
+        for v in (u - down, u + down, u - right, u + right):  # the order of ``moves``
+            if unseen[v]:
+                unseen[v] = False
                 dist[v] = d
-                queue[tail] = v
-                tail += 1
+                queue[end] = v
+                end += right
                 if needed[v]:
                     remaining -= 1
     for i in range(n):

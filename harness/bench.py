@@ -637,7 +637,7 @@ def format_bench(r: dict[str, Any]) -> str:
             if key.endswith("_episodes_per_s") and name.startswith("frontier_"):
                 ratio = r.get(f"eval_{name}_over_frontier")
                 tail = f"   {ratio:5.2f} x frontier" if ratio is not None else ""
-                lines.append(f"  {name + ' episodes/s':<27}{rate:>12.2f}{tail}")
+                lines.append(f"  {name + ' episodes/s':<29}{rate:>10.2f}{tail}")
     if "train_peak_memory_mib" in r:
         lines += [
             "",

@@ -302,7 +302,8 @@ class FrontierPlanner:
         #: Per agent: the padded cell of its target at the last :meth:`act` (-1: none).
         self.goals: list[int] = []
         self._scratch: np.ndarray | None = None
-        self._distances: np.ndarray | None = None
+        #: :meth:`work_arrays`'s pair, kept while the team and the map's size stay.
+        self._work: tuple[np.ndarray, np.ndarray] | None = None
         self._claimed: np.ndarray | None = None
 
     # ------------------------------------------------------------------ map upkeep
@@ -447,9 +448,10 @@ class FrontierPlanner:
         ``float64 (agents, cells)`` for distance fields and ``int64 (3, cells)``, made once
         per map size and team, overwritten by the next search."""
         n, size = len(self.positions), self.passable.size
-        if self._distances is None or self._distances.shape != (n, size):
-            self._distances = np.empty((n, size))
-        return self._distances, self._scratch_arrays(size)[1:4]
+        work = self._work  # a coordinated planner asks every step: one check, no new views
+        if work is None or work[0].shape != (n, size) or work[1].base is not self._scratch:
+            work = self._work = (np.empty((n, size)), self._scratch_arrays(size)[1:4])
+        return work
 
 
 # ---------------------------------------------------------------------- coordinated planners
@@ -530,10 +532,8 @@ class CoordinatedPlanner(FrontierPlanner):
             return self.act(rng)
         n = positions.shape[0]
         starts, goals, actions = np.empty((3, n), dtype=np.int64)
-        dist = self._distances  # work_arrays(), without its checks on the steps that need none
-        if dist is None or dist.shape[0] != n or dist.shape[1] != self.passable.size:
-            dist = self.work_arrays()[0]  # the team is the one of the last sync: n agents
-        queue = self._scratch[1]
+        dist, rows = self.work_arrays()  # the team is the one of the last sync: n agents
+        queue = rows[0]
         kind = self._compiled_assign
         if kind is not None:
             beta, radius = getattr(self, "beta", 0.0), getattr(self, "radius", 1.0)

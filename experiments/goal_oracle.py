@@ -275,7 +275,7 @@ def play(
                 key: np.stack([obs[agent][key] for agent in env.agents])
                 for key in obs[env.agents[0]]
             }
-            slots = model.policy.predict(batch, deterministic=True)[0]
+            slots = model.predict(batch, deterministic=True)[0]  # masked: no empty slot
             pred = None
             for i in deciding:
                 if slots[i] != 0:

@@ -141,6 +141,16 @@ def test_greedy_action_is_the_best_allowed_one(kind: str) -> None:
     np.testing.assert_array_equal(model.policy.predict(obs, deterministic=True)[0], [3] * 5)
 
 
+def test_greedy_evaluation_masks_as_predict_does() -> None:
+    # harness eval's greedy policy is the model's own choice, masked (not SB3's policy.predict,
+    # which would take action 3 everywhere).
+    from harness.evaluation.episodes import model_policy
+
+    model = make_model(q=Q_ONLINE)
+    obs = observations([[0, 1, 1, 0], [1, 1, 1, 1], [0, 1, 0, 0], [1, 1, 1, 0], [0, 0, 0, 0]])
+    np.testing.assert_array_equal(model_policy(model)(obs, []), [2, 3, 1, 0, 3])
+
+
 def test_forced_rows_take_their_one_action_without_the_network(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:

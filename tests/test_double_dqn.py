@@ -271,6 +271,114 @@ def test_single_observation_like_sb3(five_action_model: DoubleDQN) -> None:
     assert actions == set(range(5))
 
 
+class SpaceEnv(gym.Env):
+    """Samples of any observation space, 2 actions (``predict``'s input only)."""
+
+    def __init__(self, space: spaces.Space) -> None:
+        self.observation_space = space
+        self.action_space = spaces.Discrete(2)
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> Any:
+        super().reset(seed=seed)
+        self.observation_space.seed(seed)
+        return self.observation_space.sample(), {}
+
+    def step(self, action: int) -> Any:
+        return self.observation_space.sample(), 0.0, False, False, {}
+
+
+#: Observation spaces and the policy that reads them: a vector (SB3's conversion); a dict of a
+#: vector, a channel-first uint8 image and a MultiBinary entry (converted by DoubleDQN itself); a
+#: dict with a channel-last image (the policy's space is SB3's transposed one, channel-first: the
+#: env's own channel-last observations fit neither it nor a batch of it, so SB3 transposes them).
+PREDICT_SPACES = {
+    "box": ("MlpPolicy", spaces.Box(-1.0, 1.0, (3,), np.float32)),
+    "dict": (
+        "MultiInputPolicy",
+        spaces.Dict(
+            {
+                "vec": spaces.Box(-1.0, 1.0, (3,), np.float32),
+                "img": spaces.Box(0, 255, (2, 36, 36), np.uint8),
+                "bits": spaces.MultiBinary(4),
+            }
+        ),
+    ),
+    "channel_last": (
+        "MultiInputPolicy",
+        spaces.Dict(
+            {
+                "vec": spaces.Box(-1.0, 1.0, (3,), np.float32),
+                "img": spaces.Box(0, 255, (36, 36, 3), np.uint8),
+            }
+        ),
+    ),
+}
+
+
+def predict_model(name: str) -> tuple[DoubleDQN, Any]:
+    policy, space = PREDICT_SPACES[name]
+    env = DummyVecEnv([lambda: SpaceEnv(space)] * 3)
+    model = DoubleDQN(policy, env, buffer_size=8, device="cpu", seed=0)
+    env.seed(0)
+    return model, env.reset()
+
+
+@pytest.mark.parametrize("name", list(PREDICT_SPACES))
+def test_greedy_actions_and_tensors_are_sb3s(name: str) -> None:
+    # DoubleDQN converts observations itself (no deep copy, the space checked once): the same
+    # tensors as SB3's obs_to_tensor and the same greedy actions as its policy.predict, for a
+    # batch and for one observation.
+    model, batch = predict_model(name)
+    one = {k: v[0] for k, v in batch.items()} if isinstance(batch, dict) else batch[0]
+    for obs in (batch, one):
+        ours, ours_batched = model._policy_input(obs)
+        sb3, sb3_batched = model.policy.obs_to_tensor(obs)
+        assert ours_batched == sb3_batched == (obs is batch)
+        if isinstance(sb3, dict):
+            assert list(ours) == list(sb3)
+            for key in sb3:
+                assert ours[key].dtype == sb3[key].dtype
+                assert th.equal(ours[key], sb3[key])
+        else:
+            assert th.equal(ours, sb3)
+        action, _ = model.predict(obs, deterministic=True)
+        expected, _ = model.policy.predict(obs, deterministic=True)
+        assert np.shape(action) == np.shape(expected) == ((3,) if obs is batch else ())
+        np.testing.assert_array_equal(action, expected)
+    assert model._plain_dict(model.policy.observation_space) == (name != "box")
+
+
+def test_predict_leaves_every_module_in_evaluation_mode_and_switches_only_when_needed(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    model, obs = predict_model("dict")
+    switches: list[bool] = []
+    switch = model.policy.set_training_mode
+
+    def counting(mode: bool) -> None:
+        switches.append(mode)
+        switch(mode)
+
+    monkeypatch.setattr(model.policy, "set_training_mode", counting)
+    model.policy.set_training_mode(True)  # as a training call leaves it
+    switches.clear()
+    for _ in range(3):
+        model.predict(obs, deterministic=True)
+    assert switches == [False]  # once, not on every call
+    assert not any(m.training for m in model.policy.modules())
+    model.q_net.features_extractor.train()  # one module switched behind the policy's back
+    model.predict(obs, deterministic=True)
+    assert switches == [False, False]
+    assert not any(m.training for m in model.policy.modules())
+
+
+def test_an_observation_of_the_wrong_shape_gets_sb3s_error() -> None:
+    model, obs = predict_model("dict")
+    obs["bits"] = np.zeros((3, 5), dtype=np.int8)  # the first key: SB3 checks it
+    with pytest.raises(ValueError, match="Unexpected observation shape"):
+        model.predict(obs, deterministic=True)
+
+
 # ---------------------------------------------------------------------- imitation loss
 # (Invalid-action masking: tests/test_action_mask.py.)
 

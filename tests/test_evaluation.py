@@ -74,7 +74,8 @@ def test_softmax_sample_matches_the_distribution():
 
 
 class _FixedQ:
-    """Stands in for an SB3 model: every observation gets the same Q-values."""
+    """Stands in for an SB3 model: every observation gets the same Q-values; the greedy choice
+    (``predict``) is action 0."""
 
     class policy:  # mirrors ``model.policy``
         @staticmethod
@@ -83,9 +84,9 @@ class _FixedQ:
 
             return th.as_tensor(obs), True
 
-        @staticmethod
-        def predict(obs, deterministic=True):
-            return np.zeros(len(obs), dtype=int), None
+    @staticmethod
+    def predict(obs, deterministic=True):
+        return np.zeros(len(obs), dtype=int), None
 
     @staticmethod
     def q_net(obs):
@@ -233,9 +234,9 @@ class FixedQModel:
             n = len(obs["local"]) if isinstance(obs, dict) else len(obs)
             return th.zeros(n, 1), True
 
-        @staticmethod
-        def predict(obs, deterministic=True):
-            return np.zeros(len(obs), dtype=np.int64), None  # up, the best Q-value
+    @staticmethod
+    def predict(obs, deterministic=True):
+        return np.zeros(len(obs), dtype=np.int64), None  # up, the best Q-value
 
     @staticmethod
     def q_net(x):

@@ -100,7 +100,8 @@ def model_policy(model: Any, temperature: float = 0.0, shield: bool = False) -> 
     def greedy(obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
         if shield:
             return q_values(obs).argmax(axis=1)
-        actions, _ = model.policy.predict(obs, deterministic=True)
+        # The model's own greedy choice: DoubleDQN's masks the goal action's empty slots.
+        actions, _ = model.predict(obs, deterministic=True)
         return np.asarray(actions)
 
     def boltzmann(obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:

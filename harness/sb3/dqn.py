@@ -15,6 +15,7 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
+from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first
 from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
 from stable_baselines3.common.utils import ConstantSchedule
 from stable_baselines3.dqn import DQN
@@ -432,6 +433,8 @@ class DoubleDQN(DQN):
         self._graph: GraphedStep | None = None
         self._graph_failed = False
         self._steps_here = 0
+        # The policy's observation space and whether _policy_input converts it itself.
+        self._input_space: tuple[spaces.Space, bool] | None = None
         # Saved with the model (SB3 saves the instance's attributes): load checks it.
         setattr(self, FORMAT_KEY, MODEL_FORMAT)
         if _init_setup_model:
@@ -543,6 +546,7 @@ class DoubleDQN(DQN):
             "_graph",
             "_graph_failed",
             "_steps_here",
+            "_input_space",
         ]
 
     @property
@@ -901,7 +905,9 @@ class DoubleDQN(DQN):
         allowed = None
         if self.masked:
             action, allowed = self._masked_greedy(observation)  # type: ignore[arg-type]
-        else:
+        elif isinstance(observation, (np.ndarray, dict)):
+            action = self._greedy(observation)
+        else:  # SB3's own checks and messages for anything else (a tuple from reset, ...)
             action, state = self.policy.predict(observation, state, episode_start, deterministic)
         if deterministic or self.exploration_rate <= 0.0:
             return action, state
@@ -920,6 +926,60 @@ class DoubleDQN(DQN):
         mixed = np.where(explore, random_actions, flat).astype(flat.dtype, copy=False)
         return mixed.reshape(greedy.shape), state
 
+    def _policy_input(
+        self, observation: np.ndarray | dict[str, np.ndarray]
+    ) -> tuple[PyTorchObs, bool]:
+        """``observation`` as the policy's tensors and whether it is a batch, with the policy in
+        evaluation mode: what SB3's ``policy.predict`` does before its forward pass, without
+        its costs per call (docs/performance.md, "Acting"). SB3 sets the mode of every module
+        on every call (a walk through all of them, about as long as a small net's forward
+        pass); here only when one is in training mode. A ``Dict`` of ``Box`` and
+        ``MultiBinary`` entries (images channel-first) is converted without SB3's deep copy
+        and its per-key space checks, to the same tensors; anything else, or a shape that fits
+        neither one observation nor a batch, goes through SB3's ``obs_to_tensor``."""
+        if any(module.training for module in self.policy.modules()):
+            self.policy.set_training_mode(False)
+        space = self.policy.observation_space
+        if not isinstance(observation, dict) or not self._plain_dict(space):
+            return self.policy.obs_to_tensor(observation)
+        tensors: dict[str, th.Tensor] = {}
+        batched = False
+        for key, value in observation.items():
+            array = np.asarray(value)
+            shape = space[key].shape  # type: ignore[index]
+            if array.shape[1:] == shape:
+                batched = True
+            elif array.shape != shape:
+                return self.policy.obs_to_tensor(observation)  # SB3's error
+            tensors[key] = th.as_tensor(array.reshape((-1, *shape)), device=self.device)
+        return tensors, batched
+
+    def _plain_dict(self, space: spaces.Space) -> bool:
+        """Whether :meth:`_policy_input` converts observations of ``space`` itself: a ``Dict``
+        of ``Box`` and ``MultiBinary`` entries whose images need no transposition (decided
+        once per space)."""
+        known = self._input_space
+        if known is None or known[0] is not space:
+            plain = isinstance(space, spaces.Dict) and all(
+                isinstance(sub, spaces.MultiBinary)
+                or (
+                    isinstance(sub, spaces.Box)
+                    and (not is_image_space(sub) or is_image_space_channels_first(sub))
+                )
+                for sub in space.spaces.values()
+            )
+            known = self._input_space = (space, plain)
+        return known[1]
+
+    def _greedy(self, observation: np.ndarray | dict[str, np.ndarray]) -> np.ndarray:
+        """The policy's greedy action, shaped as SB3's ``policy.predict`` shapes it
+        (:meth:`_policy_input` for the tensors)."""
+        obs, vectorized = self._policy_input(observation)
+        with th.no_grad():
+            action = self.policy._predict(obs, deterministic=True)
+        action = action.cpu().numpy().reshape((-1, *self.action_space.shape))  # type: ignore[misc]
+        return action if vectorized else action.squeeze(axis=0)
+
     def _masked_greedy(
         self, observation: dict[str, np.ndarray]
     ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -930,8 +990,7 @@ class DoubleDQN(DQN):
         A row whose mask allows one action (a forced step: a held goal) takes it without a pass
         of the network, which runs on the other rows only (the same actions: the masked argmax
         of a row with one allowed action is that action)."""
-        self.policy.set_training_mode(False)
-        obs, vectorized = self.policy.obs_to_tensor(observation)
+        obs, vectorized = self._policy_input(observation)
         n_actions = int(self.action_space.n)  # type: ignore[attr-defined]
         with th.no_grad():
             allowed = allowed_actions(obs, n_actions)

@@ -944,6 +944,7 @@ class DoubleDQN(DQN):
             return self.policy.obs_to_tensor(observation)
         tensors: dict[str, th.Tensor] = {}
         batched = False
+        device = self.policy.device  # where SB3's obs_to_tensor puts them
         for key, value in observation.items():
             array = np.asarray(value)
             shape = space[key].shape  # type: ignore[index]
@@ -951,7 +952,7 @@ class DoubleDQN(DQN):
                 batched = True
             elif array.shape != shape:
                 return self.policy.obs_to_tensor(observation)  # SB3's error
-            tensors[key] = th.as_tensor(array.reshape((-1, *shape)), device=self.device)
+            tensors[key] = th.as_tensor(array.reshape((-1, *shape)), device=device)
         return tensors, batched
 
     def _plain_dict(self, space: spaces.Space) -> bool:

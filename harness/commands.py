@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from harness.config.loading import load_config
+from harness.config.maps import describe_map
 from harness.config.schema import ConfigError, ExperimentConfig, PettingZooEnvConfig
 from harness.evaluation.baselines import BASELINES, make_baseline
 from harness.evaluation.episodes import (
@@ -286,12 +287,12 @@ def format_summary(summary: dict[str, Any]) -> str:
         return format_foreign_summary(summary)
     pct = "{:6.1%}".format
     env = summary["env"]
-    where = env["map"] if env["map"] != "random" else f"random {env['height']}x{env['width']}"
+    where = describe_map(env["map"], env["height"], env["width"])
     at = summary["coverage_at_median"]
     how = sampling_note(summary.get("temperature"))
     lines = [
         f"policy    {summary['policy']}{f' ({how})' if how else ''}",
-        f"episodes  {summary['episodes']} (seed {summary['seed']}), {where}, "
+        f"episodes  {summary['episodes']} (seed {summary['seed']}), {where}; "
         f"{env['n_agents']} agent(s), {env['max_steps']} steps",
         f"coverage  median {pct(summary['coverage_median'])}   mean {pct(summary['coverage_mean'])}"
         f"   IQR {pct(summary['coverage_iqr'])} ({pct(summary['coverage_q1'])} .."

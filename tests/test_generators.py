@@ -311,6 +311,41 @@ def test_a_map_file_source_is_stored_with_its_absolute_path(tmp_path, monkeypatc
 
 
 @pytest.mark.parametrize(
+    ("value", "line"),
+    [
+        ("random", "random 24x36"),
+        ("cave_100x50", "cave_100x50"),
+        ({"cave": None}, "cave 24x36"),
+        ({"maze": {"height": 41, "width": 41}}, "maze 41x41"),
+        ({"file": {"path": "room.txt"}}, "file room.txt"),
+        (
+            {"mix": [{"weight": 3, "random": {}}, {"weight": 0.5, "maze": {"height": 41}}]},
+            "mix by weight: 3 random 24x36, 0.5 maze 41x36",
+        ),
+    ],
+)
+def test_eval_names_a_map_in_one_short_line(value, line, tmp_path, monkeypatch):
+    # harness eval's printout: a mix by its sources, not the whole normalised mapping.
+    from harness.commands import format_summary
+    from harness.config.maps import describe_map
+
+    (tmp_path / "room.txt").write_text("....\n....\n")
+    monkeypatch.chdir(tmp_path)
+    env = config_from_dict({"env": {"height": 24, "width": 36, "map": value}}).env
+    assert describe_map(env.map, env.height, env.width) == line
+    summary = {
+        "policy": "random", "episodes": 2, "seed": 0, "coverage_at_median": {},
+        "env": {"map": env.map, "height": 24, "width": 36, "n_agents": 2, "max_steps": 9},
+        **dict.fromkeys(["coverage_median", "coverage_mean", "coverage_iqr", "bound"], 0.5),
+        **dict.fromkeys(["coverage_q1", "coverage_q3", "efficiency", "wall_hits_mean"], 0.5),
+        "steps_to_90": None, "steps_to_99": None, "wall_hits_episodes": 0, "per_agent": [],
+    }  # fmt: skip
+    assert format_summary(summary).splitlines()[1] == (
+        f"episodes  2 (seed 0), {line}; 2 agent(s), 9 steps"
+    )
+
+
+@pytest.mark.parametrize(
     ("source", "message"),
     [
         ({"caves": {}}, "env.map: unknown map kind 'caves'; known: random, cave, maze, file"),

@@ -195,3 +195,27 @@ def _pin_file(params: Any, where: str) -> None:
 def build_source(data: dict[str, Any], height: int, width: int) -> generators.MapGenerator:
     """The generator of a (checked) mapping-form ``env.map``; sizes not given are the env's."""
     return MapSource.model_validate(data).build(height, width)
+
+
+def describe_map(value: str | dict[str, Any], height: int, width: int) -> str:
+    """A short line for a (checked) ``env.map``, for printouts: ``random 50x50``, a shipped map's
+    name or a file's path as given, and for the mapping form ``cave 50x100``, ``file room.txt``
+    or ``mix by weight: 3 random 50x50, 1 maze 41x41``; sizes not given are ``height`` x
+    ``width``."""
+    if isinstance(value, str):
+        return f"random {height}x{width}" if value == "random" else value
+    source = MapSource.model_validate(value)
+    if source.mix is None:
+        return _describe_kind(source, height, width)
+    parts = (f"{item.weight:g} {_describe_kind(item, height, width)}" for item in source.mix)
+    return f"{MIX} by weight: {', '.join(parts)}"
+
+
+def _describe_kind(item: _OneKind, height: int, width: int) -> str:
+    kind = item._kind()
+    params = getattr(item, kind).model_dump(exclude={SHA256})
+    if "height" in params:
+        return f"{kind} {params['height'] or height}x{params['width'] or width}"
+    if "path" in params:
+        return f"{kind} {Path(params['path']).name}"
+    return " ".join([kind, *(str(value) for value in params.values())])

@@ -932,8 +932,8 @@ class DoubleDQN(DQN):
         """``observation`` as the policy's tensors and whether it is a batch, with the policy in
         evaluation mode: what SB3's ``policy.predict`` does before its forward pass, without
         its costs per call (docs/performance.md, "Acting"). SB3 sets the mode of every module
-        on every call (a walk through all of them, about as long as a small net's forward
-        pass); here only when one is in training mode. A ``Dict`` of ``Box`` and
+        on every call (a walk through all of them, tens to hundreds of microseconds); here
+        only when one is in training mode. A ``Dict`` of ``Box`` and
         ``MultiBinary`` entries (images channel-first) is converted without SB3's deep copy
         and its per-key space checks, to the same tensors; anything else, or a shape that fits
         neither one observation nor a batch, goes through SB3's ``obs_to_tensor``."""

@@ -203,7 +203,8 @@ def describe_map(value: str | dict[str, Any], height: int, width: int) -> str:
     or ``mix by weight: 3 random 50x50, 1 maze 41x41``; sizes not given are ``height`` x
     ``width``."""
     if isinstance(value, str):
-        return f"random {height}x{width}" if value == "random" else value
+        random = generators.RandomMaps.name
+        return f"{random} {height}x{width}" if value == random else value
     source = MapSource.model_validate(value)
     if source.mix is None:
         return _describe_kind(source, height, width)

@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 import torch as th
 from stable_baselines3.common.buffers import ReplayBufferSamples
+from stable_baselines3.common.logger import configure
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 import harness.sb3.dqn
@@ -433,6 +434,31 @@ def test_one_cuda_synchronisation_per_training_call_on_the_device_path(n_steps: 
     model.train(gradient_steps=2, batch_size=4)  # first call: CUDA's lazy set-up
     syncs = cuda_synchronisations(lambda: model.train(gradient_steps=5, batch_size=4))
     assert len(syncs) == 1, syncs
+
+
+@pytest.mark.skipif(not th.cuda.is_available(), reason="needs CUDA")
+def test_per_agent_sets_route_without_a_synchronisation_on_the_device_path() -> None:
+    # The routing block is as wide as the batch on an accelerator: no read of the group sizes.
+    from tests.test_sharing import TwoAgentTinyEnv
+
+    model = DoubleDQN(
+        "PerAgentMlpPolicy",
+        DummyVecEnv([TwoAgentTinyEnv]),
+        policy_kwargs={"net_arch": [8], "n_agents": 2},
+        learning_rate=1e-3,
+        buffer_size=8,
+        device="cuda",
+        replay_buffer_class=DevicePrioritizedReplayBuffer,
+        seed=0,
+    )
+    model.set_logger(configure(folder=None, format_strings=[]))
+    for agent in (0, 1, 1):
+        obs = np.array([[0.5, -0.5, 1.0 - agent, float(agent)]], dtype=np.float32)
+        model.replay_buffer.add(obs, obs, np.array([[1]]), np.array([1.0]), np.array([False]), [{}])
+    model.train(gradient_steps=2, batch_size=4)  # first call: CUDA's lazy set-up
+    syncs = cuda_synchronisations(lambda: model.train(gradient_steps=5, batch_size=4))
+    assert len(syncs) == 1, syncs
+    model.env.close()
 
 
 def cuda_synchronisations(call: Any) -> list[str]:

@@ -207,6 +207,38 @@ def test_each_sample_uses_its_own_agents_network_in_any_order():
     np.testing.assert_array_equal(routed.agents_of(obs_t).numpy(), agents)
 
 
+def test_any_block_width_of_the_largest_group_or_more_gives_the_same_values_and_gradients(
+    monkeypatch,
+):
+    # On an accelerator the routing block is as wide as the batch (no read of the group sizes);
+    # on the CPU as the largest group. Both give the same Q-values and the same gradients.
+    th.manual_seed(0)
+    env = coverage_v0.parallel_env(**{**SMALL, "n_agents": 3}, agent_id=True)
+    policy_class = POLICIES["MlpPolicy"].load(per_agent=True)
+    space = env.observation_space("agent_0")
+    q_net = policy_class(space, env.action_space("agent_0"), lambda _: 1e-3, n_agents=3).q_net
+    agents = np.array([2, 0, 0, 1, 2, 2, 1])
+    rng = np.random.default_rng(0)
+    obs = np.concatenate([rng.uniform(-1, 1, (7, 13)), np.eye(3)[agents]], axis=1)
+    obs_t = th.as_tensor(obs, dtype=th.float32)
+
+    def values_and_grads() -> tuple[th.Tensor, list[th.Tensor]]:
+        q_net.zero_grad()
+        q = q_net(obs_t)
+        (q * th.arange(q.numel()).reshape(q.shape)).sum().backward()
+        return q.detach(), [p.grad.clone() for p in q_net.parameters()]
+
+    onehot = th.nn.functional.one_hot(th.as_tensor(agents), 3)
+    assert PerAgentQNetwork._block_width(onehot) == 3  # agent 2's three samples
+    assert PerAgentQNetwork._block_width(onehot.to("meta")) == 7  # the batch, nothing read
+    narrow = values_and_grads()
+    monkeypatch.setattr(PerAgentQNetwork, "_block_width", staticmethod(lambda o: o.shape[0]))
+    wide = values_and_grads()
+    th.testing.assert_close(wide[0], narrow[0])
+    for a, b in zip(wide[1], narrow[1], strict=True):
+        th.testing.assert_close(a, b)
+
+
 def test_vecenv_slots_are_routed_to_agent_slot_mod_n():
     model = _model(SMALL, "MlpPolicy", "per_agent")
     with th.no_grad():  # agent 1's set answers zero everywhere, agent 0's does not

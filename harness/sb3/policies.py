@@ -629,7 +629,7 @@ class PerAgentQNetwork(BasePolicy):
         n = self.n_agents
         onehot = nn.functional.one_hot(agent, n)
         rank = (onehot.cumsum(0) * onehot).sum(1) - 1  # position of each sample in its group
-        width = int(onehot.sum(0).max()) if agent.numel() else 0
+        width = self._block_width(onehot)
 
         def grouped(x: th.Tensor) -> th.Tensor:
             block = x.new_zeros((n, width, *x.shape[1:]))
@@ -648,6 +648,18 @@ class PerAgentQNetwork(BasePolicy):
 
         q = th.func.vmap(one)(params, buffers, block_obs)  # (n, width, n_actions)
         return q[agent, rank]
+
+    @staticmethod
+    def _block_width(onehot: th.Tensor) -> int:
+        """Rows of each agent's block for a batch routed by ``onehot`` ``(batch, n)``: on the CPU
+        the largest group's size; on an accelerator the whole batch, an upper bound read from
+        no tensor (reading the group sizes would wait for the device once per forward pass, and
+        keep a training step from being recorded as a CUDA graph). Any width at least the
+        largest group gives the same Q-values: the extra rows are zero padding no sample reads
+        (``tests/test_sharing.py``)."""
+        if onehot.device.type != "cpu":
+            return onehot.shape[0]
+        return int(onehot.sum(0).max()) if onehot.numel() else 0
 
     @property
     def _param_names(self) -> list[str]:

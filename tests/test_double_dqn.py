@@ -345,7 +345,7 @@ def test_greedy_actions_and_tensors_are_sb3s(name: str) -> None:
         expected, _ = model.policy.predict(obs, deterministic=True)
         assert np.shape(action) == np.shape(expected) == ((3,) if obs is batch else ())
         np.testing.assert_array_equal(action, expected)
-    assert model._plain_dict(model.policy.observation_space) == (name != "box")
+    assert model._policy_view()[1] == (name != "box")
 
 
 def test_predict_leaves_every_module_in_evaluation_mode_and_switches_only_when_needed(

@@ -433,8 +433,8 @@ class DoubleDQN(DQN):
         self._graph: GraphedStep | None = None
         self._graph_failed = False
         self._steps_here = 0
-        # The policy's observation space and whether _policy_input converts it itself.
-        self._input_space: tuple[spaces.Space, bool] | None = None
+        # The policy, its modules and whether _policy_input converts its observations itself.
+        self._policy_known: tuple[BasePolicy, tuple[th.nn.Module, ...], bool] | None = None
         # Saved with the model (SB3 saves the instance's attributes): load checks it.
         setattr(self, FORMAT_KEY, MODEL_FORMAT)
         if _init_setup_model:
@@ -546,7 +546,7 @@ class DoubleDQN(DQN):
             "_graph",
             "_graph_failed",
             "_steps_here",
-            "_input_space",
+            "_policy_known",
         ]
 
     @property
@@ -937,11 +937,12 @@ class DoubleDQN(DQN):
         ``MultiBinary`` entries (images channel-first) is converted without SB3's deep copy
         and its per-key space checks, to the same tensors; anything else, or a shape that fits
         neither one observation nor a batch, goes through SB3's ``obs_to_tensor``."""
-        if any(module.training for module in self.policy.modules()):
+        modules, plain = self._policy_view()
+        if any(module.training for module in modules):
             self.policy.set_training_mode(False)
-        space = self.policy.observation_space
-        if not isinstance(observation, dict) or not self._plain_dict(space):
+        if not isinstance(observation, dict) or not plain:
             return self.policy.obs_to_tensor(observation)
+        space = self.policy.observation_space
         tensors: dict[str, th.Tensor] = {}
         batched = False
         device = self.policy.device  # where SB3's obs_to_tensor puts them
@@ -955,12 +956,15 @@ class DoubleDQN(DQN):
             tensors[key] = th.as_tensor(array.reshape((-1, *shape)), device=device)
         return tensors, batched
 
-    def _plain_dict(self, space: spaces.Space) -> bool:
-        """Whether :meth:`_policy_input` converts observations of ``space`` itself: a ``Dict``
-        of ``Box`` and ``MultiBinary`` entries whose images need no transposition (decided
-        once per space)."""
-        known = self._input_space
-        if known is None or known[0] is not space:
+    def _policy_view(self) -> tuple[tuple[th.nn.Module, ...], bool]:
+        """The policy's modules (a walk through them on every call would cost as much as
+        setting their mode) and whether :meth:`_policy_input` converts its observations itself:
+        a ``Dict`` of ``Box`` and ``MultiBinary`` entries whose images need no transposition.
+        Worked out once per policy object."""
+        policy = self.policy
+        known = self._policy_known
+        if known is None or known[0] is not policy:
+            space = policy.observation_space
             plain = isinstance(space, spaces.Dict) and all(
                 isinstance(sub, spaces.MultiBinary)
                 or (
@@ -969,8 +973,8 @@ class DoubleDQN(DQN):
                 )
                 for sub in space.spaces.values()
             )
-            known = self._input_space = (space, plain)
-        return known[1]
+            known = self._policy_known = (policy, tuple(policy.modules()), plain)
+        return known[1], known[2]
 
     def _greedy(self, observation: np.ndarray | dict[str, np.ndarray]) -> np.ndarray:
         """The policy's greedy action, shaped as SB3's ``policy.predict`` shapes it

@@ -903,10 +903,8 @@ class DoubleDQN(DQN):
             and the state.
         """
         allowed = None
-        if self.masked:
-            action, allowed = self._masked_greedy(observation)  # type: ignore[arg-type]
-        elif isinstance(observation, (np.ndarray, dict)):
-            action = self._greedy(observation)
+        if self.masked or isinstance(observation, (np.ndarray, dict)):
+            action, allowed = self._greedy(observation)  # type: ignore[arg-type]
         else:  # SB3's own checks and messages for anything else (a tuple from reset, ...)
             action, state = self.policy.predict(observation, state, episode_start, deterministic)
         if deterministic or self.exploration_rate <= 0.0:
@@ -976,42 +974,41 @@ class DoubleDQN(DQN):
             known = self._policy_known = (policy, tuple(policy.modules()), plain)
         return known[1], known[2]
 
-    def _greedy(self, observation: np.ndarray | dict[str, np.ndarray]) -> np.ndarray:
-        """The policy's greedy action, shaped as SB3's ``policy.predict`` shapes it
-        (:meth:`_policy_input` for the tensors)."""
-        obs, vectorized = self._policy_input(observation)
-        with th.no_grad():
-            action = self.policy._predict(obs, deterministic=True)
-        action = action.cpu().numpy().reshape((-1, *self.action_space.shape))  # type: ignore[misc]
-        return action if vectorized else action.squeeze(axis=0)
-
-    def _masked_greedy(
-        self, observation: dict[str, np.ndarray]
+    def _greedy(
+        self, observation: np.ndarray | dict[str, np.ndarray]
     ) -> tuple[np.ndarray, np.ndarray | None]:
-        """The greedy action among the actions the observation's mask allows, shaped as SB3's
-        ``policy.predict`` shapes it, and the ``(batch, n_actions)`` allowed mask (``None``, and
-        no masking, for an observation that comes without its mask).
+        """The greedy action, shaped as SB3's ``policy.predict`` shapes it (:meth:`_policy_input`
+        for the tensors), and with an action mask (:attr:`masked`) the ``(batch, n_actions)``
+        allowed mask, the action then being the best allowed one (``None``: no mask).
 
         A row whose mask allows one action (a forced step: a held goal) takes it without a pass
         of the network, which runs on the other rows only (the same actions: the masked argmax
         of a row with one allowed action is that action)."""
         obs, vectorized = self._policy_input(observation)
-        n_actions = int(self.action_space.n)  # type: ignore[attr-defined]
+        allowed = None
         with th.no_grad():
-            allowed = allowed_actions(obs, n_actions)
-            assert isinstance(allowed, th.Tensor)
-            deciding = allowed.sum(dim=1) > 1
-            n_deciding = int(deciding.sum())  # one read of the device for both cases below
-            if n_deciding == deciding.numel():
-                action = _masked(self.q_net(obs), allowed).argmax(dim=1)
+            if self.masked:
+                allowed = allowed_actions(obs, int(self.action_space.n))  # type: ignore[attr-defined]
+                assert isinstance(allowed, th.Tensor)
+                action = self._masked_argmax(obs, allowed)  # type: ignore[arg-type]
             else:
-                action = allowed.to(th.int8).argmax(dim=1)  # a forced row's one action
-                if n_deciding > 0:
-                    rows = {key: value[deciding] for key, value in obs.items()}  # type: ignore[union-attr]
-                    action[deciding] = _masked(self.q_net(rows), allowed[deciding]).argmax(dim=1)
-            action = action.cpu().numpy()
+                action = self.policy._predict(obs, deterministic=True)
+        action = action.cpu().numpy().reshape((-1, *self.action_space.shape))  # type: ignore[misc]
         action = action if vectorized else action.squeeze(axis=0)
-        return action, allowed.cpu().numpy()
+        return action, None if allowed is None else allowed.cpu().numpy()
+
+    def _masked_argmax(self, obs: dict[str, th.Tensor], allowed: th.Tensor) -> th.Tensor:
+        """The best allowed action of each row (:meth:`_greedy`), the network run on the rows
+        with a choice only."""
+        deciding = allowed.sum(dim=1) > 1
+        n_deciding = int(deciding.sum())  # one read of the device for both cases below
+        if n_deciding == deciding.numel():
+            return _masked(self.q_net(obs), allowed).argmax(dim=1)
+        action = allowed.to(th.int8).argmax(dim=1)  # a forced row's one action
+        if n_deciding > 0:
+            rows = {key: value[deciding] for key, value in obs.items()}
+            action[deciding] = _masked(self.q_net(rows), allowed[deciding]).argmax(dim=1)
+        return action
 
     def _sample_action(
         self,

@@ -41,10 +41,13 @@ from harness.commands import (
     PER_EPISODE_KEYS,
     Target,
     TargetError,
+    check_baseline,
     compare,
     evaluate,
+    evaluate_against,
     evaluate_group,
     export_reference,
+    format_against,
     format_summary,
     format_tune,
     render,
@@ -219,6 +222,14 @@ def _add_eval_parser(sub: Any) -> None:
     )
     ev.add_argument("--json", action="store_true", help="print one JSON object")
     ev.add_argument("--plot", type=Path, help="coverage/wall hits per episode PNG (Fig. 4.11)")
+    ev.add_argument(
+        "--against",
+        nargs="+",
+        default=[],
+        metavar="BASELINE",
+        help="also play these baselines on the same episodes and compare episode by episode "
+        "(mean difference, 95 %% bootstrap interval); saved as against-BASELINE.json",
+    )
 
 
 def _add_tune_parser(sub: Any) -> None:
@@ -635,9 +646,15 @@ def cmd_eval(args: argparse.Namespace) -> int:
         raise HarnessError(
             "--plot draws coverage and wall hits per episode: not for a pettingzoo env"
         )
+    for policy in args.against:  # before any episode is played
+        check_baseline(policy, target.config, "--against")
     summary, results = evaluate(target, args.episodes, args.overrides)
     if summary["saved"] is not None:
         print(f"saved {summary['saved']}", file=sys.stderr)
+    against = [evaluate_against(target, summary, p, args.overrides) for p in args.against]
+    for comparison in against:
+        if comparison["saved"] is not None:
+            print(f"saved {comparison['saved']}", file=sys.stderr)
     if args.plot is not None:
         from harness.results.plots import plot_eval_episodes
 
@@ -645,9 +662,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
         print(f"saved {args.plot}", file=sys.stderr)
     if args.json:
         hidden = (*PER_EPISODE_KEYS, "saved")
-        print(json.dumps({k: v for k, v in summary.items() if k not in hidden}))
+        out = {k: v for k, v in summary.items() if k not in hidden}
+        if against:
+            lists = ("saved", "coverage", "team_return", "against_coverage", "against_team_return")
+            # The per-episode lists stay in the files, as the evaluation's do.
+            out["against"] = [{k: v for k, v in c.items() if k not in lists} for c in against]
+        print(json.dumps(out))
     else:
-        print(format_summary(summary))
+        print("\n".join([format_summary(summary), *map(format_against, against)]))
     return 0
 
 

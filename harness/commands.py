@@ -44,6 +44,7 @@ from harness.results.rundir import (
     STANDARD_EPISODES,
     RunDir,
     RunDirError,
+    against_filename,
     atomic_write_text,
     check_output_file,
     is_foreign_log,
@@ -258,12 +259,8 @@ def resolve_target(
         if policy not in BASELINES:
             raise TargetError(f"unknown policy {policy!r}; known: {', '.join(BASELINES)}")
         config = load_config(config_path, overrides)
-        try:
-            BASELINES[policy].check(config.env.frontier_options)
-            if isinstance(config.env, PettingZooEnvConfig):
-                BASELINES[policy].check_foreign()
-        except ValueError as exc:
-            raise TargetError(f"--policy {policy}: {exc}") from None
+        check_baseline(policy, config, "--policy")
+        config = config.model_copy(update={"env": BASELINES[policy].env_config(config.env)})
         seed = config.eval.seed if seed is None else seed
         return Target(make_baseline(policy, seed), config, policy, None, seed)
     if target is None:
@@ -274,6 +271,20 @@ def resolve_target(
     if config_path is not None:
         raise TargetError("--config goes with --policy; a model uses its run's config.yaml")
     return load_model_target(target, overrides, seed)
+
+
+def check_baseline(policy: str, config: ExperimentConfig, flag: str) -> None:
+    """Refuse, in one line naming ``flag``, a baseline that is unknown or cannot play
+    ``config``'s env (a planner step the config's action lacks, a coverage planner on a
+    PettingZoo env of one's own)."""
+    if policy not in BASELINES:
+        raise TargetError(f"{flag}: unknown policy {policy!r}; known: {', '.join(BASELINES)}")
+    try:
+        BASELINES[policy].check(config.env.frontier_options)
+        if isinstance(config.env, PettingZooEnvConfig):
+            BASELINES[policy].check_foreign()
+    except ValueError as exc:
+        raise TargetError(f"{flag} {policy}: {exc}") from None
 
 
 def sampling_note(temperature: float | None) -> str:
@@ -636,6 +647,78 @@ def evaluate(target: Target, episodes: int, overrides: Sequence[str]) -> tuple[d
         name = result_filename("eval", overrides, target.model_name, episodes, seed_changed)
         saved = RunDir(target.results_dir).write_result(name, summary)
     return {**summary, "saved": saved}, results
+
+
+def evaluate_against(
+    target: Target, summary: dict[str, Any], policy: str, overrides: Sequence[str]
+) -> dict[str, Any]:
+    """``harness eval --against POLICY``: the baseline ``policy`` on the episodes of ``target``'s
+    evaluation ``summary`` (:func:`evaluate`: the same maps and starts, from the same seed), and
+    the two compared episode by episode on coverage (a PettingZoo env of one's own: the team
+    return): the mean difference with its 95 % percentile-bootstrap interval over the episodes
+    (:func:`~harness.results.stats.paired_difference`) and the episodes each is ahead in. Saved
+    beside the evaluation (:func:`~harness.results.rundir.against_filename`; nothing for a
+    baseline target), with both per-episode lists.
+
+    Returns:
+        The comparison, with the saved file (or ``None``) as its ``"saved"`` entry.
+    """
+    from harness.results.stats import paired_difference
+
+    episodes = summary["episodes"]
+    baseline = make_baseline(policy, target.seed)
+    env = BASELINES[policy].env_config(target.config.env)  # the moves, on the same episodes
+    results = run_episodes(baseline, env, episodes, target.seed)
+    theirs = _per_episode(results)
+    metric = "team_return" if "team_return" in theirs else "coverage"
+    a = np.asarray(summary[metric], dtype=np.float64)
+    b = np.asarray(theirs[metric], dtype=np.float64)
+    difference, low, high = paired_difference(a, b)
+    comparison: dict[str, Any] = {
+        "policy": target.label,
+        "against": policy,
+        "seed": target.seed,
+        "episodes": episodes,
+        "overrides": list(overrides),
+        "metric": metric,
+        "mean": float(a.mean()),
+        "against_mean": float(b.mean()),
+        "difference": difference,
+        "difference_ci95": [low, high],
+        "ahead": int((a > b).sum()),
+        "behind": int((a < b).sum()),
+        "equal": int((a == b).sum()),
+        metric: a.tolist(),
+        f"against_{metric}": b.tolist(),
+    }
+    saved = None
+    if target.results_dir is not None:
+        seed_changed = None if target.seed == target.config.eval.seed else str(target.seed)
+        name = against_filename(policy, overrides, target.model_name, episodes, seed_changed)
+        saved = RunDir(target.results_dir).write_result(name, comparison)
+    return {**comparison, "saved": saved}
+
+
+def format_against(comparison: dict[str, Any]) -> str:
+    """One line of :func:`evaluate_against`'s comparison."""
+    from harness.results.stats import plain
+
+    coverage = comparison["metric"] == "coverage"
+    value = "{:.1%}".format if coverage else plain
+    low, high = comparison["difference_ci95"]
+
+    def diff(x: float) -> str:  # coverage in points (of 100)
+        return f"{100 * x:+.2f}" if coverage else f"{x:+.4g}"
+
+    unit = " points" if coverage else ""
+    what = "coverage" if coverage else "team return"
+    return (
+        f"against   {comparison['against']} on the same {comparison['episodes']} episodes: "
+        f"mean {what} {value(comparison['against_mean'])} (this policy "
+        f"{value(comparison['mean'])}), difference {diff(comparison['difference'])}{unit} "
+        f"[{diff(low)}, {diff(high)}] (95 % bootstrap over the episodes); this policy ahead in "
+        f"{comparison['ahead']}, behind in {comparison['behind']}, equal in {comparison['equal']}"
+    )
 
 
 def _per_episode(results: list[Any]) -> dict[str, list[Any]]:

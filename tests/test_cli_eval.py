@@ -16,7 +16,7 @@ import pytest
 from PIL import Image
 
 from harness.cli import main
-from harness.commands import choose_temperature
+from harness.commands import choose_temperature, format_against
 from harness.config.loading import load_config
 from harness.results.rundir import result_filename
 from tests.conftest import one_error_line
@@ -169,7 +169,21 @@ def test_baselines_work_on_every_shipped_config(config, policy, capsys):
     )  # fmt: skip
     assert out["policy"] == policy and 0.0 < out["coverage_median"] <= 1.0
     if policy == "frontier":
-        assert out["wall_hits_mean"] == 0.0
+        # Its early moves nearly all enter new cells, also where the config's actions are the
+        # goal action's slots (it plays the moves there: the goal action off).
+        assert out["wall_hits_mean"] == 0.0 and out["efficiency"] > 0.5
+
+
+def test_a_planner_on_a_goal_config_plays_its_moves_on_the_same_episodes(capsys):
+    # The goal action's slot 0 is the pocket planner's own target, so frontier_step there walks
+    # what frontier_pocket walks: the same coverage, episode by episode (min, median, max of 3).
+    args = ["--config", str(ROOT / "configs" / "goals_2agents.yaml"), "--episodes", "3"]
+    args += ["--set", "env.max_steps=80"]
+    planner = eval_json(capsys, "--policy", "frontier_pocket", *args)
+    slot_0 = eval_json(capsys, "--policy", "frontier_step", *args)
+    keys = ("coverage_min", "coverage_median", "coverage_max")
+    assert [planner[k] for k in keys] == [slot_0[k] for k in keys]
+    assert planner["env"]["frontier"] is None and slot_0["env"]["frontier"] is not None
 
 
 def test_frontier_beats_random_on_the_same_episodes(capsys):
@@ -177,6 +191,60 @@ def test_frontier_beats_random_on_the_same_episodes(capsys):
     frontier = eval_json(capsys, "--policy", "frontier", *args)
     random = eval_json(capsys, "--policy", "random", *args)
     assert frontier["coverage_median"] > random["coverage_median"]
+
+
+def test_against_plays_the_baselines_on_the_models_episodes_and_pairs_them(smoke_run, capsys):
+    out = eval_json(capsys, str(smoke_run), "--episodes", "4", "--against", "frontier", "random")
+    assert [c["against"] for c in out["against"]] == ["frontier", "random"]
+    own = json.loads((smoke_run / "eval-4ep.json").read_text())["coverage"]
+    for c in out["against"]:
+        # The baseline's episodes are the ones `harness eval --policy` plays on the run's config.
+        alone = eval_json(
+            capsys, "--policy", c["against"], "--config", str(smoke_run / "config.yaml"),
+            "--episodes", "4",
+        )  # fmt: skip
+        assert c["against_mean"] == pytest.approx(alone["coverage_mean"])
+        saved = json.loads((smoke_run / f"against-{c['against']}-4ep.json").read_text())
+        assert saved["coverage"] == own and len(saved["against_coverage"]) == 4
+        pairs = list(zip(own, saved["against_coverage"], strict=True))
+        assert c["ahead"] == sum(a > b for a, b in pairs)
+        assert c["behind"] == sum(a < b for a, b in pairs)
+        assert c["ahead"] + c["behind"] + c["equal"] == 4
+        assert c["difference"] == pytest.approx(c["mean"] - c["against_mean"])
+        low, high = c["difference_ci95"]
+        assert low <= c["difference"] <= high
+        assert "coverage" not in c and "against_coverage" not in c  # the file keeps the lists
+
+
+def test_a_baseline_against_itself_is_equal_in_every_episode(capsys):
+    args = ["eval", "--policy", "frontier", "--config", str(SMOKE), "--episodes", "3"]
+    assert main([*args, "--against", "frontier"]) == 0
+    line = capsys.readouterr().out.splitlines()[-1]
+    assert line.startswith("against   frontier on the same 3 episodes: mean coverage ")
+    assert line.endswith(
+        "difference +0.00 points [+0.00, +0.00] (95 % bootstrap over the episodes); this policy "
+        "ahead in 0, behind in 0, equal in 3"
+    )
+
+
+def test_the_against_line_reads_its_numbers():
+    comparison = {
+        "against": "frontier_pocket",
+        "episodes": 4,
+        "metric": "coverage",
+        "mean": 0.5,
+        "against_mean": 0.6,
+        "difference": -0.1,
+        "difference_ci95": [-0.125, -0.0625],
+        "ahead": 1,
+        "behind": 3,
+        "equal": 0,
+    }
+    assert format_against(comparison) == (
+        "against   frontier_pocket on the same 4 episodes: mean coverage 60.0% (this policy "
+        "50.0%), difference -10.00 points [-12.50, -6.25] (95 % bootstrap over the episodes); "
+        "this policy ahead in 1, behind in 3, equal in 0"
+    )
 
 
 def test_render_writes_png_and_gif(smoke_run, tmp_path, capsys):
@@ -282,6 +350,14 @@ def test_large_but_finite_numbers_still_compare(tmp_path, capsys):
         ),
         (["eval", "--policy", "greedy", "--config", str(SMOKE)], "unknown policy 'greedy'"),
         (["eval", "--policy", "random"], "needs --config"),
+        (
+            ["eval", "--policy", "random", "--config", str(SMOKE), "--against", "greedy"],
+            "--against: unknown policy 'greedy'",
+        ),
+        (
+            ["eval", "--policy", "random", "--config", str(SMOKE), "--against", "frontier_step"],
+            "--against frontier_step: the frontier_step baseline needs env.frontier.action",
+        ),
         (
             ["eval", "--policy", "frontier_step", "--config", str(SMOKE)],
             "--policy frontier_step: the frontier_step baseline needs env.frontier.action",

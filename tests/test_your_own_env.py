@@ -161,7 +161,16 @@ def test_eval_tune_and_render(trained, tmp_path, capsys):
     saved = json.loads((trained / "eval-4ep.json").read_text())
     assert saved["source"] == "pettingzoo" and len(saved["team_return"]) == 4
     assert main(["eval", "--policy", "random", "--config", str(MEET), "--episodes", "4"]) == 0
-    assert "policy    random" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "policy    random" in out
+    random_mean = float(out.split("mean", 1)[1].split()[0])  # the team return's mean
+    # --against compares the team return episode by episode, on the same episodes.
+    assert main(["eval", str(trained), "--episodes", "4", "--against", "random"]) == 0
+    line = capsys.readouterr().out.splitlines()[-1]
+    assert line.startswith("against   random on the same 4 episodes: mean team return ")
+    against = json.loads((trained / "against-random-4ep.json").read_text())
+    assert against["metric"] == "team_return" and against["team_return"] == saved["team_return"]
+    assert against["against_mean"] == pytest.approx(random_mean, rel=1e-3)
     assert main(["tune", str(trained), "--episodes", "2", "--temperatures", "0.5", "1"]) == 0
     assert "(team return)" in capsys.readouterr().out
     gif = tmp_path / "meet.gif"

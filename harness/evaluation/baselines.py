@@ -64,6 +64,28 @@ class BaselineEntry:
     """It plays a PettingZoo env of one's own too (``env: {pettingzoo: ...}``): it reads
     nothing of the coverage env."""
 
+    plays_moves: bool = True
+    """It acts with the five moves (0-3 up, down, left, right; 4 stay). Where the config's
+    planner-backed action replaces them (the goal action: an action is a candidate slot), it
+    plays the same episodes with that action off (:meth:`env_config`)."""
+
+    def env_config(self, env: Any) -> Any:
+        """The env config it plays for ``env`` (an ``EnvConfig``, or a PettingZoo env's, which
+        is kept): ``env`` itself, or, for a baseline that plays the moves on an env whose
+        actions are the goal action's slots, ``env`` with ``frontier`` off. The maps and start
+        cells come from each episode's seed alone, so it plays the same episodes as a model
+        on ``env`` does; its moves read the env's state, not the observation, so what the
+        extension would add to the observation does not matter to it."""
+        options = env.frontier_options
+        if (
+            self.plays_moves
+            and options is not None
+            and options.action is not None
+            and options.action.replaces_moves
+        ):
+            return env.model_copy(update={"frontier": None})
+        return env
+
     def check(self, options: FrontierOptions | None) -> None:
         """``ValueError`` (one line, saying what to set) unless it can play an env with the
         planner extension's ``options`` (``None``: off)."""
@@ -86,7 +108,9 @@ BASELINES: dict[str, BaselineEntry] = {
         entry.baseline: BaselineEntry(lambda seed, name=name: FrontierPolicy(name))
         for name, entry in PLANNERS.items()
     },
-    "frontier_step": BaselineEntry(lambda seed: FrontierStepPolicy(), needs_action=True),
+    "frontier_step": BaselineEntry(
+        lambda seed: FrontierStepPolicy(), needs_action=True, plays_moves=False
+    ),
 }
 
 

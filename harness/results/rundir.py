@@ -206,7 +206,7 @@ def result_filename(
     for two settings.)
 
     Args:
-        kind: ``"eval"`` or ``"tune"``.
+        kind: ``"eval"``, ``"tune"`` or ``"against-POLICY"`` (:func:`against_filename`).
         overrides: The ``--set`` overrides.
         model: The model's path inside the run folder without ``.zip`` (``"model"``,
             ``"best_model"``, ``"checkpoints/step-000000001000/model"``).
@@ -228,6 +228,20 @@ def result_filename(
         return f"{kind}-{slug}.json"
     digest = hashlib.sha256(json.dumps(exact).encode("utf-8")).hexdigest()[:8]
     return f"{kind}-{slug[:READABLE_LIMIT]}~{digest}.json"
+
+
+def against_filename(
+    policy: str,
+    overrides: Sequence[str],
+    model: str = "model",
+    episodes: int = STANDARD_EPISODES,
+    seed_changed: str | None = None,
+) -> str:
+    """The file of ``harness eval --against POLICY``: the episode-by-episode comparison of a
+    model with a written planner on the evaluation's episodes, named as that evaluation is
+    (:func:`result_filename`) with ``against-POLICY`` for ``eval``: ``against-frontier_pocket.json``
+    beside ``eval.json``, ``against-frontier_pocket-10ep.json`` beside ``eval-10ep.json``."""
+    return result_filename(f"against-{policy}", overrides, model, episodes, seed_changed)
 
 
 def _read_back(slug: str) -> tuple[str, int, str | None, list[str]] | None:

@@ -108,6 +108,12 @@ class Target:
     """The loaded SB3 model of a trained target (``None`` for a baseline)."""
 
     @property
+    def seed_changed(self) -> str | None:
+        """The episodes' seed where it is not the config's ``eval.seed`` (it then names the
+        result files: :func:`~harness.results.rundir.result_filename`), else ``None``."""
+        return None if self.seed == self.config.eval.seed else str(self.seed)
+
+    @property
     def results_dir(self) -> Path | None:
         """Where eval, tune and render results go: the run folder, or ``runs/evals/<name>/``
         for an exported reference (never changed by evaluating it); ``None`` for a baseline."""
@@ -643,8 +649,7 @@ def evaluate(target: Target, episodes: int, overrides: Sequence[str]) -> tuple[d
     }
     saved = None
     if target.results_dir is not None:
-        seed_changed = None if target.seed == target.config.eval.seed else str(target.seed)
-        name = result_filename("eval", overrides, target.model_name, episodes, seed_changed)
+        name = result_filename("eval", overrides, target.model_name, episodes, target.seed_changed)
         saved = RunDir(target.results_dir).write_result(name, summary)
     return {**summary, "saved": saved}, results
 
@@ -693,8 +698,7 @@ def evaluate_against(
     }
     saved = None
     if target.results_dir is not None:
-        seed_changed = None if target.seed == target.config.eval.seed else str(target.seed)
-        name = against_filename(policy, overrides, target.model_name, episodes, seed_changed)
+        name = against_filename(policy, overrides, target.model_name, episodes, target.seed_changed)
         saved = RunDir(target.results_dir).write_result(name, comparison)
     return {**comparison, "saved": saved}
 

@@ -48,6 +48,7 @@ from harness.commands import (
     evaluate_group,
     export_reference,
     format_against,
+    format_group_against,
     format_summary,
     format_tune,
     render,
@@ -681,7 +682,7 @@ def _eval_group(args: argparse.Namespace) -> int:
         cmd_eval(argparse.Namespace(**{**vars(args), "target": run, "json": False}))
 
     standard = not args.overrides and args.episodes == DEFAULT_EPISODES and args.seed is None
-    result, saved, missing = evaluate_group(Path(args.target), evaluate_run, standard)
+    result, saved, missing = evaluate_group(Path(args.target), evaluate_run, standard, args.against)
     if missing:
         print(
             f"harness: no group-eval.json: the group lacks {', '.join(missing)} (finish the "
@@ -706,7 +707,14 @@ def _eval_group(args: argparse.Namespace) -> int:
                 f"IQM {with_ci(over['iqm'], over['iqm_ci95'], plain)}"
             )
         print(f"saved {saved}", file=sys.stderr)
+        for comparison in result.get("against", []):
+            print(format_group_against(comparison))
+            print(f"saved {comparison['saved']}", file=sys.stderr)
         if args.json:
+            if "against" in result:
+                result["against"] = [
+                    {k: v for k, v in c.items() if k != "saved"} for c in result["against"]
+                ]
             print(json.dumps(result))
     return 0
 

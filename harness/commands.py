@@ -725,6 +725,24 @@ def format_against(comparison: dict[str, Any]) -> str:
     )
 
 
+def format_group_against(comparison: dict[str, Any]) -> str:
+    """One line of :func:`group_against`'s differences over seeds."""
+    from harness.results.stats import with_ci
+
+    over = comparison["difference_over_seeds"]
+    coverage = comparison["metric"] == "coverage"
+
+    def diff(x: float) -> str:  # coverage in points (of 100)
+        return f"{100 * x:+.2f}" if coverage else f"{x:+.4g}"
+
+    what = "points of coverage" if coverage else "team return"
+    return (
+        f"== over {over['seeds']} seeds against {comparison['against']} (paired on each run's "
+        f"episodes), mean difference ({what}) {with_ci(over['mean'], over['mean_ci95'], diff)}, "
+        f"IQM {with_ci(over['iqm'], over['iqm_ci95'], diff)}"
+    )
+
+
 def _per_episode(results: list[Any]) -> dict[str, list[Any]]:
     """The per-episode numbers an evaluation keeps: coverage and wall hits (the coverage env),
     team return and length (a PettingZoo env of one's own)."""
@@ -751,12 +769,15 @@ OVER_SEEDS = "coverage_mean_over_seeds"
 
 
 def evaluate_group(
-    group: Path, evaluate_run: Any, standard: bool
+    group: Path, evaluate_run: Any, standard: bool, against: Sequence[str] = ()
 ) -> tuple[dict[str, Any] | None, Path | None, list[str]]:
     """``harness eval GROUP``: ``evaluate_run(run)`` for every run, then, for the standard
     evaluation (no ``--set``, 100 episodes), the numbers over seeds in ``GROUP/group-eval.json``;
     not when a seed's run is missing (their names are returned: numbers over the others would
-    read as the group's).
+    read as the group's). With ``against`` (baselines ``evaluate_run`` also compared each run
+    with: :func:`evaluate_against`), each baseline's paired differences over seeds too, in
+    ``GROUP/group-against-BASELINE.json`` (:func:`group_against`), listed under the result's
+    ``"against"``.
     """
     from harness.results.groups import GROUP_EVAL_FILE, group_members, group_runs
     from harness.results.stats import describe, seed_statistics
@@ -777,12 +798,42 @@ def evaluate_group(
         over = "return_mean_over_seeds"
     else:
         keys, over = ("seed", "coverage_mean", "coverage_median", "wall_hits_mean"), OVER_SEEDS
-    result = {
+    result: dict[str, Any] = {
         "group": str(group),
         "runs": {name: {k: s[k] for k in keys} for name, s in summaries.items()},
         over: describe(stats["group"]),
     }
-    return result, write_json(group / GROUP_EVAL_FILE, result), []
+    saved = write_json(group / GROUP_EVAL_FILE, result)
+    if against:
+        result["against"] = [group_against(group, runs, policy) for policy in against]
+    return result, saved, []
+
+
+def group_against(group: Path, runs: Sequence[Path], policy: str) -> dict[str, Any]:
+    """The runs' paired differences from the baseline ``policy`` on their standard test
+    episodes (each run's ``against-POLICY.json``, :func:`evaluate_against`) over seeds: mean
+    and IQM with rliable's 95 % intervals over the seeds' differences (one run: no interval),
+    saved as ``GROUP/group-against-POLICY.json``. The question it answers is the training's:
+    does a seed of this training beat the baseline on the same episodes, and by how much?"""
+    from harness.results.groups import group_against_file
+    from harness.results.stats import describe, seed_statistics
+
+    differences: dict[str, float] = {}
+    metric = "coverage"
+    for run in runs:
+        path = RunDir(results_folder(run)).result(against_filename(policy, []))
+        data = json.loads(path.read_text(encoding="utf-8"))  # written by this command
+        differences[run.name], metric = float(data["difference"]), data["metric"]
+    stats = seed_statistics({policy: list(differences.values())})[policy]
+    result = {
+        "group": str(group),
+        "against": policy,
+        "metric": metric,
+        "differences": differences,
+        "difference_over_seeds": describe(stats),
+    }
+    saved = write_json(group / group_against_file(policy), result)
+    return {**result, "saved": saved}
 
 
 def tune(

@@ -158,6 +158,21 @@ def test_seed_group_trains_evaluates_and_compares(tiny, tmp_path, capsys):
     assert evals[0]["seed"] == evals[1]["seed"]
     for run, ev in zip(members, evals, strict=True):  # at the temperature its tune chose
         assert ev["temperature"] == json.loads((run / "tune.json").read_text())["chosen"]
+    # Against a baseline: each run paired with it on its episodes, the differences over seeds.
+    group_eval = (group / "group-eval.json").read_text()
+    assert main(["eval", str(group), "--against", "frontier", "--json"]) == 0
+    printed = capsys.readouterr().out.strip().splitlines()
+    assert json.loads(printed.pop())["against"][0]["against"] == "frontier"
+    diffs = [json.loads((m / "against-frontier.json").read_text())["difference"] for m in members]
+    over_seeds = json.loads((group / "group-against-frontier.json").read_text())
+    assert over_seeds["differences"] == {m.name: d for m, d in zip(members, diffs, strict=True)}
+    mean = over_seeds["difference_over_seeds"]["mean"]
+    assert mean == pytest.approx(sum(diffs) / 2)
+    assert printed[-1].startswith(
+        "== over 2 seeds against frontier (paired on each run's episodes), mean difference "
+        f"(points of coverage) {100 * mean:+.2f} ["
+    )
+    assert (group / "group-eval.json").read_text() == group_eval  # its own file, untouched
     out = tmp_path / "cmp.png"
     # A run of the group named again is refused (it would count twice); a copy elsewhere is a
     # run of its own.

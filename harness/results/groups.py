@@ -42,6 +42,12 @@ GROUP_FILE = "group.json"
 GROUP_EVAL_FILE = "group-eval.json"
 
 
+def group_against_file(policy: str) -> str:
+    """The file of ``harness eval GROUP --against POLICY``: the runs' episode-by-episode
+    differences from the baseline ``policy`` (their ``against-POLICY.json``), over seeds."""
+    return f"group-against-{policy}.json"
+
+
 class GroupError(ValueError):
     """A seed list or group folder that cannot be used, with a one-line message."""
 

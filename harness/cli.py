@@ -665,7 +665,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
         hidden = (*PER_EPISODE_KEYS, "saved")
         out = {k: v for k, v in summary.items() if k not in hidden}
         if against:
-            lists = ("saved", "coverage", "team_return", "against_coverage", "against_team_return")
+            lists = {"saved", *PER_EPISODE_KEYS, *(f"against_{k}" for k in PER_EPISODE_KEYS)}
             # The per-episode lists stay in the files, as the evaluation's do.
             out["against"] = [{k: v for k, v in c.items() if k not in lists} for c in against]
         print(json.dumps(out))

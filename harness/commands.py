@@ -696,11 +696,39 @@ def evaluate_against(
         metric: a.tolist(),
         f"against_{metric}": b.tolist(),
     }
+    if metric == "coverage":
+        ours_steps, their_steps = summary["steps_to_99_each"], theirs["steps_to_99_each"]
+        comparison["steps_to_99"] = paired_steps_to_99(ours_steps, their_steps)
+        comparison["steps_to_99_each"] = ours_steps
+        comparison["against_steps_to_99_each"] = their_steps
     saved = None
     if target.results_dir is not None:
         name = against_filename(policy, overrides, target.model_name, episodes, target.seed_changed)
         saved = RunDir(target.results_dir).write_result(name, comparison)
     return {**comparison, "saved": saved}
+
+
+def paired_steps_to_99(
+    ours: Sequence[int | None], theirs: Sequence[int | None]
+) -> dict[str, Any] | None:
+    """The steps to 99 % of two policies compared on the episodes both reach it in (where teams
+    cover everything, coverage ties and speed is the measure): their means, the mean
+    difference (ours - theirs: negative is faster) with its 95 % bootstrap interval; ``None``
+    when no episode is reached by both."""
+    from harness.results.stats import paired_difference
+
+    pairs = [(x, y) for x, y in zip(ours, theirs, strict=True) if x is not None and y is not None]
+    if not pairs:
+        return None
+    a, b = np.asarray(pairs, dtype=np.float64).T
+    difference, low, high = paired_difference(a, b)
+    return {
+        "episodes": len(pairs),
+        "mean": float(a.mean()),
+        "against_mean": float(b.mean()),
+        "difference": difference,
+        "difference_ci95": [low, high],
+    }
 
 
 def format_against(comparison: dict[str, Any]) -> str:
@@ -716,13 +744,22 @@ def format_against(comparison: dict[str, Any]) -> str:
 
     unit = " points" if coverage else ""
     what = "coverage" if coverage else "team return"
-    return (
+    line = (
         f"against   {comparison['against']} on the same {comparison['episodes']} episodes: "
         f"mean {what} {value(comparison['against_mean'])} (this policy "
         f"{value(comparison['mean'])}), difference {diff(comparison['difference'])}{unit} "
         f"[{diff(low)}, {diff(high)}] (95 % bootstrap over the episodes); this policy ahead in "
         f"{comparison['ahead']}, behind in {comparison['behind']}, equal in {comparison['equal']}"
     )
+    steps = comparison.get("steps_to_99")
+    if steps is not None:
+        low, high = steps["difference_ci95"]
+        line += (
+            f"\n          steps to 99 %, on the {steps['episodes']} episodes both reach it in: "
+            f"mean {steps['against_mean']:.1f} (this policy {steps['mean']:.1f}), difference "
+            f"{steps['difference']:+.1f} [{low:+.1f}, {high:+.1f}]"
+        )
+    return line
 
 
 def format_group_against(comparison: dict[str, Any]) -> str:
@@ -756,11 +793,13 @@ def _per_episode(results: list[Any]) -> dict[str, list[Any]]:
     return {
         "coverage": [r.coverage for r in results],
         "wall_hits": [sum(r.wall_hits) for r in results],
+        # None where the episode never reached 99 %.
+        "steps_to_99_each": [r.steps_to.get("steps_to_99") for r in results],
     }
 
 
 #: The per-episode lists of :func:`evaluate` that ``--json`` leaves out (the file keeps them).
-PER_EPISODE_KEYS = ("coverage", "wall_hits", "team_return", "length")
+PER_EPISODE_KEYS = ("coverage", "wall_hits", "steps_to_99_each", "team_return", "length")
 
 
 #: ``group-eval.json``'s key of the numbers over seeds (a PettingZoo env of one's own:

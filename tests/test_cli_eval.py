@@ -16,7 +16,7 @@ import pytest
 from PIL import Image
 
 from harness.cli import main
-from harness.commands import choose_temperature, format_against
+from harness.commands import choose_temperature, format_against, paired_steps_to_99
 from harness.config.loading import load_config
 from harness.results.rundir import result_filename
 from tests.conftest import one_error_line
@@ -214,6 +214,18 @@ def test_against_plays_the_baselines_on_the_models_episodes_and_pairs_them(smoke
         low, high = c["difference_ci95"]
         assert low <= c["difference"] <= high
         assert "coverage" not in c and "against_coverage" not in c  # the file keeps the lists
+        both = [
+            (x, y)
+            for x, y in zip(
+                saved["steps_to_99_each"], saved["against_steps_to_99_each"], strict=True
+            )
+            if x is not None and y is not None
+        ]
+        steps = c["steps_to_99"]
+        assert (steps is None) == (not both)
+        if both:
+            assert steps["episodes"] == len(both)
+            assert steps["mean"] == pytest.approx(sum(x for x, _ in both) / len(both))
 
 
 def test_a_baseline_against_itself_is_equal_in_every_episode(capsys):
@@ -225,6 +237,16 @@ def test_a_baseline_against_itself_is_equal_in_every_episode(capsys):
         "difference +0.00 points [+0.00, +0.00] (95 % bootstrap over the episodes); this policy "
         "ahead in 0, behind in 0, equal in 3"
     )
+
+
+def test_steps_to_99_are_paired_on_the_episodes_both_reach_it_in():
+    steps = paired_steps_to_99([10, None, 30, 40], [12, 20, None, 40])
+    assert steps is not None
+    assert (steps["episodes"], steps["mean"], steps["against_mean"]) == (2, 25.0, 26.0)
+    assert steps["difference"] == -1.0  # (10 - 12 + 40 - 40) / 2
+    low, high = steps["difference_ci95"]
+    assert -2.0 <= low <= -1.0 <= high <= 0.0  # resampled means of the differences -2 and 0
+    assert paired_steps_to_99([None, 5], [7, None]) is None
 
 
 def test_the_against_line_reads_its_numbers():
@@ -240,10 +262,22 @@ def test_the_against_line_reads_its_numbers():
         "behind": 3,
         "equal": 0,
     }
-    assert format_against(comparison) == (
+    line = (
         "against   frontier_pocket on the same 4 episodes: mean coverage 60.0% (this policy "
         "50.0%), difference -10.00 points [-12.50, -6.25] (95 % bootstrap over the episodes); "
         "this policy ahead in 1, behind in 3, equal in 0"
+    )
+    assert format_against(comparison) == line
+    comparison["steps_to_99"] = {
+        "episodes": 2,
+        "mean": 25.0,
+        "against_mean": 26.0,
+        "difference": -1.0,
+        "difference_ci95": [-2.0, 0.0],
+    }
+    assert format_against(comparison) == line + (
+        "\n          steps to 99 %, on the 2 episodes both reach it in: mean 26.0 (this policy "
+        "25.0), difference -1.0 [-2.0, +0.0]"
     )
 
 

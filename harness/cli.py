@@ -638,6 +638,8 @@ def _target(args: argparse.Namespace) -> Target:
 def cmd_eval(args: argparse.Namespace) -> int:
     from harness.results.groups import is_group
 
+    args.against = list(dict.fromkeys(args.against))  # each baseline once, in the order named
+
     if args.target is not None and is_group(args.target):
         return _eval_group(args)
     if args.plot is not None:

@@ -415,10 +415,15 @@ def bench_sharing(
 
 
 # ---------------------------------------------------------------------- eval
+#: Rounds of the planners' rows in `bench eval` (each ratio to `frontier` is a median of rounds).
+PLANNER_ROUNDS = 3
+
+
 def bench_eval(episodes: int = 8) -> dict[str, Any]:
     """Episodes per second of greedy evaluation (MLP 3x512) and of every planner's baseline
     (``eval_<baseline>_episodes_per_s``, one per entry of ``envs.coverage.frontier.PLANNERS``),
-    with each planner's speed over the classical explorer's (``eval_<baseline>_over_frontier``),
+    with each planner's speed over the classical explorer's (``eval_<baseline>_over_frontier``:
+    the median over :data:`PLANNER_ROUNDS` rounds of the ratio within a round; the rates too),
     and every row per CPU second as well (``eval_episodes_per_cpu_s``: ``mlp``, ``random``, each
     baseline, ``teammap_frontier_step``, ``goals_frontier_step``)."""
     import torch
@@ -446,18 +451,34 @@ def bench_eval(episodes: int = 8) -> dict[str, Any]:
         4 * episodes, lambda: run_episodes(random, THESIS_ENV, 4 * episodes, 0), cpu, "random"
     )
 
-    def planner_rate(name: str) -> float:
+    names = [entry.baseline for entry in PLANNERS.values()]
+    for name in names:
         # One episode first: compiling (or loading from numba's cache) what it needs is not
         # the planner's speed, and would fall on whichever row needs it first.
         run_episodes(make_baseline(name, 0), THESIS_ENV, 1, 0)
-        return _rate(
-            episodes,
-            lambda: run_episodes(make_baseline(name, 0), THESIS_ENV, episodes, 0),
-            cpu,
-            name,
-        )
-
-    rates = {entry.baseline: planner_rate(entry.baseline) for entry in PLANNERS.values()}
+    # Three rounds, the planners in turn within each (every planner's episodes in one call,
+    # as `harness eval` plays them): a drift of the machine's speed falls on every planner of a
+    # round alike, so each ratio to `frontier` is taken within a round, and the median of the
+    # rounds reported (the rates too: their medians).
+    walls: dict[str, list[float]] = {name: [] for name in names}
+    cpus: dict[str, list[float]] = {name: [] for name in names}
+    for _ in range(PLANNER_ROUNDS):
+        for name in names:
+            round_cpu: dict[str, float] = {}
+            walls[name].append(
+                _rate(
+                    episodes,
+                    lambda name=name: run_episodes(make_baseline(name, 0), THESIS_ENV, episodes, 0),
+                    round_cpu,
+                    name,
+                )
+            )
+            cpus[name].append(round_cpu[name])
+    rates = {name: float(np.median(walls[name])) for name in names}
+    cpu.update({name: float(np.median(cpus[name])) for name in names})
+    over_frontier = {
+        name: float(np.median(np.divide(walls[name], walls["frontier"]))) for name in names
+    }
     out: dict[str, Any] = {
         "eval_episodes_per_s": mlp,
         "eval_100_episodes_s": 100 / mlp,
@@ -479,7 +500,7 @@ def bench_eval(episodes: int = 8) -> dict[str, Any]:
     for name, rate in rates.items():
         out[f"eval_{name}_episodes_per_s"] = rate
         if name != "frontier":
-            out[f"eval_{name}_over_frontier"] = rate / rates["frontier"]
+            out[f"eval_{name}_over_frontier"] = over_frontier[name]
     return out
 
 

@@ -773,11 +773,23 @@ def format_group_against(comparison: dict[str, Any]) -> str:
         return f"{100 * x:+.2f}" if coverage else f"{x:+.4g}"
 
     what = "points of coverage" if coverage else "team return"
-    return (
+    line = (
         f"== over {over['seeds']} seeds against {comparison['against']} (paired on each run's "
         f"episodes), mean difference ({what}) {with_ci(over['mean'], over['mean_ci95'], diff)}, "
         f"IQM {with_ci(over['iqm'], over['iqm_ci95'], diff)}"
     )
+    steps = comparison.get("steps_to_99_difference_over_seeds")
+    if steps is not None:
+
+        def step_diff(x: float) -> str:
+            return f"{x:+.1f}"
+
+        line += (
+            "\n   steps to 99 % (each run's on the episodes both reach it in), mean difference "
+            f"{with_ci(steps['mean'], steps['mean_ci95'], step_diff)}, IQM "
+            f"{with_ci(steps['iqm'], steps['iqm_ci95'], step_diff)}"
+        )
+    return line
 
 
 def _per_episode(results: list[Any]) -> dict[str, list[Any]]:
@@ -858,19 +870,26 @@ def group_against(group: Path, runs: Sequence[Path], policy: str) -> dict[str, A
     from harness.results.stats import describe, seed_statistics
 
     differences: dict[str, float] = {}
+    steps: dict[str, float] = {}  # the steps to 99 %, of the runs that have a comparison of them
     metric = "coverage"
     for run in runs:
         path = RunDir(results_folder(run)).result(against_filename(policy, []))
         data = json.loads(path.read_text(encoding="utf-8"))  # written by this command
         differences[run.name], metric = float(data["difference"]), data["metric"]
+        if data.get("steps_to_99") is not None:
+            steps[run.name] = float(data["steps_to_99"]["difference"])
     stats = seed_statistics({policy: list(differences.values())})[policy]
-    result = {
+    result: dict[str, Any] = {
         "group": str(group),
         "against": policy,
         "metric": metric,
         "differences": differences,
         "difference_over_seeds": describe(stats),
     }
+    if steps and len(steps) == len(runs):  # over seeds only where every seed has one
+        result["steps_to_99_differences"] = steps
+        over = seed_statistics({policy: list(steps.values())})[policy]
+        result["steps_to_99_difference_over_seeds"] = describe(over)
     saved = write_json(group / group_against_file(policy), result)
     return {**result, "saved": saved}
 

@@ -16,7 +16,12 @@ import pytest
 from PIL import Image
 
 from harness.cli import main
-from harness.commands import choose_temperature, format_against, paired_steps_to_99
+from harness.commands import (
+    choose_temperature,
+    format_against,
+    format_group_against,
+    paired_steps_to_99,
+)
 from harness.config.loading import load_config
 from harness.results.rundir import result_filename
 from tests.conftest import one_error_line
@@ -280,6 +285,27 @@ def test_the_against_line_reads_its_numbers():
         "\n          steps to 99 %, on the 2 episodes both reach it in: mean 26.0 (this policy "
         "25.0), difference -1.0 [-2.0, +0.0]"
     )
+
+
+def test_the_group_against_lines_read_their_numbers():
+    comparison = {
+        "against": "frontier_hungarian",
+        "metric": "coverage",
+        "difference_over_seeds": {
+            "seeds": 3, "mean": -0.002, "mean_ci95": [-0.005, 0.001],
+            "iqm": -0.002, "iqm_ci95": [-0.005, 0.001],
+        },
+        "steps_to_99_difference_over_seeds": {
+            "seeds": 3, "mean": 12.5, "mean_ci95": [-3.0, 30.25],
+            "iqm": 12.5, "iqm_ci95": [-3.0, 30.25],
+        },
+    }  # fmt: skip
+    assert format_group_against(comparison).splitlines() == [
+        "== over 3 seeds against frontier_hungarian (paired on each run's episodes), mean "
+        "difference (points of coverage) -0.20 [-0.50, +0.10], IQM -0.20 [-0.50, +0.10]",
+        "   steps to 99 % (each run's on the episodes both reach it in), mean difference +12.5 "
+        "[-3.0, +30.2], IQM +12.5 [-3.0, +30.2]",
+    ]
 
 
 def test_render_writes_png_and_gif(smoke_run, tmp_path, capsys):

@@ -173,6 +173,12 @@ def test_seed_group_trains_evaluates_and_compares(tiny, tmp_path, capsys):
         f"(points of coverage) {100 * mean:+.2f} ["
     )
     assert (group / "group-eval.json").read_text() == group_eval  # its own file, untouched
+    steps = [json.loads((m / "against-frontier.json").read_text())["steps_to_99"] for m in members]
+    if all(s is not None for s in steps):  # the speed over seeds, where every seed has one
+        over_steps = over_seeds["steps_to_99_difference_over_seeds"]
+        assert over_steps["mean"] == pytest.approx(sum(s["difference"] for s in steps) / 2)
+    else:
+        assert "steps_to_99_difference_over_seeds" not in over_seeds
     out = tmp_path / "cmp.png"
     # A run of the group named again is refused (it would count twice); a copy elsewhere is a
     # run of its own.

@@ -15,7 +15,6 @@ from gymnasium import spaces
 from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.noise import ActionNoise
 from stable_baselines3.common.policies import BasePolicy
-from stable_baselines3.common.preprocessing import is_image_space, is_image_space_channels_first
 from stable_baselines3.common.type_aliases import GymEnv, PyTorchObs, Schedule
 from stable_baselines3.common.utils import ConstantSchedule
 from stable_baselines3.dqn import DQN
@@ -433,8 +432,6 @@ class DoubleDQN(DQN):
         self._graph: GraphedStep | None = None
         self._graph_failed = False
         self._steps_here = 0
-        # The policy, its modules and whether _policy_input converts its observations itself.
-        self._policy_known: tuple[BasePolicy, tuple[th.nn.Module, ...], bool] | None = None
         # Saved with the model (SB3 saves the instance's attributes): load checks it.
         setattr(self, FORMAT_KEY, MODEL_FORMAT)
         if _init_setup_model:
@@ -546,7 +543,6 @@ class DoubleDQN(DQN):
             "_graph",
             "_graph_failed",
             "_steps_here",
-            "_policy_known",
         ]
 
     @property
@@ -903,9 +899,9 @@ class DoubleDQN(DQN):
             and the state.
         """
         allowed = None
-        if self.masked or isinstance(observation, (np.ndarray, dict)):
-            action, allowed = self._greedy(observation)  # type: ignore[arg-type]
-        else:  # SB3's own checks and messages for anything else (a tuple from reset, ...)
+        if self.masked:
+            action, allowed = self._masked_greedy(observation)  # type: ignore[arg-type]
+        else:
             action, state = self.policy.predict(observation, state, episode_start, deterministic)
         if deterministic or self.exploration_rate <= 0.0:
             return action, state
@@ -924,82 +920,23 @@ class DoubleDQN(DQN):
         mixed = np.where(explore, random_actions, flat).astype(flat.dtype, copy=False)
         return mixed.reshape(greedy.shape), state
 
-    def _policy_input(
-        self, observation: np.ndarray | dict[str, np.ndarray]
-    ) -> tuple[PyTorchObs, bool]:
-        """``observation`` as the policy's tensors and whether it is a batch, with the policy in
-        evaluation mode: what SB3's ``policy.predict`` does before its forward pass, without
-        its costs per call (docs/performance.md, "Acting"). SB3 sets the mode of every module
-        on every call (a walk through all of them, tens to hundreds of microseconds); here
-        only when one is in training mode. A ``Dict`` of ``Box`` and
-        ``MultiBinary`` entries (images channel-first) is converted without SB3's deep copy
-        and its per-key space checks, to the same tensors; anything else, or a shape that fits
-        neither one observation nor a batch, goes through SB3's ``obs_to_tensor``."""
-        modules, plain = self._policy_view()
-        if any(module.training for module in modules):
-            self.policy.set_training_mode(False)
-        if not isinstance(observation, dict) or not plain:
-            return self.policy.obs_to_tensor(observation)
-        space = self.policy.observation_space
-        tensors: dict[str, th.Tensor] = {}
-        batched = False
-        device = self.policy.device  # where SB3's obs_to_tensor puts them
-        for key, value in observation.items():
-            array = np.asarray(value)
-            shape = space[key].shape  # type: ignore[index]
-            if array.shape[1:] == shape:
-                batched = True
-            elif array.shape != shape:
-                return self.policy.obs_to_tensor(observation)  # SB3's error
-            tensors[key] = th.as_tensor(array.reshape((-1, *shape)), device=device)
-        return tensors, batched
-
-    def _policy_view(self) -> tuple[tuple[th.nn.Module, ...], bool]:
-        """The policy's modules (a walk through them on every call would cost as much as
-        setting their mode) and whether :meth:`_policy_input` converts its observations itself:
-        a ``Dict`` of ``Box`` and ``MultiBinary`` entries whose images need no transposition.
-        Worked out once per policy object."""
-        policy = self.policy
-        known = self._policy_known
-        if known is None or known[0] is not policy:
-            space = policy.observation_space
-            plain = isinstance(space, spaces.Dict) and all(
-                isinstance(sub, spaces.MultiBinary)
-                or (
-                    isinstance(sub, spaces.Box)
-                    and (not is_image_space(sub) or is_image_space_channels_first(sub))
-                )
-                for sub in space.spaces.values()
-            )
-            known = self._policy_known = (policy, tuple(policy.modules()), plain)
-        return known[1], known[2]
-
-    def _greedy(
-        self, observation: np.ndarray | dict[str, np.ndarray]
-    ) -> tuple[np.ndarray, np.ndarray | None]:
-        """The greedy action, shaped as SB3's ``policy.predict`` shapes it (:meth:`_policy_input`
-        for the tensors), and with an action mask (:attr:`masked`) the ``(batch, n_actions)``
-        allowed mask, the action then being the best allowed one (``None``: no mask).
-
-        A row whose mask allows one action (a forced step: a held goal) takes it without a pass
-        of the network, which runs on the other rows only (the same actions: the masked argmax
-        of a row with one allowed action is that action)."""
-        obs, vectorized = self._policy_input(observation)
-        allowed = None
+    def _masked_greedy(self, observation: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """The greedy action among the actions the observation's mask allows, shaped as SB3's
+        ``policy.predict`` shapes it, and the ``(batch, n_actions)`` allowed mask."""
+        self.policy.set_training_mode(False)
+        obs, vectorized = self.policy.obs_to_tensor(observation)
         with th.no_grad():
-            if self.masked:
-                allowed = allowed_actions(obs, int(self.action_space.n))  # type: ignore[attr-defined]
-                assert isinstance(allowed, th.Tensor)
-                action = self._masked_argmax(obs, allowed)  # type: ignore[arg-type]
-            else:
-                action = self.policy._predict(obs, deterministic=True)
-        action = action.cpu().numpy().reshape((-1, *self.action_space.shape))  # type: ignore[misc]
+            allowed = allowed_actions(obs, int(self.action_space.n))  # type: ignore[attr-defined]
+            assert isinstance(allowed, th.Tensor)
+            action = self._masked_argmax(obs, allowed).cpu().numpy()  # type: ignore[arg-type]
         action = action if vectorized else action.squeeze(axis=0)
-        return action, None if allowed is None else allowed.cpu().numpy()
+        return action, allowed.cpu().numpy()
 
     def _masked_argmax(self, obs: dict[str, th.Tensor], allowed: th.Tensor) -> th.Tensor:
-        """The best allowed action of each row (:meth:`_greedy`), the network run on the rows
-        with a choice only."""
+        """The best allowed action of each row (:meth:`_masked_greedy`), the network run on the
+        rows with a choice only: a row whose mask allows one action (a forced step: a held goal)
+        takes it without a pass of the network (the same action: the masked argmax of a row
+        with one allowed action is that action)."""
         deciding = allowed.sum(dim=1) > 1
         n_deciding = int(deciding.sum())  # one read of the device for both cases below
         if n_deciding == deciding.numel():

@@ -266,9 +266,7 @@ def resolve_target(
             raise TargetError(f"unknown policy {policy!r}; known: {', '.join(BASELINES)}")
         config = load_config(config_path, overrides)
         check_baseline(policy, config, "--policy")
-        config = config.model_copy(update={"env": BASELINES[policy].env_config(config.env)})
-        seed = config.eval.seed if seed is None else seed
-        return Target(make_baseline(policy, seed), config, policy, None, seed)
+        return baseline_target(policy, config, config.eval.seed if seed is None else seed)
     if target is None:
         raise TargetError(
             "give a run folder or model zip, or --policy BASELINE --config FILE (BASELINE: "
@@ -277,6 +275,14 @@ def resolve_target(
     if config_path is not None:
         raise TargetError("--config goes with --policy; a model uses its run's config.yaml")
     return load_model_target(target, overrides, seed)
+
+
+def baseline_target(policy: str, config: ExperimentConfig, seed: int) -> Target:
+    """The (checked) baseline ``policy`` on ``config``'s episodes from ``seed``, with the env
+    config it plays (:meth:`~harness.evaluation.baselines.BaselineEntry.env_config`: the moves
+    where the config's actions are goal slots)."""
+    config = config.model_copy(update={"env": BASELINES[policy].env_config(config.env)})
+    return Target(make_baseline(policy, seed), config, policy, None, seed)
 
 
 def check_baseline(policy: str, config: ExperimentConfig, flag: str) -> None:
@@ -671,9 +677,8 @@ def evaluate_against(
     from harness.results.stats import paired_difference
 
     episodes = summary["episodes"]
-    baseline = make_baseline(policy, target.seed)
-    env = BASELINES[policy].env_config(target.config.env)  # the moves, on the same episodes
-    results = run_episodes(baseline, env, episodes, target.seed)
+    baseline = baseline_target(policy, target.config, target.seed)
+    results = run_episodes(baseline.policy, baseline.config.env, episodes, target.seed)
     theirs = _per_episode(results)
     metric = "team_return" if "team_return" in theirs else "coverage"
     a = np.asarray(summary[metric], dtype=np.float64)

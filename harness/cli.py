@@ -667,13 +667,18 @@ def cmd_eval(args: argparse.Namespace) -> int:
         hidden = (*PER_EPISODE_KEYS, "saved")
         out = {k: v for k, v in summary.items() if k not in hidden}
         if against:
-            lists = {"saved", *PER_EPISODE_KEYS, *(f"against_{k}" for k in PER_EPISODE_KEYS)}
-            # The per-episode lists stay in the files, as the evaluation's do.
-            out["against"] = [{k: v for k, v in c.items() if k not in lists} for c in against]
+            out["against"] = [_printable(c) for c in against]
         print(json.dumps(out))
     else:
         print("\n".join([format_summary(summary), *map(format_against, against)]))
     return 0
+
+
+def _printable(comparison: dict[str, Any]) -> dict[str, Any]:
+    """A comparison of ``--against`` as ``--json`` prints it: without the saved file's path and
+    the per-episode lists (the file keeps them, as an evaluation's does)."""
+    lists = {"saved", *PER_EPISODE_KEYS, *(f"against_{k}" for k in PER_EPISODE_KEYS)}
+    return {k: v for k, v in comparison.items() if k not in lists}
 
 
 def _eval_group(args: argparse.Namespace) -> int:
@@ -714,9 +719,7 @@ def _eval_group(args: argparse.Namespace) -> int:
             print(f"saved {comparison['saved']}", file=sys.stderr)
         if args.json:
             if "against" in result:
-                result["against"] = [
-                    {k: v for k, v in c.items() if k != "saved"} for c in result["against"]
-                ]
+                result["against"] = [_printable(c) for c in result["against"]]
             print(json.dumps(result))
     return 0
 

@@ -202,6 +202,8 @@ def play(
     reach: float | None = None,
     python: bool = False,
     sigmas: float = 0.0,
+    after: float = 0.0,
+    coverages: list | None = None,
 ) -> tuple[float, int, int | None]:
     """One episode; with ``oracle`` the rollout oracle chooses, with ``model`` a trained goal
     policy (greedy, committed like the oracle), otherwise slot 0 throughout.
@@ -213,7 +215,8 @@ def play(
     of deviations from slot 0 and the steps to ``reach`` (``None`` when not reached or not
     asked). ``horizon``: rollouts end after so many steps (``None``: at the episode's end).
     ``sigmas``: with several sampled maps, a slot replaces slot 0 only where its mean paired
-    gain exceeds so many standard errors over the maps."""
+    gain exceeds so many standard errors over the maps. ``after``: the oracle decides only from
+    this coverage on (slot 0 before it); ``coverages`` collects the coverage at each deviation."""
     obs, _ = env.reset(seed=seed)
     rng = np.random.default_rng(seed)
     teacher = RolloutTeacher(horizon, margin, reach)
@@ -235,7 +238,7 @@ def play(
         ]
         rests = {a: walk[a][1:] for a in range(n) if walk[a]}
         deciding = [a for a in range(n) if not walk[a] and (cand.cells[a] >= 0).sum() > 1]
-        if oracle and deciding:
+        if oracle and deciding and env.coverage >= after:
             # Steps left in the episode, this one included: the rollouts' length (at most
             # ``horizon``).
             steps_left = env.max_steps - env.steps
@@ -270,6 +273,8 @@ def play(
                         path = shortest_walk(planner, i, goal)
                     cells[i], rests[i], walk[i] = path[0], path[1:], path
                     deviations += 1
+                    if coverages is not None:
+                        coverages.append(env.coverage)
         elif model is not None and deciding:
             batch = {
                 key: np.stack([obs[agent][key] for agent in env.agents])
@@ -336,6 +341,12 @@ def main() -> None:
         help="score by the steps to this coverage (e.g. 0.99) instead of the cells at the end",
     )
     parser.add_argument(
+        "--after",
+        type=float,
+        default=0.0,
+        help="the oracle decides only from this coverage on (slot 0 before it)",
+    )
+    parser.add_argument(
         "--rollouts",
         choices=("compiled", "python"),
         default="compiled",
@@ -348,10 +359,11 @@ def main() -> None:
     model = DoubleDQN.load(args.model, device="cpu") if args.model else None
     label = "model" if model is not None else "oracle"
     records: list | None = [] if args.save else None
-    rows, steps = [], []
+    rows, steps, coverages = [], [], []
     start = time.perf_counter()
     for seed in range(args.seed, args.seed + args.episodes):
         planner, _, planner_steps = play(env, seed, oracle=False, reach=args.reach)
+        first = len(coverages)
         oracle, deviations, oracle_steps = play(
             env,
             seed,
@@ -365,6 +377,8 @@ def main() -> None:
             reach=args.reach,
             python=args.rollouts == "python",
             sigmas=args.sigmas,
+            after=args.after,
+            coverages=coverages,
         )
         rows.append((planner, oracle))
         steps.append((planner_steps, oracle_steps))
@@ -376,7 +390,8 @@ def main() -> None:
             )
         print(
             f"seed {seed}: planner {100 * planner:.2f} %  {label} {100 * oracle:.2f} %  "
-            f"({100 * (oracle - planner):+.2f}, {reached}{deviations} deviations; "
+            f"({100 * (oracle - planner):+.2f}, {reached}{deviations} deviations "
+            f"(at coverage {', '.join(f'{100 * c:.0f}' for c in coverages[first:])} %); "
             f"{time.perf_counter() - start:.0f} s)",
             flush=True,
         )

@@ -1151,6 +1151,10 @@ def _over_seeds(
     pairs = {}
     for i, x in enumerate(names):
         for y in names[i + 1 :]:
+            if len(scores[x]) == len(scores[y]) == 1:
+                # One number against one: 0, 50 or 100 % would read as a probability.
+                lines += ["", f"P({x} > {y}): not estimated (one seed in each group)"]
+                continue
             p, ci = probability_of_improvement(scores[x], scores[y], reps)
             where = (
                 "no interval: a group has 1 seed"

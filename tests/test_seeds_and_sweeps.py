@@ -306,6 +306,19 @@ def test_compare_of_hand_made_groups_reports_mean_iqm_intervals_and_improvement(
         assert (tmp_path / f"cmp{suffix}.png").read_bytes()[:4] == b"\x89PNG"
 
 
+def test_compare_of_two_single_runs_gives_no_probability_of_improvement(tmp_path, capsys):
+    # One number against one: P(X > Y) could only be 0, 50 or 100 %; it is not printed as one.
+    one = _fake_run(tmp_path / "one", 0.42, {100: 0.3, 200: 0.42})
+    two = _fake_run(tmp_path / "two", 0.40, {100: 0.3, 200: 0.40})
+    out = tmp_path / "cmp.png"
+    assert main(["compare", str(one), str(two), "--labels", "one", "two",
+                 "--out", str(out), "--reps", "300"]) == 0  # fmt: skip
+    text = capsys.readouterr().out
+    assert "P(one > two): not estimated (one seed in each group)" in text
+    assert "P(one > two) =" not in text
+    assert not (tmp_path / "cmp-improvement.png").exists()
+
+
 def test_compare_reads_another_evaluation_when_asked(tmp_path, capsys):
     a = _fake_group(tmp_path / "a", [0.1, 0.2, 0.3], [{100: 0.1}] * 3)
     for k, score in enumerate([0.5, 0.6, 0.7]):  # the same runs evaluated on other episodes

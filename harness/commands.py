@@ -785,10 +785,7 @@ def format_group_against(comparison: dict[str, Any]) -> str:
     )
     steps = comparison.get("steps_to_99_difference_over_seeds")
     if steps is not None:
-
-        def step_diff(x: float) -> str:
-            return f"{x:+.1f}"
-
+        step_diff = "{:+.1f}".format
         line += (
             "\n   steps to 99 % (each run's on the episodes both reach it in), mean difference "
             f"{with_ci(steps['mean'], steps['mean_ci95'], step_diff)}, IQM "

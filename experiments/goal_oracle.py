@@ -21,8 +21,10 @@ is biased upwards: ``--sigmas Z`` lets an option replace slot 0 only where its m
 over the maps exceeds ``Z`` standard errors.
 
 ``--model`` plays a trained goal policy the same way (a slot other than 0 is walked to until
-visited). ``--save`` writes every decision's candidate features and each slot's advantage (its
-rollout's cells minus slot 0's), the data a learned selector can be fitted to. ``--reach Q``
+visited). ``--save`` writes every decision's candidate features, each slot's advantage (its
+rollout's cells minus slot 0's), the oracle's slot and the deciding agent's observation, the
+data a learned selector can be fitted to. ``--after C``: the oracle (or the model) decides only
+from coverage ``C`` on, slot 0 before it. ``--reach Q``
 scores by speed instead: an option by the steps its rollout takes to coverage ``Q`` (ties by
 cells), an episode by its steps to ``Q`` (a team that covers the whole map, 4 agents on 50x50,
 ends every rollout with the same cells).
@@ -35,7 +37,7 @@ teacher was checked against, tests/test_teacher.py): the same choices, 3 to 12 t
     python experiments/goal_oracle.py [--config configs/goals_2agents.yaml] [--episodes 10]
         [--seed 2000003] [--set KEY=VALUE ...] [--horizon H] [--belief true|sampled]
         [--samples M] [--sigmas Z] [--margin CELLS] [--model RUN/model.zip] [--save DECISIONS.npz]
-        [--reach Q] [--rollouts compiled|python]
+        [--reach Q] [--after C] [--rollouts compiled|python]
 """
 
 from __future__ import annotations
@@ -259,11 +261,14 @@ def play(
                             slots
                         ]
                 scores = clear_of_noise(per_map, sigmas)
+                best = teacher.pick(scores, len(planner.free))
                 if records is not None:
                     adv = np.full(cand.cells.shape[1], np.nan)
                     adv[slots] = scores - scores[0]
-                    records.append((cand.features[i].copy(), adv, env.steps / env.max_steps))
-                best = teacher.pick(scores, len(planner.free))
+                    agent_obs = obs[env.possible_agents[i]]
+                    records.append(
+                        (cand.features[i].copy(), adv, env.steps / env.max_steps, agent_obs, best)
+                    )
                 if best != 0:
                     goal = int(cand.cells[i, best])
                     if python:
@@ -275,7 +280,7 @@ def play(
                     deviations += 1
                     if coverages is not None:
                         coverages.append(env.coverage)
-        elif model is not None and deciding:
+        elif model is not None and deciding and env.coverage >= after:
             batch = {
                 key: np.stack([obs[agent][key] for agent in env.agents])
                 for key in obs[env.agents[0]]
@@ -289,6 +294,8 @@ def play(
                     walk[i] = path_to(pred[i], planner.positions[i], int(cand.cells[i, slots[i]]))
                     cells[i] = walk[i][0]
                     deviations += 1
+                    if coverages is not None:
+                        coverages.append(env.coverage)
         for a in range(n):
             # Slot 0 carries each agent's move (the goal action resolves slots to moves).
             cand.moves[a, 0] = move_of[cells[a] - planner.positions[a]]
@@ -344,7 +351,7 @@ def main() -> None:
         "--after",
         type=float,
         default=0.0,
-        help="the oracle decides only from this coverage on (slot 0 before it)",
+        help="the oracle (or --model) decides only from this coverage on (slot 0 before it)",
     )
     parser.add_argument(
         "--rollouts",
@@ -359,7 +366,7 @@ def main() -> None:
     model = DoubleDQN.load(args.model, device="cpu") if args.model else None
     label = "model" if model is not None else "oracle"
     records: list | None = [] if args.save else None
-    rows, steps, coverages = [], [], []
+    rows, steps, coverages, episode_records = [], [], [], []
     start = time.perf_counter()
     for seed in range(args.seed, args.seed + args.episodes):
         planner, _, planner_steps = play(env, seed, oracle=False, reach=args.reach)
@@ -381,7 +388,12 @@ def main() -> None:
             coverages=coverages,
         )
         rows.append((planner, oracle))
+        if records is not None:
+            episode_records.append(len(records) - sum(episode_records))
         steps.append((planner_steps, oracle_steps))
+        where = ""
+        if coverages[first:]:
+            where = f" (at coverage {', '.join(f'{100 * c:.0f}' for c in coverages[first:])} %)"
         reached = ""
         if args.reach is not None:
             reached = (
@@ -390,8 +402,7 @@ def main() -> None:
             )
         print(
             f"seed {seed}: planner {100 * planner:.2f} %  {label} {100 * oracle:.2f} %  "
-            f"({100 * (oracle - planner):+.2f}, {reached}{deviations} deviations "
-            f"(at coverage {', '.join(f'{100 * c:.0f}' for c in coverages[first:])} %); "
+            f"({100 * (oracle - planner):+.2f}, {reached}{deviations} deviations{where}; "
             f"{time.perf_counter() - start:.0f} s)",
             flush=True,
         )
@@ -401,6 +412,10 @@ def main() -> None:
                 features=np.stack([r[0] for r in records]),
                 advantages=np.stack([r[1] for r in records]),
                 time=np.array([r[2] for r in records]),
+                label=np.array([r[4] for r in records]),
+                episode=np.repeat(np.arange(len(rows)), episode_records),
+                # The deciding agent's observation, key by key: what a student is fitted on.
+                **{f"obs_{key}": np.stack([r[3][key] for r in records]) for key in records[0][3]},
             )
     p, o = (100 * np.array(c) for c in zip(*rows))
     mean, low, high = paired_difference(o, p)

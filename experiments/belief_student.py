@@ -1,0 +1,130 @@
+"""A student of the sampled-map chooser (docs/experiment-log.md, "A chooser that sees only the
+team's map"): a goal policy fitted offline to the decisions that ``goal_oracle.py --belief
+sampled --save`` recorded, played back with ``goal_oracle.py --model``.
+
+The network is the config's (``SlotTeamMapPolicy``, built as ``harness run`` builds it); its
+Q-values over the candidate slots are read as logits and fitted by cross-entropy to the
+chooser's slot, a deviation from slot 0 weighted ``--deviation-weight`` times (they are a few
+per cent of the labels). The decisions of the last ``--held-out`` episodes of the data are
+kept out of the fit and report the student's agreement: on every decision, on the chooser's
+deviations (recall) and on the student's own (precision).
+
+    python experiments/belief_student.py DATA.npz [DATA.npz ...] --out student.zip
+        [--config configs/goals_4agents.yaml] [--epochs 30] [--deviation-weight 10]
+        [--held-out 2] [--seed 0]
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from harness.config.loading import load_config
+from harness.training.adapters import make_vec_env
+from harness.training.train import build_model
+
+
+def load(paths: list[Path]) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """The observations (key by key), labels and episode numbers of every file, the episodes
+    numbered across files."""
+    obs: dict[str, list[np.ndarray]] = {}
+    labels, episodes, first = [], [], 0
+    for path in paths:
+        data = np.load(path)
+        for key in data.files:
+            if key.startswith("obs_"):
+                obs.setdefault(key[4:], []).append(data[key])
+        labels.append(data["label"])
+        episodes.append(data["episode"] + first)
+        first = int(episodes[-1].max()) + 1
+    return (
+        {k: np.concatenate(v) for k, v in obs.items()},
+        np.concatenate(labels),
+        np.concatenate(episodes),
+    )
+
+
+def report(name: str, pred: np.ndarray, label: np.ndarray) -> None:
+    agree = (pred == label).mean()
+    dev = label != 0
+    recall = (pred[dev] == label[dev]).mean() if dev.any() else float("nan")
+    own = pred != 0
+    precision = (pred[own] == label[own]).mean() if own.any() else float("nan")
+    print(
+        f"{name}: {label.size} decisions, agreement {100 * agree:.1f} %; chooser's deviations "
+        f"{dev.sum()}, taken {100 * recall:.1f} %; student's {own.sum()}, agreed "
+        f"{100 * precision:.1f} %"
+    )
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("data", type=Path, nargs="+")
+    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--config", default="configs/goals_4agents.yaml")
+    parser.add_argument("--epochs", type=int, default=30)
+    parser.add_argument("--batch", type=int, default=256)
+    parser.add_argument("--lr", type=float, default=3e-4)
+    parser.add_argument("--deviation-weight", type=float, default=10.0)
+    parser.add_argument("--held-out", type=int, default=2, help="last episodes kept out")
+    parser.add_argument("--seed", type=int, default=0)
+    args = parser.parse_args()
+
+    torch.manual_seed(args.seed)
+    config = load_config(args.config, ["env.map=random"])
+    venv = make_vec_env(config.env, copies=1, seed=0)
+    model = build_model(config, venv)
+    venv.close()
+    policy = model.policy
+    obs, labels, episodes = load(args.data)
+    cut = episodes.max() - args.held_out + 1
+    fit, held = episodes < cut, episodes >= cut
+    print(
+        f"{labels.size} decisions of {episodes.max() + 1} episodes; fitted on {fit.sum()} "
+        f"({(labels[fit] != 0).sum()} deviations), held out {held.sum()}"
+    )
+    tensors = {k: torch.as_tensor(v) for k, v in obs.items()}
+    target = torch.as_tensor(labels)
+
+    def logits(index: torch.Tensor) -> torch.Tensor:
+        batch = policy.obs_to_tensor({k: v[index].numpy() for k, v in tensors.items()})[0]
+        q = policy.q_net(batch)
+        mask = batch["action_mask"].bool() if "action_mask" in batch else torch.ones_like(q)
+        return q.masked_fill(~mask.bool(), -1e9)
+
+    def predict(rows: np.ndarray) -> np.ndarray:
+        with torch.no_grad():
+            index = torch.as_tensor(rows)
+            return torch.cat([logits(c).argmax(1) for c in index.split(1024)]).numpy()
+
+    optimizer = torch.optim.Adam(policy.q_net.parameters(), lr=args.lr)
+    rows = np.flatnonzero(fit)
+    rng = np.random.default_rng(args.seed)
+    weight = torch.where(target != 0, args.deviation_weight, 1.0)
+    for epoch in range(args.epochs):
+        rng.shuffle(rows)
+        total = 0.0
+        for start in range(0, rows.size, args.batch):
+            index = torch.as_tensor(rows[start : start + args.batch])
+            loss = F.cross_entropy(logits(index), target[index], reduction="none")
+            loss = (loss * weight[index]).sum() / weight[index].sum()
+            optimizer.zero_grad()
+            loss.backward()
+            optimizer.step()
+            total += float(loss.detach()) * index.numel()
+        if epoch % 5 == 4 or epoch == args.epochs - 1:
+            print(f"epoch {epoch + 1}: loss {total / rows.size:.4f}")
+            report("  fitted", predict(np.flatnonzero(fit)), labels[fit])
+            if held.any():
+                report("  held out", predict(np.flatnonzero(held)), labels[held])
+    policy.q_net_target.load_state_dict(policy.q_net.state_dict())
+    model.save(args.out)
+    print(f"saved {args.out}")
+
+
+if __name__ == "__main__":
+    main()

@@ -266,8 +266,9 @@ def play(
                     adv = np.full(cand.cells.shape[1], np.nan)
                     adv[slots] = scores - scores[0]
                     agent_obs = obs[env.possible_agents[i]]
+                    when = env.steps / env.max_steps
                     records.append(
-                        (cand.features[i].copy(), adv, env.steps / env.max_steps, agent_obs, best)
+                        (cand.features[i].copy(), adv, when, agent_obs, best, env.coverage)
                     )
                 if best != 0:
                     goal = int(cand.cells[i, best])
@@ -413,6 +414,7 @@ def main() -> None:
                 advantages=np.stack([r[1] for r in records]),
                 time=np.array([r[2] for r in records]),
                 label=np.array([r[4] for r in records]),
+                coverage=np.array([r[5] for r in records]),
                 episode=np.repeat(np.arange(len(rows)), episode_records),
                 # The deciding agent's observation, key by key: what a student is fitted on.
                 **{f"obs_{key}": np.stack([r[3][key] for r in records]) for key in records[0][3]},

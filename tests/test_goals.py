@@ -353,7 +353,7 @@ def test_the_oracles_rollouts_replay_the_planner_and_leave_the_env_alone() -> No
     records: list = []
     coverage_o, _, _ = oracle.play(env, 5, oracle=True, records=records)
     assert 0 < coverage_o <= 1 and records
-    for features, advantages, t, agent_obs, best in records:
+    for features, advantages, t, agent_obs, best, _ in records:
         assert advantages[0] == 0 and 0 <= t < 1
         assert (np.isnan(advantages) == (features[:, 0] == 0)).all()
         # The chosen slot beats slot 0 (or is slot 0), and the deciding agent's observation

@@ -5,13 +5,14 @@ sampled --save`` recorded, played back with ``goal_oracle.py --model``.
 The network is the config's (``SlotTeamMapPolicy``, built as ``harness run`` builds it); its
 Q-values over the candidate slots are read as logits and fitted by cross-entropy to the
 chooser's slot, a deviation from slot 0 weighted ``--deviation-weight`` times (they are a few
-per cent of the labels). The decisions of the last ``--held-out`` episodes of the data are
-kept out of the fit and report the student's agreement: on every decision, on the chooser's
-deviations (recall) and on the student's own (precision).
+per cent of the labels). Decisions at a coverage of ``--below`` (99 %) or more are left out:
+after it no choice moves the steps to 99 %. The decisions of the last ``--held-out`` episodes
+are kept out of the fit and report the student's agreement: on every decision, on the
+chooser's deviations (recall) and on the student's own (precision).
 
     python experiments/belief_student.py DATA.npz [DATA.npz ...] --out student.zip
         [--config configs/goals_4agents.yaml] [--epochs 30] [--deviation-weight 10]
-        [--held-out 2] [--seed 0]
+        [--held-out 2] [--below 0.99] [--seed 0]
 """
 
 from __future__ import annotations
@@ -28,19 +29,20 @@ from harness.training.adapters import make_vec_env
 from harness.training.train import build_model
 
 
-def load(paths: list[Path]) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
-    """The observations (key by key), labels and episode numbers of every file, the episodes
-    numbered across files."""
+def load(paths: list[Path], below: float) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
+    """The observations (key by key), labels and episode numbers of every file's decisions at
+    a coverage below ``below``, the episodes numbered across files."""
     obs: dict[str, list[np.ndarray]] = {}
     labels, episodes, first = [], [], 0
     for path in paths:
         data = np.load(path)
+        keep = data["coverage"] < below
         for key in data.files:
             if key.startswith("obs_"):
-                obs.setdefault(key[4:], []).append(data[key])
-        labels.append(data["label"])
-        episodes.append(data["episode"] + first)
-        first = int(episodes[-1].max()) + 1
+                obs.setdefault(key[4:], []).append(data[key][keep])
+        labels.append(data["label"][keep])
+        episodes.append(data["episode"][keep] + first)
+        first += int(data["episode"].max()) + 1
     return (
         {k: np.concatenate(v) for k, v in obs.items()},
         np.concatenate(labels),
@@ -72,6 +74,12 @@ def main() -> None:
     parser.add_argument("--deviation-weight", type=float, default=10.0)
     parser.add_argument("--held-out", type=int, default=2, help="last episodes kept out")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--below",
+        type=float,
+        default=0.99,
+        help="fit the decisions below this coverage (after 99 %% no choice moves the steps to it)",
+    )
     args = parser.parse_args()
 
     torch.manual_seed(args.seed)
@@ -80,7 +88,7 @@ def main() -> None:
     model = build_model(config, venv)
     venv.close()
     policy = model.policy
-    obs, labels, episodes = load(args.data)
+    obs, labels, episodes = load(args.data, args.below)
     cut = episodes.max() - args.held_out + 1
     fit, held = episodes < cut, episodes >= cut
     print(

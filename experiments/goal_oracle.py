@@ -22,9 +22,11 @@ over the maps exceeds ``Z`` standard errors.
 
 ``--model`` plays a trained goal policy the same way (a slot other than 0 is walked to until
 visited). ``--save`` writes every decision's candidate features, each slot's advantage (its
-rollout's cells minus slot 0's), the oracle's slot and the deciding agent's observation, the
-data a learned selector can be fitted to. ``--after C``: the oracle (or the model) decides only
-from coverage ``C`` on, slot 0 before it. ``--reach Q``
+rollout's cells minus slot 0's), the oracle's slot, each slot's mean gain over the sampled
+maps before the noise rule (``gain``, ``gain_se``; in score units: with ``--reach``, steps
+times the padded grid's cells + 1), the coverage and the deciding agent's observation, the
+data a learned selector can be fitted to. ``--after C``: the oracle (or the model) decides
+only from coverage ``C`` on, slot 0 before it. ``--reach Q``
 scores by speed instead: an option by the steps its rollout takes to coverage ``Q`` (ties by
 cells), an episode by its steps to ``Q`` (a team that covers the whole map, 4 agents on 50x50,
 ends every rollout with the same cells).
@@ -265,10 +267,17 @@ def play(
                 if records is not None:
                     adv = np.full(cand.cells.shape[1], np.nan)
                     adv[slots] = scores - scores[0]
+                    # Each slot's mean paired gain over the maps before the noise rule, and
+                    # its standard error (NaN with one map): dense targets for a student.
+                    gains = per_map - per_map[:, :1]
+                    gain = np.full((2, cand.cells.shape[1]), np.nan)
+                    gain[0, slots] = gains.mean(axis=0)
+                    if n_maps > 1:
+                        gain[1, slots] = gains.std(axis=0, ddof=1) / np.sqrt(n_maps)
                     agent_obs = obs[env.possible_agents[i]]
                     when = env.steps / env.max_steps
                     records.append(
-                        (cand.features[i].copy(), adv, when, agent_obs, best, env.coverage)
+                        (cand.features[i].copy(), adv, when, agent_obs, best, env.coverage, gain)
                     )
                 if best != 0:
                     goal = int(cand.cells[i, best])
@@ -415,6 +424,8 @@ def main() -> None:
                 time=np.array([r[2] for r in records]),
                 label=np.array([r[4] for r in records]),
                 coverage=np.array([r[5] for r in records]),
+                gain=np.stack([r[6][0] for r in records]),
+                gain_se=np.stack([r[6][1] for r in records]),
                 episode=np.repeat(np.arange(len(rows)), episode_records),
                 # The deciding agent's observation, key by key: what a student is fitted on.
                 **{f"obs_{key}": np.stack([r[3][key] for r in records]) for key in records[0][3]},

@@ -353,12 +353,15 @@ def test_the_oracles_rollouts_replay_the_planner_and_leave_the_env_alone() -> No
     records: list = []
     coverage_o, _, _ = oracle.play(env, 5, oracle=True, records=records)
     assert 0 < coverage_o <= 1 and records
-    for features, advantages, t, agent_obs, best, _ in records:
+    for features, advantages, t, agent_obs, best, _, gain in records:
         assert advantages[0] == 0 and 0 <= t < 1
         assert (np.isnan(advantages) == (features[:, 0] == 0)).all()
         # The chosen slot beats slot 0 (or is slot 0), and the deciding agent's observation
         # holds the same candidates.
         assert best == 0 or advantages[best] > 0
+        # One true map, no noise rule: the gains are the advantages, without an error.
+        np.testing.assert_array_equal(gain[0], advantages)
+        assert np.isnan(gain[1]).all()
         np.testing.assert_array_equal(agent_obs["goals"], features)
     # An oracle that decides only from a coverage it never reaches plays the planner.
     assert oracle.play(env, 5, oracle=True, after=1.01)[:2] == (coverage, 0)

@@ -5,14 +5,17 @@ sampled --save`` recorded, played back with ``goal_oracle.py --model``.
 The network is the config's (``SlotTeamMapPolicy``, built as ``harness run`` builds it); its
 Q-values over the candidate slots are read as logits and fitted by cross-entropy to the
 chooser's slot, a deviation from slot 0 weighted ``--deviation-weight`` times (they are a few
-per cent of the labels). Decisions at a coverage of ``--below`` (99 %) or more are left out:
-after it no choice moves the steps to 99 %. The decisions of the last ``--held-out`` episodes
-are kept out of the fit and report the student's agreement: on every decision, on the
-chooser's deviations (recall) and on the student's own (precision).
+per cent of the labels); or, with ``--target gain``, regressed on each slot's mean gain over
+the sampled maps (in steps, clipped to ``--clip``, less ``--margin-steps`` for every slot but
+0, so that the greedy choice leaves slot 0 only where the predicted gain exceeds that margin).
+Decisions at a coverage of ``--below`` (99 %) or more are left out: after it no choice moves
+the steps to 99 %. The decisions of the last ``--held-out`` episodes are kept out of the fit
+and report the student's agreement: on every decision, on the chooser's deviations (recall)
+and on the student's own (precision).
 
     python experiments/belief_student.py DATA.npz [DATA.npz ...] --out student.zip
         [--config configs/goals_4agents.yaml] [--epochs 30] [--deviation-weight 10]
-        [--held-out 2] [--below 0.99] [--seed 0]
+        [--held-out 2] [--below 0.99] [--target label|gain] [--margin-steps 2] [--seed 0]
 """
 
 from __future__ import annotations
@@ -23,17 +26,20 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from scipy.stats import mannwhitneyu
 
 from harness.config.loading import load_config
 from harness.training.adapters import make_vec_env
 from harness.training.train import build_model
 
 
-def load(paths: list[Path], below: float) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray]:
-    """The observations (key by key), labels and episode numbers of every file's decisions at
-    a coverage below ``below``, the episodes numbered across files."""
+def load(
+    paths: list[Path], below: float
+) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray]:
+    """The observations (key by key), labels, episode numbers and slot gains (score units) of
+    every file's decisions at a coverage below ``below``, the episodes numbered across files."""
     obs: dict[str, list[np.ndarray]] = {}
-    labels, episodes, first = [], [], 0
+    labels, episodes, gains, first = [], [], [], 0
     for path in paths:
         data = np.load(path)
         keep = data["coverage"] < below
@@ -41,25 +47,39 @@ def load(paths: list[Path], below: float) -> tuple[dict[str, np.ndarray], np.nda
             if key.startswith("obs_"):
                 obs.setdefault(key[4:], []).append(data[key][keep])
         labels.append(data["label"][keep])
+        gains.append(
+            data["gain"][keep]
+            if "gain" in data.files
+            else np.full(data["advantages"][keep].shape, np.nan)
+        )
         episodes.append(data["episode"][keep] + first)
         first += int(data["episode"].max()) + 1
     return (
         {k: np.concatenate(v) for k, v in obs.items()},
         np.concatenate(labels),
         np.concatenate(episodes),
+        np.concatenate(gains),
     )
 
 
-def report(name: str, pred: np.ndarray, label: np.ndarray) -> None:
+def report(name: str, q: np.ndarray, label: np.ndarray) -> None:
+    """Agreement of the greedy slot of ``q`` (masked Q-values) with the chooser's ``label``,
+    and the AUC of the best other slot's lead over slot 0 as a score of the chooser's
+    deviations (0.5: no better than chance)."""
+    pred = q.argmax(1)
     agree = (pred == label).mean()
     dev = label != 0
     recall = (pred[dev] == label[dev]).mean() if dev.any() else float("nan")
     own = pred != 0
     precision = (pred[own] == label[own]).mean() if own.any() else float("nan")
+    lead = q[:, 1:].max(1) - q[:, 0]
+    auc = float("nan")
+    if dev.any() and (~dev).any():
+        auc = mannwhitneyu(lead[dev], lead[~dev]).statistic / (dev.sum() * (~dev).sum())
     print(
         f"{name}: {label.size} decisions, agreement {100 * agree:.1f} %; chooser's deviations "
-        f"{dev.sum()}, taken {100 * recall:.1f} %; student's {own.sum()}, agreed "
-        f"{100 * precision:.1f} %"
+        f"{dev.sum()}, taken {100 * recall:.1f} % (AUC of the lead over slot 0 {auc:.3f}); "
+        f"student's {own.sum()}, agreed {100 * precision:.1f} %"
     )
 
 
@@ -72,6 +92,22 @@ def main() -> None:
     parser.add_argument("--batch", type=int, default=256)
     parser.add_argument("--lr", type=float, default=3e-4)
     parser.add_argument("--deviation-weight", type=float, default=10.0)
+    parser.add_argument(
+        "--target",
+        choices=("label", "gain"),
+        default="label",
+        help="fit the chooser's slot (cross-entropy) or each slot's mean gain (regression)",
+    )
+    parser.add_argument(
+        "--margin-steps",
+        type=float,
+        default=2.0,
+        help="with --target gain: steps a slot must gain over slot 0 to be the greedy choice",
+    )
+    parser.add_argument("--clip", type=float, default=20.0, help="gain targets clipped, steps")
+    parser.add_argument(
+        "--unit", type=float, default=2705.0, help="score units a step (50x50: 52 * 52 + 1)"
+    )
     parser.add_argument("--held-out", type=int, default=2, help="last episodes kept out")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
@@ -88,7 +124,7 @@ def main() -> None:
     model = build_model(config, venv)
     venv.close()
     policy = model.policy
-    obs, labels, episodes = load(args.data, args.below)
+    obs, labels, episodes, gains = load(args.data, args.below)
     cut = episodes.max() - args.held_out + 1
     fit, held = episodes < cut, episodes >= cut
     print(
@@ -107,19 +143,28 @@ def main() -> None:
     def predict(rows: np.ndarray) -> np.ndarray:
         with torch.no_grad():
             index = torch.as_tensor(rows)
-            return torch.cat([logits(c).argmax(1) for c in index.split(1024)]).numpy()
+            return torch.cat([logits(c) for c in index.split(1024)]).numpy()
 
     optimizer = torch.optim.Adam(policy.q_net.parameters(), lr=args.lr)
     rows = np.flatnonzero(fit)
     rng = np.random.default_rng(args.seed)
     weight = torch.where(target != 0, args.deviation_weight, 1.0)
+    # Gains in steps, less the margin for every slot but 0, clipped; NaN: an empty slot.
+    steps = np.clip(gains / args.unit, -args.clip, args.clip)
+    steps[:, 1:] -= args.margin_steps
+    regress = torch.as_tensor(np.nan_to_num(steps, nan=0.0), dtype=torch.float32)
+    valid = torch.as_tensor(~np.isnan(steps))
     for epoch in range(args.epochs):
         rng.shuffle(rows)
         total = 0.0
         for start in range(0, rows.size, args.batch):
             index = torch.as_tensor(rows[start : start + args.batch])
-            loss = F.cross_entropy(logits(index), target[index], reduction="none")
-            loss = (loss * weight[index]).sum() / weight[index].sum()
+            if args.target == "label":
+                loss = F.cross_entropy(logits(index), target[index], reduction="none")
+                loss = (loss * weight[index]).sum() / weight[index].sum()
+            else:
+                error = F.smooth_l1_loss(logits(index), regress[index], reduction="none")
+                loss = (error * valid[index]).sum() / valid[index].sum()
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()

@@ -438,3 +438,32 @@ def test_the_unknown_feature_equals_scipy_s_uniform_filter_value_for_value(h, w,
     flat = seen.ravel()
     got = np.array([_unknown_share(flat, w + 2, c) for c in range(flat.size)], dtype=np.float32)
     np.testing.assert_array_equal(got, want)
+
+
+def test_a_student_fitted_to_the_oracles_saved_decisions_plays_back(tmp_path, monkeypatch, capsys):
+    # goal_oracle.py --save writes what belief_student.py fits; the student then plays through
+    # goal_oracle.py --model (experiments/README.md). Tiny episodes, one epoch: it runs end to end.
+    oracle, student = _script("goal_oracle"), _script("belief_student")
+    config = str(ROOT / "configs" / "goals_2agents.yaml")
+    small = ["--config", config, "--set", "env.height=15", "--set", "env.width=15",
+             "--set", "env.max_steps=60"]  # fmt: skip
+    data, model = tmp_path / "d.npz", tmp_path / "s.zip"
+    monkeypatch.setattr(sys, "argv", ["goal_oracle", "--episodes", "2", "--after", "0.5",
+                                      "--save", str(data), *small])  # fmt: skip
+    oracle.main()
+    saved = np.load(data)
+    assert set(saved["episode"].tolist()) == {0, 1} and (saved["coverage"] >= 0.5).all()
+    # One true map: the gains are the advantages, the oracle's slot the best of them.
+    np.testing.assert_array_equal(saved["gain"], saved["advantages"])
+    assert saved["obs_goals"].shape == saved["features"].shape
+    for target in ("label", "gain"):
+        monkeypatch.setattr(sys, "argv", ["belief_student", str(data), "--out", str(model),
+                                          "--epochs", "1", "--held-out", "1",
+                                          "--config", config,
+                                          "--target", target])  # fmt: skip
+        student.main()
+        assert "held out:" in capsys.readouterr().out
+    monkeypatch.setattr(sys, "argv", ["goal_oracle", "--episodes", "1", "--model", str(model),
+                                      "--after", "0.5", *small])  # fmt: skip
+    oracle.main()
+    assert "1 episodes: planner" in capsys.readouterr().out

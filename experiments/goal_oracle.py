@@ -47,6 +47,7 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -58,6 +59,18 @@ from harness import DoubleDQN
 from harness.config.loading import load_config
 from harness.factory import make_env
 from harness.results.stats import paired_difference
+
+
+class Decision(NamedTuple):
+    """One oracle decision as ``--save`` records it."""
+
+    features: np.ndarray  # the deciding agent's candidate features (slots, features)
+    advantages: np.ndarray  # each slot's score minus slot 0's after the noise rule; NaN: empty
+    time: float  # steps / max_steps
+    obs: dict  # the deciding agent's observation
+    slot: int  # the oracle's choice
+    coverage: float
+    gain: np.ndarray  # (2, slots): mean paired gain over the maps and its standard error
 
 
 def clone(planner: FrontierPlanner, free: np.ndarray | None = None) -> FrontierPlanner:
@@ -197,7 +210,7 @@ def play(
     env: CoverageEnv,
     seed: int,
     oracle: bool,
-    records: list | None = None,
+    records: list[Decision] | None = None,
     belief: str = "true",
     samples: int = 1,
     margin: float = 0.0,
@@ -276,8 +289,9 @@ def play(
                         gain[1, slots] = gains.std(axis=0, ddof=1) / np.sqrt(n_maps)
                     agent_obs = obs[env.possible_agents[i]]
                     when = env.steps / env.max_steps
+                    features = cand.features[i].copy()
                     records.append(
-                        (cand.features[i].copy(), adv, when, agent_obs, best, env.coverage, gain)
+                        Decision(features, adv, when, agent_obs, best, env.coverage, gain)
                     )
                 if best != 0:
                     goal = int(cand.cells[i, best])
@@ -375,7 +389,7 @@ def main() -> None:
     env = make_env(load_config(args.config, args.overrides).env)
     model = DoubleDQN.load(args.model, device="cpu") if args.model else None
     label = "model" if model is not None else "oracle"
-    records: list | None = [] if args.save else None
+    records: list[Decision] | None = [] if args.save else None
     rows, steps, coverages, episode_records = [], [], [], []
     start = time.perf_counter()
     for seed in range(args.seed, args.seed + args.episodes):
@@ -419,16 +433,16 @@ def main() -> None:
         if args.save:
             np.savez_compressed(
                 args.save,
-                features=np.stack([r[0] for r in records]),
-                advantages=np.stack([r[1] for r in records]),
-                time=np.array([r[2] for r in records]),
-                label=np.array([r[4] for r in records]),
-                coverage=np.array([r[5] for r in records]),
-                gain=np.stack([r[6][0] for r in records]),
-                gain_se=np.stack([r[6][1] for r in records]),
+                features=np.stack([r.features for r in records]),
+                advantages=np.stack([r.advantages for r in records]),
+                time=np.array([r.time for r in records]),
+                label=np.array([r.slot for r in records]),
+                coverage=np.array([r.coverage for r in records]),
+                gain=np.stack([r.gain[0] for r in records]),
+                gain_se=np.stack([r.gain[1] for r in records]),
                 episode=np.repeat(np.arange(len(rows)), episode_records),
                 # The deciding agent's observation, key by key: what a student is fitted on.
-                **{f"obs_{key}": np.stack([r[3][key] for r in records]) for key in records[0][3]},
+                **{f"obs_{key}": np.stack([r.obs[key] for r in records]) for key in records[0].obs},
             )
     p, o = (100 * np.array(c) for c in zip(*rows))
     mean, low, high = paired_difference(o, p)

@@ -3,12 +3,22 @@ one-line error, and the overrides of a tiny goal-action run."""
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 from envs import coverage_v0
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    # A suite started in the background by a non-interactive shell (``pytest &``, nohup, some CI
+    # runners) inherits SIGINT ignored, and the harness rightly keeps an ignored SIGINT (as
+    # Python does). The Ctrl-C tests are about a user's terminal: give the suite, and the
+    # commands it starts, the terminal's disposition wherever it runs.
+    if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def grid_from(text: str) -> np.ndarray:

@@ -38,12 +38,12 @@ def test_readme_keeps_the_ci_blocks() -> None:
             'python3 -m venv .venv && . .venv/bin/activate && pip install -e ".[dev]" '
             "-c constraints.txt"
         ),
-        "<!-- ci:test -->": ". .venv/bin/activate && pytest",
+        "<!-- ci:test -->": ". .venv/bin/activate && pytest -n auto",
     }
     for marker, command in blocks.items():
         assert text.count(marker) == 1, marker
         assert f"{marker}\n```bash\n{command}\n```\n" in text, marker
-    assert 'pytest -m "not slow"' in text  # the fast subset, named beside the full suite
+    assert '`-m "not slow"`' in text  # the fast subset, named beside the full suite
 
 
 # ---------------------------------------------------------------------- links

@@ -34,9 +34,10 @@ from harness.training.train import build_model
 
 
 def load(
-    paths: list[Path], below: float
+    paths: list[Path], below: float, unit: float
 ) -> tuple[dict[str, np.ndarray], np.ndarray, np.ndarray, np.ndarray]:
-    """The observations (key by key), labels, episode numbers and slot gains (score units) of
+    """The observations (key by key), labels, episode numbers and slot gains (in steps: score
+    units over each decision's saved ``unit``, or over ``unit`` for files saved without one) of
     every file's decisions at a coverage below ``below``, the episodes numbered across files."""
     obs: dict[str, list[np.ndarray]] = {}
     labels, episodes, gains, first = [], [], [], 0
@@ -47,8 +48,9 @@ def load(
             if key.startswith("obs_"):
                 obs.setdefault(key[4:], []).append(data[key][keep])
         labels.append(data["label"][keep])
+        units = data["unit"][keep] if "unit" in data.files else np.full(keep.sum(), unit)
         gains.append(
-            data["gain"][keep]
+            data["gain"][keep] / units[:, None]
             if "gain" in data.files
             else np.full(data["advantages"][keep].shape, np.nan)
         )
@@ -106,7 +108,10 @@ def main() -> None:
     )
     parser.add_argument("--clip", type=float, default=20.0, help="gain targets clipped, steps")
     parser.add_argument(
-        "--unit", type=float, default=2705.0, help="score units a step (50x50: 52 * 52 + 1)"
+        "--unit",
+        type=float,
+        default=2705.0,
+        help="score units a step of files saved without their own (50x50: 52 * 52 + 1)",
     )
     parser.add_argument("--held-out", type=int, default=2, help="last episodes kept out")
     parser.add_argument("--seed", type=int, default=0)
@@ -124,7 +129,7 @@ def main() -> None:
     model = build_model(config, venv)
     venv.close()
     policy = model.policy
-    obs, labels, episodes, gains = load(args.data, args.below)
+    obs, labels, episodes, gains = load(args.data, args.below, args.unit)
     cut = episodes.max() - args.held_out + 1
     fit, held = episodes < cut, episodes >= cut
     print(
@@ -150,7 +155,7 @@ def main() -> None:
     rng = np.random.default_rng(args.seed)
     weight = torch.where(target != 0, args.deviation_weight, 1.0)
     # Gains in steps, less the margin for every slot but 0, clipped; NaN: an empty slot.
-    steps = np.clip(gains / args.unit, -args.clip, args.clip)
+    steps = np.clip(gains, -args.clip, args.clip)
     steps[:, 1:] -= args.margin_steps
     regress = torch.as_tensor(np.nan_to_num(steps, nan=0.0), dtype=torch.float32)
     valid = torch.as_tensor(~np.isnan(steps))

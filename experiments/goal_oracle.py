@@ -22,14 +22,14 @@ over the maps exceeds ``Z`` standard errors.
 
 ``--model`` plays a trained goal policy the same way (a slot other than 0 is walked to until
 visited). ``--save`` writes every decision's candidate features, each slot's advantage (its
-rollout's cells minus slot 0's), the oracle's slot, each slot's mean gain over the sampled
-maps before the noise rule (``gain``, ``gain_se``; in score units: with ``--reach``, steps
-times the padded grid's cells + 1), the coverage and the deciding agent's observation, the
-data a learned selector can be fitted to. ``--after C``: the oracle (or the model) decides
-only from coverage ``C`` on, slot 0 before it. ``--reach Q``
-scores by speed instead: an option by the steps its rollout takes to coverage ``Q`` (ties by
-cells), an episode by its steps to ``Q`` (a team that covers the whole map, 4 agents on 50x50,
-ends every rollout with the same cells).
+rollout's cells minus slot 0's), the oracle's slot, each slot's mean gain over the sampled maps
+before the noise rule (``gain``, ``gain_se``; in score units: with ``--reach``, steps times the
+padded grid's cells + 1, saved as ``unit``), the coverage and the deciding agent's observation,
+the data a learned selector can be fitted to. ``--after C``: the oracle (or the model) decides
+only from coverage ``C`` on, slot 0 before it. ``--reach Q`` scores by speed instead: an option
+by the steps its rollout takes to coverage ``Q`` (ties by cells), an episode by its steps to
+``Q`` (a team that covers the whole map, 4 agents on 50x50, ends every rollout with the same
+cells).
 
 The rollouts are the rollout teacher's (:class:`envs.coverage.teacher.RolloutTeacher`, compiled;
 docs/goals.md "The teacher"): one owner of the oracle's rule, which training's labels use too.
@@ -71,6 +71,7 @@ class Decision(NamedTuple):
     slot: int  # the oracle's choice
     coverage: float
     gain: np.ndarray  # (2, slots): mean paired gain over the maps and its standard error
+    unit: float  # score units a step with --reach (the padded map's cells + 1), else 1 (cells)
 
 
 def clone(planner: FrontierPlanner, free: np.ndarray | None = None) -> FrontierPlanner:
@@ -290,8 +291,9 @@ def play(
                     agent_obs = obs[env.possible_agents[i]]
                     when = env.steps / env.max_steps
                     features = cand.features[i].copy()
+                    unit = float(len(planner.free) + 1) if reach is not None else 1.0
                     records.append(
-                        Decision(features, adv, when, agent_obs, best, env.coverage, gain)
+                        Decision(features, adv, when, agent_obs, best, env.coverage, gain, unit)
                     )
                 if best != 0:
                     goal = int(cand.cells[i, best])
@@ -440,6 +442,7 @@ def main() -> None:
                 coverage=np.array([r.coverage for r in records]),
                 gain=np.stack([r.gain[0] for r in records]),
                 gain_se=np.stack([r.gain[1] for r in records]),
+                unit=np.array([r.unit for r in records]),
                 episode=np.repeat(np.arange(len(rows)), episode_records),
                 # The deciding agent's observation, key by key: what a student is fitted on.
                 **{f"obs_{key}": np.stack([r.obs[key] for r in records]) for key in records[0].obs},

@@ -353,8 +353,8 @@ def test_the_oracles_rollouts_replay_the_planner_and_leave_the_env_alone() -> No
     records: list = []
     coverage_o, _, _ = oracle.play(env, 5, oracle=True, records=records)
     assert 0 < coverage_o <= 1 and records
-    for features, advantages, t, agent_obs, best, _, gain in records:
-        assert advantages[0] == 0 and 0 <= t < 1
+    for features, advantages, t, agent_obs, best, _, gain, unit in records:
+        assert advantages[0] == 0 and 0 <= t < 1 and unit == 1.0  # scored by cells
         assert (np.isnan(advantages) == (features[:, 0] == 0)).all()
         # The chosen slot beats slot 0 (or is slot 0), and the deciding agent's observation
         # holds the same candidates.

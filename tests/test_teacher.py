@@ -197,7 +197,12 @@ def test_the_oracle_plays_the_same_episode_with_either_rollouts(reach: float | N
     (python_result, python_records), (result, records) = played
     assert result == python_result and result[1] > 0  # it deviates
     assert len(records) == len(python_records) > 0
-    for (f1, a1, t1, o1, b1, c1, g1), (f2, a2, t2, o2, b2, c2, g2) in zip(records, python_records):
+    # Scored by the steps, a step is worth the padded 15x15 map's cells + 1 score units.
+    unit = 17 * 17 + 1.0 if reach else 1.0
+    for (f1, a1, t1, o1, b1, c1, g1, u1), (f2, a2, t2, o2, b2, c2, g2, u2) in zip(
+        records, python_records
+    ):
         assert np.array_equal(f1, f2) and np.array_equal(a1, a2, equal_nan=True) and t1 == t2
         assert (b1, c1) == (b2, c2) and np.array_equal(g1, g2, equal_nan=True)
+        assert u1 == u2 == unit
         assert o1.keys() == o2.keys() and all(np.array_equal(o1[k], o2[k]) for k in o1)

@@ -543,6 +543,14 @@ SECTIONS: dict[str, list[Callable[[], dict[str, Any]]]] = {
     "eval": [bench_eval],
     "memory": [bench_memory],
 }
+#: One line per section for ``harness bench --help`` (the module docstring says more).
+SECTION_HELP = {
+    "env": "agent-steps/s of the bare env and of the training VecEnv (both backends)",
+    "train": "gradient steps/s of DoubleDQN + PER against SB3's DQN, per device and size",
+    "sharing": "gradient steps/s of each algo.sharing mode",
+    "eval": "episodes/s of harness eval for the random, MLP and planner policies",
+    "memory": "peak memory of a training process with a full buffer",
+}
 
 
 def run_bench(what: str) -> dict[str, Any]:

@@ -355,13 +355,18 @@ def _add_sweep_parser(sub: Any) -> None:
 
 def _add_bench_parser(sub: Any) -> None:
     """``harness bench``: its arguments."""
-    bench = sub.add_parser("bench", help="throughput and memory figures (thesis settings)")
-    bench.add_argument(
-        "what",
-        nargs="?",
-        default="all",
-        choices=["env", "train", "sharing", "eval", "memory", "all"],
+    from harness.bench import SECTION_HELP, SECTIONS
+
+    bench = sub.add_parser(
+        "bench",
+        help="throughput and memory figures (thesis settings)",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        description="Throughput and memory figures, ratios measured in one run "
+        "(docs/performance.md).\n\nsections:\n"
+        + "\n".join(f"  {name:9} {SECTION_HELP[name]}" for name in SECTIONS)
+        + "\n  all       every section (the default)",
     )
+    bench.add_argument("what", nargs="?", default="all", choices=[*SECTIONS, "all"])
     bench.add_argument("--json", action="store_true", help="print one JSON object")
 
 

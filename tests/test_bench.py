@@ -165,3 +165,14 @@ def test_bench_train_times_both_learners_per_net_on_the_cpu_alone_without_cuda(m
         assert math.isfinite(out[key]) and out[key] > 0
     text = format_bench({**machine_info(), **out})
     assert "by device and network" in text and "cuda" not in text
+
+
+def test_bench_help_names_every_section_once(capsys):
+    from harness.bench import SECTION_HELP, SECTIONS
+
+    assert SECTION_HELP.keys() == SECTIONS.keys()
+    assert main(["bench", "--help"]) == 0
+    out = capsys.readouterr().out
+    for name, line in SECTION_HELP.items():
+        assert f"  {name:9} {line}\n" in out
+    assert "{env,train,sharing,eval,memory,all}" in out

@@ -273,7 +273,13 @@ def _add_tune_parser(sub: Any) -> None:
 def _add_compare_parser(sub: Any) -> None:
     """``harness compare``: its arguments."""
     cmp_ = sub.add_parser("compare", help="learning curves and eval tables of several runs")
-    cmp_.add_argument("runs", type=Path, nargs="+", metavar="RUN_DIR")
+    cmp_.add_argument(
+        "runs",
+        type=Path,
+        nargs="+",
+        metavar="RUN_DIR",
+        help="runs or seed groups (a group: one curve over its seeds, and intervals over seeds)",
+    )
     cmp_.add_argument("--out", type=Path, default=Path("compare.png"), help="PNG to write")
     cmp_.add_argument("--window", type=positive_int, default=20, help="episodes per rolling median")
     cmp_.add_argument(
@@ -313,9 +319,13 @@ def _add_render_parser(sub: Any) -> None:
 def _add_export_parser(sub: Any) -> None:
     """``harness export``: its arguments."""
     exp = sub.add_parser("export", help="copy a run's policy into a compact reference folder")
-    exp.add_argument("run", type=Path, metavar="RUN_DIR")
+    exp.add_argument("run", type=Path, metavar="RUN_DIR", help="the trained run to export")
     exp.add_argument("--out", type=Path, required=True, help="new folder, e.g. runs/reference/x")
-    exp.add_argument("--model", default="model", help="model.zip (default) or best_model")
+    exp.add_argument(
+        "--model",
+        default="model",
+        help="which model of the run: model (default), best_model or checkpoints/step-N/model",
+    )
 
 
 def _add_sweep_parser(sub: Any) -> None:

@@ -11,11 +11,15 @@ the sampled maps (in steps, clipped to ``--clip``, less ``--margin-steps`` for e
 Decisions at a coverage of ``--below`` (99 %) or more are left out: after it no choice moves
 the steps to 99 %. The decisions of the last ``--held-out`` episodes are kept out of the fit
 and report the student's agreement: on every decision, on the chooser's deviations (recall)
-and on the student's own (precision).
+and on the student's own (precision); ``--fit-episodes N`` fits on the first ``N`` episodes
+only (a learning curve over the labels). ``--student features`` fits, instead of the network,
+an MLP that scores each slot from its candidate features beside slot 0's alone (no team map):
+how much of the choice the candidates' features tell; it is reported, not saved.
 
-    python experiments/belief_student.py DATA.npz [DATA.npz ...] --out student.zip
-        [--config configs/goals_4agents.yaml] [--epochs 30] [--deviation-weight 10]
-        [--held-out 2] [--below 0.99] [--target label|gain] [--margin-steps 2] [--seed 0]
+    python experiments/belief_student.py DATA.npz [DATA.npz ...] [--out student.zip]
+        [--student network|features] [--config configs/goals_4agents.yaml] [--epochs 30] [--deviation-weight 10]
+        [--held-out 2] [--fit-episodes N] [--below 0.99] [--target label|gain]
+        [--margin-steps 2] [--seed 0]
 """
 
 from __future__ import annotations
@@ -28,6 +32,7 @@ import torch
 import torch.nn.functional as F
 from scipy.stats import mannwhitneyu
 
+from envs.coverage.goals import ACTION_MASK_KEY, GOALS_KEY
 from harness.config.loading import load_config
 from harness.training.adapters import make_vec_env
 from harness.training.train import build_model
@@ -88,7 +93,14 @@ def report(name: str, q: np.ndarray, label: np.ndarray) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("data", type=Path, nargs="+")
-    parser.add_argument("--out", type=Path, required=True)
+    parser.add_argument("--out", type=Path, help="save the student (--student network) here")
+    parser.add_argument(
+        "--student",
+        choices=("network", "features"),
+        default="network",
+        help="the config's goal network (team map and candidates), or an MLP over each "
+        "candidate's features beside slot 0's alone (no team map; not saved)",
+    )
     parser.add_argument("--config", default="configs/goals_4agents.yaml")
     parser.add_argument("--epochs", type=int, default=30)
     parser.add_argument("--batch", type=int, default=256)
@@ -114,6 +126,13 @@ def main() -> None:
         help="score units a step of files saved without their own (50x50: 52 * 52 + 1)",
     )
     parser.add_argument("--held-out", type=int, default=2, help="last episodes kept out")
+    parser.add_argument(
+        "--fit-episodes",
+        type=int,
+        default=None,
+        help="fit on the first N episodes only (a learning curve over the labels; default: all "
+        "but the held-out ones)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument(
         "--below",
@@ -122,6 +141,8 @@ def main() -> None:
         help="fit the decisions below this coverage (after 99 %% no choice moves the steps to it)",
     )
     args = parser.parse_args()
+    if args.out is not None and args.student == "features":
+        parser.error("--out saves a goal policy: only with --student network")
 
     torch.manual_seed(args.seed)
     config = load_config(args.config, ["env.map=random"])
@@ -132,6 +153,8 @@ def main() -> None:
     obs, labels, episodes, gains = load(args.data, args.below, args.unit)
     cut = episodes.max() - args.held_out + 1
     fit, held = episodes < cut, episodes >= cut
+    if args.fit_episodes is not None:
+        fit &= episodes < args.fit_episodes
     print(
         f"{labels.size} decisions of {episodes.max() + 1} episodes; fitted on {fit.sum()} "
         f"({(labels[fit] != 0).sum()} deviations), held out {held.sum()}"
@@ -139,18 +162,43 @@ def main() -> None:
     tensors = {k: torch.as_tensor(v) for k, v in obs.items()}
     target = torch.as_tensor(labels)
 
+    if args.student == "features":
+        # Each slot scored from its candidate features beside slot 0's, one MLP shared by the
+        # slots: what the candidates' own features tell, without the team map.
+        width = tensors[GOALS_KEY].shape[-1]
+        scorer = torch.nn.Sequential(
+            torch.nn.Linear(2 * width, 64),
+            torch.nn.ReLU(),
+            torch.nn.Linear(64, 64),
+            torch.nn.ReLU(),
+            torch.nn.Linear(64, 1),
+        )
+
+        def scores(index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            goals = tensors[GOALS_KEY][index].float()
+            pairs = torch.cat([goals, goals[:, :1].expand_as(goals)], dim=-1)
+            return scorer(pairs).squeeze(-1), tensors[ACTION_MASK_KEY][index].bool()
+
+        weights = scorer.parameters()
+    else:
+
+        def scores(index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+            batch = policy.obs_to_tensor({k: v[index].numpy() for k, v in tensors.items()})[0]
+            q = policy.q_net(batch)
+            return q, batch[ACTION_MASK_KEY].bool()
+
+        weights = policy.q_net.parameters()
+
     def logits(index: torch.Tensor) -> torch.Tensor:
-        batch = policy.obs_to_tensor({k: v[index].numpy() for k, v in tensors.items()})[0]
-        q = policy.q_net(batch)
-        mask = batch["action_mask"].bool() if "action_mask" in batch else torch.ones_like(q)
-        return q.masked_fill(~mask.bool(), -1e9)
+        q, mask = scores(index)
+        return q.masked_fill(~mask, -1e9)
 
     def predict(rows: np.ndarray) -> np.ndarray:
         with torch.no_grad():
             index = torch.as_tensor(rows)
             return torch.cat([logits(c) for c in index.split(1024)]).numpy()
 
-    optimizer = torch.optim.Adam(policy.q_net.parameters(), lr=args.lr)
+    optimizer = torch.optim.Adam(weights, lr=args.lr)
     rows = np.flatnonzero(fit)
     rng = np.random.default_rng(args.seed)
     weight = torch.where(target != 0, args.deviation_weight, 1.0)
@@ -179,9 +227,10 @@ def main() -> None:
             report("  fitted", predict(np.flatnonzero(fit)), labels[fit])
             if held.any():
                 report("  held out", predict(np.flatnonzero(held)), labels[held])
-    policy.q_net_target.load_state_dict(policy.q_net.state_dict())
-    model.save(args.out)
-    print(f"saved {args.out}")
+    if args.out is not None:
+        policy.q_net_target.load_state_dict(policy.q_net.state_dict())
+        model.save(args.out)
+        print(f"saved {args.out}")
 
 
 if __name__ == "__main__":

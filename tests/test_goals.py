@@ -463,6 +463,25 @@ def test_a_student_fitted_to_the_oracles_saved_decisions_plays_back(tmp_path, mo
                                           "--target", target])  # fmt: skip
         student.main()
         assert "held out:" in capsys.readouterr().out
+    # The candidates' features alone, fitted on the first episode only: reported, not saved.
+    model.unlink()
+    monkeypatch.setattr(sys, "argv", ["belief_student", str(data), "--student", "features",
+                                      "--epochs", "1", "--held-out", "1", "--fit-episodes", "1",
+                                      "--config", config])  # fmt: skip
+    student.main()
+    out = capsys.readouterr().out
+    assert "held out:" in out and not model.exists()
+    fitted = int(out.split("fitted on ")[1].split()[0])
+    assert fitted == ((saved["episode"] == 0) & (saved["coverage"] < 0.99)).sum()
+    monkeypatch.setattr(sys, "argv", ["belief_student", str(data), "--student", "features",
+                                      "--out", str(model)])  # fmt: skip
+    with pytest.raises(SystemExit):
+        student.main()
+    # The network student saved above plays back.
+    monkeypatch.setattr(sys, "argv", ["belief_student", str(data), "--out", str(model),
+                                      "--epochs", "1", "--held-out", "1",
+                                      "--config", config])  # fmt: skip
+    student.main()
     monkeypatch.setattr(sys, "argv", ["goal_oracle", "--episodes", "1", "--model", str(model),
                                       "--after", "0.5", *small])  # fmt: skip
     oracle.main()

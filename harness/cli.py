@@ -384,9 +384,11 @@ def _add_target(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "target", type=Path, nargs="?", metavar="RUN_DIR_OR_MODEL", help="run folder or model zip"
     )
-    *others, last = BASELINES
-    parser.add_argument(
-        "--policy", help=f"a baseline instead of a model: {', '.join(others)} or {last}"
+    parser.add_argument("--policy", help="a baseline instead of a model (listed below)")
+    width = max(map(len, BASELINES))
+    parser.formatter_class = argparse.RawDescriptionHelpFormatter
+    parser.epilog = "baselines (--policy NAME --config CONFIG):\n" + "\n".join(
+        f"  {name:{width}}  {entry.summary}" for name, entry in BASELINES.items()
     )
     parser.add_argument("--config", type=Path, help="the experiment config of a --policy")
     parser.add_argument(

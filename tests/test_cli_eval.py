@@ -3,7 +3,6 @@
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import shutil
@@ -697,15 +696,3 @@ def test_config_tests_with_its_references_tuned_temperature(ref: Path) -> None:
     tune = ref / "tune.json"
     tuned = json.loads(tune.read_text())["chosen"] if tune.exists() else 0.0  # greedy (above)
     assert load_config(config).eval.temperature == tuned
-
-
-@pytest.mark.parametrize("command", ["eval", "render"])
-def test_policy_help_names_every_baseline(command):
-    # The help text is built from the BASELINES registry: every entry, and nothing else.
-    from harness.cli import build_parser
-    from harness.evaluation.baselines import BASELINES
-
-    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
-    (policy,) = [a for a in sub.choices[command]._actions if "--policy" in a.option_strings]
-    named = set(policy.help.split(":")[1].replace(" or ", ", ").replace(" ", "").split(","))
-    assert named == set(BASELINES)

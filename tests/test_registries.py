@@ -197,3 +197,16 @@ def test_every_baseline_evaluates_where_it_can_and_is_refused_where_not(
     # Every planner walks through known free cells only: its baseline never hits a wall.
     if baseline in {entry.baseline for entry in PLANNERS.values()}:
         assert summary["wall_hits_mean"] == 0.0
+
+
+@pytest.mark.parametrize("command", ["eval", "render"])
+def test_the_help_of_commands_that_play_baselines_lists_each_with_its_summary(command, capsys):
+    assert all(entry.summary for entry in PLANNERS.values())
+    # A planner's baseline says what the planner plays, from the planner's own entry.
+    assert {BASELINES[e.baseline].summary for e in PLANNERS.values()} == {
+        e.summary for e in PLANNERS.values()
+    }
+    assert main([command, "--help"]) == 0
+    listed = capsys.readouterr().out.split("baselines (--policy NAME --config CONFIG):\n")[1]
+    rows = [line.split(None, 1) for line in listed.strip().splitlines()]
+    assert rows == [[name, entry.summary] for name, entry in BASELINES.items()]

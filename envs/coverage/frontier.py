@@ -56,6 +56,8 @@ class PlannerEntry:
     """Builds the planner for a map of ``(height, width)``."""
     baseline: str
     """Its baseline's name (``harness eval --policy NAME``)."""
+    summary: str = ""
+    """One line on what it plays (``harness eval --help``)."""
     in_env: bool = True
     """Whether the env's compass and planner-backed actions can follow it: its move must be a
     function of the team's map (a planner that draws from a generator is a baseline only)."""
@@ -63,15 +65,36 @@ class PlannerEntry:
 
 #: Planners by the name ``frontier.planner`` (and the baselines) take.
 PLANNERS: dict[str, PlannerEntry] = {
-    "order": PlannerEntry(lambda h, w: FrontierPlanner(h, w, "order"), "frontier"),
-    "pocket": PlannerEntry(lambda h, w: FrontierPlanner(h, w, "pocket"), "frontier_pocket"),
+    "order": PlannerEntry(
+        lambda h, w: FrontierPlanner(h, w, "order"),
+        "frontier",
+        "the frontier explorer with claims, order tie-break",
+    ),
+    "pocket": PlannerEntry(
+        lambda h, w: FrontierPlanner(h, w, "pocket"),
+        "frontier_pocket",
+        "the frontier explorer with claims, pocket-first tie-break",
+    ),
     "random": PlannerEntry(
-        lambda h, w: FrontierPlanner(h, w, "random"), "frontier_random", in_env=False
+        lambda h, w: FrontierPlanner(h, w, "random"),
+        "frontier_random",
+        "the frontier explorer with claims, random tie-break",
+        in_env=False,
     ),
     # Coordinated planners, with the defaults chosen on validation episodes (docs/planners.md).
-    "utility": PlannerEntry(lambda h, w: UtilityPlanner(h, w), "frontier_utility"),
-    "minpos": PlannerEntry(lambda h, w: MinPosPlanner(h, w), "frontier_minpos"),
-    "hungarian": PlannerEntry(lambda h, w: HungarianPlanner(h, w), "frontier_hungarian"),
+    "utility": PlannerEntry(
+        lambda h, w: UtilityPlanner(h, w),
+        "frontier_utility",
+        "coordinated by utility (Burgard et al. 2005)",
+    ),
+    "minpos": PlannerEntry(
+        lambda h, w: MinPosPlanner(h, w), "frontier_minpos", "MinPos (Bautin et al. 2012)"
+    ),
+    "hungarian": PlannerEntry(
+        lambda h, w: HungarianPlanner(h, w),
+        "frontier_hungarian",
+        "the optimal assignment of distinct targets (Hungarian method)",
+    ),
 }
 
 

@@ -56,6 +56,8 @@ class BaselineEntry:
     make: Callable[[int], BatchPolicy]
     """Builds it from the evaluation's seed (only ``random`` uses it: the others draw from each
     episode's generator or none)."""
+    summary: str
+    """One line on what it plays (``harness eval --help``)."""
     needs_action: bool = False
     """It plays the env's planner-backed action, so it runs only on a config with
     ``env.frontier.action`` (:meth:`check`); without: on any config."""
@@ -101,15 +103,22 @@ class BaselineEntry:
 
 #: The baselines by the name ``--policy`` takes (the one list of them).
 BASELINES: dict[str, BaselineEntry] = {
-    "random": BaselineEntry(lambda seed: RandomPolicy(seed), any_env=True),
-    "local": BaselineEntry(lambda seed: LocalPolicy()),
+    "random": BaselineEntry(
+        lambda seed: RandomPolicy(seed), "uniformly random actions (any env)", any_env=True
+    ),
+    "local": BaselineEntry(
+        lambda seed: LocalPolicy(), "the thesis's memoryless rule on each agent's 3x3 window"
+    ),
     # One per planner of the registry: frontier, frontier_pocket, frontier_random, ...
     **{
-        entry.baseline: BaselineEntry(lambda seed, name=name: FrontierPolicy(name))
+        entry.baseline: BaselineEntry(lambda seed, name=name: FrontierPolicy(name), entry.summary)
         for name, entry in PLANNERS.items()
     },
     "frontier_step": BaselineEntry(
-        lambda seed: FrontierStepPolicy(), needs_action=True, plays_moves=False
+        lambda seed: FrontierStepPolicy(),
+        "always the env's planner-backed action (configs with env.frontier.action)",
+        needs_action=True,
+        plays_moves=False,
     ),
 }
 

@@ -56,7 +56,7 @@ class PlannerEntry:
     """Builds the planner for a map of ``(height, width)``."""
     baseline: str
     """Its baseline's name (``harness eval --policy NAME``)."""
-    summary: str = ""
+    summary: str
     """One line on what it plays (``harness eval --help``)."""
     in_env: bool = True
     """Whether the env's compass and planner-backed actions can follow it: its move must be a

@@ -116,7 +116,8 @@ def main() -> None:
         "--margin-steps",
         type=float,
         default=2.0,
-        help="with --target gain: steps a slot must gain over slot 0 to be the greedy choice",
+        help="with --target gain: steps (cells, for files scored by cells) a slot must gain "
+        "over slot 0 to be the greedy choice",
     )
     parser.add_argument("--clip", type=float, default=20.0, help="gain targets clipped, steps")
     parser.add_argument(

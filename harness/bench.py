@@ -9,8 +9,9 @@ busy machine shifts all of them together. Nothing here asserts a time.
   copies stepped by 1 or 2 processes;
 * ``train``: gradient steps and transitions per second of ``DoubleDQN`` + PER against SB3's
   ``DQN`` + ``ReplayBuffer`` (same network, batch and train_freq), run alternately; gradient
-  steps per second of both for the thesis's MLP 3x512 and the team-map CNN, on the CPU and, when
-  torch sees one, the GPU;
+  steps per second of both for the thesis's MLP 3x512, the team-map CNN and the goal action's
+  slot scorer, on the CPU and, when torch sees one, the GPU (with the most ``goals_2agents`` can
+  train on the CPU, its env free);
   gradient steps per second over batch sizes, network widths and torch thread counts;
 * ``sharing``: gradient steps per second of each ``algo.sharing`` mode (one network, one with
   the agent's index, one parameter set per agent), same network and batch;
@@ -183,10 +184,14 @@ class TrainNet:
 
 
 #: The networks of ``bench train``'s table, each on every device: the thesis's MLP 3x512 on its
-#: observation, and the team-map CNN of the shipped team-map configs
+#: observation, the team-map CNN of the shipped team-map configs
 #: (configs/teammap_2agents_pocket.yaml: its observation, frontier step, policy and batch) on
-#: 50x50 random maps; a smaller buffer and fill, as a team-map transition is ~20 times a thesis
-#: one and its env steps slower, and a quarter of the gradient steps (~4x slower on a CPU).
+#: 50x50 random maps, and the slot scorer of the goal action (configs/goals_2agents.yaml: its
+#: policy, network, Adam and batch, with PER as every row), the net whose gradient steps bound
+#: that run's rate (docs/performance.md "The learner's floor"); the team-map nets with a
+#: smaller buffer and fill, as a team-map transition is ~20 times a thesis one and its env
+#: steps slower, and fewer gradient steps (a quarter for the CNN, ~4x slower than the MLP on a
+#: CPU, and the slot scorer likewise).
 TRAIN_NETS: dict[str, TrainNet] = {
     "mlp_3x512": TrainNet(THESIS_ENV, AlgoConfig(net_arch=THESIS_NET), batch=32),
     "teammap_cnn": TrainNet(
@@ -197,7 +202,25 @@ TRAIN_NETS: dict[str, TrainNet] = {
         buffer_size=10_000,
         steps_share=0.25,
     ),
+    "goal_slots": TrainNet(
+        GOALS_ENV,
+        AlgoConfig(
+            policy="SlotTeamMapPolicy",
+            net_arch=[128],
+            features_dim=256,
+            cnn_channels=(8, 16),
+            optimizer="Adam",
+        ),
+        batch=64,
+        fill=2_000,
+        buffer_size=10_000,
+        steps_share=0.25,
+    ),
 }
+#: Transitions of ``configs/goals_2agents.yaml`` per gradient step (``train_freq`` 4 vector steps
+#: of 8 copies x 2 agents, 4 gradient steps each; tests/test_bench.py reads it from the config):
+#: with ``goal_slots``'s rate, the most that run can train whatever its env costs.
+GOALS_TRANSITIONS_PER_STEP = 16
 #: The net of the report's flat keys and targets (``train_grad_steps_per_s``, ...), on the CPU.
 REPORT_NET = "mlp_3x512"
 #: The learners of each row, in the order they are timed: ours, then SB3's.
@@ -224,11 +247,17 @@ def _models(net: TrainNet, threads: int, device: str = "cpu") -> tuple[Any, Any,
 
     from harness import DoubleDQN
     from harness.sb3.device_replay import prioritized_buffer_class
+    from harness.sb3.dqn import resolve_optimizer_class
     from harness.sb3.registry import POLICIES
     from harness.training.adapters import make_vec_env
-    from harness.training.checks import network_kwargs, policy_class_name
+    from harness.training.checks import (
+        fast_optimizer_kwargs,
+        network_kwargs,
+        policy_class_name,
+    )
 
     torch.set_num_threads(threads)
+    optimizer_class = resolve_optimizer_class(net.algo.optimizer)
     venv = make_vec_env(net.env, copies=4, seed=0)
     common = {
         "learning_rate": 5e-5,
@@ -236,11 +265,14 @@ def _models(net: TrainNet, threads: int, device: str = "cpu") -> tuple[Any, Any,
         "batch_size": net.batch,
         "train_freq": (2, "step"),
         "gradient_steps": 1,
-        # The network as `harness run` builds it from the algo section.
+        # The network and its optimizer's step as `harness run` builds them from the algo
+        # section (RMSprop's multi-tensor step; Adam's fused one on the CPU).
         "policy_kwargs": {
             **network_kwargs(net.algo, net.env.n_agents),
-            "optimizer_class": torch.optim.RMSprop,
-            "optimizer_kwargs": {"foreach": True},
+            "optimizer_class": optimizer_class,
+            "optimizer_kwargs": fast_optimizer_kwargs(
+                optimizer_class, net.algo.optimizer_kwargs, device
+            ),
         },
         "device": device,
     }
@@ -634,6 +666,13 @@ def format_bench(r: dict[str, Any]) -> str:
                     f"  {device:<8}{net:<13}{row['doubledqn_per']:>10,.0f}{row['dqn']:>10,.0f}"
                     f"{row['ratio']:>8.2f}{no_graph}"
                 )
+        goal = r["train_grad_steps_by_device"].get("cpu", {}).get("goal_slots")
+        if goal is not None:
+            lines.append(
+                f"  goals_2agents on the cpu: at most "
+                f"{GOALS_TRANSITIONS_PER_STEP * goal['doubledqn_per']:,.0f} transitions/s "
+                f"(a gradient step per {GOALS_TRANSITIONS_PER_STEP} transitions, the env free)"
+            )
     if "train_grad_steps_per_s_by_setting" in r:
         lines += ["", "gradient steps/s by network, batch and torch threads (DoubleDQN + PER)"]
         lines.append(f"  {'network':<8}{'batch':>6}{'1 thread':>11}{'2 threads':>11}")

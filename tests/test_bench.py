@@ -5,11 +5,22 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+from pathlib import Path
 
 import pytest
 
-from harness.bench import TRAIN_NETS, bench_sharing, bench_train, format_bench, machine_info
+from harness.bench import (
+    GOALS_TRANSITIONS_PER_STEP,
+    TRAIN_NETS,
+    bench_sharing,
+    bench_train,
+    format_bench,
+    machine_info,
+)
 from harness.cli import main
+from harness.config.loading import load_config
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_bench_env_json_has_the_documented_keys(capsys):
@@ -151,7 +162,7 @@ def test_bench_train_times_both_learners_per_net_on_the_cpu_alone_without_cuda(m
     out = bench_train(rounds=1, grad_steps=4, transitions=32, nets=nets)
     by_device = out["train_grad_steps_by_device"]
     assert list(by_device) == ["cpu"]
-    assert list(by_device["cpu"]) == ["mlp_3x512", "teammap_cnn"]
+    assert list(by_device["cpu"]) == ["mlp_3x512", "teammap_cnn", "goal_slots"]
     for row in by_device["cpu"].values():
         assert list(row) == ["doubledqn_per", "dqn", "ratio"]
         assert all(math.isfinite(v) and v > 0 for v in row.values())
@@ -165,6 +176,18 @@ def test_bench_train_times_both_learners_per_net_on_the_cpu_alone_without_cuda(m
         assert math.isfinite(out[key]) and out[key] > 0
     text = format_bench({**machine_info(), **out})
     assert "by device and network" in text and "cuda" not in text
+    floor = GOALS_TRANSITIONS_PER_STEP * by_device["cpu"]["goal_slots"]["doubledqn_per"]
+    assert f"goals_2agents on the cpu: at most {floor:,.0f} transitions/s" in text
+
+
+def test_the_goal_configs_gradient_step_comes_every_16_transitions():
+    # The floor the report prints for goals_2agents: train_freq vector steps of copies x agents
+    # slots, so many gradient steps each (the phase's epochs).
+    config = load_config(ROOT / "configs" / "goals_2agents.yaml", [])
+    phase = config.phases[0]
+    ((_, epochs),) = phase.epochs
+    slots = config.vec.copies * config.env.n_agents
+    assert phase.train_freq * slots / epochs == GOALS_TRANSITIONS_PER_STEP
 
 
 def test_bench_help_names_every_section_once(capsys):

@@ -99,6 +99,22 @@ def test_teammates_distances_and_headings() -> None:
     assert c.features[1, :2, F["heading"]].tolist() == [0, 1]
 
 
+def test_an_agent_the_planner_leaves_idle_gets_the_clusters_from_slot_0_on() -> None:
+    # Three agents, two targets (columns 1 and 11): agent 0 (at 5) claims column 1, agent 1 (at
+    # 6) column 11, and agent 2 (at 7) finds both claimed: the planner leaves it in place with
+    # no target. It has no planner's choice, so its slots are the clusters from slot 0 on,
+    # nearest first (column 11, 4 away, then column 1), slot 0's `planner` feature 0: always
+    # taking slot 0 walks it on where the planner would stay (docs/goals.md).
+    planner = corridor_planner(FrontierPlanner(1, 13), [5, 6, 7])
+    moves = planner.act()
+    assert moves == [LEFT, RIGHT, STAY]
+    c = gather_candidates(planner, moves, k=3, height=1, width=13)
+    assert c.cells[2].tolist() == [padded(11), padded(1), -1]
+    assert c.moves[2].tolist() == [RIGHT, LEFT, STAY]
+    assert c.features[2, :, F["planner"]].tolist() == [0, 0, 0]
+    assert c.features[:2, 0, F["planner"]].tolist() == [1, 1]  # the others: the planner's
+
+
 def test_clusters_come_nearest_first_at_their_nearest_cell() -> None:
     # A 5x9 room, all free, agent at the centre, everything visited but three groups of cells:
     # a cluster of two cells at the top-left (distances 5 and 6), a single cell at the

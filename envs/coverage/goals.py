@@ -9,7 +9,10 @@ literature's wins over written planners share (ACE, Yu et al. 2023; ARiADNE, Cao
 
 * slot 0: the target the env's planner (``frontier.planner``) chose for the agent this step, and
   its move (the planner's own first step), so that a policy that always takes slot 0 *is* the
-  planner, step for step (the imitation target, ``expert_action`` 0);
+  planner, step for step (the imitation target, ``expert_action`` 0), with one exception: an
+  agent the planner leaves without a target (once fewer targets are left than agents, the last
+  in claim order stay in place) has no planner's choice, and its slots hold the clusters from
+  slot 0 on, so that slot 0 walks it towards the nearest instead of staying;
 * slots 1..k-1: one target per *frontier cluster* (a 4-connected group of known free unvisited
   cells), the cluster's cell nearest to the agent (ties: the lower row-major cell), clusters by
   their distance (ties: the lower cell), leaving out slot 0's cluster and clusters the agent

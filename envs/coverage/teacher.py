@@ -5,7 +5,8 @@ of the planner's map, whose free cells are the *true* ones (the planner's ``free
 episode's map; the planner itself only plans over what the team has seen):
 
 * slot 0 as the env plays it: one step with the slot's move, the planner re-planning after it
-  (so a team that always takes slot 0 is the planner);
+  (so a team that always takes slot 0 is the planner, but for an agent the planner leaves
+  without a target: :mod:`envs.coverage.goals`);
 * every other slot: the agent walks the shortest path to the slot's candidate through the seen
   free cells (:func:`envs.coverage.paths.distance_fields`' rule for tied paths);
 * teammates keep to what they are doing: a committed walk (``walks``) to its end, else slot 0's

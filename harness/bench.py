@@ -247,17 +247,11 @@ def _models(net: TrainNet, threads: int, device: str = "cpu") -> tuple[Any, Any,
 
     from harness import DoubleDQN
     from harness.sb3.device_replay import prioritized_buffer_class
-    from harness.sb3.dqn import resolve_optimizer_class
     from harness.sb3.registry import POLICIES
     from harness.training.adapters import make_vec_env
-    from harness.training.checks import (
-        fast_optimizer_kwargs,
-        network_kwargs,
-        policy_class_name,
-    )
+    from harness.training.checks import policy_class_name, policy_kwargs
 
     torch.set_num_threads(threads)
-    optimizer_class = resolve_optimizer_class(net.algo.optimizer)
     venv = make_vec_env(net.env, copies=4, seed=0)
     common = {
         "learning_rate": 5e-5,
@@ -267,13 +261,7 @@ def _models(net: TrainNet, threads: int, device: str = "cpu") -> tuple[Any, Any,
         "gradient_steps": 1,
         # The network and its optimizer's step as `harness run` builds them from the algo
         # section (RMSprop's multi-tensor step; Adam's fused one on the CPU).
-        "policy_kwargs": {
-            **network_kwargs(net.algo, net.env.n_agents),
-            "optimizer_class": optimizer_class,
-            "optimizer_kwargs": fast_optimizer_kwargs(
-                optimizer_class, net.algo.optimizer_kwargs, device
-            ),
-        },
+        "policy_kwargs": policy_kwargs(net.algo, net.env.n_agents, device),
         "device": device,
     }
     dict_obs = isinstance(venv.observation_space, spaces.Dict)

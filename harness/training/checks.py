@@ -57,6 +57,18 @@ def network_kwargs(algo: Any, n_agents: int) -> dict[str, Any]:
     return kwargs
 
 
+def policy_kwargs(algo: Any, n_agents: int, device: str) -> dict[str, Any]:
+    """The policy's keyword arguments as ``harness run`` builds them from ``config.algo``: the
+    network (:func:`network_kwargs`), the optimizer class and its fastest step on ``device``
+    (:func:`fast_optimizer_kwargs`)."""
+    optimizer_class = resolve_optimizer_class(algo.optimizer)
+    return {
+        **network_kwargs(algo, n_agents),
+        "optimizer_class": optimizer_class,
+        "optimizer_kwargs": fast_optimizer_kwargs(optimizer_class, algo.optimizer_kwargs, device),
+    }
+
+
 def checked_config(config: ExperimentConfig, source: str) -> ExperimentConfig:
     """``config`` once :func:`check_runtime` passes.
 

@@ -58,7 +58,6 @@ from harness.sb3.dqn import (
     DoubleDQN,
     NonFiniteLossError,
     OldModelError,
-    resolve_optimizer_class,
 )
 from harness.sb3.schedules import PhaseLinearSchedule
 from harness.training.adapters import make_vec_env
@@ -85,10 +84,9 @@ from harness.training.checkpoints import (
 )
 from harness.training.checks import (
     check_replay_memory,
-    fast_optimizer_kwargs,
     format_bytes,
-    network_kwargs,
     policy_class_name,
+    policy_kwargs,
 )
 from harness.training.teacher import TeacherLabeller
 from harness.training.threads import configure_torch
@@ -97,14 +95,7 @@ from harness.training.threads import configure_torch
 def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
     """Make the ``DoubleDQN`` of ``config.algo`` with the first phase's settings."""
     algo, first = config.algo, config.phases[0]
-    optimizer_class = resolve_optimizer_class(algo.optimizer)
-    policy_kwargs: dict[str, Any] = {
-        **network_kwargs(algo, config.env.n_agents),
-        "optimizer_class": optimizer_class,
-        "optimizer_kwargs": fast_optimizer_kwargs(
-            optimizer_class, algo.optimizer_kwargs, algo.device
-        ),
-    }
+    kwargs = policy_kwargs(algo, config.env.n_agents, algo.device)
     buffer_kwargs: dict[str, Any] | None = None
     buffer_class: type[ReplayBuffer] | None = None
     dict_obs = isinstance(venv.observation_space, spaces.Dict)
@@ -155,7 +146,7 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
         stats_window_size=max(
             100, max(p.epochs_window for p in config.phases) * config.env.n_agents
         ),
-        policy_kwargs=policy_kwargs,
+        policy_kwargs=kwargs,
         device=algo.device,
         seed=None,  # SuperSuit's VecEnv has no seed(); train() seeds torch/numpy and the env copies
         verbose=0,

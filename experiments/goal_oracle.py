@@ -291,7 +291,7 @@ def play(
                     agent_obs = obs[env.possible_agents[i]]
                     when = env.steps / env.max_steps
                     features = cand.features[i].copy()
-                    unit = float(len(planner.free) + 1) if reach is not None else 1.0
+                    unit = teacher.unit(len(planner.free))
                     records.append(
                         Decision(features, adv, when, agent_obs, best, env.coverage, gain, unit)
                     )

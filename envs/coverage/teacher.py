@@ -313,6 +313,11 @@ class RolloutTeacher:
         out[valid] = scores
         return out
 
+    def unit(self, size: int) -> float:
+        """Score units of one cell, or with ``reach`` of one step (``size``: the padded grid's
+        cells; a step outweighs every cell a rollout can find)."""
+        return 1.0 if self.reach is None else size + 1.0
+
     def pick(self, scores: np.ndarray, size: int) -> int:
         """The chosen slot of :meth:`scores`' ``scores``: the first best, if it beats slot 0
         by more than the margin (in steps with ``reach``: ``size`` is the padded grid's
@@ -320,8 +325,7 @@ class RolloutTeacher:
         if not np.isfinite(scores[0]):
             return 0
         best = int(np.argmax(np.where(np.isnan(scores), -np.inf, scores)))
-        unit = 1 if self.reach is None else size + 1
-        return best if scores[best] > scores[0] + self.margin * unit else 0
+        return best if scores[best] > scores[0] + self.margin * self.unit(size) else 0
 
     def choose(
         self,

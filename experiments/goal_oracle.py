@@ -54,7 +54,8 @@ import numpy as np
 from envs.coverage.env import CoverageEnv
 from envs.coverage.goals import Candidates
 from envs.coverage.planners import FrontierPlanner
-from envs.coverage.teacher import RolloutTeacher, shortest_walk
+from envs.coverage.rollouts import clear_of_noise, sampled_free, shortest_walk
+from envs.coverage.teacher import RolloutTeacher
 from harness import DoubleDQN
 from harness.config.loading import load_config
 from harness.factory import make_env
@@ -179,34 +180,6 @@ def python_scores(
     return scores
 
 
-def sampled_free(planner: FrontierPlanner, rng: np.random.Generator) -> np.ndarray:
-    """The free cells as the team can guess them: the true ones where a cell has been seen,
-    elsewhere free with the share of free cells among the seen ones (the outer ring stays
-    wall)."""
-    seen = planner.seen.reshape(-1, planner.stride)[1:-1, 1:-1]  # inside the wall ring
-    free = np.asarray(planner.free, dtype=bool).reshape(-1, planner.stride)
-    inner = free[1:-1, 1:-1]
-    share = inner[seen].sum() / max(seen.sum(), 1)
-    guess = free.copy()
-    guess[1:-1, 1:-1] = np.where(seen, inner, rng.random(inner.shape) < share)
-    return guess.ravel()
-
-
-def clear_of_noise(per_map: np.ndarray, sigmas: float) -> np.ndarray:
-    """The options' mean scores over the sampled maps ``per_map`` ``(maps, options)``, slot 0
-    first; with ``sigmas`` (and two maps or more) an option whose mean paired gain over slot 0
-    is not above ``sigmas`` standard errors of that gain scores as slot 0 (the best of several
-    noisy means is biased upwards)."""
-    scores = per_map.mean(axis=0)
-    if not sigmas or per_map.shape[0] < 2:
-        return scores
-    gains = per_map - per_map[:, :1]
-    se = gains.std(axis=0, ddof=1) / np.sqrt(per_map.shape[0])
-    noisy = gains.mean(axis=0) <= sigmas * se
-    noisy[0] = False
-    return np.where(noisy, scores[0], scores)
-
-
 def play(
     env: CoverageEnv,
     seed: int,
@@ -223,15 +196,15 @@ def play(
     after: float = 0.0,
     coverages: list | None = None,
 ) -> tuple[float, int, int | None]:
-    """One episode; with ``oracle`` the rollout oracle chooses, with ``model`` a trained goal
-    policy (greedy, committed like the oracle), otherwise slot 0 throughout.
-    ``belief``: the rollouts' map, the ``"true"`` one or ``samples`` maps ``"sampled"`` per
-    decision (:func:`sampled_free`), the options scored by their mean; an option replaces
-    slot 0 when it scores more than ``margin`` cells above it. ``reach`` (a coverage, e.g.
-    0.99): the options are scored by the steps their rollout takes to reach it instead (fewer
-    is better, ties by cells; ``margin`` then counts steps). Returns the coverage, the number
-    of deviations from slot 0 and the steps to ``reach`` (``None`` when not reached or not
-    asked). ``horizon``: rollouts end after so many steps (``None``: at the episode's end).
+    """One episode; with ``oracle`` the rollout oracle chooses, with ``model`` a trained goal policy
+    (greedy, committed like the oracle), otherwise slot 0 throughout. ``belief``: the rollouts'
+    map, the ``"true"`` one or ``samples`` maps ``"sampled"`` per decision
+    (:func:`envs.coverage.rollouts.sampled_free`), the options scored by their mean; an option
+    replaces slot 0 when it scores more than ``margin`` cells above it. ``reach`` (a coverage,
+    e.g. 0.99): the options are scored by the steps their rollout takes to reach it instead
+    (fewer is better, ties by cells; ``margin`` then counts steps). Returns the coverage, the
+    number of deviations from slot 0 and the steps to ``reach`` (``None`` when not reached or
+    not asked). ``horizon``: rollouts end after so many steps (``None``: at the episode's end).
     ``sigmas``: with several sampled maps, a slot replaces slot 0 only where its mean paired
     gain exceeds so many standard errors over the maps. ``after``: the oracle decides only from
     this coverage on (slot 0 before it); ``coverages`` collects the coverage at each deviation."""
@@ -243,7 +216,7 @@ def play(
     deviations = 0
     reached: int | None = None
     while env.agents:
-        frontier = env._frontier  # the env's planner extension (its planner and candidates)
+        frontier = env.frontier_state  # the env's planner extension (its planner and candidates)
         planner, cand = frontier.planner, frontier.candidates
         offset = {0: -planner.stride, 1: planner.stride, 2: -1, 3: 1, 4: 0}
         move_of = {d: m for m, d in offset.items()}

@@ -1,7 +1,8 @@
 """How much of the rollout teacher's choice the team's own map decides: the true-map teacher
 (``envs.coverage.teacher``, the labels ``algo.teacher`` distils) against the same teacher on
-maps whose unseen cells are sampled (``experiments/goal_oracle.py``'s ``sampled_free``: each
-unseen cell free with the share of free cells among the seen ones), on the states of the
+maps whose unseen cells are sampled (``envs.coverage.rollouts.sampled_free``, as
+``experiments/goal_oracle.py`` samples: each unseen cell free with the share of free cells
+among the seen ones), on the states of the
 planner's own episodes (every agent always takes slot 0; *validation* seeds).
 
 A label that the seen map decides is one a policy that sees only the team's map can learn; one
@@ -21,25 +22,15 @@ cover whole maps).
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import json
-from pathlib import Path
 
 import numpy as np
 
 from envs.coverage.core import CoverageCore
+from envs.coverage.rollouts import sampled_free
 from envs.coverage.teacher import RolloutTeacher
 from harness.config.loading import load_config
 from harness.factory import make_core_spec
-
-_ORACLE = Path(__file__).with_name("goal_oracle.py")
-
-
-def _sampled_free():
-    spec = importlib.util.spec_from_file_location("goal_oracle", _ORACLE)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module.sampled_free
 
 
 def main() -> None:
@@ -53,7 +44,6 @@ def main() -> None:
     if not any(o.startswith("env.map=") for o in args.overrides):
         args.overrides.insert(0, "env.map=random")  # 50x50 random maps, as the oracle's figures
     config = load_config(args.config, args.overrides)
-    sampled_free = _sampled_free()
     core = CoverageCore(make_core_spec(config.env), args.episodes)
     seed = config.eval.validation_seed
     for b in range(args.episodes):

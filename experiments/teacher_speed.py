@@ -46,7 +46,7 @@ def measure(config: str, n_agents: int, episodes: int, every: int, seed: int) ->
     for episode in range(episodes):
         env.reset(seed=seed + episode)
         while env.agents:
-            frontier = env._frontier
+            frontier = env.frontier_state
             planner, cand = frontier.planner, frontier.candidates
             if env.steps % every == 0:
                 stride = planner.stride
@@ -94,7 +94,7 @@ def _warm_up(config: str) -> None:
     """One label on a small map, so that compiling (or loading the cache) is not timed."""
     env = make_env(load_config(config, ["env.map=random", "env.height=10", "env.width=10"]).env)
     env.reset(seed=0)
-    frontier = env._frontier
+    frontier = env.frontier_state
     RolloutTeacher().scores(frontier.planner, frontier.candidates, 0, env.max_steps)
 
 

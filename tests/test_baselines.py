@@ -20,9 +20,11 @@ import pytest
 
 from envs import coverage_v0
 from envs.coverage import planners
+from envs.coverage.rollouts import SampledChooser
+from harness.config.loading import load_config
 from harness.config.schema import EnvConfig
 from harness.evaluation import baselines
-from harness.evaluation.baselines import BASELINES, make_baseline
+from harness.evaluation.baselines import BASELINES, RolloutPolicy, make_baseline
 from harness.evaluation.episodes import run_episodes
 
 
@@ -42,6 +44,7 @@ def test_names_and_unknown_name() -> None:
         "frontier_minpos",
         "frontier_hungarian",
         "frontier_step",
+        "rollout",
     )
     for name in BASELINES:
         assert callable(make_baseline(name, 0))
@@ -64,6 +67,52 @@ def test_frontier_step_baseline_walks_the_compass_and_needs_the_action() -> None
     assert [r.coverage for r in again] == [r.coverage for r in results]  # ties: episode seed
     with pytest.raises(ValueError, match=r"needs env\.frontier\.action \(step, or goal"):
         run_episodes(make_baseline("frontier_step", 0), small_maps(2, 10), episodes=1, seed=0)
+
+
+# ---------------------------------------------------------------------- rollout
+def goal_env(n_agents: int = 4) -> EnvConfig:
+    """The goal action on 15x15 random maps, as ``rollout`` plays it (``hold`` on)."""
+    config = load_config(
+        "configs/goals_4agents.yaml",
+        ["env.map=random", "env.height=15", "env.width=15", "env.max_steps=150",
+         f"env.n_agents={n_agents}"],
+    )  # fmt: skip
+    return BASELINES["rollout"].env_config(config.env)
+
+
+def _played(results) -> list[tuple]:
+    return [(r.coverage, r.steps_to, r.new_cells, r.wall_hits) for r in results]
+
+
+def test_rollout_turns_the_goal_actions_hold_on_and_needs_that_action() -> None:
+    env = goal_env()
+    assert env.frontier_options.action.hold
+    assert BASELINES["rollout"].env_config(env) == env
+    BASELINES["rollout"].check(env.frontier_options)
+    step = EnvConfig(observation={"teammap": {"crop": 7}}, frontier={"action": "step"})
+    for options in (None, step.frontier_options):
+        with pytest.raises(ValueError, match=r"needs env\.frontier\.action \{goal"):
+            BASELINES["rollout"].check(options)
+
+
+def test_a_rollout_chooser_that_never_deviates_is_its_planner_episode_for_episode() -> None:
+    env = goal_env()
+    # A margin no gain clears: slot 0 throughout, from the first step (after 0): the planner.
+    never = RolloutPolicy(SampledChooser(after=0.0, margin=1e9))
+    planner = run_episodes(make_baseline("frontier_step", 0), env, episodes=3, seed=7)
+    assert _played(run_episodes(never, env, episodes=3, seed=7)) == _played(planner)
+
+
+def test_rollout_deviates_repeats_from_the_seed_and_never_hits_a_wall() -> None:
+    env = goal_env()
+    eager = RolloutPolicy(SampledChooser(samples=2, sigmas=0.0, after=0.0))
+    one = run_episodes(eager, env, episodes=3, seed=7, copies=1)
+    assert all(sum(r.wall_hits) == 0 for r in one)
+    # Its sampled maps come from each episode's generator: the copies side by side do not matter.
+    assert _played(run_episodes(eager, env, episodes=3, seed=7, copies=3)) == _played(one)
+    # It chooses: its episodes are not the planner's.
+    planner = run_episodes(make_baseline("frontier_step", 0), env, episodes=3, seed=7)
+    assert _played(one) != _played(planner)
 
 
 # ---------------------------------------------------------------------- random

@@ -58,7 +58,7 @@ def corridor(hold: bool):
 
 def _cols(env, agent: int) -> list[int]:
     """The corridor columns of an agent's candidates (its cells, padded and flat)."""
-    cells = env._frontier.candidates.cells[agent]
+    cells = env.frontier_state.candidates.cells[agent]
     return [int(c) % 15 - 1 for c in cells if c >= 0]
 
 
@@ -79,7 +79,7 @@ def test_a_deviation_is_held_until_its_target_is_visited() -> None:
     assert obs["agent_0"][ACTION_MASK_KEY].tolist() == [1, 0, 0, 0] and _cols(env, 0) == [5]
     obs, *_ = env.step({"agent_0": 0, "agent_1": 0})  # reached: let go, choose again
     assert env.positions.tolist()[0] == [1, 5]
-    assert env._frontier.held.tolist() == [-1, -1]
+    assert env.frontier_state.held.tolist() == [-1, -1]
     assert obs["agent_0"][ACTION_MASK_KEY].tolist() == [1, 1, 0, 0]
 
 
@@ -96,20 +96,20 @@ def test_a_target_a_teammate_visits_is_let_go() -> None:
     # Agent 0 heads for column 5 (held), agent 1 steps onto it at once (its slot 1).
     obs, *_ = env.step({"agent_0": 2, "agent_1": 1})
     assert env.positions.tolist() == [[1, 3], [1, 5]]
-    assert env._frontier.held.tolist()[0] == -1
+    assert env.frontier_state.held.tolist()[0] == -1
     assert obs["agent_0"][ACTION_MASK_KEY].sum() >= 2
     # Agent 1 took a slot >= 1 as well, but reached its target in that step: nothing held.
-    assert env._frontier.held.tolist()[1] == -1
+    assert env.frontier_state.held.tolist()[1] == -1
 
 
 def test_holds_end_with_the_episode() -> None:
     env, _ = corridor(hold=True)
     env.step({"agent_0": 2, "agent_1": 0})
-    assert env._frontier.held.tolist()[0] >= 0
+    assert env.frontier_state.held.tolist()[0] >= 0
     grid = np.ones((3, 13), dtype=bool)
     grid[1] = False
     obs, _ = env.reset(seed=0, options={"grid": grid, "starts": [(1, 2), (1, 4)]})
-    assert env._frontier.held.tolist() == [-1, -1]
+    assert env.frontier_state.held.tolist() == [-1, -1]
     assert obs["agent_0"][ACTION_MASK_KEY].tolist() == [1, 1, 1, 0]
 
 

@@ -237,8 +237,9 @@ def test_evaluation_page_lists_every_baseline_and_where_it_runs() -> None:
     table = policy_table(DOCS / "evaluation.md")
     assert list(table) == list(BASELINES)
     for name, runs_on in table.items():
-        needs = "`env.frontier.action`" in runs_on
+        needs = "`env.frontier.action" in runs_on
         assert needs == BASELINES[name].needs_action, f"{name}: {runs_on!r}"
+        assert ("{goal: ...}" in runs_on) == BASELINES[name].holds_goals, f"{name}: {runs_on!r}"
         anywhere = "any config, a pettingzoo env's too" if BASELINES[name].any_env else "any config"
         assert needs or runs_on == anywhere, f"{name}: {runs_on!r}"
 

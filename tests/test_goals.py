@@ -342,7 +342,7 @@ def test_the_oracles_rollouts_replay_the_planner_and_leave_the_env_alone() -> No
     )
     env = make_env(cfg.env)
     env.reset(seed=5)
-    planner = env._frontier.planner
+    planner = env.frontier_state.planner
     before = (list(planner.visited), list(planner.positions), planner.target.copy())
     # Everybody on the planner from the reset: the copy's cells are the planner episode's.
     new, _ = oracle.rollout(oracle.clone(planner), env.max_steps, {})
@@ -354,7 +354,7 @@ def test_the_oracles_rollouts_replay_the_planner_and_leave_the_env_alone() -> No
     # Steps to a coverage: the rollout's count (cells still to find) is the played episode's.
     goal = int(np.ceil(0.6 * env.free_cells)) - start
     env.reset(seed=5)
-    found, step = oracle.rollout(oracle.clone(env._frontier.planner), env.max_steps, {}, goal)
+    found, step = oracle.rollout(oracle.clone(env.frontier_state.planner), env.max_steps, {}, goal)
     assert found == goal or found == goal + 1  # agents moving together may pass it by one
     _, _, reached = oracle.play(env, 5, oracle=False, reach=0.6)
     assert reached == step and 0 < step < env.max_steps
@@ -411,19 +411,6 @@ def test_one_agents_oracle_scored_by_steps_is_never_slower_than_the_planner() ->
     _, deviations, oracle_steps = oracle.play(env, 5, oracle=True, reach=0.9)
     assert planner_steps is not None and oracle_steps is not None
     assert deviations > 0 and oracle_steps <= planner_steps
-
-
-def test_the_sampled_oracle_keeps_only_gains_clear_of_the_maps_noise() -> None:
-    oracle = _script("goal_oracle")
-    # Four sampled maps, slot 0 first. Slot 1 gains 2, 4, 6, 8 (mean 5, sd 2.582, se 1.291):
-    # 3.87 standard errors. Slot 2 gains +30, -20, +30, -20 (mean 5, se 14.43): noise.
-    per_map = np.array(
-        [[100.0, 102.0, 130.0], [100.0, 104.0, 80.0], [100.0, 106.0, 130.0], [100.0, 108.0, 80.0]]
-    )
-    np.testing.assert_allclose(oracle.clear_of_noise(per_map, 0.0), [100.0, 105.0, 105.0])
-    np.testing.assert_allclose(oracle.clear_of_noise(per_map, 3.0), [100.0, 105.0, 100.0])
-    np.testing.assert_allclose(oracle.clear_of_noise(per_map, 4.0), [100.0, 100.0, 100.0])
-    np.testing.assert_allclose(oracle.clear_of_noise(per_map[:1], 3.0), [100.0, 102.0, 130.0])
 
 
 def test_the_oracle_walks_the_shortest_path_of_the_predecessors() -> None:

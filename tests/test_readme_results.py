@@ -376,3 +376,60 @@ def test_goal_table_is_made_from_the_stored_evaluations() -> None:
             for key in ("map", "n_agents", "max_steps", "height", "width", "wall_fraction"):
                 assert d["env"][key] == planner["env"][key], key
             assert d["bound"] == pytest.approx(planner["bound"])
+
+
+# ---------------------------------------------------------------------- the rollout chooser
+#: The rollout table's settings: its stored evaluation (docs/baselines/rollout/NAME.json) and the
+#: config whose stored planner evaluations are on the same episodes.
+ROLLOUT = {
+    "50x50 random, 4 agents": ("goals_4agents-random", "ddqn_4agents"),
+    "50x50 random, 2 agents": ("goals_2agents-random", "ddqn_2agents"),
+    "cave_100x50, 2 agents": ("goals_2agents-cave_100x50", "cave_2agents"),
+    "maze_100x50, 2 agents": ("goals_2agents-maze_100x50", "maze_2agents"),
+    "50x50 random, 1 agent": ("goals_2agents-random-1agent", "ddqn_1agent"),
+}
+ROLLOUT_ROWS = table_rows("| setting | `rollout` |")
+
+
+def signed(x: float, digits: int) -> str:
+    """A difference as the table writes it: a sign (a typographic minus), ``0.00`` for none."""
+    text = f"{x:+.{digits}f}"
+    return f"{0:.{digits}f}" if float(text) == 0 else text.replace("-", "−")
+
+
+def test_rollout_table_has_its_settings() -> None:
+    assert [row["setting"] for row in ROLLOUT_ROWS] == list(ROLLOUT)
+
+
+@pytest.mark.parametrize("row", ROLLOUT_ROWS, ids=lambda r: r["setting"])
+def test_rollout_row_quotes_its_stored_evaluation_on_the_planners_episodes(row) -> None:
+    name, planners = ROLLOUT[row["setting"]]
+    d = json.loads((ROOT / "docs" / "baselines" / "rollout" / f"{name}.json").read_text())
+    assert d["policy"] == "rollout" and d["episodes"] == 100 and d["wall_hits_mean"] == 0
+    low, high = d["coverage_mean_ci"]
+    assert row["`rollout`"].startswith(
+        f"{percent(d['coverage_mean'])} [{percent(low)}, {percent(high)}]"
+    )
+    quoted = row["against the strongest written planner"] + " " + row["against the other"]
+    for against in d["against"]:
+        policy = against["against"]
+        # Its baseline played the episodes of the planners' table: the same mean as stored there.
+        stored = json.loads((ROOT / "docs" / "baselines" / f"{planners}-{policy}.json").read_text())
+        assert against["against_mean"] == pytest.approx(stored["coverage_mean"])
+        assert against["seed"] == stored["seed"]
+        steps = against["steps_to_99"]
+        if steps is not None and steps["episodes"] == 100:  # compared by speed
+            figure = f"`{policy}` {steps['against_mean']:.1f}"
+            difference, (lo, hi) = steps["difference"], steps["difference_ci95"]
+            digits = 1
+        else:  # by coverage, in points
+            figure = f"`{policy}` {percent(against['against_mean'])}"
+            difference, (lo, hi) = (
+                100 * against["difference"],
+                (100 * x for x in against["difference_ci95"]),
+            )
+            digits = 2
+        assert figure in quoted, figure
+        if difference:
+            interval = f"{signed(difference, digits)} [{signed(lo, digits)}, {signed(hi, digits)}]"
+            assert interval in quoted, interval

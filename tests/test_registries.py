@@ -155,20 +155,29 @@ def test_every_policy_and_action_kind_trains_and_evaluates(policy, tmp_path, cap
     # The baselines that play the env's action kind play it on the run's own config.
     for name, baseline in BASELINES.items():
         if baseline.needs_action and action is not None:
+            if baseline.holds_goals and not ACTIONS[action].slots:
+                continue  # it chooses the goal action's slots: refused on the others
             args = ["--policy", name, "--config", str(run / "config.yaml"), "--episodes", "1"]
             out = eval_json(capsys, *args)
             assert out["policy"] == name and 0.0 < out["coverage_mean"] <= 1.0
 
 
 # ---------------------------------------------------------------------- baselines
-#: Two tiny envs: the thesis observation without the extension, and the team map with the first
-#: action kind that is no slots (so every baseline, planner-backed action or not, has one to
-#: play).
+#: Three tiny envs: the thesis observation without the extension, the team map with the first
+#: action kind that is no slots, and with the first whose actions are slots (so every baseline,
+#: planner-backed action or not, has one to play).
 BASELINE_ENVS = {
     "plain": {},
     "action": {
         "observation": TEAMMAP,
         "frontier": {"action": next(n for n, k in ACTIONS.items() if not k.slots)},
+    },
+    "slots": {
+        "observation": TEAMMAP,
+        "frontier": {
+            "action": next(k for k in ACTIONS.values() if k.slots)().config(),
+            "planner": PLANNER,
+        },
     },
 }
 
@@ -180,14 +189,16 @@ def test_every_baseline_evaluates_where_it_can_and_is_refused_where_not(
 ):
     env = BASELINE_ENVS[setting]
     kind = observation_options(env.get("observation", "thesis")).name
+    slots = setting == "slots"
     # The config must name a policy that fits its env, though a baseline plays instead of it.
-    policy = next(n for n, e in POLICIES.items() if e.observation == kind and not e.slots)
+    policy = next(n for n, e in POLICIES.items() if e.observation == kind and e.slots == slots)
     config = write_config(tmp_path, env, {"policy": policy})
     args = ["eval", "--policy", baseline, "--config", str(config), "--episodes", "1", "--json"]
     capsys.readouterr()
     rc = main(args)
     out, err = capsys.readouterr()
-    if BASELINES[baseline].needs_action and "frontier" not in env:
+    entry = BASELINES[baseline]
+    if (entry.needs_action and "frontier" not in env) or (entry.holds_goals and not slots):
         assert rc == 2 and not out
         assert err.count("\n") == 1 and "needs env.frontier.action" in err
         return

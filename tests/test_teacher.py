@@ -14,7 +14,8 @@ import pytest
 
 from envs.coverage.goals import gather_candidates
 from envs.coverage.planners import FrontierPlanner, HungarianPlanner
-from envs.coverage.teacher import RolloutTeacher, shortest_walk
+from envs.coverage.rollouts import shortest_walk
+from envs.coverage.teacher import RolloutTeacher
 from harness.config.loading import load_config
 from harness.factory import make_env
 
@@ -159,7 +160,7 @@ def test_every_slots_score_equals_the_python_rollouts(planner: str, n_agents: in
     teachers = [RolloutTeacher(), RolloutTeacher(horizon=12), RolloutTeacher(reach=0.8)]
     checked = 0
     while env.agents:
-        frontier = env._frontier
+        frontier = env.frontier_state
         p, cand = frontier.planner, frontier.candidates
         stride = p.stride
         offset = (-stride, stride, -1, 1, 0)

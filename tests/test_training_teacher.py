@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from envs.coverage.core import CoverageCore
-from envs.coverage.teacher import RolloutTeacher, shortest_walk
+from envs.coverage.rollouts import shortest_walk
+from envs.coverage.teacher import RolloutTeacher
 from harness import DoubleDQN
 from harness.cli import main
 from harness.config.loading import load_config

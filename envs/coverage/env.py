@@ -147,8 +147,10 @@ class CoverageEnv(ParallelEnv):
         return self._core
 
     @property
-    def _frontier(self) -> Frontier | None:
-        """The episode's planner extension (its planner and the goal action's candidates)."""
+    def frontier_state(self) -> Frontier | None:
+        """The episode's planner extension (``None`` without ``frontier``): its planner on the
+        team's map (whose ``free`` row is the true map: read it only where the team has seen),
+        the goal action's candidates and held targets, as of the last observation."""
         return self._core.frontiers[self._copy]
 
     # ------------------------------------------------------------------ API

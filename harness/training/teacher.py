@@ -15,7 +15,8 @@ from __future__ import annotations
 import numpy as np
 
 from envs.coverage.core import CoverageCore
-from envs.coverage.teacher import RolloutTeacher, shortest_walk
+from envs.coverage.rollouts import held_walks
+from envs.coverage.teacher import RolloutTeacher
 from harness.config.schema import TeacherConfig
 
 __all__ = ["TeacherLabeller"]
@@ -47,11 +48,7 @@ class TeacherLabeller:
             if frontier is None or frontier.candidates is None:
                 continue
             planner = frontier.planner
-            walks = {
-                a: shortest_walk(planner, a, int(cell))
-                for a, cell in enumerate(frontier.held.tolist())
-                if cell >= 0
-            }
+            walks = held_walks(planner, frontier.held)
             steps_left = core.max_steps - int(core.steps[b])
             slots, _ = self.teacher.label(planner, frontier.candidates, steps_left, walks)
             out[b] = slots

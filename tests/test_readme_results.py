@@ -383,6 +383,7 @@ def test_goal_table_is_made_from_the_stored_evaluations() -> None:
 #: config whose stored planner evaluations are on the same episodes.
 ROLLOUT = {
     "50x50 random, 4 agents": ("goals_4agents-random", "ddqn_4agents"),
+    "50x50 random, 3 agents": ("goals_2agents-random-3agents", "ddqn_3agents"),
     "50x50 random, 2 agents": ("goals_2agents-random", "ddqn_2agents"),
     "cave_100x50, 2 agents": ("goals_2agents-cave_100x50", "cave_2agents"),
     "maze_100x50, 2 agents": ("goals_2agents-maze_100x50", "maze_2agents"),

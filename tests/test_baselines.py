@@ -97,8 +97,8 @@ def test_rollout_turns_the_goal_actions_hold_on_and_needs_that_action() -> None:
 
 def test_a_rollout_chooser_that_never_deviates_is_its_planner_episode_for_episode() -> None:
     env = goal_env()
-    # A margin no gain clears: slot 0 throughout, from the first step (after 0): the planner.
-    never = RolloutPolicy(SampledChooser(after=0.0, margin=1e9))
+    # A coverage the team's map never shows while a target is left: slot 0 throughout.
+    never = RolloutPolicy(SampledChooser(after=1.0))
     planner = run_episodes(make_baseline("frontier_step", 0), env, episodes=3, seed=7)
     assert _played(run_episodes(never, env, episodes=3, seed=7)) == _played(planner)
 

@@ -20,7 +20,7 @@ from envs.coverage.rollouts import (
 from envs.coverage.teacher import RolloutTeacher
 from harness.config.loading import load_config
 from harness.factory import make_env
-from tests.test_teacher import W, corridor
+from tests.test_teacher import W, corridor, padded
 
 
 def test_the_noise_rule_keeps_only_gains_clear_of_the_maps_noise() -> None:
@@ -62,21 +62,21 @@ def test_a_sampled_map_keeps_the_seen_cells_and_draws_the_rest_at_their_share() 
 
 def test_the_chooser_leaves_the_dead_end_where_every_map_agrees() -> None:
     planner, cand = corridor([3])
-    # Every seen cell free: each sampled map is the whole corridor free, the true one. Over 10
-    # steps slot 0 finds 3 cells and slot 1 (the far end) 7 (tests/test_teacher.py), on both
-    # maps alike: a gain of 4 with no spread clears any number of standard errors.
-    chooser = SampledChooser(samples=2, sigmas=4.0, after=0.0, horizon=10, reach=None)
-    per_map = chooser.per_map(planner, cand, 0, 100, np.random.default_rng(0))
-    np.testing.assert_array_equal(per_map, [[3, 7], [3, 7]])
-    assert chooser.decide(planner, cand, 100, np.random.default_rng(0)).tolist() == [1]
+    # Every seen cell free: each sampled map is the whole corridor free, the true one. With 10
+    # steps left slot 0 finds 3 cells and slot 1 (the far end) 7 (tests/test_teacher.py), on
+    # both maps alike. Scored by the steps to 99 % of the 21 cells (16 more, reached by neither
+    # in 10 steps: counted as 11) and then the cells: -11 * (69 padded cells + 1) + cells. A
+    # gain of 4 cells with no spread clears any number of standard errors.
+    chooser = SampledChooser(samples=2, sigmas=4.0, after=0.0)
+    per_map = chooser.per_map(planner, cand, 0, 10, np.random.default_rng(0))
+    np.testing.assert_array_equal(per_map, [[-767, -763], [-767, -763]])
+    assert chooser.decide(planner, cand, 10, np.random.default_rng(0)).tolist() == [1]
     # Before its coverage (5 / 21 of the corridor) it leaves the planner its choice.
-    late = SampledChooser(samples=2, after=0.5, horizon=10, reach=None)
-    assert late.decide(planner, cand, 100, np.random.default_rng(0)).tolist() == [0]
-    # A margin above the gain keeps slot 0; an agent that walks does not decide.
-    wary = SampledChooser(samples=2, after=0.0, horizon=10, margin=4, reach=None)
-    assert wary.decide(planner, cand, 100, np.random.default_rng(0)).tolist() == [0]
-    walking = chooser.decide(planner, cand, 100, np.random.default_rng(0), {0: [5]})
-    assert walking.tolist() == [0]
+    late = SampledChooser(samples=2, after=0.5)
+    assert late.decide(planner, cand, 10, np.random.default_rng(0)).tolist() == [0]
+    # An agent that holds a target does not decide.
+    held = np.array([padded(7)])
+    assert chooser.decide(planner, cand, 10, np.random.default_rng(0), held).tolist() == [0]
 
 
 def test_the_choosers_parameters_are_checked() -> None:
@@ -85,6 +85,8 @@ def test_the_choosers_parameters_are_checked() -> None:
             SampledChooser(**bad)
     with pytest.raises(ValueError, match="horizon"):
         RolloutRule(horizon=0)
+    with pytest.raises(TypeError):
+        SampledChooser(margin=4)  # the rollouts' rule is the measured one
 
 
 def _late_state(seed: int):

@@ -393,23 +393,18 @@ class SampledChooser(RolloutRule):
     the planner, before it): the end game, where the measured gain lies and its rollouts are
     short (docs/planners.md, "The rollout chooser").
 
+    Its rollouts run to the episode's end, score by the steps to 99 % coverage of their map and
+    need no margin (the rule measured on validation episodes; the research script
+    ``experiments/goal_oracle.py`` varies them).
+
     Args:
         samples: Sampled maps a decision.
         sigmas: Standard errors an option's mean gain must clear (0: the best mean wins).
         after: The team's coverage from which it decides.
-        horizon, margin, reach: The rollouts' rule (:class:`RolloutRule`).
     """
 
-    def __init__(
-        self,
-        samples: int = 4,
-        sigmas: float = 4.0,
-        after: float = 0.8,
-        horizon: int | None = None,
-        margin: float = 0.0,
-        reach: float | None = 0.99,
-    ) -> None:
-        super().__init__(horizon, margin, reach)
+    def __init__(self, samples: int = 4, sigmas: float = 4.0, after: float = 0.8) -> None:
+        super().__init__(horizon=None, margin=0.0, reach=0.99)
         if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)) or samples < 1:
             raise ValueError(f"samples must be an integer >= 1, got {samples!r}")
         if not sigmas >= 0:
@@ -441,22 +436,23 @@ class SampledChooser(RolloutRule):
         candidates: Candidates,
         steps_left: int,
         rng: np.random.Generator,
-        walks: Mapping[int, Sequence[int]] | None = None,
+        held: np.ndarray | None = None,
     ) -> np.ndarray:
         """Every agent's slot at this step, in agent index order (``(agents,)``; 0 for an agent
-        that does not decide): an agent decides from coverage :attr:`after` on, when it has no
-        committed walk in ``walks`` and at least two candidates; one that leaves slot 0 commits
-        to walking to its candidate, which the agents after it see."""
+        that does not decide): an agent decides from coverage :attr:`after` on, when it holds
+        no target (``held``: ``Frontier.held``, -1 for none) and has at least two candidates;
+        one that leaves slot 0 commits to walking to its candidate, which the agents after it
+        see, as they see the walks of those that hold."""
         n = candidates.cells.shape[0]
         slots = np.zeros(n, dtype=np.int64)
-        if steps_left <= 0 or believed_coverage(planner) < self.after:
+        holding = np.zeros(n, dtype=bool) if held is None else np.asarray(held) >= 0
+        deciding = ~holding & ((candidates.cells >= 0).sum(axis=1) >= 2)
+        if steps_left <= 0 or not deciding.any() or believed_coverage(planner) < self.after:
             return slots
-        committed = {a: list(w) for a, w in (walks or {}).items() if len(w)}
+        committed = held_walks(planner, held) if held is not None else {}
         size = planner.passable.size
-        for a in range(n):
+        for a in np.flatnonzero(deciding).tolist():
             valid = np.flatnonzero(candidates.cells[a] >= 0)
-            if a in committed or valid.size < 2:
-                continue
             per_map = self.per_map(planner, candidates, a, steps_left, rng, committed)
             slots[a] = valid[self.pick(clear_of_noise(per_map, self.sigmas), size)]
             if slots[a] != 0:

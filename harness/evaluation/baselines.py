@@ -53,7 +53,7 @@ from envs.coverage import CoverageEnv
 from envs.coverage.frontier import PLANNERS, FrontierOptions
 from envs.coverage.goals import Goal
 from envs.coverage.planners import FrontierPlanner
-from envs.coverage.rollouts import SampledChooser, held_walks
+from envs.coverage.rollouts import SampledChooser
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL
 from harness.evaluation.episodes import BatchPolicy, batch_len, episode_draws, sample_categorical
 
@@ -222,11 +222,9 @@ class RolloutPolicy:
         actions: list[int] = []
         for env in envs:
             frontier = env.frontier_state
-            planner = frontier.planner
-            walks = held_walks(planner, frontier.held)  # teammates walking to a chosen target
             steps_left = env.max_steps - env.steps
             slots = self.chooser.decide(
-                planner, frontier.candidates, steps_left, env.np_random, walks
+                frontier.planner, frontier.candidates, steps_left, env.np_random, frontier.held
             )
             actions.extend(slots.tolist())
         return np.asarray(actions, dtype=np.int64)

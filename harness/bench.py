@@ -52,6 +52,9 @@ TEAMMAP_ENV = EnvConfig(
 GOALS_ENV = TEAMMAP_ENV.model_copy(
     update={"frontier": {"action": {"goal": {"k": 8}}, "planner": "pocket"}}
 )
+#: The rollout chooser's setting (``--policy rollout``, docs/planners.md): the goal action with
+#: 4 agents on 50x50 random maps, where it beats every written planner.
+ROLLOUT_ENV = GOALS_ENV.model_copy(update={"n_agents": 4})
 #: Env copies of the VecEnv figures (the batched core pays off with many).
 VEC_COPIES = (1, 4, 16, 64)
 
@@ -445,7 +448,8 @@ def bench_eval(episodes: int = 8) -> dict[str, Any]:
     with each planner's speed over the classical explorer's (``eval_<baseline>_over_frontier``:
     the median over :data:`PLANNER_ROUNDS` rounds of the ratio within a round; the rates too),
     and every row per CPU second as well (``eval_episodes_per_cpu_s``: ``mlp``, ``random``, each
-    baseline, ``teammap_frontier_step``, ``goals_frontier_step``)."""
+    baseline, ``teammap_frontier_step``, ``goals_frontier_step``, ``rollout_threads1`` and
+    ``rollout_threadsN``); the rollout chooser's rows: :func:`_rollout_rates`."""
     import torch
 
     from envs.coverage.frontier import PLANNERS
@@ -521,7 +525,40 @@ def bench_eval(episodes: int = 8) -> dict[str, Any]:
         out[f"eval_{name}_episodes_per_s"] = rate
         if name != "frontier":
             out[f"eval_{name}_over_frontier"] = over_frontier[name]
+    out.update(_rollout_rates(max(1, episodes // 2), cpu))
     return out
+
+
+def _rollout_rates(episodes: int, cpu: dict[str, float]) -> dict[str, Any]:
+    """Episodes/s of ``--policy rollout`` on :data:`ROLLOUT_ENV` (its episodes as copies side
+    by side, as ``harness eval`` plays them) on one thread and on every core this process may
+    use (the command's default: the copies decide, and each decision scores its maps, side by
+    side; the same episodes and choices), one after the other, after a short episode that
+    compiles what they need."""
+    from envs.coverage.rollouts import SampledChooser
+    from harness.evaluation.baselines import BASELINES, RolloutPolicy
+    from harness.evaluation.episodes import run_episodes
+    from harness.processes import available_cores
+
+    env = BASELINES["rollout"].env_config(ROLLOUT_ENV)
+    small = env.model_copy(update={"height": 12, "width": 12, "max_steps": 100})
+    run_episodes(RolloutPolicy(SampledChooser(after=0.0), threads=1), small, 1, 0)
+    cores = available_cores()
+    rates = {
+        threads: _rate(
+            episodes,
+            lambda threads=threads: run_episodes(RolloutPolicy(threads=threads), env, episodes, 0),
+            cpu,
+            f"rollout_threads{threads}",
+        )
+        for threads in dict.fromkeys((1, cores))
+    }
+    return {
+        "eval_rollout_threads": cores,
+        "eval_rollout_episodes_per_s": rates[cores],
+        "eval_rollout_1_thread_episodes_per_s": rates[1],
+        "eval_rollout_over_1_thread": rates[cores] / rates[1],
+    }
 
 
 # ---------------------------------------------------------------------- memory
@@ -568,7 +605,7 @@ SECTION_HELP = {
     "env": "agent-steps/s of the bare env and of the training VecEnv (both backends)",
     "train": "gradient steps/s of DoubleDQN + PER against SB3's DQN, per device and size",
     "sharing": "gradient steps/s of each algo.sharing mode",
-    "eval": "episodes/s of harness eval for the random, MLP and planner policies",
+    "eval": "episodes/s of harness eval for the random, MLP, planner and rollout policies",
     "memory": "peak memory of a training process with a full buffer",
 }
 
@@ -694,6 +731,12 @@ def format_bench(r: dict[str, Any]) -> str:
                 ratio = r.get(f"eval_{name}_over_frontier")
                 tail = f"   {ratio:5.2f} x frontier" if ratio is not None else ""
                 lines.append(f"  {name + ' episodes/s':<29}{rate:>10.2f}{tail}")
+    if "eval_rollout_episodes_per_s" in r:
+        lines.append(
+            f"  rollout episodes/s         {r['eval_rollout_episodes_per_s']:>12.3f}   "
+            f"{r['eval_rollout_threads']} threads; {r['eval_rollout_over_1_thread']:.2f} x "
+            f"1 thread ({r['eval_rollout_1_thread_episodes_per_s']:.3f})"
+        )
     if "train_peak_memory_mib" in r:
         lines += [
             "",

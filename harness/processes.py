@@ -1,5 +1,6 @@
 """The commands of the Python processes the harness starts: seed-group members and their
-resumes, sweep workers, the memory benchmark. The one owner of how a child Python is started.
+resumes, sweep workers, the memory benchmark. The one owner of how a child Python is started,
+and of how many cores a process may use (:func:`available_cores`).
 
 A child imports only the installed packages and this harness, never a module that happens to lie
 in the folder it was started from. ``python -m`` and ``python -c`` put that folder first on
@@ -14,6 +15,7 @@ deleted meanwhile ends the child there, in one line (:func:`harness.check_workin
 
 from __future__ import annotations
 
+import os
 import sys
 from pathlib import Path
 
@@ -43,3 +45,11 @@ def harness_command(*args: str) -> list[str]:
     """The ``harness ARGS...`` command line of a child process (the same interpreter)."""
     code = "from harness.cli import main\nsys.exit(main(sys.argv[1:]))\n"
     return [*python_command(code), *args]
+
+
+def available_cores() -> int:
+    """The cores this process may run on: its CPU affinity (``taskset``, Slurm, containers
+    restrict it), else the machine's count."""
+    if hasattr(os, "sched_getaffinity"):
+        return len(os.sched_getaffinity(0)) or 1
+    return os.cpu_count() or 1

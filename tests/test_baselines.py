@@ -105,11 +105,16 @@ def test_a_rollout_chooser_that_never_deviates_is_its_planner_episode_for_episod
 
 def test_rollout_deviates_repeats_from_the_seed_and_never_hits_a_wall() -> None:
     env = goal_env()
-    eager = RolloutPolicy(SampledChooser(samples=2, sigmas=0.0, after=0.0))
-    one = run_episodes(eager, env, episodes=3, seed=7, copies=1)
+
+    def eager(threads: int) -> RolloutPolicy:
+        chooser = SampledChooser(samples=2, sigmas=0.0, after=0.0, threads=threads)
+        return RolloutPolicy(chooser, threads=threads)
+
+    one = run_episodes(eager(1), env, episodes=3, seed=7, copies=1)
     assert all(sum(r.wall_hits) == 0 for r in one)
-    # Its sampled maps come from each episode's generator: the copies side by side do not matter.
-    assert _played(run_episodes(eager, env, episodes=3, seed=7, copies=3)) == _played(one)
+    # Its sampled maps come from each episode's generator: the copies side by side, and the
+    # threads that decide for them and score their maps, do not matter.
+    assert _played(run_episodes(eager(3), env, episodes=3, seed=7, copies=3)) == _played(one)
     # It chooses: its episodes are not the planner's.
     planner = run_episodes(make_baseline("frontier_step", 0), env, episodes=3, seed=7)
     assert _played(one) != _played(planner)

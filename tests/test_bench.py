@@ -90,6 +90,10 @@ def test_bench_report_shows_every_section_with_targets():
         "eval_frontier_pocket_over_frontier": 7.5 / 11.0,
         "eval_frontier_hungarian_episodes_per_s": 5.5,
         "eval_frontier_hungarian_over_frontier": 0.5,
+        "eval_rollout_threads": 2,
+        "eval_rollout_episodes_per_s": 0.09,
+        "eval_rollout_1_thread_episodes_per_s": 0.06,
+        "eval_rollout_over_1_thread": 1.5,
         "train_peak_memory_mib": 370.0,
     }
     text = format_bench(figures)
@@ -122,12 +126,19 @@ def test_bench_report_shows_every_section_with_targets():
     assert "7.50" in line and "0.68 x frontier" in line
     (line,) = [line for line in text.splitlines() if "frontier_hungarian episodes/s" in line]
     assert "5.50" in line and "0.50 x frontier" in line
+    (line,) = [line for line in text.splitlines() if "rollout episodes/s" in line]
+    assert "0.090" in line and "2 threads; 1.50 x 1 thread (0.060)" in line
 
 
-def test_bench_eval_has_a_key_per_planner():
+def test_bench_eval_has_a_key_per_planner(monkeypatch: pytest.MonkeyPatch) -> None:
     from envs.coverage.frontier import PLANNERS
+    from harness import bench, processes
     from harness.bench import bench_eval
 
+    # The rollout chooser's rows on a small map, on one thread and on two.
+    small = bench.ROLLOUT_ENV.model_copy(update={"height": 16, "width": 16, "max_steps": 150})
+    monkeypatch.setattr(bench, "ROLLOUT_ENV", small)
+    monkeypatch.setattr(processes, "available_cores", lambda: 2)
     out = bench_eval(episodes=1)
     for entry in PLANNERS.values():
         assert out[f"eval_{entry.baseline}_episodes_per_s"] > 0
@@ -139,8 +150,12 @@ def test_bench_eval_has_a_key_per_planner():
     assert out["eval_goals_frontier_step_episodes_per_s"] > 0
     # Every row per CPU second too (what a busy machine moves less).
     rows = {"mlp", "random", *(e.baseline for e in PLANNERS.values())}
-    rows |= {"teammap_frontier_step", "goals_frontier_step"}
+    rows |= {"teammap_frontier_step", "goals_frontier_step", "rollout_threads1", "rollout_threads2"}
     assert set(out["eval_episodes_per_cpu_s"]) == rows
+    assert out["eval_rollout_threads"] == 2
+    assert out["eval_rollout_over_1_thread"] == pytest.approx(
+        out["eval_rollout_episodes_per_s"] / out["eval_rollout_1_thread_episodes_per_s"]
+    )
     assert all(rate > 0 for rate in out["eval_episodes_per_cpu_s"].values())
 
 

@@ -1,10 +1,12 @@
 """The rollouts of the goal action's candidates (``envs.coverage.rollouts``) as the chooser that
 sees only the team's map plays them: the sampled maps, the team's own estimate of its coverage,
 the rule against chance gains, its choice on a hand-built corridor, and that nothing it does
-depends on the cells nobody has seen (where the true-map teacher's scores do). The rollouts'
-scores themselves are tests/test_teacher.py's."""
+depends on the cells nobody has seen (where the true-map teacher's scores do), nor on the
+threads that score its maps. The rollouts' scores themselves are tests/test_teacher.py's."""
 
 from __future__ import annotations
+
+import copy
 
 import numpy as np
 import pytest
@@ -80,7 +82,7 @@ def test_the_chooser_leaves_the_dead_end_where_every_map_agrees() -> None:
 
 
 def test_the_choosers_parameters_are_checked() -> None:
-    for bad in ({"samples": 0}, {"samples": 2.5}, {"sigmas": -1}, {"after": 1.5}):
+    for bad in ({"samples": 0}, {"samples": 2.5}, {"sigmas": -1}, {"after": 1.5}, {"threads": 0}):
         with pytest.raises(ValueError, match=next(iter(bad))):
             SampledChooser(**bad)
     with pytest.raises(ValueError, match="horizon"):
@@ -135,3 +137,27 @@ def test_nothing_the_chooser_does_depends_on_the_cells_nobody_has_seen(seed: int
     # The true-map teacher reads those cells: its scores move (so this check can fail).
     changed = [not np.array_equal(x, y, equal_nan=True) for x, y in zip(after[3], before[3])]
     assert any(changed)
+
+
+@pytest.mark.parametrize("seed", [3, 6])
+def test_maps_scored_side_by_side_give_the_same_scores_and_choices(seed: int) -> None:
+    env = _late_state(seed)
+    frontier = env.frontier_state
+    planner, cand = frontier.planner, frontier.candidates
+    steps_left = env.max_steps - env.steps
+
+    def play(chooser: SampledChooser) -> tuple:
+        rng = np.random.default_rng(seed)
+        per_map = [chooser.per_map(planner, cand, a, steps_left, rng) for a in range(4)]
+        # The generator moved on by the same draws: the next episode's maps are the same too.
+        return per_map, chooser.decide(planner, cand, steps_left, rng), rng.random()
+
+    alone = play(SampledChooser(samples=5, sigmas=1.0, after=0.4))
+    threaded = SampledChooser(samples=5, sigmas=1.0, after=0.4, threads=3)
+    for chooser in (threaded, copy.deepcopy(threaded)):  # a copy makes its own threads
+        side_by_side = play(chooser)
+        for a in range(4):
+            np.testing.assert_array_equal(side_by_side[0][a], alone[0][a])
+        np.testing.assert_array_equal(side_by_side[1], alone[1])
+        assert side_by_side[2] == alone[2]
+    assert threaded._pool is not None  # the maps were scored on its threads

@@ -38,6 +38,7 @@ steps, the count of visited cells), with the planners' own compiled steps
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from typing import NamedTuple
 
 import numpy as np
@@ -401,9 +402,13 @@ class SampledChooser(RolloutRule):
         samples: Sampled maps a decision.
         sigmas: Standard errors an option's mean gain must clear (0: the best mean wins).
         after: The team's coverage from which it decides.
+        threads: Maps scored side by side (the compiled rollouts release the GIL); the
+            choices do not depend on it, as every map is drawn before any is scored.
     """
 
-    def __init__(self, samples: int = 4, sigmas: float = 4.0, after: float = 0.8) -> None:
+    def __init__(
+        self, samples: int = 4, sigmas: float = 4.0, after: float = 0.8, threads: int = 1
+    ) -> None:
         super().__init__(horizon=None, margin=0.0, reach=0.99)
         if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)) or samples < 1:
             raise ValueError(f"samples must be an integer >= 1, got {samples!r}")
@@ -411,7 +416,24 @@ class SampledChooser(RolloutRule):
             raise ValueError(f"sigmas must be >= 0, got {sigmas!r}")
         if not 0 <= after <= 1:
             raise ValueError(f"after must be in [0, 1], got {after!r}")
+        if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+            raise ValueError(f"threads must be an integer >= 1, got {threads!r}")
         self.samples, self.sigmas, self.after = int(samples), float(sigmas), float(after)
+        self.threads = int(threads)
+        self._pool = self._make_pool()
+
+    def _make_pool(self) -> ThreadPoolExecutor | None:
+        # One pool for the chooser's life (a decision takes ~10 ms), made here so that the
+        # copies of an evaluation, deciding side by side, share it; threads start on first use.
+        workers = min(self.threads, self.samples)
+        return ThreadPoolExecutor(workers) if workers > 1 else None
+
+    def __getstate__(self) -> dict[str, object]:
+        return {**self.__dict__, "_pool": None}
+
+    def __setstate__(self, state: dict[str, object]) -> None:
+        self.__dict__.update(state)
+        self._pool = self._make_pool()  # a copy makes its own threads
 
     def per_map(
         self,
@@ -424,11 +446,18 @@ class SampledChooser(RolloutRule):
     ) -> np.ndarray:
         """Every valid slot's score (slot order) on each sampled map: ``(samples, slots)``."""
         valid = np.flatnonzero(candidates.cells[agent] >= 0)
-        out = np.empty((self.samples, valid.size))
-        for m in range(self.samples):
-            free = sampled_free(planner, rng)
-            out[m] = self.scores_on(free, planner, candidates, agent, steps_left, walks)[valid]
-        return out
+        # Every map is drawn before any is scored (scoring draws nothing), so the generator
+        # gives the same maps in the same order whatever the threads.
+        maps = [sampled_free(planner, rng) for _ in range(self.samples)]
+
+        def score(free: np.ndarray) -> np.ndarray:
+            return self.scores_on(free, planner, candidates, agent, steps_left, walks)[valid]
+
+        if self._pool is not None:
+            rows = list(self._pool.map(score, maps))
+        else:
+            rows = [score(free) for free in maps]
+        return np.array(rows).reshape(self.samples, valid.size)
 
     def decide(
         self,

@@ -33,7 +33,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Protocol
 
-from harness.processes import harness_command
+from harness.processes import available_cores, harness_command
 from harness.results.rundir import RunDir, RunDirError, atomic_write_text, unique_folder
 
 #: The file that marks a folder as a seed group.
@@ -231,14 +231,6 @@ class GroupInterrupted(Exception):
             for state, seeds in states.items()
             if seeds
         )
-
-
-def available_cores() -> int:
-    """The cores this process may run on: its CPU affinity (``taskset``, Slurm, containers
-    restrict it), else the machine's count."""
-    if hasattr(os, "sched_getaffinity"):
-        return len(os.sched_getaffinity(0)) or 1
-    return os.cpu_count() or 1
 
 
 def threads_per_job(jobs: int, cores: int | None = None) -> int:

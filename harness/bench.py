@@ -385,6 +385,46 @@ def bench_scaling(grad_steps: int = 60) -> dict[str, Any]:
     return {"train_grad_steps_per_s_by_setting": out}
 
 
+def bench_teacher(rounds: int = 3, copies: int = 8, warm_steps: int = 300) -> dict[str, Any]:
+    """Decisions labelled per second by the true-map teacher of training (``algo.teacher``,
+    :class:`harness.training.teacher.TeacherLabeller`, scored by the steps to 99 %) on one
+    thread and on every core this process may use (what a run without ``algo.threads`` gives
+    it), alternately: :data:`ROLLOUT_ENV`'s 4 agents in ``copies`` copies, each played by its
+    planner (slot 0) for ``warm_steps`` steps, then every deciding agent labelled, every call
+    on the same states. Medians over ``rounds``."""
+    from envs.coverage.core import CoverageCore
+    from harness.config.schema import TeacherConfig
+    from harness.factory import make_core_spec
+    from harness.processes import available_cores
+    from harness.training.teacher import TeacherLabeller
+
+    core = CoverageCore(make_core_spec(ROLLOUT_ENV), copies)
+    for b in range(copies):
+        core.reset(b, seed=b)
+    core.observe()
+    for _ in range(warm_steps):  # the planner's moves: every agent decides at every state
+        core.step(np.zeros((copies, ROLLOUT_ENV.n_agents), dtype=np.int64))
+        core.observe()
+    cores = available_cores()
+    labellers = {
+        threads: TeacherLabeller(TeacherConfig(reach=0.99), seed=0, threads=threads)
+        for threads in dict.fromkeys((1, cores))
+    }
+    labels = int((labellers[1](core) >= 0).sum())  # also compiles what the labels need
+    rates: dict[int, list[float]] = {threads: [] for threads in labellers}
+    for _ in range(rounds):
+        for threads, labeller in labellers.items():
+            rates[threads].append(_rate(labels, lambda labeller=labeller: labeller(core)))
+    per_s = {threads: float(np.median(r)) for threads, r in rates.items()}
+    return {
+        "train_teacher_threads": cores,
+        "train_teacher_copies": copies,
+        "train_teacher_labels_per_s": per_s[cores],
+        "train_teacher_1_thread_labels_per_s": per_s[1],
+        "train_teacher_over_1_thread": per_s[cores] / per_s[1],
+    }
+
+
 # ---------------------------------------------------------------------- sharing
 SHARING_MODES = ("shared", "shared_id", "per_agent")
 
@@ -400,7 +440,7 @@ def bench_sharing(
     from harness import DoubleDQN, PrioritizedReplayBuffer
     from harness.config.schema import AlgoConfig
     from harness.training.adapters import make_vec_env
-    from harness.training.checks import network_kwargs, policy_class_name
+    from harness.training.checks import policy_class_name, policy_kwargs
 
     torch.set_num_threads(1)
     net = THESIS_NET if net is None else net
@@ -410,9 +450,9 @@ def bench_sharing(
         env._agent_id = mode != "shared"
         venv = make_vec_env(env, copies=4, seed=0)
         venvs.append(venv)
-        # The policy and its network as `harness run` builds them for this mode.
+        # The policy, its network and its optimizer's step as `harness run` builds them for
+        # this mode (the thesis's RMSprop).
         algo = AlgoConfig(sharing=mode, net_arch=net)
-        kwargs = network_kwargs(algo, THESIS_ENV.n_agents)
         model = DoubleDQN(
             policy_class_name(algo),
             venv,
@@ -420,7 +460,7 @@ def bench_sharing(
             batch_size=batch,
             learning_starts=10**9,  # fill the buffer without training
             replay_buffer_class=PrioritizedReplayBuffer,
-            policy_kwargs={**kwargs, "optimizer_class": torch.optim.RMSprop},
+            policy_kwargs=policy_kwargs(algo, THESIS_ENV.n_agents, "cpu"),
             device="cpu",
         )
         model.learn(fill)
@@ -595,7 +635,7 @@ def _own_peak_mib() -> float:
 
 SECTIONS: dict[str, list[Callable[[], dict[str, Any]]]] = {
     "env": [bench_env],
-    "train": [bench_train, bench_scaling],
+    "train": [bench_train, bench_scaling, bench_teacher],
     "sharing": [bench_sharing],
     "eval": [bench_eval],
     "memory": [bench_memory],
@@ -603,7 +643,8 @@ SECTIONS: dict[str, list[Callable[[], dict[str, Any]]]] = {
 #: One line per section for ``harness bench --help`` (the module docstring says more).
 SECTION_HELP = {
     "env": "agent-steps/s of the bare env and of the training VecEnv (both backends)",
-    "train": "gradient steps/s of DoubleDQN + PER against SB3's DQN, per device and size",
+    "train": "gradient steps/s of DoubleDQN + PER against SB3's DQN, per device and size; "
+    "the true-map teacher's labels/s",
     "sharing": "gradient steps/s of each algo.sharing mode",
     "eval": "episodes/s of harness eval for the random, MLP, planner and rollout policies",
     "memory": "peak memory of a training process with a full buffer",
@@ -698,6 +739,14 @@ def format_bench(r: dict[str, Any]) -> str:
                 f"{GOALS_TRANSITIONS_PER_STEP * goal['doubledqn_per']:,.0f} transitions/s "
                 f"(a gradient step per {GOALS_TRANSITIONS_PER_STEP} transitions, the env free)"
             )
+    if "train_teacher_labels_per_s" in r:
+        lines += [
+            "",
+            f"true-map teacher's labels/s (4 agents, {r['train_teacher_copies']} copies): "
+            f"{r['train_teacher_labels_per_s']:,.0f} on {r['train_teacher_threads']} threads, "
+            f"{r['train_teacher_over_1_thread']:.2f} x 1 thread "
+            f"({r['train_teacher_1_thread_labels_per_s']:,.0f})",
+        ]
     if "train_grad_steps_per_s_by_setting" in r:
         lines += ["", "gradient steps/s by network, batch and torch threads (DoubleDQN + PER)"]
         lines.append(f"  {'network':<8}{'batch':>6}{'1 thread':>11}{'2 threads':>11}")

@@ -159,6 +159,24 @@ def test_bench_eval_has_a_key_per_planner(monkeypatch: pytest.MonkeyPatch) -> No
     assert all(rate > 0 for rate in out["eval_episodes_per_cpu_s"].values())
 
 
+def test_bench_teacher_times_the_labels_on_one_thread_and_on_every_core(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from harness import bench, processes
+
+    small = bench.ROLLOUT_ENV.model_copy(update={"height": 16, "width": 16, "max_steps": 150})
+    monkeypatch.setattr(bench, "ROLLOUT_ENV", small)
+    monkeypatch.setattr(processes, "available_cores", lambda: 2)
+    out = bench.bench_teacher(rounds=1, copies=3, warm_steps=5)
+    assert out["train_teacher_threads"] == 2
+    assert out["train_teacher_labels_per_s"] > 0 and out["train_teacher_1_thread_labels_per_s"] > 0
+    assert out["train_teacher_over_1_thread"] == pytest.approx(
+        out["train_teacher_labels_per_s"] / out["train_teacher_1_thread_labels_per_s"]
+    )
+    text = bench.format_bench({**machine_info(), **out})
+    assert "true-map teacher's labels/s (4 agents, 3 copies)" in text
+
+
 def test_bench_sharing_reports_gradient_steps_per_mode():
     out = bench_sharing(net=[8], batch=4, grad_steps=2, fill=64)
     rates = out["train_grad_steps_per_s_by_sharing"]

@@ -89,6 +89,23 @@ def test_the_labeller_labels_a_share_of_the_copies_from_its_own_generator() -> N
     assert [core.rng(b).bit_generator.state for b in range(8)] == rngs
 
 
+def test_copies_labelled_side_by_side_get_the_labels_of_one_thread() -> None:
+    core = small_core(copies=6)
+    rng = np.random.default_rng(1)
+    alone = TeacherLabeller(TeacherConfig(share=0.7, reach=0.3), seed=5)
+    threaded = TeacherLabeller(TeacherConfig(share=0.7, reach=0.3), seed=5, threads=3)
+    deciding = 0
+    for _ in range(10):
+        labels = threaded(core)
+        np.testing.assert_array_equal(labels, alone(core))
+        deciding += int((labels >= 0).sum())
+        mask = core.observe()["action_mask"]
+        actions = np.array([[rng.choice(np.flatnonzero(m)) for m in copy] for copy in mask])
+        core.step(actions)
+        core.observe()
+    assert deciding > 10  # the threads had labels to give
+
+
 def test_the_core_vecenv_puts_the_labels_in_the_step_s_infos() -> None:
     core = small_core(copies=2)
     calls = []

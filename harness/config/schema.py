@@ -498,7 +498,8 @@ class AlgoConfig(_Section):
     (docs/performance.md). Without effect on a CPU; ``false`` for debugging."""
     threads: Annotated[int, Field(ge=1, le=MAX_THREADS)] | None = None
     """torch CPU threads (``torch.set_num_threads``); ``null`` keeps torch's default (one per
-    core). On a 2-core machine 2 threads train the 3x512 net ~20 % faster than 1 (harness bench)."""
+    core). On a 2-core machine 2 threads train the 3x512 net ~20 % faster than 1 (harness bench).
+    With ``teacher``, also the threads its labels are made on (``null``: every core)."""
 
     imitation: ImitationConfig | None = None
     """DQfD's large-margin loss towards the planner-backed action (needs ``env.frontier.action``);

@@ -6,11 +6,15 @@ label with its decision (``harness.sb3.decisions``), for DQfD's margin loss.
 CoreVecEnv`) before each step, on the state the policy has just chosen in: for a share of the
 copies (``algo.teacher.share``, drawn from a generator of its own, so the episodes are those of
 a run without a teacher), :meth:`envs.coverage.teacher.RolloutTeacher.label` gives every
-deciding agent's slot, its teammates' held targets being walks they have committed to. Only
-training builds it: evaluation never does (``tests/test_architecture.py``).
+deciding agent's slot, its teammates' held targets being walks they have committed to. The
+copies are labelled side by side on the run's CPU threads (``algo.threads``; the compiled
+rollouts release the GIL, and a label draws nothing, so the labels are those of one thread).
+Only training builds it: evaluation never does (``tests/test_architecture.py``).
 """
 
 from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
@@ -28,28 +32,39 @@ class TeacherLabeller:
     Args:
         config: ``algo.teacher``.
         seed: Seeds the draw of the labelled copies.
+        threads: Copies labelled side by side.
     """
 
-    def __init__(self, config: TeacherConfig, seed: int | None = None) -> None:
+    def __init__(
+        self, config: TeacherConfig, seed: int | list[int] | None = None, threads: int = 1
+    ) -> None:
         # The oracle's measured setting: rollouts to the episode's end, scored by the cells found
         # (or with reach, by the steps to that coverage), any gain over slot 0
         # (docs/experiment-log.md "The room in the candidates").
         self.teacher = RolloutTeacher(reach=config.reach)
         self.share = config.share
         self.rng = np.random.default_rng(seed)
+        self._pool = ThreadPoolExecutor(threads) if threads > 1 else None
 
     def __call__(self, core: CoverageCore) -> np.ndarray:
         """The label of every agent of every copy at the core's current state, ``(copies,
         agents)``: the teacher's slot for a deciding agent of a labelled copy, -1 elsewhere."""
         out = np.full((core.copies, core.n_agents), -1, dtype=np.int64)
         drawn = self.rng.random(core.copies) < self.share
-        for b in np.flatnonzero(drawn).tolist():
+        copies = [
+            b
+            for b in np.flatnonzero(drawn).tolist()
+            if core.frontiers[b] is not None and core.frontiers[b].candidates is not None
+        ]
+
+        def label(b: int) -> np.ndarray:
             frontier = core.frontiers[b]
-            if frontier is None or frontier.candidates is None:
-                continue
             planner = frontier.planner
             walks = held_walks(planner, frontier.held)
             steps_left = core.max_steps - int(core.steps[b])
-            slots, _ = self.teacher.label(planner, frontier.candidates, steps_left, walks)
+            return self.teacher.label(planner, frontier.candidates, steps_left, walks)[0]
+
+        labels = self._pool.map(label, copies) if self._pool else map(label, copies)
+        for b, slots in zip(copies, labels):
             out[b] = slots
         return out

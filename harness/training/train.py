@@ -41,6 +41,7 @@ from harness.evaluation.episodes import (
     selection_score,
     summarize,
 )
+from harness.processes import available_cores
 from harness.results.rundir import (
     CheckpointDir,
     LogMismatchError,
@@ -172,11 +173,14 @@ def _imitation_kwargs(config: ExperimentConfig) -> dict[str, Any]:
 
 def _labeller(config: ExperimentConfig, state: TrainingState) -> TeacherLabeller | None:
     """``algo.teacher``'s labeller, its draws seeded by the run's seed and its resumes (as the
-    episodes are, :func:`_env_seed`); ``None`` without a teacher."""
+    episodes are, :func:`_env_seed`), its copies labelled on the run's CPU threads
+    (``algo.threads``, else every core the process may use: the labels come between the
+    gradient steps); ``None`` without a teacher."""
     teacher = config.algo.teacher
     if teacher is None:
         return None
-    return TeacherLabeller(teacher, seed=[config.seed, state.resumes])
+    threads = config.algo.threads or available_cores()
+    return TeacherLabeller(teacher, seed=[config.seed, state.resumes], threads=threads)
 
 
 def _lr_start(phase: PhaseConfig) -> float:

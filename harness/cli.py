@@ -27,6 +27,7 @@ import os
 import shutil
 import signal
 import sys
+import time
 import warnings
 from collections.abc import Sequence
 from pathlib import Path
@@ -529,8 +530,30 @@ def _group_done(group: Path, jobs: Sequence[Job]) -> int:
 
 
 def print_progress(line: str) -> None:
-    """A progress line of long work (seed groups), on stderr."""
+    """A progress line of long work (seed groups, evaluations), on stderr."""
     print(f"  {line}", file=sys.stderr, flush=True)
+
+
+#: Seconds between two progress lines of ``harness eval`` (a shorter evaluation prints none).
+EVAL_PROGRESS_EVERY_S = 30.0
+
+
+class EpisodeProgress:
+    """``harness eval``'s progress (``run_episodes``' ``progress``): ``WHAT: N/TOTAL episodes,
+    M min``, at most one line every :data:`EVAL_PROGRESS_EVERY_S` and none when all are done
+    (the summary follows), so only a long evaluation (a search baseline, large maps) says
+    where it is."""
+
+    def __init__(self, what: str, total: int) -> None:
+        self.what, self.total = what, total
+        self.start = self.last = time.monotonic()
+
+    def __call__(self, done: int) -> None:
+        now = time.monotonic()
+        if done < self.total and now - self.last >= EVAL_PROGRESS_EVERY_S:
+            self.last = now
+            minutes = (now - self.start) / 60
+            print_progress(f"{self.what}: {done}/{self.total} episodes, {minutes:.1f} min")
 
 
 def _resume(args: argparse.Namespace) -> int:
@@ -668,10 +691,14 @@ def cmd_eval(args: argparse.Namespace) -> int:
         )
     for policy in args.against:  # before any episode is played
         check_baseline(policy, target.config, "--against")
-    summary, results = evaluate(target, args.episodes, args.overrides)
+    progress = EpisodeProgress(target.label, args.episodes)
+    summary, results = evaluate(target, args.episodes, args.overrides, progress)
     if summary["saved"] is not None:
         print(f"saved {summary['saved']}", file=sys.stderr)
-    against = [evaluate_against(target, summary, p, args.overrides) for p in args.against]
+    against = [
+        evaluate_against(target, summary, p, args.overrides, EpisodeProgress(p, args.episodes))
+        for p in args.against
+    ]
     for comparison in against:
         if comparison["saved"] is not None:
             print(f"saved {comparison['saved']}", file=sys.stderr)

@@ -18,7 +18,7 @@ import os
 import shutil
 import tempfile
 import zipfile
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -633,15 +633,23 @@ def _compact_target_network(model_zip: bytes) -> bytes:
 
 
 # ---------------------------------------------------------------------- eval, tune, compare
-def evaluate(target: Target, episodes: int, overrides: Sequence[str]) -> tuple[dict[str, Any], Any]:
+def evaluate(
+    target: Target,
+    episodes: int,
+    overrides: Sequence[str],
+    progress: Callable[[int], None] | None = None,
+) -> tuple[dict[str, Any], Any]:
     """``harness eval``'s work: run the episodes, summarise, and save the JSON where results of
-    the target go (nothing for a baseline).
+    the target go (nothing for a baseline). ``progress``: as
+    :func:`~harness.evaluation.episodes.run_episodes`' own.
 
     Returns:
         The summary (with per-episode ``coverage`` and ``wall_hits``), the episode results, and
         the saved file (``None`` for a baseline) as the summary's ``"saved"`` entry.
     """
-    results = run_episodes(target.policy, target.config.env, episodes, target.seed)
+    results = run_episodes(
+        target.policy, target.config.env, episodes, target.seed, progress=progress
+    )
     summary: dict[str, Any] = {
         "policy": target.label,
         "seed": target.seed,
@@ -661,7 +669,11 @@ def evaluate(target: Target, episodes: int, overrides: Sequence[str]) -> tuple[d
 
 
 def evaluate_against(
-    target: Target, summary: dict[str, Any], policy: str, overrides: Sequence[str]
+    target: Target,
+    summary: dict[str, Any],
+    policy: str,
+    overrides: Sequence[str],
+    progress: Callable[[int], None] | None = None,
 ) -> dict[str, Any]:
     """``harness eval --against POLICY``: the baseline ``policy`` on the episodes of ``target``'s
     evaluation ``summary`` (:func:`evaluate`: the same maps and starts, from the same seed), and
@@ -671,6 +683,8 @@ def evaluate_against(
     beside the evaluation (:func:`~harness.results.rundir.against_filename`; nothing for a
     baseline target), with both per-episode lists.
 
+    ``progress``: as :func:`evaluate`'s, for the baseline's episodes.
+
     Returns:
         The comparison, with the saved file (or ``None``) as its ``"saved"`` entry.
     """
@@ -678,7 +692,9 @@ def evaluate_against(
 
     episodes = summary["episodes"]
     baseline = baseline_target(policy, target.config, target.seed)
-    results = run_episodes(baseline.policy, baseline.config.env, episodes, target.seed)
+    results = run_episodes(
+        baseline.policy, baseline.config.env, episodes, target.seed, progress=progress
+    )
     theirs = _per_episode(results)
     metric = "team_return" if "team_return" in theirs else "coverage"
     a = np.asarray(summary[metric], dtype=np.float64)

@@ -190,6 +190,24 @@ def test_a_planner_on_a_goal_config_plays_its_moves_on_the_same_episodes(capsys)
     assert planner["env"]["frontier"] is None and slot_0["env"]["frontier"] is not None
 
 
+def test_a_long_evaluation_says_where_it_is_on_stderr(capsys, monkeypatch):
+    args = ["--config", str(SMOKE), "--episodes", "20", "--set", "env.max_steps=20"]
+    # A short evaluation prints no progress: the summary is all.
+    capsys.readouterr()
+    assert main(["eval", "--policy", "frontier", *args, "--against", "random"]) == 0
+    assert "episodes," not in capsys.readouterr().err
+    # Every batch of copies side by side (8) once it has taken long enough, never the last.
+    monkeypatch.setattr("harness.cli.EVAL_PROGRESS_EVERY_S", 0.0)
+    assert main(["eval", "--policy", "frontier", *args, "--against", "random"]) == 0
+    lines = [line.split(", ")[0].strip() for line in capsys.readouterr().err.splitlines()]
+    assert lines == [
+        "frontier: 8/20 episodes",
+        "frontier: 16/20 episodes",
+        "random: 8/20 episodes",
+        "random: 16/20 episodes",
+    ]
+
+
 def test_frontier_beats_random_on_the_same_episodes(capsys):
     args = ["--config", str(SMOKE), "--episodes", "5"]
     frontier = eval_json(capsys, "--policy", "frontier", *args)

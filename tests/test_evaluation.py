@@ -19,7 +19,9 @@ def seeded_random_policy(obs, envs):
 
 
 def test_evaluation_is_repeatable_and_independent_of_copies():
-    a = run_episodes(seeded_random_policy, ENV, episodes=5, seed=7, copies=2)
+    done: list[int] = []  # episodes finished, after each batch of copies
+    a = run_episodes(seeded_random_policy, ENV, episodes=5, seed=7, copies=2, progress=done.append)
+    assert done == [2, 4, 5]
     b = run_episodes(seeded_random_policy, ENV, episodes=5, seed=7, copies=5)
     assert [r.coverage for r in a] == [r.coverage for r in b]
     assert [r.wall_hits for r in a] == [r.wall_hits for r in b]

@@ -102,9 +102,11 @@ def test_episodes_are_seeded_whatever_the_copies():
     env = config_from_dict(meet()).env
     one = run_episodes(make_baseline("random", 3), env, 5, 100, copies=1)
     # The random baseline draws for the whole batch: compare the seeded part, the starts.
+    done: list[int] = []  # episodes finished, after each batch of copies
     assert [r.infos["cell"] for r in run_episodes(_stay, env, 5, 100, copies=1)] == [
-        r.infos["cell"] for r in run_episodes(_stay, env, 5, 100, copies=3)
+        r.infos["cell"] for r in run_episodes(_stay, env, 5, 100, copies=3, progress=done.append)
     ]
+    assert done == [3, 5]
     assert all(r.length == 10 and len(r.returns) == 2 for r in one)
     summary = summarize(one)
     assert summary["source"] == "pettingzoo" and "coverage_mean" not in summary

@@ -159,6 +159,7 @@ def run_episodes(
     record_paths: bool = False,
     frames_every: int = 0,
     should_stop: Callable[[], bool] | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> list[EpisodeResult]:
     """Run ``episodes`` seeded episodes with ``policy`` and return their metrics in order.
 
@@ -179,6 +180,8 @@ def run_episodes(
             (0: none).
         should_stop: Asked before every step of the copies side by side: when it returns True,
             the episodes are abandoned (training's evaluation stops so on SIGINT/SIGTERM).
+        progress: Called with the number of episodes finished after each batch of copies side
+            by side (``harness eval`` reports long evaluations with it).
 
     Raises:
         EpisodesStopped: when ``should_stop()`` returned True.
@@ -191,7 +194,7 @@ def run_episodes(
         from harness.evaluation.foreign import run_foreign_episodes
 
         return run_foreign_episodes(  # type: ignore[return-value]
-            policy, env, episodes, seed, copies, frames_every, should_stop
+            policy, env, episodes, seed, copies, frames_every, should_stop, progress
         )
     render_mode = "rgb_array" if frames_every else None
     n_copies = max(1, min(copies, episodes))
@@ -250,6 +253,8 @@ def run_episodes(
                     frames=frames[i],
                 )
             )
+        if progress is not None:
+            progress(len(results))
     return results
 
 

@@ -82,6 +82,7 @@ def run_foreign_episodes(
     copies: int = 8,
     frames_every: int = 0,
     should_stop: Callable[[], bool] | None = None,
+    progress: Callable[[int], None] | None = None,
 ) -> list[ForeignEpisodeResult]:
     """Run ``episodes`` seeded episodes with the batched ``policy`` (episode ``k``: the env reset
     with ``seed + k``) and return their metrics in order. See
@@ -150,6 +151,8 @@ def run_foreign_episodes(
                         frames=frames[i],
                     )
                 )
+            if progress is not None:
+                progress(len(results))
     finally:
         for e in envs:
             e.close()

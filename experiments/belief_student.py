@@ -147,10 +147,6 @@ def main() -> None:
 
     torch.manual_seed(args.seed)
     config = load_config(args.config, ["env.map=random"])
-    venv = make_vec_env(config.env, copies=1, seed=0)
-    model = build_model(config, venv)
-    venv.close()
-    policy = model.policy
     obs, labels, episodes, gains = load(args.data, args.below, args.unit)
     cut = episodes.max() - args.held_out + 1
     fit, held = episodes < cut, episodes >= cut
@@ -182,6 +178,10 @@ def main() -> None:
 
         weights = scorer.parameters()
     else:
+        venv = make_vec_env(config.env, copies=1, seed=0)
+        model = build_model(config, venv)  # only the network student: built where it is fitted
+        venv.close()
+        policy = model.policy
 
         def scores(index: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
             batch = policy.obs_to_tensor({k: v[index].numpy() for k, v in tensors.items()})[0]

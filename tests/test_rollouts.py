@@ -160,4 +160,4 @@ def test_maps_scored_side_by_side_give_the_same_scores_and_choices(seed: int) ->
             np.testing.assert_array_equal(side_by_side[0][a], alone[0][a])
         np.testing.assert_array_equal(side_by_side[1], alone[1])
         assert side_by_side[2] == alone[2]
-    assert threaded._pool is not None  # the maps were scored on its threads
+    assert threaded._map is not map  # the maps were scored on its threads

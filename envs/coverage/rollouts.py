@@ -37,9 +37,9 @@ steps, the count of visited cells), with the planners' own compiled steps
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 from numba import njit
@@ -68,6 +68,7 @@ __all__ = [
     "believed_coverage",
     "clear_of_noise",
     "held_walks",
+    "in_threads",
     "sampled_free",
     "shortest_walk",
 ]
@@ -257,6 +258,14 @@ def held_walks(planner: FrontierPlanner, held: np.ndarray) -> dict[int, list[int
     return {a: shortest_walk(planner, a, int(c)) for a, c in enumerate(held.tolist()) if c >= 0}
 
 
+def in_threads(threads: int) -> Callable[[Callable[[Any], Any], Iterable[Any]], Iterator[Any]]:
+    """``map`` on ``threads`` threads of a pool of its own (the builtin ``map`` for one): the
+    results in the items' order. The compiled rollouts release the GIL, so the rollout
+    choosers and the teacher run their maps and copies side by side with it; as long as
+    each item draws from its own generator (or none), the results are those of one thread."""
+    return ThreadPoolExecutor(threads).map if threads > 1 else map
+
+
 class RolloutRule:
     """The rollouts' rule: how far a rollout runs, how it scores, and what a slot must gain
     over slot 0 to replace it (module docstring). Its rollouts play on a map they are given:
@@ -420,20 +429,16 @@ class SampledChooser(RolloutRule):
             raise ValueError(f"threads must be an integer >= 1, got {threads!r}")
         self.samples, self.sigmas, self.after = int(samples), float(sigmas), float(after)
         self.threads = int(threads)
-        self._pool = self._make_pool()
-
-    def _make_pool(self) -> ThreadPoolExecutor | None:
         # One pool for the chooser's life (a decision takes ~10 ms), made here so that the
         # copies of an evaluation, deciding side by side, share it; threads start on first use.
-        workers = min(self.threads, self.samples)
-        return ThreadPoolExecutor(workers) if workers > 1 else None
+        self._map = in_threads(min(self.threads, self.samples))
 
     def __getstate__(self) -> dict[str, object]:
-        return {**self.__dict__, "_pool": None}
+        return {k: v for k, v in self.__dict__.items() if k != "_map"}
 
     def __setstate__(self, state: dict[str, object]) -> None:
         self.__dict__.update(state)
-        self._pool = self._make_pool()  # a copy makes its own threads
+        self._map = in_threads(min(self.threads, self.samples))  # a copy makes its own threads
 
     def per_map(
         self,
@@ -453,11 +458,7 @@ class SampledChooser(RolloutRule):
         def score(free: np.ndarray) -> np.ndarray:
             return self.scores_on(free, planner, candidates, agent, steps_left, walks)[valid]
 
-        if self._pool is not None:
-            rows = list(self._pool.map(score, maps))
-        else:
-            rows = [score(free) for free in maps]
-        return np.array(rows).reshape(self.samples, valid.size)
+        return np.array(list(self._map(score, maps))).reshape(self.samples, valid.size)
 
     def decide(
         self,

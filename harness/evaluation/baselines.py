@@ -44,7 +44,6 @@ from __future__ import annotations
 import dataclasses
 import weakref
 from collections.abc import Callable, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any
 
@@ -54,7 +53,7 @@ from envs.coverage import CoverageEnv
 from envs.coverage.frontier import PLANNERS, FrontierOptions
 from envs.coverage.goals import Goal
 from envs.coverage.planners import FrontierPlanner
-from envs.coverage.rollouts import SampledChooser
+from envs.coverage.rollouts import SampledChooser, in_threads
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL
 from harness.evaluation.episodes import BatchPolicy, batch_len, episode_draws, sample_categorical
 from harness.processes import available_cores
@@ -226,7 +225,7 @@ class RolloutPolicy:
     def __init__(self, chooser: SampledChooser | None = None, threads: int | None = None) -> None:
         threads = available_cores() if threads is None else threads
         self.chooser = chooser if chooser is not None else SampledChooser(threads=threads)
-        self._pool = ThreadPoolExecutor(threads) if threads > 1 else None
+        self._map = in_threads(threads)
 
     def _decide(self, env: CoverageEnv) -> np.ndarray:
         frontier = env.frontier_state
@@ -240,7 +239,7 @@ class RolloutPolicy:
 
     def __call__(self, obs: Any, envs: Sequence[CoverageEnv]) -> np.ndarray:
         """A slot for every agent of every env copy, copy-major like ``obs``."""
-        slots = self._pool.map(self._decide, envs) if self._pool else map(self._decide, envs)
+        slots = self._map(self._decide, envs)
         return np.concatenate([np.zeros(0, dtype=np.int64), *slots]).astype(np.int64)
 
 

@@ -14,12 +14,10 @@ Only training builds it: evaluation never does (``tests/test_architecture.py``).
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
-
 import numpy as np
 
 from envs.coverage.core import CoverageCore
-from envs.coverage.rollouts import held_walks
+from envs.coverage.rollouts import held_walks, in_threads
 from envs.coverage.teacher import RolloutTeacher
 from harness.config.schema import TeacherConfig
 
@@ -44,7 +42,7 @@ class TeacherLabeller:
         self.teacher = RolloutTeacher(reach=config.reach)
         self.share = config.share
         self.rng = np.random.default_rng(seed)
-        self._pool = ThreadPoolExecutor(threads) if threads > 1 else None
+        self._map = in_threads(threads)
 
     def __call__(self, core: CoverageCore) -> np.ndarray:
         """The label of every agent of every copy at the core's current state, ``(copies,
@@ -64,7 +62,6 @@ class TeacherLabeller:
             steps_left = core.max_steps - int(core.steps[b])
             return self.teacher.label(planner, frontier.candidates, steps_left, walks)[0]
 
-        labels = self._pool.map(label, copies) if self._pool else map(label, copies)
-        for b, slots in zip(copies, labels):
+        for b, slots in zip(copies, self._map(label, copies)):
             out[b] = slots
         return out

@@ -282,7 +282,7 @@ def baseline_target(policy: str, config: ExperimentConfig, seed: int) -> Target:
     config it plays (:meth:`~harness.evaluation.baselines.BaselineEntry.env_config`: the moves
     where the config's actions are goal slots)."""
     config = config.model_copy(update={"env": BASELINES[policy].env_config(config.env)})
-    return Target(make_baseline(policy, seed), config, policy, None, seed)
+    return Target(make_baseline(policy, seed, config.eval), config, policy, None, seed)
 
 
 def check_baseline(policy: str, config: ExperimentConfig, flag: str) -> None:

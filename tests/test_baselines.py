@@ -22,7 +22,7 @@ from envs import coverage_v0
 from envs.coverage import planners
 from envs.coverage.rollouts import SampledChooser
 from harness.config.loading import load_config
-from harness.config.schema import EnvConfig
+from harness.config.schema import EnvConfig, EvalConfig
 from harness.evaluation import baselines
 from harness.evaluation.baselines import BASELINES, RolloutPolicy, make_baseline
 from harness.evaluation.episodes import run_episodes
@@ -101,6 +101,21 @@ def test_a_rollout_chooser_that_never_deviates_is_its_planner_episode_for_episod
     never = RolloutPolicy(SampledChooser(after=1.0))
     planner = run_episodes(make_baseline("frontier_step", 0), env, episodes=3, seed=7)
     assert _played(run_episodes(never, env, episodes=3, seed=7)) == _played(planner)
+
+
+def test_rollout_takes_its_parameters_from_the_configs_eval_rollout() -> None:
+    env = goal_env()
+    options = EvalConfig(rollout={"samples": 2, "sigmas": 0, "after": 0.0})
+    policy = make_baseline("rollout", 0, options)
+    assert isinstance(policy, RolloutPolicy)
+    chooser = policy.chooser
+    assert (chooser.samples, chooser.sigmas, chooser.after) == (2, 0.0, 0.0)
+    # The section's defaults are the chooser's own (one measured default).
+    default, own = make_baseline("rollout", 0).chooser, SampledChooser()
+    assert (default.samples, default.sigmas, default.after) == (own.samples, own.sigmas, own.after)
+    direct = RolloutPolicy(SampledChooser(samples=2, sigmas=0.0, after=0.0), threads=1)
+    played = _played(run_episodes(policy, env, episodes=2, seed=7))
+    assert played == _played(run_episodes(direct, env, episodes=2, seed=7))
 
 
 def test_rollout_deviates_repeats_from_the_seed_and_never_hits_a_wall() -> None:

@@ -128,6 +128,8 @@ def test_overrides_are_typed_and_reach_nested_keys(tmp_path):
         ("phases.nophase.timesteps=3", r"no item 'nophase' at phases.nophase"),
         ("env.max_steps.x=3", r"env.max_steps is not a section"),
         ("novalue", r"expected key.path=value"),
+        ("eval.rollout.samples=0", r"eval.rollout.samples: Input should be greater than 0"),
+        ("eval.rollout.after=1.5", r"eval.rollout.after: Input should be less than or equal"),
     ],
 )
 def test_bad_overrides(tmp_path, override, message):

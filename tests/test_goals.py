@@ -489,24 +489,3 @@ def test_a_student_fitted_to_the_oracles_saved_decisions_plays_back(tmp_path, mo
                                       "--after", "0.5", *small])  # fmt: skip
     oracle.main()
     assert "1 episodes: planner" in capsys.readouterr().out
-
-
-def test_the_rollout_baseline_with_other_parameters_runs_paired_with_the_planners(
-    monkeypatch, capsys
-):
-    # experiments/rollout_params.py: tiny episodes; deciding from the start, on 2 maps.
-    script = _script("rollout_params")
-    config = str(ROOT / "configs" / "goals_4agents.yaml")
-    monkeypatch.setattr(sys, "argv", ["rollout_params", "--config", config, "--set",
-                                      "env.map=random", "--set", "env.height=15", "--set",
-                                      "env.width=15", "--set", "env.max_steps=150",
-                                      "--samples", "2", "--after", "0", "--episodes", "3",
-                                      "--against", "frontier_pocket"])  # fmt: skip
-    script.main()
-    out = json.loads(capsys.readouterr().out)
-    assert out["seed"] == load_config(config).eval.validation_seed  # validation, not test
-    assert out["chooser"] == {"samples": 2, "sigmas": 4.0, "after": 0.0}
-    assert out["wall_hits"] == 0 and 0 < out["coverage_mean"] <= 1
-    pocket = out["frontier_pocket"]
-    assert pocket["ahead"] + pocket["behind"] <= 3 and len(pocket["difference_points"]) == 3
-    assert pocket["steps_to_99"] is None or pocket["steps_to_99"]["episodes"] <= 3

@@ -385,6 +385,7 @@ ROLLOUT = {
     "50x50 random, 4 agents": ("goals_4agents-random", "ddqn_4agents"),
     "50x50 random, 3 agents": ("goals_2agents-random-3agents", "ddqn_3agents"),
     "50x50 random, 2 agents": ("goals_2agents-random", "ddqn_2agents"),
+    "50x50 random, 2 agents, 16 maps from 60 %": ("goals_2agents-random-16maps-60", "ddqn_2agents"),
     "cave_100x50, 2 agents": ("goals_2agents-cave_100x50", "cave_2agents"),
     "maze_100x50, 2 agents": ("goals_2agents-maze_100x50", "maze_2agents"),
     "50x50 random, 1 agent": ("goals_2agents-random-1agent", "ddqn_1agent"),
@@ -407,6 +408,15 @@ def test_rollout_row_quotes_its_stored_evaluation_on_the_planners_episodes(row) 
     name, planners = ROLLOUT[row["setting"]]
     d = json.loads((ROOT / "docs" / "baselines" / "rollout" / f"{name}.json").read_text())
     assert d["policy"] == "rollout" and d["episodes"] == 100 and d["wall_hits_mean"] == 0
+    # A row that names other parameters than the default played them (eval.rollout).
+    chosen = re.search(r"(\d+) maps from (\d+) %", row["setting"])
+    rollout = [o for o in d["overrides"] if o.startswith("eval.rollout.")]
+    if chosen:
+        maps, after = chosen.groups()
+        assert sorted(rollout) == [f"eval.rollout.after={int(after) / 100}",
+                                   f"eval.rollout.samples={maps}"]  # fmt: skip
+    else:
+        assert not rollout
     low, high = d["coverage_mean_ci"]
     assert row["`rollout`"].startswith(
         f"{percent(d['coverage_mean'])} [{percent(low)}, {percent(high)}]"

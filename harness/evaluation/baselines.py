@@ -20,7 +20,8 @@ its own nearest unvisited known cell; with one, that planner itself.
 
 ``rollout`` (only on an env with the goal action, ``frontier: {action: {goal: ...}}``) chooses
 the goal action's candidate slots by rollouts on maps sampled for the cells nobody has seen,
-from 80 % coverage on (:class:`RolloutPolicy`): a search that sees only the team's map, the
+from 80 % coverage on by default (:class:`RolloutPolicy`; its parameters are the config's
+``eval.rollout``): a search that sees only the team's map, the
 strongest non-learned policy with 4 agents on 50x50 maps (docs/planners.md, "The rollout
 chooser"), and about a thousand times slower than the planners.
 
@@ -55,6 +56,7 @@ from envs.coverage.goals import Goal
 from envs.coverage.planners import FrontierPlanner
 from envs.coverage.rollouts import SampledChooser, in_threads
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL
+from harness.config.schema import EvalConfig, RolloutConfig
 from harness.evaluation.episodes import BatchPolicy, batch_len, episode_draws, sample_categorical
 from harness.processes import available_cores
 
@@ -63,9 +65,10 @@ from harness.processes import available_cores
 class BaselineEntry:
     """A baseline of the registry :data:`BASELINES`."""
 
-    make: Callable[[int], BatchPolicy]
+    make: Callable[[int, EvalConfig], BatchPolicy]
     """Builds it from the evaluation's seed (only ``random`` uses it: the others draw from each
-    episode's generator or none)."""
+    episode's generator or none) and the config's ``eval`` section (only ``rollout`` reads it:
+    its ``rollout`` parameters)."""
     summary: str
     """One line on what it plays (``harness eval --help``)."""
     needs_action: bool = False
@@ -130,25 +133,27 @@ class BaselineEntry:
 #: The baselines by the name ``--policy`` takes (the one list of them).
 BASELINES: dict[str, BaselineEntry] = {
     "random": BaselineEntry(
-        lambda seed: RandomPolicy(seed), "uniformly random actions (any env)", any_env=True
+        lambda seed, _: RandomPolicy(seed), "uniformly random actions (any env)", any_env=True
     ),
     "local": BaselineEntry(
-        lambda seed: LocalPolicy(), "the thesis's memoryless rule on each agent's 3x3 window"
+        lambda seed, _: LocalPolicy(), "the thesis's memoryless rule on each agent's 3x3 window"
     ),
     # One per planner of the registry: frontier, frontier_pocket, frontier_random, ...
     **{
-        entry.baseline: BaselineEntry(lambda seed, name=name: FrontierPolicy(name), entry.summary)
+        entry.baseline: BaselineEntry(
+            lambda seed, _, name=name: FrontierPolicy(name), entry.summary
+        )
         for name, entry in PLANNERS.items()
     },
     "frontier_step": BaselineEntry(
-        lambda seed: FrontierStepPolicy(),
+        lambda seed, _: FrontierStepPolicy(),
         "always the env's planner-backed action (configs with env.frontier.action)",
         needs_action=True,
         plays_moves=False,
     ),
     "rollout": BaselineEntry(
-        lambda seed: RolloutPolicy(),
-        "the goal action's slots chosen by rollouts on sampled maps, from 80 % on (goal configs)",
+        lambda seed, options: RolloutPolicy.from_config(options.rollout),
+        "the goal action's slots chosen by rollouts on sampled maps (goal configs; eval.rollout)",
         needs_action=True,
         plays_moves=False,
         holds_goals=True,
@@ -156,13 +161,15 @@ BASELINES: dict[str, BaselineEntry] = {
 }
 
 
-def make_baseline(name: str, seed: int) -> BatchPolicy:
+def make_baseline(name: str, seed: int, options: EvalConfig | None = None) -> BatchPolicy:
     """Make a baseline batched policy.
 
     Args:
         name: One of :data:`BASELINES`.
         seed: Seeds the random policy's generator (``local`` draws from each episode's own
             generator, ``frontier`` is deterministic).
+        options: The config's ``eval`` section (``rollout`` reads its parameters there);
+            default: the defaults.
 
     Returns:
         A ``policy(obs, envs) -> actions`` callable (``harness.evaluation.episodes.BatchPolicy``).
@@ -172,7 +179,7 @@ def make_baseline(name: str, seed: int) -> BatchPolicy:
     """
     if name not in BASELINES:
         raise ValueError(f"unknown baseline {name!r}; known: {', '.join(BASELINES)}")
-    return BASELINES[name].make(seed)
+    return BASELINES[name].make(seed, EvalConfig() if options is None else options)
 
 
 class FrontierStepPolicy:
@@ -226,6 +233,13 @@ class RolloutPolicy:
         threads = available_cores() if threads is None else threads
         self.chooser = chooser if chooser is not None else SampledChooser(threads=threads)
         self._map = in_threads(threads)
+
+    @classmethod
+    def from_config(cls, config: RolloutConfig) -> RolloutPolicy:
+        """The policy with a config's ``eval.rollout`` parameters, on every core this process
+        may use (for the copies and for each decision's maps)."""
+        threads = available_cores()
+        return cls(config.chooser(threads=threads), threads=threads)
 
     def _decide(self, env: CoverageEnv) -> np.ndarray:
         frontier = env.frontier_state

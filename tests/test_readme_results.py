@@ -383,6 +383,7 @@ def test_goal_table_is_made_from_the_stored_evaluations() -> None:
 #: config whose stored planner evaluations are on the same episodes.
 ROLLOUT = {
     "50x50 random, 4 agents": ("goals_4agents-random", "ddqn_4agents"),
+    "50x50 random, 4 agents, 8 maps from 60 %": ("goals_4agents-random-8maps-60", "ddqn_4agents"),
     "50x50 random, 3 agents": ("goals_2agents-random-3agents", "ddqn_3agents"),
     "50x50 random, 2 agents": ("goals_2agents-random", "ddqn_2agents"),
     "50x50 random, 2 agents, 16 maps from 60 %": ("goals_2agents-random-16maps-60", "ddqn_2agents"),

@@ -105,15 +105,15 @@ def test_a_rollout_chooser_that_never_deviates_is_its_planner_episode_for_episod
 
 def test_rollout_takes_its_parameters_from_the_configs_eval_rollout() -> None:
     env = goal_env()
-    options = EvalConfig(rollout={"samples": 2, "sigmas": 0, "after": 0.0})
+    options = EvalConfig(rollout={"samples": 2, "after": 0.0})
     policy = make_baseline("rollout", 0, options)
     assert isinstance(policy, RolloutPolicy)
     chooser = policy.chooser
-    assert (chooser.samples, chooser.sigmas, chooser.after) == (2, 0.0, 0.0)
+    assert (chooser.samples, chooser.sigmas, chooser.after) == (2, 4.0, 0.0)
     # The section's defaults are the chooser's own (one measured default).
     default, own = make_baseline("rollout", 0).chooser, SampledChooser()
     assert (default.samples, default.sigmas, default.after) == (own.samples, own.sigmas, own.after)
-    direct = RolloutPolicy(SampledChooser(samples=2, sigmas=0.0, after=0.0), threads=1)
+    direct = RolloutPolicy(SampledChooser(samples=2, after=0.0), threads=1)
     played = _played(run_episodes(policy, env, episodes=2, seed=7))
     assert played == _played(run_episodes(direct, env, episodes=2, seed=7))
 

@@ -617,15 +617,13 @@ class RolloutConfig(_Section):
 
     samples: PositiveInt = 4
     """Maps sampled for the unseen cells at each decision; every slot is rolled out on each."""
-    sigmas: NonNegativeFloat = 4.0
-    """Standard errors of the mean paired gain over the maps a slot must clear to replace slot
-    0 (the planner's choice); 0: the best mean wins."""
     after: Annotated[float, Field(ge=0.0, le=1.0)] = 0.8
     """The team's coverage (as its map tells it) from which it decides; slot 0 before."""
 
     def chooser(self, threads: int = 1) -> SampledChooser:
-        """The chooser these parameters make, scoring its maps on ``threads`` threads."""
-        return SampledChooser(self.samples, self.sigmas, self.after, threads=threads)
+        """The chooser these parameters make (its noise rule the measured one, 4 standard
+        errors: no result asked for another), scoring its maps on ``threads`` threads."""
+        return SampledChooser(samples=self.samples, after=self.after, threads=threads)
 
 
 class EvalConfig(_Section):

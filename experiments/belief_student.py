@@ -177,6 +177,7 @@ def main() -> None:
             return scorer(pairs).squeeze(-1), tensors[ACTION_MASK_KEY][index].bool()
 
         weights = scorer.parameters()
+        device = torch.device("cpu")
     else:
         venv = make_vec_env(config.env, copies=1, seed=0)
         model = build_model(config, venv)  # only the network student: built where it is fitted
@@ -189,6 +190,7 @@ def main() -> None:
             return q, batch[ACTION_MASK_KEY].bool()
 
         weights = policy.q_net.parameters()
+        device = policy.device  # algo.device: a GPU where there is one
 
     def logits(index: torch.Tensor) -> torch.Tensor:
         q, mask = scores(index)
@@ -197,28 +199,31 @@ def main() -> None:
     def predict(rows: np.ndarray) -> np.ndarray:
         with torch.no_grad():
             index = torch.as_tensor(rows)
-            return torch.cat([logits(c) for c in index.split(1024)]).numpy()
+            return torch.cat([logits(c) for c in index.split(1024)]).cpu().numpy()
 
     optimizer = torch.optim.Adam(weights, lr=args.lr)
     rows = np.flatnonzero(fit)
     rng = np.random.default_rng(args.seed)
+    # The targets live where the scores are computed (the network's device).
+    target = target.to(device)
     weight = torch.where(target != 0, args.deviation_weight, 1.0)
     # Gains in steps, less the margin for every slot but 0, clipped; NaN: an empty slot.
     steps = np.clip(gains, -args.clip, args.clip)
     steps[:, 1:] -= args.margin_steps
-    regress = torch.as_tensor(np.nan_to_num(steps, nan=0.0), dtype=torch.float32)
-    valid = torch.as_tensor(~np.isnan(steps))
+    regress = torch.as_tensor(np.nan_to_num(steps, nan=0.0), dtype=torch.float32, device=device)
+    valid = torch.as_tensor(~np.isnan(steps), device=device)
     for epoch in range(args.epochs):
         rng.shuffle(rows)
         total = 0.0
         for start in range(0, rows.size, args.batch):
             index = torch.as_tensor(rows[start : start + args.batch])
+            on = index.to(device)
             if args.target == "label":
-                loss = F.cross_entropy(logits(index), target[index], reduction="none")
-                loss = (loss * weight[index]).sum() / weight[index].sum()
+                loss = F.cross_entropy(logits(index), target[on], reduction="none")
+                loss = (loss * weight[on]).sum() / weight[on].sum()
             else:
-                error = F.smooth_l1_loss(logits(index), regress[index], reduction="none")
-                loss = (error * valid[index]).sum() / valid[index].sum()
+                error = F.smooth_l1_loss(logits(index), regress[on], reduction="none")
+                loss = (error * valid[on]).sum() / valid[on].sum()
             optimizer.zero_grad()
             loss.backward()
             optimizer.step()

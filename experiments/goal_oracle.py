@@ -246,7 +246,8 @@ def play(
                         )
                     else:
                         walks = {a: w for a, w in enumerate(walk) if w}
-                        per_map[m] = teacher.scores(planner, cand, i, steps_left, walks, free)[
+                        on = planner.free if free is None else free  # None: the true map
+                        per_map[m] = teacher.scores_on(on, planner, cand, i, steps_left, walks)[
                             slots
                         ]
                 scores = clear_of_noise(per_map, sigmas)

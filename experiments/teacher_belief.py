@@ -65,7 +65,7 @@ def main() -> None:
                     picks = [teacher.pick(teacher.scores(planner, candidates, a, left), size)]
                     for _ in range(2):
                         free = sampled_free(planner, rng)
-                        scores = teacher.scores(planner, candidates, a, left, None, free)
+                        scores = teacher.scores_on(free, planner, candidates, a, left)
                         picks.append(teacher.pick(scores, size))
                     rows.append((*picks, valid))
         core.step(np.zeros((core.copies, core.n_agents), dtype=np.int64))

@@ -1,8 +1,9 @@
 """Every registry entry walks through the commands that use it: each policy of
 ``harness.sb3.registry.POLICIES`` and each planner-backed action kind of
 ``envs.coverage.frontier.ACTIONS`` through ``harness run`` and ``harness eval`` on a tiny config,
-each baseline of ``harness.evaluation.baselines.BASELINES`` (one per planner of
-``envs.coverage.frontier.PLANNERS`` among them) through ``harness eval --policy``. The configs
+each planner of ``envs.coverage.frontier.PLANNERS`` through ``harness run`` (as the goal
+action's planner) and each baseline of ``harness.evaluation.baselines.BASELINES`` (one per
+planner among them) through ``harness eval --policy``. The configs
 are made from the entries' capabilities, never from their names, so a new entry is walked as
 soon as it is registered; and what each entry says of itself is checked against what the
 commands build."""
@@ -155,11 +156,63 @@ def test_every_policy_and_action_kind_trains_and_evaluates(policy, tmp_path, cap
     # The baselines that play the env's action kind play it on the run's own config.
     for name, baseline in BASELINES.items():
         if baseline.needs_action and action is not None:
-            if baseline.holds_goals and not ACTIONS[action].slots:
-                continue  # it chooses the goal action's slots: refused on the others
+            if baseline.holds_goals and not ACTIONS[action].holdable:
+                continue  # it keeps the goal action's targets: refused on the others
             args = ["--policy", name, "--config", str(run / "config.yaml"), "--episodes", "1"]
             out = eval_json(capsys, *args)
             assert out["policy"] == name and 0.0 < out["coverage_mean"] <= 1.0
+
+
+def test_the_configs_policy_and_head_fields_name_the_registrys_policies_and_heads() -> None:
+    # schema.py's docstrings of algo.policy and algo.net_arch (the configuration page's source)
+    # name every policy and every default head the entries carry, and no policy that is not one.
+    import inspect
+    import re
+
+    from harness.config.schema import AlgoConfig
+
+    source = inspect.getsource(AlgoConfig)
+    policy = source.split("policy: str =", 1)[1].split("net_arch:", 1)[0]
+    heads = source.split("net_arch: list", 1)[1].split("dueling_aggregator:", 1)[0]
+    assert set(re.findall(r"``(\w+Policy)``", policy)) == set(POLICIES)
+    for entry in POLICIES.values():
+        arch = list(entry.default_net_arch)
+        written = f"``{arch}``" if arch else "``[]``"
+        assert written.replace(" ", "") in heads.replace(" ", ""), (arch, heads)
+
+
+# ---------------------------------------------------------------------- planners
+#: The policy and action kind a planner is trained under: the first slot-scoring policy and the
+#: first action kind that needs a planner (its slot 0 is the planner's choice).
+SLOT_POLICY = next(name for name, entry in POLICIES.items() if entry.slots)
+PLANNED_KIND = next(kind for kind in ACTIONS.values() if kind.needs_planner)
+
+
+@pytest.mark.parametrize("planner", list(PLANNERS))
+def test_every_planner_trains_under_harness_run_or_is_refused_in_one_line(
+    planner, tmp_path, capsys
+):
+    # env.frontier.planner through `harness run` and the run's `harness eval`: the planners the
+    # env can follow train, the others (a baseline only) are refused naming the ones it can.
+    env = {
+        "observation": TEAMMAP,
+        "frontier": {"action": PLANNED_KIND().config(), "planner": planner},
+    }
+    config = write_config(tmp_path, env, {"policy": SLOT_POLICY, "net_arch": [16]})
+    runs = tmp_path / "runs"
+    capsys.readouterr()
+    rc = main(["run", str(config), "--runs-dir", str(runs), "--no-progress"])
+    err = capsys.readouterr().err
+    if not PLANNERS[planner].in_env:
+        assert rc == 2 and err.count("\n") == 1 and "frontier.planner" in err
+        assert not runs.exists() or not any(runs.iterdir())
+        return
+    assert rc == 0, err
+    (run,) = runs.iterdir()
+    saved = yaml.safe_load((run / "config.yaml").read_text())
+    assert saved["env"]["frontier"]["planner"] == planner
+    summary = eval_json(capsys, str(run), "--episodes", "2")
+    assert summary["episodes"] == 2 and summary["wall_hits_mean"] == 0.0
 
 
 # ---------------------------------------------------------------------- baselines
@@ -182,6 +235,11 @@ BASELINE_ENVS = {
 }
 
 
+def _kind_name(action: str | dict[str, Any]) -> str:
+    """The action kind's name in its config form (``NAME`` or ``{NAME: {options}}``)."""
+    return action if isinstance(action, str) else next(iter(action))
+
+
 @pytest.mark.parametrize("setting", list(BASELINE_ENVS))
 @pytest.mark.parametrize("baseline", list(BASELINES))
 def test_every_baseline_evaluates_where_it_can_and_is_refused_where_not(
@@ -190,6 +248,7 @@ def test_every_baseline_evaluates_where_it_can_and_is_refused_where_not(
     env = BASELINE_ENVS[setting]
     kind = observation_options(env.get("observation", "thesis")).name
     slots = setting == "slots"
+    holdable = "frontier" in env and ACTIONS[_kind_name(env["frontier"]["action"])].holdable
     # The config must name a policy that fits its env, though a baseline plays instead of it.
     policy = next(n for n, e in POLICIES.items() if e.observation == kind and e.slots == slots)
     config = write_config(tmp_path, env, {"policy": policy})
@@ -198,7 +257,7 @@ def test_every_baseline_evaluates_where_it_can_and_is_refused_where_not(
     rc = main(args)
     out, err = capsys.readouterr()
     entry = BASELINES[baseline]
-    if (entry.needs_action and "frontier" not in env) or (entry.holds_goals and not slots):
+    if (entry.needs_action and "frontier" not in env) or (entry.holds_goals and not holdable):
         assert rc == 2 and not out
         assert err.count("\n") == 1 and "needs env.frontier.action" in err
         return

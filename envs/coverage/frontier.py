@@ -114,6 +114,8 @@ class Step:
     slots: ClassVar[bool] = False
     #: Its observation carries no action mask.
     masked: ClassVar[bool] = False
+    #: It has no target to keep: each step is chosen anew.
+    holdable: ClassVar[bool] = False
     n_actions: ClassVar[int] = 1
 
     def config(self) -> str:

@@ -126,6 +126,8 @@ class Goal:
     #: Its observation carries an action mask (:data:`ACTION_MASK_KEY`: 1 where a slot holds a
     #: candidate), which a learner may read (masked actions, decisions per goal).
     masked: ClassVar[bool] = True
+    #: A chosen target can be kept until it is reached (the ``hold`` option).
+    holdable: ClassVar[bool] = True
 
     def __post_init__(self) -> None:
         k = self.k

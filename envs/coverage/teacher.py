@@ -50,13 +50,11 @@ class RolloutTeacher(RolloutRule):
         agent: int,
         steps_left: int,
         walks: Mapping[int, Sequence[int]] | None = None,
-        free: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Each slot's rollout score for ``agent`` on the true map, NaN for empty slots
-        (:meth:`~envs.coverage.rollouts.RolloutRule.scores_on`, whose arguments these are);
-        ``free`` replaces the true map (research only: ``experiments/goal_oracle.py``)."""
-        free = planner.free if free is None else free  # the planner's free row: the true map
-        return self.scores_on(free, planner, candidates, agent, steps_left, walks)
+        """Each slot's rollout score for ``agent`` on the true map (the planner's ``free``
+        row), NaN for empty slots (:meth:`~envs.coverage.rollouts.RolloutRule.scores_on`, whose
+        arguments these are; another map: call that on it)."""
+        return self.scores_on(planner.free, planner, candidates, agent, steps_left, walks)
 
     def choose(
         self,

@@ -52,7 +52,6 @@ import numpy as np
 
 from envs.coverage import CoverageEnv
 from envs.coverage.frontier import PLANNERS, FrontierOptions
-from envs.coverage.goals import Goal
 from envs.coverage.planners import FrontierPlanner
 from envs.coverage.rollouts import SampledChooser, in_threads
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL
@@ -98,7 +97,7 @@ class BaselineEntry:
         on ``env`` does; its moves read the env's state, not the observation, so what the
         extension would add to the observation does not matter to it."""
         options = env.frontier_options
-        if self.holds_goals and options is not None and isinstance(options.action, Goal):
+        if self.holds_goals and _holdable(options):
             held = dataclasses.replace(
                 options, action=dataclasses.replace(options.action, hold=True)
             )
@@ -115,7 +114,7 @@ class BaselineEntry:
     def check(self, options: FrontierOptions | None) -> None:
         """``ValueError`` (one line, saying what to set) unless it can play an env with the
         planner extension's ``options`` (``None``: off)."""
-        if self.holds_goals and (options is None or not isinstance(options.action, Goal)):
+        if self.holds_goals and not _holdable(options):
             raise ValueError(
                 "this baseline chooses the goal action's slots: it needs env.frontier.action "
                 "{goal: {k: K}} (with a planner; the teammap observation)"
@@ -128,6 +127,11 @@ class BaselineEntry:
         if not self.any_env:
             known = ", ".join(name for name, entry in BASELINES.items() if entry.any_env)
             raise ValueError(f"plays the coverage env only; a pettingzoo env takes {known}")
+
+
+def _holdable(options: FrontierOptions | None) -> bool:
+    """Whether the planner extension's action kind keeps chosen targets (its ``holdable``)."""
+    return options is not None and options.action is not None and options.action.holdable
 
 
 #: The baselines by the name ``--policy`` takes (the one list of them).

@@ -716,8 +716,8 @@ class _PerAgent(_IgnoresActionMask):
     The online and target networks are :class:`PerAgentQNetwork` s of ``n_agents`` networks of
     the base policy's kind (MLP, dueling, team map), each built on the observation space less
     the agent's one-hot index. ``n_agents`` and ``agent_key`` (the key of the one-hot index in a
-    ``Dict`` observation; default :data:`AGENT_KEY`, so models saved before it was a parameter
-    load as they were) are constructor parameters, saved with the model. Everything else
+    ``Dict`` observation; default :data:`AGENT_KEY`, the coverage env's) are constructor
+    parameters, saved with the model. Everything else
     (optimizer, target updates, double-Q, PER) is the base policy's.
     """
 

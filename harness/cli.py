@@ -803,7 +803,12 @@ def cmd_compare(args: argparse.Namespace) -> int:
     result = compare(args.runs, labels, Path(args.out), args.window, args.reps, args.eval)
     wide = max([len(label) for label, _, _ in result.rows] + [len("experiment")]) + 2
     runs = max([len(name) for _, name, _ in result.rows] + [len("run")]) + 2
-    print(f"{'experiment':<{wide}}{'run':<{runs}}{'median':>8}{'IQR':>8}{'wall hits':>11}")
+    # Runs of one env kind (compare refuses a mix): a PettingZoo env of one's own has a team
+    # return and no wall hits, the coverage env a coverage and its wall hits.
+    foreign = any(ev is not None and ev.get("source") == SOURCE for _, _, ev in result.rows)
+    last = f"{'return IQR':>12}" if foreign else f"{'IQR':>8}{'wall hits':>11}"
+    first = f"{'median return':>14}" if foreign else f"{'median':>8}"
+    print(f"{'experiment':<{wide}}{'run':<{runs}}{first}{last}")
     for label, name, ev in result.rows:
         if ev is None:
             others = result.others.get(name, [])
@@ -815,8 +820,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
             print(f"{label:<{wide}}{name:<{runs}}(no {args.eval}.json; {hint})")
         elif ev.get("source") == SOURCE:  # a PettingZoo env of one's own: team return
             print(
-                f"{label:<{wide}}{name:<{runs}}{ev['return_median']:>8.4g}"
-                f"{ev['return_iqr']:>8.4g}{'-':>11}"
+                f"{label:<{wide}}{name:<{runs}}{ev['return_median']:>14.4g}"
+                f"{ev['return_iqr']:>12.4g}"
             )
         else:
             print(

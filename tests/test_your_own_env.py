@@ -116,6 +116,19 @@ def test_episodes_are_seeded_whatever_the_copies():
     assert selection_score(summary) == summary["return_mean"]
 
 
+def test_a_coverage_the_env_reports_is_summarised_and_nothing_else_of_the_coverage_env():
+    env = config_from_dict(meet("tests.envs.odd:reports_coverage")).env
+    results = run_episodes(_stay, env, 4, 100, copies=2)
+    summary = summarize(results)
+    # Each episode's coverage: its last step's, the mean over the agents (all report the same).
+    last = [float(np.mean(r.infos["coverage"])) for r in results]
+    assert summary["coverage_mean"] == pytest.approx(np.mean(last))
+    assert summary["coverage_median"] == pytest.approx(np.median(last))
+    assert set(summary["infos"]) == {"cell", "spread", "coverage"}
+    # The coverage env's own figures (wall hits, steps to a coverage, the bound) are not made up.
+    assert not {k for k in summary if k.startswith(("wall_hits", "steps_to", "efficiency"))}
+
+
 def _stay(obs, envs):
     return np.ones(len(obs), dtype=np.int64)  # action 1: stay where the seed put them
 
@@ -204,6 +217,9 @@ def test_seeds_eval_group_and_compare(trained, tmp_path, capsys):
     assert main(["compare", str(group), "--out", str(png), "--reps", "100"]) == 0
     out = capsys.readouterr().out
     assert "| group | seeds | mean test team return [95 % CI] | IQM [95 % CI] |" in out
+    # Each seed's row: the team return's median and IQR, no coverage env's wall hits.
+    header = next(line for line in out.splitlines() if line.startswith("experiment"))
+    assert header.split() == ["experiment", "run", "median", "return", "return", "IQR"]
     assert png.is_file() and png.with_name("cmp-curves-ci.png").is_file()
 
 
@@ -232,22 +248,55 @@ def test_sweep(tmp_path, capsys):
 
 
 # ---------------------------------------------------------------------- mpe2's simple_spread
-def test_the_mpe_example_trains_and_evaluates(tmp_path, capsys):
+def test_the_mpe_example_through_every_command(tmp_path, capsys):
+    # mpe2 comes with the dev extra (pyproject.toml), so CI runs this; tiny budgets.
     pytest.importorskip("mpe2")
     config = load_config(MPE)
     assert config.env.n_agents == 3 and config.vec.backend == "supersuit"
-    tiny = ["--set", "phases.initial.timesteps=600", "--set", "algo.learning_starts=120"]
+    tiny = ["--set", "phases.initial.timesteps=300", "--set", "algo.learning_starts=120"]
     tiny += ["--set", "eval.every=300", "--set", "eval.episodes=2", "--set", "vec.copies=2"]
-    run = tmp_path / "run"
-    assert main(["run", str(MPE), "--no-progress", "--into", str(run), *tiny]) == 0
-    assert main(["eval", str(run), "--episodes", "3"]) == 0
-    assert "team return" in capsys.readouterr().out
+    runs = tmp_path / "runs"
+    args = ["run", str(MPE), "--seeds", "2", "--no-progress", "--runs-dir", str(runs), *tiny]
+    assert main(args) == 0
+    (group,) = runs.iterdir()
+    assert main(["eval", str(group), "--episodes", "100"]) == 0
+    assert "mean team return" in capsys.readouterr().out
+    over = json.loads((group / "group-eval.json").read_text())["return_mean_over_seeds"]
+    assert over["seeds"] == 2
     assert main(["eval", "--policy", "random", "--config", str(MPE), "--episodes", "3"]) == 0
     png = tmp_path / "mpe.png"
-    assert (
-        main(["compare", str(run), "--out", str(png), "--reps", "100", "--eval", "eval-3ep"]) == 0
-    )
-    assert png.is_file()
+    assert main(["compare", str(group), "--out", str(png), "--reps", "100"]) == 0
+    assert "mean test team return" in capsys.readouterr().out and png.is_file()
+    space = tmp_path / "space.yaml"
+    space.write_text("algo.gamma: {float: [0.8, 0.99]}\n")
+    sweep = ["sweep", str(MPE), "--space", str(space), "--trials", "1"]
+    assert main([*sweep, "--sweeps-dir", str(tmp_path / "sweeps"), *tiny]) == 0
+    best = json.loads((tmp_path / "sweeps" / "mpe_spread" / "best.json").read_text())
+    assert best["objective"].startswith("median team return")
+
+
+def _figure(value: float) -> str:
+    """A return as the results page writes it: one decimal, a true minus sign."""
+    return f"{value:.1f}".replace("-", "\u2212")
+
+
+def test_the_results_page_gives_the_stored_mpe_evaluations():
+    # docs/results.md's simple_spread table is made of docs/seeds/mpe_spread's stored files.
+    page = (ROOT / "docs" / "results.md").read_text()
+    rows = page.split("## Your own env: mpe2's simple_spread", 1)[1].split("\n## ", 1)[0]
+    seeds = ROOT / "docs" / "seeds" / "mpe_spread"
+    over = json.loads((seeds / "group-eval.json").read_text())["return_mean_over_seeds"]
+    low, high = over["mean_ci95"]
+    assert over["seeds"] == 3
+    assert f"| {_figure(over['mean'])} [{_figure(low)}, {_figure(high)}] |" in rows
+    for seed in range(3):
+        ev = json.loads((seeds / f"mpe_spread-seed{seed}" / "eval.json").read_text())
+        low, high = ev["return_mean_ci"]
+        assert f"{_figure(ev['return_mean'])} [{_figure(low)}, {_figure(high)}]" in rows
+        assert _figure(ev["return_median"]) in rows
+    rand = json.loads((seeds / "random.json").read_text())
+    low, high = rand["return_mean_ci"]
+    assert f"| random | {_figure(rand['return_mean'])} [{_figure(low)}, {_figure(high)}] |" in rows
 
 
 def test_a_config_error_names_the_pettingzoo_key():

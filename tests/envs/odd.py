@@ -1,6 +1,7 @@
 """PettingZoo envs that break (or bend) the contract of docs/your-own-env.md, for the tests:
 spaces that differ between agents, continuous actions, a Dict observation, an AEC env, a
-constructor that fails, a module that fails to import (``tests.envs.broken``)."""
+constructor that fails, a module that fails to import (``tests.envs.broken``); and one that
+reports a ``coverage`` in its infos."""
 
 from __future__ import annotations
 
@@ -60,3 +61,23 @@ def failing(**kwargs):
 
 
 not_callable = 42
+
+
+class _Coverage(MeetEnv):
+    """:class:`MeetEnv` whose infos also report ``coverage``: the share of cells a walker is on."""
+
+    def step(self, actions):
+        obs, rewards, terms, truncs, infos = super().step(actions)
+        coverage = len(set(self.cells.tolist())) / self.size
+        return (
+            obs,
+            rewards,
+            terms,
+            truncs,
+            {a: {**i, "coverage": coverage} for a, i in infos.items()},
+        )
+
+
+def reports_coverage(**kwargs):
+    """The meet env with a ``coverage`` in every agent's infos."""
+    return _Coverage(**kwargs)

@@ -19,6 +19,7 @@ from harness import DoubleDQN
 from harness.config.loading import load_config
 from harness.evaluation.baselines import make_baseline
 from harness.evaluation.episodes import model_policy, run_episodes
+from harness.results.rundir import RunDir
 from harness.results.stats import paired_difference
 
 
@@ -31,13 +32,13 @@ def main() -> None:
     out = {}
     planner: dict[str, np.ndarray] = {}
     for run in args.runs:
-        config = load_config(run / "config.yaml", args.overrides)
+        config = load_config(RunDir(run).config, args.overrides)
         env, seed = config.env, config.eval.validation_seed
         key = json.dumps(env.model_dump(), sort_keys=True, default=str)
         if key not in planner:
             slot0 = run_episodes(make_baseline("frontier_step", 0), env, args.episodes, seed)
             planner[key] = np.array([r.coverage for r in slot0])
-        model = DoubleDQN.load(run / "model.zip", device="cpu")
+        model = DoubleDQN.load(RunDir(run).model, device="cpu")
         policy = model_policy(model, config.eval.temperature, config.eval.shield)
         cov = np.array([r.coverage for r in run_episodes(policy, env, args.episodes, seed)])
         mean, low, high = paired_difference(cov, planner[key])

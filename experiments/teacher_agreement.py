@@ -26,6 +26,7 @@ from harness import DoubleDQN
 from harness.config.loading import load_config
 from harness.config.schema import TeacherConfig
 from harness.evaluation.episodes import model_policy, run_episodes
+from harness.results.rundir import RunDir
 from harness.training.teacher import TeacherLabeller
 
 
@@ -36,7 +37,7 @@ def main() -> None:
     parser.add_argument("--episodes", type=int, default=8)
     parser.add_argument("--set", action="append", default=[], dest="overrides")
     args = parser.parse_args()
-    config = load_config(args.run / "config.yaml", args.overrides)
+    config = load_config(RunDir(args.run).config, args.overrides)
     model = DoubleDQN.load(args.run / f"{args.model}.zip", device="cpu")
     student = model_policy(model, 0.0)
     options = config.algo.teacher or TeacherConfig()

@@ -135,7 +135,7 @@ def find_run_config(model_path: Path) -> Path:
     )
     folders = (above, model_path.parent) if in_checkpoint else (model_path.parent, above)
     for folder in folders:
-        if RunDir(folder).config.is_file():
+        if RunDir(folder).is_run:
             return RunDir(folder).config
     raise TargetError(f"{model_path}: no config.yaml of its run beside it")
 
@@ -143,7 +143,7 @@ def find_run_config(model_path: Path) -> Path:
 def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) -> Target:
     """A trained model: ``path`` is a run folder (its ``model.zip``) or a model zip."""
     if path.is_dir():
-        if not RunDir(path).config.is_file():
+        if not RunDir(path).is_run:
             raise TargetError(f"{path}: not a run folder (no config.yaml)")
         model_path, config_path = RunDir(path).model, RunDir(path).config
         if not model_path.is_file():

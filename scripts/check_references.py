@@ -25,17 +25,19 @@ import time
 from pathlib import Path
 
 from harness.cli import main as harness
+from harness.results.rundir import RunDir
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def check(name: str, scratch: Path) -> bool:
-    ref = ROOT / "runs" / "reference" / name
-    committed = json.loads((ref / "eval.json").read_text())
-    copy = scratch / name
-    copy.mkdir()
-    for f in ("config.yaml", "model.zip"):
-        (copy / f).write_bytes((ref / f).read_bytes())
+    ref = RunDir(ROOT / "runs" / "reference" / name)
+    committed = json.loads(ref.eval_json.read_text())
+    copy = RunDir(scratch / name)
+    copy.path.mkdir()
+    for file in ("config", "model"):
+        getattr(copy, file).write_bytes(getattr(ref, file).read_bytes())
+    copy = copy.path
     start = time.perf_counter()
     with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
         code = harness(["eval", str(copy), "--episodes", str(committed["episodes"]), "--json"])
@@ -135,7 +137,8 @@ def main(names: list[str]) -> int:
             return 2
         with tempfile.TemporaryDirectory() as tmp:
             return 0 if all([check_baseline(p, Path(tmp)) for p in stored]) else 1
-    known = sorted(p.parent.name for p in (ROOT / "runs" / "reference").glob("*/eval.json"))
+    references = (ROOT / "runs" / "reference").iterdir()
+    known = sorted(p.name for p in references if RunDir(p).eval_json.is_file())
     unknown = [name for name in names if name not in known]
     if unknown:
         print(f"error: no reference {unknown[0]!r}; known: {', '.join(known)}", file=sys.stderr)

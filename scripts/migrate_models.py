@@ -47,6 +47,7 @@ import torch as th
 from gymnasium import spaces
 from stable_baselines3.common.save_util import data_to_json
 
+from harness.results.rundir import RunDir
 from harness.sb3.dqn import FORMAT_KEY, MODEL_FORMAT, saved_model_format, target_as_online
 from harness.sb3.policies import ACTION_MASK_KEY
 
@@ -85,7 +86,8 @@ class _RenamingUnpickler(pickle.Unpickler):
 
 def shipped_models() -> list[Path]:
     """The models the repository ships: every reference's and any under ``docs/seeds``."""
-    references = (ROOT / "runs" / "reference").glob("*/model.zip")
+    references = [RunDir(p).model for p in (ROOT / "runs" / "reference").iterdir()]
+    references = [model for model in references if model.is_file()]
     return sorted({*references, *(ROOT / "docs" / "seeds").rglob("*.zip")})
 
 

@@ -201,7 +201,11 @@ def test_the_run_file_names_are_read_from_their_owner() -> None:
     assert {"config.yaml", "checkpoints", "state.json", "model.zip", ".lock", "tb"} <= names
 
 
-@pytest.mark.parametrize("path", modules("harness"), ids=lambda p: str(p.relative_to(ROOT)))
+@pytest.mark.parametrize(
+    "path",
+    [*modules("harness"), *modules("scripts"), *modules("experiments")],
+    ids=lambda p: str(p.relative_to(ROOT)),
+)
 def test_only_the_run_dir_spells_run_file_names(path: Path) -> None:
     if module_name(path) == RUN_FILES_OWNER:
         return
@@ -265,6 +269,15 @@ def state_rule_breaches(path: Path) -> list[str]:
 def test_only_the_state_owner_decides_a_runs_state(path: Path) -> None:
     bad = state_rule_breaches(path)
     assert not bad, f"{module_name(path)} uses {bad} (ask {RUN_STATE_OWNER}.run_state)"
+
+
+@pytest.mark.parametrize("path", modules("harness"), ids=lambda p: str(p.relative_to(ROOT)))
+def test_whether_a_folder_is_a_run_is_asked_of_the_run_dir(path: Path) -> None:
+    # RunDir.is_run says it (its config.yaml); nobody tests that file for it on their own.
+    if module_name(path) == RUN_FILES_OWNER:
+        return
+    text = path.read_text()
+    assert ".config.is_file()" not in text, f"{module_name(path)}: ask RunDir(...).is_run"
 
 
 def test_the_run_state_check_finds_a_breach(tmp_path: Path) -> None:

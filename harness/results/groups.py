@@ -140,7 +140,7 @@ def group_runs(folder: Path) -> list[Path]:
         GroupError: when ``group.json`` cannot be read or names no run that exists.
     """
     folder = Path(folder)
-    found = [run for run in group_members(folder) if RunDir(run).config.is_file()]
+    found = [run for run in group_members(folder) if RunDir(run).is_run]
     if not found:
         raise GroupError(f"{folder}: the group has no run folder yet")
     for run in found:

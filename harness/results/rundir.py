@@ -365,6 +365,12 @@ class RunDir:
         return self.path / "config.yaml"
 
     @property
+    def is_run(self) -> bool:
+        """Whether the folder is a run's: it holds the run's ``config.yaml``, the first file a
+        run writes (where the run stands: ``harness.training.state.run_state``)."""
+        return self.config.is_file()
+
+    @property
     def command(self) -> Path:
         return self.path / "command.txt"
 

@@ -87,7 +87,7 @@ def run_state(run: RunDir) -> RunStatus:
     A newest checkpoint whose ``state.json`` cannot be read leaves the run ``RESUMABLE``, even
     beside a ``model.zip``: the resume falls back to the older checkpoint and says so.
     """
-    if not run.config.is_file():
+    if not run.is_run:
         return RunStatus(RunState.NEW)
     found = complete_checkpoints(run.checkpoints)
     if not found:

@@ -575,6 +575,12 @@ def _resume(args: argparse.Namespace) -> int:
     if args.jobs is not None:
         raise HarnessError("--jobs goes with --seeds or a seed group's --resume")
     run = RunDir(args.resume)
+    if run.is_checkpoint:
+        raise HarnessError(
+            f"{run.path} is a checkpoint of {run.checkpoint_of.path}: resume the run "
+            f"(harness run --resume {run.checkpoint_of.path}), which continues from its newest "
+            "checkpoint"
+        )
     if run_state(run).never_started:
         raise HarnessError(
             f"{run.path}: not a run folder (no config.yaml) nor a seed group (no group.json)"

@@ -42,6 +42,7 @@ from harness.factory import make_env
 from harness.results.rundir import (
     REFERENCE_FILES,
     STANDARD_EPISODES,
+    CheckpointDir,
     RunDir,
     RunDirError,
     against_filename,
@@ -129,20 +130,23 @@ def find_run_config(model_path: Path) -> Path:
     a checkpoint (deleted when newer checkpoints replace it, and a changed copy would make the
     run's resume refuse a config nobody edited).
     """
-    above = Path(os.path.normpath(model_path.parent / os.pardir / os.pardir))
-    in_checkpoint = os.path.abspath(model_path.parent.parent) == os.path.abspath(
-        RunDir(above).checkpoints
-    )
-    folders = (above, model_path.parent) if in_checkpoint else (model_path.parent, above)
-    for folder in folders:
-        if RunDir(folder).is_run:
-            return RunDir(folder).config
+    beside = RunDir(model_path.parent)
+    above = beside.checkpoint_of
+    for run in (above, beside) if beside.is_checkpoint else (beside, above):
+        if run.is_run:
+            return run.config
     raise TargetError(f"{model_path}: no config.yaml of its run beside it")
 
 
 def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) -> Target:
-    """A trained model: ``path`` is a run folder (its ``model.zip``) or a model zip."""
-    if path.is_dir():
+    """A trained model: ``path`` is a run folder (its ``model.zip``), a checkpoint's folder (its
+    ``model.zip``, evaluated for its run) or a model zip."""
+    if path.is_dir() and RunDir(path).is_checkpoint:
+        model_path = CheckpointDir(path).model
+        if not model_path.is_file():
+            raise TargetError(f"{path}: a checkpoint without its model.zip")
+        config_path = find_run_config(model_path)
+    elif path.is_dir():
         if not RunDir(path).is_run:
             raise TargetError(f"{path}: not a run folder (no config.yaml)")
         model_path, config_path = RunDir(path).model, RunDir(path).config

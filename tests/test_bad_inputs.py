@@ -166,6 +166,9 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], str]] = [
     ("cave-too-slow-to-draw", ["run", "{cfg}", "--set",
                                "env.map={{cave: {{height: 1000, width: 1000}}}}"], {},
      "env.map: cave: a 1000x1000 cave has 1,000,000 cells, over the limit of 62,500"),
+    ("cave-too-many-pockets", ["run", "{cfg}", "--set", "env.map={{cave: {{height: 250, width: "
+                               "250, iterations: 0, min_region: 1}}}}"], {},
+     "env.map: cave: a 250x250 cave with rock_share 0.55, iterations 0 and min_region 1 leaves"),
     ("maze-too-slow-to-draw", ["run", "{cfg}", "--set", "env.height=2000", "--set",
                                "env.width=2000", "--set",
                                "env.map={{mix: [{{weight: 1, maze: }}]}}"],
@@ -199,6 +202,10 @@ CASES: list[tuple[str, list[str], dict[str, str | bytes], str]] = [
      "a single number is a count of seeds (--seeds 3 trains seeds 0, 1, 2) and must be at least "
      "1; to train one given seed, use --seed N"),
     ("seeds-twice", ["run", "{cfg}", "--seeds", "0,0"], {}, "a seed is given twice"),
+    ("seeds-and-threads", ["run", "{cfg}", "--seeds", "2", "--set", "algo.threads=2"], {},
+     "--set algo.threads: --seeds gives each seed its seed and algo.threads"),
+    ("seeds-and-seed", ["run", "{cfg}", "--seeds", "2", "--set", "seed=4"], {},
+     "--set seed: --seeds gives each seed its seed"),
     ("seeds-count-huge", ["run", "{cfg}", "--seeds", "99999999999999999999"], {},
      "at most 1,000 runs in a group"),
     ("seeds-out-of-range", ["run", "{cfg}", "--seeds", "1,2147483648"], {},
@@ -527,3 +534,25 @@ def test_a_config_that_is_a_fifo_is_refused_at_once(tmp_path, capsys):
     assert main(["run", str(fifo)]) == 2
     (line,) = capsys.readouterr().err.strip().splitlines()
     assert f"{fifo}: not a regular file" in line
+
+
+@pytest.mark.parametrize("kind", ["fifo", "device", "huge"])
+def test_a_space_file_that_is_no_regular_small_file_is_refused_at_once(kind, tmp_path, capsys):
+    # The sweep's --space is read as a config is: a FIFO would wait for a writer forever,
+    # /dev/zero would fill the memory.
+    space = tmp_path / "space.yaml"
+    if kind == "fifo":
+        os.mkfifo(space)
+    elif kind == "device":
+        space = Path("/dev/zero")
+    else:
+        space.write_text("algo.gamma: {float: [0.8, 0.99]}\n" + "#" * (1 << 21) + "\n")
+    config = tmp_path / "tiny.yaml"
+    config.write_text(GOOD)
+    args = ["sweep", str(config), "--space", str(space), "--trials", "1"]
+    args += ["--sweeps-dir", str(tmp_path / "s")]
+    assert main(args) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    expected = "too large for a space file" if kind == "huge" else "not a regular file"
+    assert f"{space}: " in line and expected in line
+    assert not (tmp_path / "s").exists() or not any((tmp_path / "s").iterdir())

@@ -130,24 +130,28 @@ def test_shipped_evaluations_keep_the_names_harness_eval_gives_them(path):
     assert name == path.name
 
 
-def test_eval_of_a_checkpoint_goes_to_its_run_not_into_the_checkpoint(smoke_run, capsys):
+@pytest.mark.parametrize("named", ["model zip", "folder"])
+def test_eval_of_a_checkpoint_goes_to_its_run_not_into_the_checkpoint(named, smoke_run, capsys):
     checkpoint = sorted((smoke_run / "checkpoints").glob("step-*"))[-1]
     before = sorted(p.name for p in checkpoint.iterdir())
     capsys.readouterr()
-    assert main(["eval", str(checkpoint / "model.zip"), "--episodes", "2"]) == 0
+    target = checkpoint / "model.zip" if named == "model zip" else checkpoint
+    assert main(["eval", str(target), "--episodes", "2"]) == 0
     saved = smoke_run / f"eval-{checkpoint.name}_2ep.json"
     assert f"saved {saved}" in capsys.readouterr().err
     assert json.loads(saved.read_text())["policy"] == str(checkpoint / "model.zip")
     assert sorted(p.name for p in checkpoint.iterdir()) == before  # nothing written into it
 
 
-def test_tune_write_of_a_checkpoint_writes_the_runs_config(smoke_run, tmp_path, capsys):
+@pytest.mark.parametrize("named", ["model zip", "folder"])
+def test_tune_write_of_a_checkpoint_writes_the_runs_config(named, smoke_run, tmp_path, capsys):
     run = tmp_path / smoke_run.name
     shutil.copytree(smoke_run, run)
     checkpoint = sorted((run / "checkpoints").glob("step-*"))[-1]
     copy = (checkpoint / "config.yaml").read_bytes()
     capsys.readouterr()
-    args = ["tune", str(checkpoint / "model.zip"), "--temperatures", "2.5", "--episodes", "1"]
+    target = checkpoint / "model.zip" if named == "model zip" else checkpoint
+    args = ["tune", str(target), "--temperatures", "2.5", "--episodes", "1"]
     assert main([*args, "--write"]) == 0
     err = capsys.readouterr().err
     assert f"saved eval.temperature=2.5 in {run / 'config.yaml'} (was 0)" in err
@@ -155,6 +159,16 @@ def test_tune_write_of_a_checkpoint_writes_the_runs_config(smoke_run, tmp_path, 
     assert (checkpoint / "config.yaml").read_bytes() == copy  # the resume's copy: untouched
     assert (run / f"tune-{checkpoint.name}.json").is_file()
     assert sorted(p.name for p in checkpoint.glob("*.json")) == ["state.json"]
+
+
+def test_a_resume_of_a_checkpoint_names_its_run(smoke_run, capsys):
+    checkpoint = sorted((smoke_run / "checkpoints").glob("step-*"))[-1]
+    before = sorted(p.name for p in checkpoint.iterdir())
+    capsys.readouterr()
+    assert main(["run", "--resume", str(checkpoint)]) == 2
+    (line,) = capsys.readouterr().err.strip().splitlines()
+    assert f"is a checkpoint of {smoke_run}: resume the run" in line
+    assert sorted(p.name for p in checkpoint.iterdir()) == before
 
 
 def test_eval_table_is_readable(smoke_run, capsys):

@@ -122,6 +122,15 @@ def test_actions_that_are_not_a_dict_are_refused():
         env.step([0, 1])
 
 
+def test_an_action_for_a_misspelt_agent_is_refused_by_name():
+    env = coverage_v0.parallel_env(height=8, width=8, n_agents=2, max_steps=10)
+    env.reset(seed=0, options={"starts": [(1, 1), (2, 2)]})
+    with pytest.raises(ValueError, match=r"an action for 'agent_O', which is no agent"):
+        env.step({"agent_0": 4, "agent_1": 4, "agent_O": 0})
+    env.step({"agent_0": 4, "agent_1": 4})
+    assert env.unwrapped._core.steps.tolist() == [1]  # the refused call stepped nothing
+
+
 def test_parallel_seed_test_passes():
     parallel_seed_test(
         lambda: coverage_v0.parallel_env(height=10, width=10, n_agents=2, max_steps=50)

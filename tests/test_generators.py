@@ -394,3 +394,21 @@ def test_fixed_maps_are_the_same_every_time():
     rng = np.random.default_rng(0)
     np.testing.assert_array_equal(gen(rng), spec.grid)
     np.testing.assert_array_equal(gen(rng), spec.grid)
+
+
+def test_a_cave_whose_settings_leave_too_many_pockets_is_refused_when_built(monkeypatch):
+    from envs.coverage.generators import CaveMaps
+
+    CaveMaps(250, 250)  # the largest default cave: about a second a draw
+    with pytest.raises(ValueError, match=r"150x150 cave .* leaves 1,994 pockets to join"):
+        CaveMaps(150, 150, iterations=0, min_region=1)
+    # The count bounds the tunnels the generator digs for that seed (a tunnel may join more
+    # than two regions at once, never fewer).
+    dug = []
+    real = cave._dig_tunnel
+    monkeypatch.setattr(cave, "_dig_tunnel", lambda *a, **k: (dug.append(1), real(*a, **k)))
+    for size, settings in (((50, 100), {}), ((60, 60), {"iterations": 0, "min_region": 1})):
+        dug.clear()
+        cave.generate_cave(cave.CAVE_SEED, *size, **settings)
+        pockets = cave.count_pockets(cave.CAVE_SEED, *size, **settings)
+        assert 0 < len(dug) <= pockets - 1, (size, len(dug), pockets)

@@ -1021,3 +1021,25 @@ def test_a_group_missing_a_seed_gets_no_group_eval(tmp_path):
     result, saved, missing = evaluate_group(group, evaluated.append, standard=True)
     assert (result, saved, missing) == (None, None, ["run-seed1"])
     assert not (group / "group-eval.json").exists()
+
+
+def test_a_trial_skipped_because_the_study_is_full_says_nothing():
+    # Another worker's trials made up the total: Optuna's failure warning (with its traceback)
+    # is left out and the progress line is not printed; a real failure still shows.
+    import logging
+
+    from harness.training.sweep import StudyFull, _QuietInterrupts, _Reporter
+
+    def record(error: BaseException) -> logging.LogRecord:
+        return logging.LogRecord(
+            "optuna.study._optimize", logging.WARNING, __file__, 1, "Trial 2 failed", None,
+            (type(error), error, None),
+        )  # fmt: skip
+
+    quiet = _QuietInterrupts()
+    assert not quiet.filter(record(StudyFull(2)))
+    assert quiet.filter(record(RuntimeError("boom")))  # a failure after it is still said
+    lines = []
+    reporter = _Reporter(lines.append, total=1)
+    reporter(None, SimpleNamespace(user_attrs={"skipped": "the study already had its 1 trials"}))
+    assert lines == []

@@ -164,7 +164,7 @@ class CoverageEnv(ParallelEnv):
                 continue that generator, so a seeded env gives a repeatable sequence of episodes.
             options: ``"grid"`` (2D bool array, True = wall, same shape as the env) and/or
                 ``"starts"`` (``[(row, col), ...]``) fix this episode's map and start cells.
-                Other keys are ignored.
+                Other keys are ignored (PettingZoo's API test passes one of its own).
 
         Returns:
             Observations and infos. The infos are empty dicts: SuperSuit merges reset infos over
@@ -190,9 +190,10 @@ class CoverageEnv(ParallelEnv):
         """Move every agent at once (rules: ``envs/coverage_v0.py``); PettingZoo's five dicts.
 
         Raises:
-            ValueError: for actions that are not a dict, a live agent without an action, or an
-                action that is not an integer of the action space (the core's check names the
-                agent, the value and the range); nothing is stepped.
+            ValueError: for actions that are not a dict, a live agent without an action, an
+                action for a name that is no live agent, or an action that is not an integer of
+                the action space (the core's check names the agent, the value and the range);
+                nothing is stepped.
         """
         self._require_state()
         if not self.agents:
@@ -207,6 +208,9 @@ class CoverageEnv(ParallelEnv):
             acts = [actions[a] for a in self.agents]
         except KeyError as exc:
             raise ValueError(f"no action given for {exc.args[0]}") from exc
+        if len(actions) != len(acts):  # a misspelt name would be an action nobody takes
+            extra = next(str(a) for a in actions if a not in self.agents)
+            raise ValueError(f"an action for {extra!r}, which is no agent of this episode")
         core = self._core
         # The values as given: the core's one check of what an action may be names the agent.
         reward, done = core.step(acts)

@@ -183,6 +183,11 @@ class CaveMaps(_SeededMaps):
     #: 250x250: about 1.2 s a map with the defaults (0.4 s at 200x200, 2.6 s at 300x300; each
     #: pocket joined relabels the whole map). docs/environment.md has the measurements.
     max_cells: ClassVar[int | None] = 62_500
+    #: Most pockets to join times cells: a draw's cost is about their product (5-6 ms a join at
+    #: 250x250), and the settings move the pockets as much as the size does (250x250: 243 with
+    #: the defaults, 1.05 s; 3,566 with ``iterations: 0, min_region: 1``, 23 s). Twice the
+    #: largest default cave's: about 2 s a draw.
+    max_work: ClassVar[int] = 2 * 250 * 62_500
 
     def __init__(
         self,
@@ -204,6 +209,18 @@ class CaveMaps(_SeededMaps):
         }
         _check_count("iterations", iterations, _MAX_ITERATIONS)
         _check_count("min_region", min_region, _MAX_MIN_REGION)
+        # Counted on one draw (the shipped seed's noise at this size): seeds differ little.
+        pockets = cave.count_pockets(
+            self.shipped_seed, self.height, self.width, rock_share, iterations, min_region
+        )
+        if pockets * self.height * self.width > self.max_work:
+            raise ValueError(
+                f"a {self.height}x{self.width} cave with rock_share {rock_share}, iterations "
+                f"{iterations} and min_region {min_region} leaves {pockets:,} pockets to join "
+                f"one tunnel at a time, more than a draw of about two seconds allows at this size "
+                f"({self.max_work // (self.height * self.width):,}; each reset draws one): more "
+                "iterations, a larger min_region, a lower rock_share or a smaller map"
+            )
 
     def _generate(self, seed: int) -> np.ndarray:
         return cave.generate_cave(seed, self.height, self.width, **self.shape)

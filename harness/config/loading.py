@@ -268,6 +268,33 @@ def parse_yaml(text: str, source: str) -> Any:
         raise ConfigError(f"{source}: invalid YAML ({str(exc).split(';')[0][:120]})") from None
 
 
+def read_yaml_text(path: str | Path, what: str = "config file") -> str:
+    """The text of a YAML file the user names (a config, a sweep's space file): a regular file
+    of at most :data:`MAX_CONFIG_BYTES`, UTF-8.
+
+    Raises:
+        ConfigError: one line naming the file and ``what`` it should be.
+    """
+    path = Path(path)
+    try:
+        # A FIFO blocks the open until someone writes to it, /dev/zero never ends: only regular
+        # files are read (as only regular files are map files).
+        if not stat.S_ISREG(path.stat().st_mode):
+            raise ConfigError(f"{path}: not a regular file (a {what} is YAML)")
+        # Read at most one byte past the limit (the file may grow between stat and read).
+        with path.open("rb") as f:
+            data = f.read(MAX_CONFIG_BYTES + 1)
+        if len(data) > MAX_CONFIG_BYTES:
+            raise ConfigError(
+                f"{path}: more than {MAX_CONFIG_BYTES:,} bytes is too large for a {what}"
+            )
+        return data.decode("utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: {what} not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: cannot read {what} ({exc})") from None
+
+
 def load_config(path: str | Path, overrides: Sequence[str] = ()) -> ExperimentConfig:
     """Read a YAML experiment file, apply ``--set`` overrides and validate.
 
@@ -275,24 +302,7 @@ def load_config(path: str | Path, overrides: Sequence[str] = ()) -> ExperimentCo
         ConfigError: with one line naming the file (or the override) and the key.
     """
     path = Path(path)
-    try:
-        # A FIFO blocks the open until someone writes to it, /dev/zero never ends: only regular
-        # files are configs (as only regular files are map files).
-        if not stat.S_ISREG(path.stat().st_mode):
-            raise ConfigError(f"{path}: not a regular file (a config is a YAML file)")
-        # Read at most one byte past the limit (the file may grow between stat and read).
-        with path.open("rb") as f:
-            data = f.read(MAX_CONFIG_BYTES + 1)
-        if len(data) > MAX_CONFIG_BYTES:
-            raise ConfigError(
-                f"{path}: more than {MAX_CONFIG_BYTES:,} bytes is too large for a config file"
-            )
-        text = data.decode("utf-8")
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: config file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: cannot read config ({exc})") from None
-    raw = parse_yaml(text, str(path))
+    raw = parse_yaml(read_yaml_text(path), str(path))
     if raw is None:
         raise ConfigError(f"{path}: the config file is empty (see configs/ for examples)")
     if not isinstance(raw, dict):

@@ -263,6 +263,7 @@ def run_group(
     Raises:
         GroupInterrupted: on SIGINT/SIGTERM, once the seeds in training have stopped.
     """
+    check_group_overrides(overrides)
     group = unique_folder(runs_dir, name)
     threads = threads_per_job(jobs)
     pending = [Job(seed, RunDir(group / f"{name}-seed{seed}")) for seed in seeds]
@@ -602,12 +603,32 @@ def _last_value(path: Path, column: str) -> str | None:
     return None
 
 
+#: The keys a seed group sets in each seed's command (:func:`_start_command`).
+GROUP_KEYS = ("seed", "algo.threads")
+
+
+def check_group_overrides(overrides: Sequence[str]) -> None:
+    """Refuse a ``--set`` of a key the group sets for each seed itself (the seed's own command
+    would name it twice, and every seed would fail the same way).
+
+    Raises:
+        GroupError: one line naming the key and what gives it.
+    """
+    for override in overrides:
+        key = override.partition("=")[0].strip()
+        if key in GROUP_KEYS:
+            raise GroupError(
+                f"--set {key}: --seeds gives each seed its seed and algo.threads (its share of "
+                "the cores, by --jobs); drop it"
+            )
+
+
 def _start_command(
     job: Job, config_path: Path, overrides: Sequence[str], threads: int
 ) -> list[str]:
     """``harness run CONFIG --set ... --set seed=k --into RUN``: a seed's first start."""
     cmd = harness_command("run", str(config_path), "--no-progress")
-    for override in (*overrides, f"seed={job.seed}", f"algo.threads={threads}"):
+    for override in (*overrides, *(f"{k}={v}" for k, v in zip(GROUP_KEYS, (job.seed, threads)))):
         cmd += ["--set", override]
     return [*cmd, "--into", str(job.run.path)]
 

@@ -367,8 +367,23 @@ class RunDir:
     @property
     def is_run(self) -> bool:
         """Whether the folder is a run's: it holds the run's ``config.yaml``, the first file a
-        run writes (where the run stands: ``harness.training.state.run_state``)."""
-        return self.config.is_file()
+        run writes (where the run stands: ``harness.training.state.run_state``), and is no
+        checkpoint of one (:attr:`is_checkpoint`: a checkpoint keeps a copy of that file)."""
+        return self.config.is_file() and not self.is_checkpoint
+
+    @property
+    def is_checkpoint(self) -> bool:
+        """Whether the folder is a checkpoint of a run, ``RUN/checkpoints/step-N/``: its
+        results and config belong to ``RUN`` (:attr:`checkpoint_of`)."""
+        run = self.checkpoint_of
+        return os.path.abspath(self.path.parent) == os.path.abspath(run.checkpoints) and (
+            run.config.is_file()
+        )
+
+    @property
+    def checkpoint_of(self) -> RunDir:
+        """The run this folder would be a checkpoint of (two folders up)."""
+        return RunDir(Path(os.path.normpath(self.path / os.pardir / os.pardir)))
 
     @property
     def command(self) -> Path:

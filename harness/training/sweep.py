@@ -65,7 +65,7 @@ from typing import Any
 
 import yaml
 
-from harness.config.loading import load_config, parse_override, parse_yaml
+from harness.config.loading import load_config, parse_override, parse_yaml, read_yaml_text
 from harness.config.schema import ConfigError, is_foreign
 from harness.processes import harness_command
 from harness.results.rundir import RunDir, RunDirError, atomic_write_text
@@ -134,7 +134,8 @@ def _stop_on_sigterm(state: _SignalState) -> Iterator[None]:
 class _QuietInterrupts(logging.Filter):
     """Leaves out Optuna's "Trial N failed ... because of the following error" warning (with the
     traceback) of a trial stopped by a signal or by a lost database, and its warnings after it:
-    the command says what happened in one line."""
+    the command says what happened in one line; and that warning of a trial skipped because the
+    study already has its trials (:class:`StudyFull`: no failure, nothing to say)."""
 
     def __init__(self) -> None:
         super().__init__()
@@ -144,6 +145,8 @@ class _QuietInterrupts(logging.Filter):
         from harness.training.train import TrainingInterrupted
 
         error = record.exc_info[1] if record.exc_info else None
+        if isinstance(error, StudyFull):
+            return False
         if isinstance(error, (KeyboardInterrupt, TrainingInterrupted)) or (
             error is not None and _storage_failure(error) is not None
         ):
@@ -191,10 +194,8 @@ def load_space(path: Path) -> list[Dimension]:
         SweepError: naming the file and the key.
     """
     try:
-        raw = parse_yaml(Path(path).read_text(encoding="utf-8"), str(path))
-    except OSError as exc:
-        raise SweepError(f"{path}: cannot read the space file ({exc.strerror})") from None
-    except ConfigError as exc:
+        raw = parse_yaml(read_yaml_text(path, "space file"), str(path))
+    except ConfigError as exc:  # not a regular file, too large, unreadable, not YAML
         raise SweepError(str(exc)) from None
     if not isinstance(raw, dict) or not raw:
         raise SweepError(f"{path}: expected a mapping of config keys to distributions")
@@ -876,7 +877,8 @@ class _Reporter:
         self.report, self.total = report, total
 
     def __call__(self, study: Any, trial: Any) -> None:
-        self.report(trial_line(study, trial, self.total))
+        if "skipped" not in trial.user_attrs:  # not run: the study had its trials (StudyFull)
+            self.report(trial_line(study, trial, self.total))
 
 
 def write_best(

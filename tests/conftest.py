@@ -95,3 +95,24 @@ def tiny_goal_run(config: Path, runs: Path, **changes: str) -> list[str]:
     for key, value in overrides.items():
         args += ["--set", f"{key}={value}"]
     return args
+
+
+# ---------------------------------------------------------------- a run stopped in an evaluation
+@pytest.fixture(scope="session")
+def stopped_in_evaluation(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, str]:
+    """A tiny run stopped by SIGTERM in the middle of its evaluation at step 600 (checkpoints
+    at 400 and 600), and what it printed (``tests/stopping.py``); made once, read only."""
+    from tests.stopping import stop_in_evaluation
+
+    return stop_in_evaluation(tmp_path_factory.mktemp("stopped"))
+
+
+@pytest.fixture
+def run_copy(stopped_in_evaluation: tuple[Path, str], tmp_path: Path) -> Path:
+    """A copy of the stopped run to resume or damage."""
+    import shutil
+
+    run, _ = stopped_in_evaluation
+    copy = tmp_path / run.name
+    shutil.copytree(run, copy)
+    return copy

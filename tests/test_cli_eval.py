@@ -728,3 +728,14 @@ def test_config_tests_with_its_references_tuned_temperature(ref: Path) -> None:
     tune = ref / "tune.json"
     tuned = json.loads(tune.read_text())["chosen"] if tune.exists() else 0.0  # greedy (above)
     assert load_config(config).eval.temperature == tuned
+
+
+def test_evaluating_a_shipped_reference_changes_none_of_its_files(tmp_path, monkeypatch, capsys):
+    reference = ROOT / "runs" / "reference" / "ddqn_15x15"
+    before = {p.name: p.read_bytes() for p in reference.iterdir()}
+    monkeypatch.chdir(tmp_path)  # results of a reference go to runs/evals/ under the cwd
+    assert main(["eval", str(reference), "--episodes", "2"]) == 0
+    assert {p.name: p.read_bytes() for p in reference.iterdir()} == before
+    saved = Path("runs") / "evals" / "ddqn_15x15" / "eval-2ep.json"
+    assert f"saved {saved}" in capsys.readouterr().err
+    assert json.loads((tmp_path / saved).read_text())["episodes"] == 2

@@ -1,7 +1,12 @@
-"""Reliability of training runs: checkpoints, resume after SIGKILL/SIGTERM, numerical faults."""
+"""A training run's stops and faults (``harness.training.train``): SIGINT/SIGTERM stop a long
+in-training evaluation or a long training call at once, with a checkpoint that resumes; SIGKILL
+at any time, then a resume, gives every episode once and reaches the total; a non-finite loss
+stops the run in one line; the same config and seed give the same episodes; Ctrl-C while the
+modules load, and a killed training process with env worker processes, print no traceback."""
 
 from __future__ import annotations
 
+import contextlib
 import csv
 import json
 import os
@@ -9,6 +14,7 @@ import signal
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -17,15 +23,23 @@ from tensorboard.backend.event_processing.event_accumulator import EventAccumula
 from harness import DoubleDQN
 from harness.cli import main
 from harness.config.loading import load_config
-from harness.training.checkpoints import (
-    CheckpointError,
-    TrainingState,
-    complete_checkpoints,
-    latest_checkpoint,
+from harness.training.checkpoints import TrainingState, complete_checkpoints, latest_checkpoint
+from tests.stopping import (
+    ENDLESS_EPOCHS,
+    ROOT,
+    SMOKE,
+    contiguous,
+    episodes,
+    evaluation_steps,
+    harness_lines,
+    logged_steps,
+    resume,
+    run_args,
+    signal_during_evaluation,
+    signal_during_training,
+    state_of,
 )
 
-ROOT = Path(__file__).resolve().parents[1]
-SMOKE = ROOT / "configs" / "smoke.yaml"
 # A smoke run long enough to be killed mid-way, checkpointing often.
 LONGER = [
     "--set", "phases.initial.timesteps=6000",
@@ -59,6 +73,135 @@ def episode_numbers(run: Path) -> list[int]:
         return [int(row["episode"]) for row in csv.DictReader(f)]
 
 
+# ---------------------------------------------------------------- 1. a signal during an evaluation
+def test_a_signal_abandons_the_evaluation_and_writes_the_usual_checkpoint(stopped_in_evaluation):
+    run, err = stopped_in_evaluation
+    (line,) = harness_lines(err)
+    newest = complete_checkpoints(run / "checkpoints")[-1]
+    assert line == (
+        "harness: stopped by SIGTERM during the evaluation at step 600 (abandoned; the resume "
+        f"runs it) after writing {newest}; resume with: harness run --resume {run}"
+    )
+    assert "Traceback" not in err
+    assert newest.name == "step-000000000600"
+    state = state_of(newest)
+    assert state.pending_eval == 600 and state.num_timesteps == 600
+    # The checkpoint agrees with the logs: every episode logged before it, no evaluation.
+    rows = episodes(run)
+    assert len(rows) == state.next_episode and contiguous(run)
+    assert all(int(row["timesteps"]) <= 600 for row in rows)
+    assert evaluation_steps(run) == []
+
+
+def test_the_resume_runs_the_abandoned_evaluation_then_finishes(run_copy, capsys):
+    assert resume(run_copy) == 0
+    assert "evaluating step 600 again" in capsys.readouterr().err
+    assert evaluation_steps(run_copy) == [600, 1200]
+    assert contiguous(run_copy)
+    assert (run_copy / "model.zip").is_file()
+    assert state_of(complete_checkpoints(run_copy / "checkpoints")[-1]).pending_eval is None
+
+
+def test_an_endless_episode_evaluation_stops_on_a_signal(tmp_path, capsys):
+    # env.max_steps = 10^12: neither the training episodes nor the evaluation's would ever end.
+    with pytest.MonkeyPatch.context() as mp:
+        signal_during_evaluation(mp)
+        args = run_args(tmp_path, "env.max_steps=1000000000000", "eval.every=400")
+        assert main(args) == 128 + signal.SIGTERM
+    err = capsys.readouterr().err
+    assert "during the evaluation at step 400 (abandoned" in err and "Traceback" not in err
+    (run,) = tmp_path.iterdir()
+    assert state_of(complete_checkpoints(run / "checkpoints")[-1]).pending_eval == 400
+
+
+@pytest.mark.slow
+def test_sigterm_during_a_long_evaluation_stops_in_seconds_and_resumes(tmp_path):
+    cmd = [sys.executable, "-m", "harness.cli"]
+    cmd += run_args(tmp_path, "eval.every=800", "eval.episodes=5000")
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    # The episodes of step 800 are logged just before its evaluation starts.
+    err, took = sigterm_when(
+        proc,
+        lambda: any(max(logged_steps(run), default=0) >= 800 for run in tmp_path.iterdir()),
+        settle=0.5,
+    )
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert took < 10, f"stopping took {took:.1f} s"
+    (run,) = tmp_path.iterdir()
+    (line,) = harness_lines(err)
+    assert "during the evaluation at step 800 (abandoned" in line
+    assert f"resume with: harness run --resume {run}" in line and "Traceback" not in err
+
+    assert resume(run) == 0
+    assert contiguous(run) and evaluation_steps(run) == [800, 1600]
+    assert (run / "model.zip").is_file()
+
+
+# ------------------------------------------------------------- 2. a signal during a training call
+def test_a_signal_cuts_a_long_training_call_short_and_the_checkpoint_resumes(tmp_path, capsys):
+    with pytest.MonkeyPatch.context() as mp:
+        signal_during_training(mp)
+        assert main(run_args(tmp_path, ENDLESS_EPOCHS)) == 128 + signal.SIGTERM
+    err = capsys.readouterr().err
+    (run,) = tmp_path.iterdir()
+    (line,) = harness_lines(err)
+    # The first training call comes at the first round's end past learning_starts (200).
+    newest = complete_checkpoints(run / "checkpoints")[-1]
+    assert newest.name == "step-000000000208"
+    assert line == (
+        "harness: stopped by SIGTERM during a training call (cut short after 4 of its "
+        f"100,000,000 gradient steps) after writing {newest}; resume with: harness run "
+        f"--resume {run}"
+    )
+    assert len(episodes(run)) == state_of(newest).next_episode and contiguous(run)
+
+    # The checkpoint resumes; the next training call is endless again and stops the same way.
+    with pytest.MonkeyPatch.context() as mp:
+        signal_during_training(mp)
+        assert resume(run) == 128 + signal.SIGTERM
+    err = capsys.readouterr().err
+    assert "cut short after 4 of its 100,000,000" in err and "Traceback" not in err
+    assert complete_checkpoints(run / "checkpoints")[-1].name == "step-000000000216"
+    assert contiguous(run)
+
+
+@pytest.mark.slow
+def test_sigterm_during_an_endless_training_call_stops_in_seconds(tmp_path):
+    cmd = [sys.executable, "-m", "harness.cli", *run_args(tmp_path, ENDLESS_EPOCHS)]
+    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    # The first episodes end at step 200; the first training call comes at 208.
+    err, took = sigterm_when(
+        proc, lambda: any(logged_steps(run) for run in tmp_path.iterdir()), settle=1.0
+    )
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert took < 10, f"stopping took {took:.1f} s"
+    (line,) = harness_lines(err)
+    assert "during a training call (cut short after" in line and "Traceback" not in err
+
+
+def sigterm_when(
+    proc: subprocess.Popen, ready: Callable[[], bool], settle: float
+) -> tuple[str, float]:
+    """Send SIGTERM to ``proc`` ``settle`` seconds after ``ready()`` first holds (at most 600 s
+    of waiting); its stderr and the seconds it took to stop. A process left running is killed."""
+    try:
+        deadline = time.monotonic() + 600
+        while not ready():
+            assert proc.poll() is None, "the run ended before it could be stopped"
+            assert time.monotonic() < deadline, "the run never got there"
+            time.sleep(0.1)
+        time.sleep(settle)
+        proc.send_signal(signal.SIGTERM)
+        sent = time.monotonic()
+        _, err = proc.communicate(timeout=120)
+        return err, time.monotonic() - sent
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+
+
+# ------------------------------------------------------------------ 3. killed, then resumed
 @pytest.mark.slow
 def test_sigkill_then_resume_reaches_the_total_without_gaps_or_duplicates(tmp_path, capsys):
     proc = start_run(tmp_path)
@@ -120,24 +263,6 @@ def test_sigterm_writes_a_checkpoint_and_says_how_to_resume(tmp_path):
     state = TrainingState.from_json((newest / "state.json").read_text())
     # At or past the checkpoint it waited for: the signal may land before the next env step.
     assert not state.finished and state.num_timesteps >= 1000
-
-
-def test_half_written_checkpoints_are_ignored(tmp_path):
-    folder = tmp_path / "checkpoints"
-    (folder / ".step-000000000300.tmp").mkdir(parents=True)  # crash while writing
-    (folder / "step-000000000200").mkdir()
-    (folder / "step-000000000200" / "state.json").write_text(TrainingState().to_json())
-    (folder / "step-000000000400").mkdir()  # no state.json: incomplete
-    assert latest_checkpoint(folder).name == "step-000000000200"
-    with pytest.raises(CheckpointError, match="no complete checkpoint"):
-        latest_checkpoint(tmp_path / "nothing")
-
-
-def test_training_state_json_round_trip():
-    state = TrainingState(phase=1, phase_start=40, next_episode=7, best_eval=0.5, resumes=2)
-    assert TrainingState.from_json(state.to_json()) == state
-    fresh = TrainingState()
-    assert TrainingState.from_json(fresh.to_json()).best_eval == float("-inf")
 
 
 def test_resume_errors_are_one_line(tmp_path, capsys):
@@ -244,12 +369,72 @@ def test_starting_again_over_a_damaged_log_is_one_line_and_changes_nothing(tmp_p
     assert after == before
 
 
-def test_evaluating_a_shipped_reference_changes_none_of_its_files(tmp_path, monkeypatch, capsys):
-    reference = ROOT / "runs" / "reference" / "ddqn_15x15"
-    before = {p.name: p.read_bytes() for p in reference.iterdir()}
-    monkeypatch.chdir(tmp_path)  # results of a reference go to runs/evals/ under the cwd
-    assert main(["eval", str(reference), "--episodes", "2"]) == 0
-    assert {p.name: p.read_bytes() for p in reference.iterdir()} == before
-    saved = Path("runs") / "evals" / "ddqn_15x15" / "eval-2ep.json"
-    assert f"saved {saved}" in capsys.readouterr().err
-    assert json.loads((tmp_path / saved).read_text())["episodes"] == 2
+# ------------------------------------------------------------------------ 4. no tracebacks
+#: What the ``harness`` console script does, with a line once the package is loaded: from then on
+#: the command's modules load (a Ctrl-C before, while Python itself starts, is Python's).
+LAUNCHER = (
+    "import sys; sys.argv[0] = 'harness'; import harness; print('loading', flush=True); "
+    "from harness.cli import main; sys.exit(main())"
+)
+
+
+def _ctrl_c_default() -> None:
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
+def test_ctrl_c_while_the_modules_load_is_one_line_and_exit_130():
+    # Each delay lands somewhere else: in the imports (seconds here), or in the command after
+    # them; no case may print a traceback.
+    cmd = [sys.executable, "-c", LAUNCHER, "eval", "--policy", "random", "--config", str(SMOKE)]
+    cmd += ["--episodes", "100000"]
+    outcomes = []
+    for delay in (0.0, 0.01, 0.05, 0.15, 0.3, 0.5, 0.8):
+        proc = subprocess.Popen(
+            cmd,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+            cwd=ROOT,
+            # As from a terminal: a suite started in the background of a shell without job
+            # control runs with SIGINT ignored, which the command (rightly) keeps.
+            preexec_fn=_ctrl_c_default,
+        )
+        try:
+            assert proc.stdout.readline() == "loading\n"
+            time.sleep(delay)
+            proc.send_signal(signal.SIGINT)
+            _, err = proc.communicate(timeout=120)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+                proc.wait()
+        outcomes.append((delay, proc.returncode, err))
+    for delay, code, err in outcomes:
+        assert "Traceback" not in err, (delay, err)
+        assert code == 128 + signal.SIGINT, (delay, code, err)
+        assert harness_lines(err) == ["harness: interrupted"], (delay, err)
+
+
+@pytest.mark.slow
+def test_sigkill_of_the_training_process_leaves_its_env_workers_quiet(tmp_path):
+    cmd = [sys.executable, "-m", "harness.cli"]
+    cmd += run_args(
+        tmp_path, "vec.backend=supersuit", "vec.num_cpus=2", "phases.initial.timesteps=100000"
+    )
+    # A session of its own: the workers left behind can be found (and killed) after the test.
+    proc = subprocess.Popen(
+        cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT, start_new_session=True
+    )
+    try:
+        deadline = time.monotonic() + 600
+        while not any(complete_checkpoints(run / "checkpoints") for run in tmp_path.iterdir()):
+            assert proc.poll() is None and time.monotonic() < deadline, "no checkpoint came"
+            time.sleep(0.2)
+        proc.kill()
+        proc.wait()
+        # The workers hold the stderr pipe too: its end means they are gone.
+        err = proc.stderr.read()
+    finally:
+        with contextlib.suppress(ProcessLookupError):  # the workers, had they stayed
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert "Traceback" not in err and "BrokenPipeError" not in err, err

@@ -1,5 +1,6 @@
-"""Every kind of bad input ends the same way: exit code 2, one line on stderr naming the problem,
-no traceback, and no file created, changed or deleted.
+"""The command line's errors (``harness.cli``): every kind of bad input ends the same way,
+exit code 2, one line on stderr naming the problem, no traceback, and no file created, changed
+or deleted.
 
 Each case is a row of :data:`CASES`: the ``harness`` arguments (``{cfg}``, ``{run}``, ... are
 filled in with paths in a scratch folder), files to write there first, and a fragment the

@@ -1,6 +1,7 @@
-"""Lost work: a stopped seed-grid sweep trains every grid point exactly once after
-``--resume``, and a seed group stopped by SIGTERM passes it on to its seeds, says how to go on,
-and ``harness run --resume GROUP`` finishes it."""
+"""Seed groups and their state (``harness.results.groups``, ``harness.training.state``): a
+stopped seed-grid sweep trains every grid point exactly once after ``--resume``; a seed group
+stopped by SIGTERM passes it on to its seeds, says how to go on, and ``harness run --resume
+GROUP`` finishes it; the state of each kind of folder, and the plan of a group's resume."""
 
 from __future__ import annotations
 

@@ -52,6 +52,12 @@ def test_a_pettingzoo_source_reads_its_agents_and_picks_supersuit():
     assert again.env == config.env and again.vec.backend == "supersuit"
 
 
+def test_an_env_padded_to_one_action_space_as_the_contract_advises_is_accepted():
+    config = config_from_dict(meet("tests.envs.odd:padded"))
+    results = run_episodes(make_baseline("random", 0), config.env, 2, 5)
+    assert [r.length for r in results] == [10, 10]
+
+
 def test_an_aec_env_is_converted_to_a_parallel_one():
     config = config_from_dict(meet("tests.envs.odd:aec"))
     assert config.env.n_agents == 2
@@ -69,6 +75,7 @@ def test_an_aec_env_is_converted_to_a_parallel_one():
         ("tests.envs.odd:not_callable", {}, "is not callable"),
         ("tests.envs.odd:failing", {}, "the constructor failed (RuntimeError: no such world)"),
         ("tests.envs.odd:mixed_actions", {}, "agent 'walker_1': action space Discrete(4)"),
+        ("tests.envs.odd:mixed_observations", {}, "agent 'walker_1': observation space Box("),
         ("tests.envs.odd:continuous", {}, "action space Box(-1.0, 1.0, (1,), float32) is not"),
         ("tests.envs.odd:dict_observation", {}, "observation space Dict("),
         ("tests.envs.meet:parallel_env", {"vec": {"backend": "core"}}, "vec.backend: core"),

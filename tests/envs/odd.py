@@ -31,6 +31,19 @@ def mixed_actions(**kwargs):
     return _Spaces(action={"walker_1": spaces.Discrete(4)}, **kwargs)
 
 
+def mixed_observations(**kwargs):
+    """walker_1 observes 3 numbers where walker_0 observes 2."""
+    return _Spaces(observation={"walker_1": spaces.Box(0.0, 1.0, (3,))}, **kwargs)
+
+
+def padded(**kwargs):
+    """:func:`mixed_actions` padded to one action space by SuperSuit, as the contract advises
+    (walker_0's extra action acts as its last one)."""
+    import supersuit
+
+    return supersuit.pad_action_space_v0(mixed_actions(**kwargs))
+
+
 def continuous(**kwargs):
     """Every agent's action is a Box (continuous)."""
     box = spaces.Box(-1.0, 1.0, (1,))

@@ -133,3 +133,28 @@ def test_a_state_without_pending_eval_still_reads():
     for bad in (-1, True, 1.5):
         with pytest.raises(ValueError, match="pending_eval"):
             TrainingState.from_json(json.dumps({**data, "pending_eval": bad}))
+
+
+@pytest.mark.parametrize("linked", ["replay_buffer.pkl", "checkpoint"])
+def test_a_checkpoint_that_links_out_of_its_run_is_not_loaded(linked, run_copy, tmp_path, capsys):
+    # A downloaded run whose newest checkpoint (or its buffer) is a link to a file elsewhere:
+    # that pickle is never loaded; the resume goes on from the older checkpoint.
+    older, newest = complete_checkpoints(run_copy / "checkpoints")
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    if linked == "checkpoint":
+        moved = elsewhere / newest.name
+        shutil.move(newest, moved)
+        newest.symlink_to(moved, target_is_directory=True)
+        bad = newest
+    else:
+        outside = elsewhere / "replay_buffer.pkl"
+        shutil.move(newest / "replay_buffer.pkl", outside)
+        (newest / "replay_buffer.pkl").symlink_to(outside)
+        bad = newest / "replay_buffer.pkl"
+    assert resume(run_copy) == 0
+    err = capsys.readouterr().err
+    (line,) = [line for line in harness_lines(err) if "resuming from the older" in line]
+    assert f"{bad} leads outside the run folder" in line
+    assert line.endswith(f"resuming from the older {older.name}")
+    assert contiguous(run_copy)

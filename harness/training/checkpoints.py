@@ -330,6 +330,24 @@ def check_guards(checkpoint: Path, state: TrainingState) -> None:
             )
 
 
+def check_inside_the_run(checkpoint: Path) -> None:
+    """Refuse a checkpoint whose folder or files lead out of its run folder (a link in a
+    downloaded run): its pickles are loaded only from the folder named on the command line.
+
+    Raises:
+        CheckpointError: one line naming the file (a resume falls back to the older
+            checkpoint, or refuses).
+    """
+    files = CheckpointDir(checkpoint)
+    run = Path(checkpoint).parent.parent.resolve()
+    for path in (files.path, files.model, files.replay_buffer, files.rng):
+        if (path.exists() or path.is_symlink()) and not path.resolve().is_relative_to(run):
+            raise CheckpointError(
+                f"{path} leads outside the run folder {run} (a run's checkpoints live inside "
+                "it; nothing was loaded from it)"
+            )
+
+
 def check_replay_buffer(checkpoint: Path) -> None:
     """Check ``replay_buffer.pkl`` against the SHA-256 stored beside it when the checkpoint was
     written; a checkpoint without the stored hash passes (one written before checkpoints kept

@@ -75,6 +75,7 @@ from harness.training.checkpoints import (
     TrainingState,
     check_config,
     check_guards,
+    check_inside_the_run,
     check_replay_buffer,
     complete_checkpoints,
     read_rng,
@@ -759,6 +760,7 @@ def load_resume_point(checkpoint: Path, config: ExperimentConfig) -> ResumePoint
         CheckpointError: naming the file that cannot be used.
     """
     files = CheckpointDir(checkpoint)
+    check_inside_the_run(checkpoint)  # before anything of it is read
     state = read_state(checkpoint)
     check_guards(checkpoint, state)  # a deleted guard must not switch its check off
     check_config(checkpoint, config)  # before the slow loads

@@ -21,6 +21,16 @@ def pytest_configure(config: pytest.Config) -> None:
         signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
+def root_first_env(**extra: str) -> dict[str, str]:
+    """This process's environment for a child that imports this checkout: the repository first
+    on ``PYTHONPATH``, what was there kept (where the packages come from a ``PYTHONPATH``)."""
+    import os
+
+    root = str(Path(__file__).resolve().parents[1])
+    path = os.pathsep.join(p for p in (root, os.environ.get("PYTHONPATH", "")) if p)
+    return {**os.environ, "PYTHONPATH": path, **extra}
+
+
 def grid_from(text: str) -> np.ndarray:
     """Grid from the text map format (``#`` wall, ``.`` free), ignoring surrounding whitespace."""
     rows = [line.strip() for line in text.strip().splitlines()]

@@ -22,6 +22,7 @@ import pytest
 import torch
 
 from harness.cli import main
+from tests.conftest import root_first_env
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "smoke.yaml"
@@ -431,7 +432,7 @@ def test_the_console_script_shows_no_traceback(scratch, args, message):
         capture_output=True,
         text=True,
         cwd=scratch["tmp"],
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
+        env=root_first_env(),
     )
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
@@ -451,7 +452,7 @@ def console(args: list[str], cwd: Path, gone: bool = False, **env: str):
         capture_output=True,
         text=True,
         cwd=cwd.parent if gone else cwd,
-        env={**os.environ, "PYTHONPATH": str(ROOT), **env},
+        env=root_first_env(**env),
     )
 
 

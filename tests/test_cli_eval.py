@@ -4,7 +4,6 @@
 from __future__ import annotations
 
 import json
-import os
 import shutil
 import subprocess
 import sys
@@ -23,7 +22,7 @@ from harness.commands import (
 )
 from harness.config.loading import load_config
 from harness.results.rundir import result_filename
-from tests.conftest import one_error_line
+from tests.conftest import one_error_line, root_first_env
 from tests.test_seeds_and_sweeps import TINY
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -420,7 +419,7 @@ def test_the_console_script_refuses_a_huge_eval_json_without_traceback(tmp_path)
     proc = subprocess.run(
         [sys.executable, "-m", "harness.cli", "compare", str(run), "--out",
          str(tmp_path / "c.png")],
-        capture_output=True, text=True, cwd=tmp_path, env={**os.environ, "PYTHONPATH": str(ROOT)},
+        capture_output=True, text=True, cwd=tmp_path, env=root_first_env(),
     )  # fmt: skip
     assert proc.returncode == 2
     assert "is too large for an evaluation" in one_error_line(proc.stderr)

@@ -29,6 +29,7 @@ from harness.results.stats import (
     seed_statistics,
 )
 from harness.training.sweep import SweepError, load_space
+from tests.conftest import root_first_env
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = (
@@ -554,7 +555,7 @@ def test_a_sweep_held_by_another_process_is_refused_and_taken_over_once_it_died(
         "with RunDir(Path(sys.argv[1])).lock('a sweep of this study'):\n"
         "    print('held', flush=True); time.sleep(600)\n"
     )
-    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    env = root_first_env()
     holder = subprocess.Popen(
         [sys.executable, "-c", code, str(sweeps / "tiny")], env=env, stdout=subprocess.PIPE
     )
@@ -855,7 +856,7 @@ def test_two_workers_share_one_postgresql_study(tiny, tmp_path):
             "--trials", "4", "--storage", url, "--study", "shared", "--pruner", "none",
             "--sweeps-dir", str(tmp_path / "sweeps"),
         ]  # fmt: skip
-        env = {**os.environ, "PYTHONPATH": str(ROOT)}
+        env = root_first_env()
         workers = [subprocess.Popen(cmd, cwd=ROOT, env=env, stderr=subprocess.PIPE) for _ in "ab"]
         for worker in workers:
             _, err = worker.communicate(timeout=600)
@@ -897,7 +898,7 @@ def test_a_sweep_whose_postgresql_server_dies_stops_in_one_line_and_resumes(tmp_
         cmd = [sys.executable, "-m", "harness.cli", "sweep", str(config), "--space", str(space),
                "--trials", "1", "--storage", url, "--study", "s", "--pruner", "none",
                "--sweeps-dir", str(sweeps)]  # fmt: skip
-        env = {**os.environ, "PYTHONPATH": str(ROOT)}
+        env = root_first_env()
         sweep = subprocess.Popen(cmd, cwd=ROOT, env=env, stderr=subprocess.PIPE)
         evaluations = sweeps / "s" / "trial-0000" / "evaluations.csv"
         deadline = time.monotonic() + 300

@@ -113,10 +113,9 @@ def count_pockets(
     """The separate free regions that step 3 of :func:`generate_cave` joins one tunnel at a
     time for ``seed`` (each join relabels the whole map: the draw's cost is about this count
     times the cells), at the cost of one labelling."""
-    rng = np.random.default_rng(seed)
-    return label_free_components(_pockets(rng, height, width, rock_share, iterations, min_region))[
-        1
-    ]
+    rock = _pockets(np.random.default_rng(seed), height, width, rock_share, iterations, min_region)
+    _, count = label_free_components(rock)
+    return count
 
 
 def _close_border(rock: np.ndarray) -> None:

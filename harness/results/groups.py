@@ -34,7 +34,13 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from harness.processes import available_cores, harness_command
-from harness.results.rundir import RunDir, RunDirError, atomic_write_text, unique_folder
+from harness.results.rundir import (
+    RunDir,
+    RunDirError,
+    atomic_write_text,
+    leads_outside,
+    unique_folder,
+)
 
 #: The file that marks a folder as a seed group.
 GROUP_FILE = "group.json"
@@ -156,15 +162,12 @@ def _check_member_files(folder: Path, run: RunDir) -> None:
     Raises:
         GroupError: naming the file, in one line.
     """
-    root = folder.resolve()
     for path in (run.config, run.model, run.best_model):
-        if not (path.exists() or path.is_symlink()):
-            continue
         try:
-            inside = path.resolve().is_relative_to(root)
-        except (OSError, RuntimeError) as exc:  # a link loop
-            raise GroupError(f"{path}: not a usable file ({exc})") from None
-        if not inside:
+            outside = leads_outside(path, folder)
+        except RunDirError as exc:  # a link loop
+            raise GroupError(str(exc)) from None
+        if outside:
             raise GroupError(
                 f"{path} leads outside the group folder {folder} (a group's files live inside "
                 "it; copy the file in instead of linking it)"

@@ -137,6 +137,22 @@ def results_folder(run_dir: Path) -> Path:
     return Path(run_dir)
 
 
+def leads_outside(path: Path, root: Path) -> bool:
+    """Whether ``path``, where it is (a link too), resolves outside ``root``: pickles are loaded
+    only from inside the folder named on the command line, and a link in a downloaded folder
+    would name another file.
+
+    Raises:
+        RunDirError: for a link loop, naming the path.
+    """
+    if not (path.exists() or path.is_symlink()):
+        return False
+    try:
+        return not path.resolve().is_relative_to(Path(root).resolve())
+    except (OSError, RuntimeError) as exc:  # a link loop
+        raise RunDirError(f"{path}: not a usable file ({exc})") from None
+
+
 class RunDirError(OSError):
     """A run folder that cannot be created or read, with a one-line message."""
 
@@ -446,13 +462,8 @@ class RunDir:
                 "checkpoints/step-N/model)"
             )
         path = self.path / relative
-        if path.is_symlink() or path.exists():
-            try:
-                inside = path.resolve().is_relative_to(self.path.resolve())
-            except (OSError, RuntimeError) as exc:  # a link loop
-                raise RunDirError(f"{path}: not a usable file ({exc})") from None
-            if not inside:
-                raise RunDirError(f"{path} leads outside the run folder {self.path}")
+        if leads_outside(path, self.path):
+            raise RunDirError(f"{path} leads outside the run folder {self.path}")
         return path
 
     def progress_csv(self, resumes: int = 0) -> Path:

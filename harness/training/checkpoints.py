@@ -39,7 +39,7 @@ import numpy as np
 
 from harness.config.loading import config_from_dict, parse_yaml
 from harness.config.schema import ConfigError, ExperimentConfig
-from harness.results.rundir import CheckpointDir, RunDir
+from harness.results.rundir import CheckpointDir, RunDir, RunDirError, leads_outside
 
 STEP_PREFIX = "step-"
 KEEP = 2  # checkpoints kept: the newest and the one before it
@@ -339,9 +339,13 @@ def check_inside_the_run(checkpoint: Path) -> None:
             checkpoint, or refuses).
     """
     files = CheckpointDir(checkpoint)
-    run = Path(checkpoint).parent.parent.resolve()
+    run = Path(checkpoint).parent.parent
     for path in (files.path, files.model, files.replay_buffer, files.rng):
-        if (path.exists() or path.is_symlink()) and not path.resolve().is_relative_to(run):
+        try:
+            outside = leads_outside(path, run)
+        except RunDirError as exc:  # a link loop
+            raise CheckpointError(str(exc)) from None
+        if outside:
             raise CheckpointError(
                 f"{path} leads outside the run folder {run} (a run's checkpoints live inside "
                 "it; nothing was loaded from it)"

@@ -504,6 +504,11 @@ def _run_sweep(
 ) -> dict[str, Any] | None:
     import optuna
 
+    if jobs > 1 and any(o.partition("=")[0].strip() == "algo.threads" for o in spec.overrides):
+        # Each worker's command sets it (worker_command): named twice, every worker would fail.
+        raise SweepError(
+            "--set algo.threads: --jobs gives each worker its share of the cores; drop it"
+        )
     dims = load_space(spec.space_path)
     from harness.training.checks import checked_config
 

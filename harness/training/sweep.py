@@ -105,9 +105,29 @@ class SweepInterrupted(KeyboardInterrupt):
 
 class _SignalState:
     """Whether the sweep is stopping on a signal already (a further SIGTERM is then ignored, so
-    that it cannot break the trial's checkpoint or its FAIL state being written)."""
+    that it cannot break the trial's checkpoint or its FAIL state being written), and the first
+    signal that reached it: read before every trial starts (:meth:`check`), so that a signal
+    that only training's handler saw, too late to stop its run (during the final save, or in
+    a round the pruner ended), still stops the sweep."""
 
-    stopping = False
+    def __init__(self) -> None:
+        self.stopping = False
+        self.signum: int | None = None
+
+    def note(self, signum: int) -> None:
+        """Take note of a signal (called in a signal handler: nothing else)."""
+        if self.signum is None:
+            self.signum = signum
+
+    def check(self, *_: Any) -> None:
+        """Stop the sweep if a signal arrived (also an Optuna callback, after every trial).
+
+        Raises:
+            SweepInterrupted: naming the signal.
+        """
+        if self.signum is not None:
+            self.stopping = True
+            raise SweepInterrupted(self.signum)
 
 
 @contextlib.contextmanager
@@ -121,6 +141,7 @@ def _stop_on_sigterm(state: _SignalState) -> Iterator[None]:
     def handler(signum: int, frame: Any) -> None:
         if state.stopping:
             return
+        state.note(signum)
         state.stopping = True
         raise SweepInterrupted(signum)
 
@@ -589,7 +610,7 @@ def _run_study(
             trial_lock.close()
             try:
                 return _objective(trial, spec.config_path, spec.overrides, dims, folder,
-                                  spec.trials, trial_lock, started)  # fmt: skip
+                                  spec.trials, trial_lock, started, state.note)  # fmt: skip
             except TrainingInterrupted:
                 state.stopping = True  # its checkpoint is written; now the trial is marked failed
                 raise
@@ -604,6 +625,7 @@ def _run_study(
                     callbacks=[
                         optuna.study.MaxTrialsCallback(spec.trials, states=counted),
                         *([_Reporter(report, spec.trials)] if report is not None else []),
+                        state.check,  # before the next trial starts: a signal ends the sweep
                     ],
                     catch=(StudyFull, TrainingFailed),
                 )
@@ -807,11 +829,13 @@ def _objective(
     total: int,
     lock: contextlib.ExitStack,
     started: Callable[[Path], None] = lambda run: None,
+    on_signal: Callable[[int], None] | None = None,
 ) -> float:
     """Train one trial into its own run folder; its value is the median validation coverage
     (a PettingZoo env of one's own: the median team return, :func:`headline`).
     The folder's lock goes onto ``lock`` (the caller releases it once Optuna has recorded the
-    trial's end); ``started`` receives the folder.
+    trial's end); ``started`` receives the folder; ``on_signal`` hears of a signal that
+    reaches the trial's training (``train``'s).
 
     Raises:
         optuna.TrialPruned: when the pruner stops it (the run folder keeps what it logged).
@@ -839,7 +863,7 @@ def _objective(
 
     model = train(
         config, run, progress_bar=False, command=["sweep", str(trial.number)],
-        on_evaluation=report,
+        on_evaluation=report, on_signal=on_signal,
     )  # fmt: skip
     if last.get("timesteps") == model.num_timesteps:  # the last evaluation saw the final model
         return last["value"]

@@ -502,11 +502,17 @@ class TrainingFailed(Exception):
 
 
 @contextlib.contextmanager
-def stop_on_signals(stopper: StopOnSignal) -> Iterator[None]:
+def stop_on_signals(
+    stopper: StopOnSignal, on_signal: Callable[[int], None] | None = None
+) -> Iterator[None]:
     """Turn the first SIGINT/SIGTERM into a clean stop; a second SIGINT interrupts at once,
-    unless a checkpoint is being written (then it waits for the write to end)."""
+    unless a checkpoint is being written (then it waits for the write to end). ``on_signal``
+    (called in the handler: it may only take note) hears of every signal, also one that comes
+    after the last point where training asks (its final save), which would be lost otherwise."""
 
     def handler(signum: int, frame: Any) -> None:
+        if on_signal is not None:
+            on_signal(signum)
         if stopper.signum is not None and signum == signal.SIGINT:
             if stopper.saving_now:
                 print("harness: still writing the checkpoint, one moment", file=sys.stderr)
@@ -565,13 +571,15 @@ def train(
     restart: bool = False,
     command: Sequence[str] | None = None,
     on_evaluation: Callable[[int, dict[str, Any]], None] | None = None,
+    on_signal: Callable[[int], None] | None = None,
 ) -> DoubleDQN:
     """Train ``config`` into ``run``; with ``resume``, continue from its newest readable
     checkpoint; with ``restart``, start again from step 0 in a run folder that has no checkpoint
     yet (what it logged before is dropped). The caller holds ``run.lock()``. ``command`` (the
     ``harness`` arguments) is appended to ``command.txt`` once the run is ready to go: a resume
     refused for a damaged checkpoint changes no file. ``on_evaluation(timesteps, summary)`` is
-    called after each in-training evaluation (see :class:`Evaluator`).
+    called after each in-training evaluation (see :class:`Evaluator`); ``on_signal(signum)``
+    hears of each SIGINT/SIGTERM that reaches training (:func:`stop_on_signals`).
 
     Raises:
         TrainingInterrupted: on SIGINT/SIGTERM, after writing a checkpoint.
@@ -629,7 +637,7 @@ def train(
             model.action_space.seed(config.seed)
         model.set_logger(logger)
         ctx = RunContext.start(config, run, model, state, progress_bar, on_evaluation)
-        with stop_on_signals(ctx.stopper):
+        with stop_on_signals(ctx.stopper, on_signal):
             if ctx.evaluator.pending is not None:
                 _evaluate_pending(ctx)
             for index in range(state.phase, len(config.phases)):

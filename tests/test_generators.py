@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from envs import coverage_v0
-from envs.coverage import cave, maps, maze
+from envs.coverage import cave, maps, maze, rooms
 from envs.coverage.generators import (
     GENERATORS,
     CaveMaps,
@@ -20,6 +20,7 @@ from envs.coverage.generators import (
     MazeMaps,
     MixGenerator,
     RandomMaps,
+    RoomsMaps,
     ShippedMap,
     WithoutMaps,
     from_name,
@@ -32,6 +33,7 @@ SOURCES = {
     "random": lambda: RandomMaps(20, 30, (0.15, 0.2)),
     "cave": lambda: CaveMaps(30, 40, rock_share=0.45),
     "maze": lambda: MazeMaps(25, 31, n_chambers=3),
+    "rooms": lambda: RoomsMaps(30, 45),
 }
 
 
@@ -94,7 +96,7 @@ def test_bad_source_parameters_are_refused(make, message):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", ["cave", "maze"])
+@pytest.mark.parametrize("kind", ["cave", "maze", "rooms"])
 def test_a_map_at_its_kinds_cell_limit_draws_in_seconds(kind):
     # The limit is what one reset can afford (about a second here); a square map at it, with the
     # defaults, draws within a generous bound on a busy machine.
@@ -219,7 +221,7 @@ def test_fixed_starts_must_fit_the_smallest_map_of_a_mix():
         coverage_v0.parallel_env(map=mix, n_agents=1, starts=[(7, 7)])
 
 
-def test_procedural_caves_and_mazes_never_draw_the_shipped_seeds():
+def test_procedural_caves_mazes_and_floor_plans_never_draw_the_shipped_seeds():
     class Scripted:
         """A stand-in rng whose first seed draw is the shipped map's seed."""
 
@@ -232,11 +234,16 @@ def test_procedural_caves_and_mazes_never_draw_the_shipped_seeds():
     for gen, seed, name in (
         (CaveMaps(*cave.CAVE_SHAPE), cave.CAVE_SEED, "cave_100x50"),
         (MazeMaps(*maze.MAZE_SHAPE), maze.MAZE_SEED, "maze_100x50"),
+        (RoomsMaps(*rooms.ROOMS_SHAPE), rooms.ROOMS_SEED, "rooms_100x50"),
     ):
         shipped = maps.load_map(name).grid
         # Seeded with the shipped seed, the generator remakes the shipped map ...
         np.testing.assert_array_equal(
-            {"cave_100x50": cave.generate_cave, "maze_100x50": maze.generate_maze}[name](seed),
+            {
+                "cave_100x50": cave.generate_cave,
+                "maze_100x50": maze.generate_maze,
+                "rooms_100x50": rooms.generate_rooms,
+            }[name](seed),
             shipped,
         )
         # ... but the source refuses that seed and draws another.
@@ -246,7 +253,7 @@ def test_procedural_caves_and_mazes_never_draw_the_shipped_seeds():
 def test_generated_maps_never_equal_a_shipped_map_over_many_draws():
     shipped = [maps.load_map(name).grid for name in maps.shipped_maps()]
     rng = np.random.default_rng(11)
-    for gen in (CaveMaps(50, 100), MazeMaps(50, 100)):
+    for gen in (CaveMaps(50, 100), MazeMaps(50, 100), RoomsMaps(50, 100)):
         for _ in range(100):
             walls = gen(rng)
             assert not any(np.array_equal(walls, s) for s in shipped)
@@ -348,7 +355,7 @@ def test_eval_names_a_map_in_one_short_line(value, line, tmp_path, monkeypatch):
 @pytest.mark.parametrize(
     ("source", "message"),
     [
-        ({"caves": {}}, "env.map: unknown map kind 'caves'; known: random, cave, maze, file"),
+        ({"caves": {}}, "env.map: unknown map kind 'caves'; known: random, cave, maze, rooms"),
         ({"cave": {"rocks": 0.4}}, "env.map: cave.rocks: Extra inputs are not permitted"),
         ({"cave": {"rock_share": 2}}, r"env.map: cave: rock_share must be in \[0.0, 1.0\]"),
         ({"maze": {"height": "tall"}}, "env.map: maze.height: Input should be a valid integer"),

@@ -127,7 +127,7 @@ def free_neighbours(grid: np.ndarray) -> np.ndarray:
     return free[:-2, 1:-1].astype(int) + free[2:, 1:-1] + free[1:-1, :-2] + free[1:-1, 2:]
 
 
-@pytest.mark.parametrize("name", ["cave_100x50", "maze_100x50"])
+@pytest.mark.parametrize("name", ["cave_100x50", "maze_100x50", "rooms_100x50"])
 def test_shipped_maps_are_found_by_name(name):
     assert name in maps.shipped_maps()
     spec = maps.load_map(name)

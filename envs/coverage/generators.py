@@ -9,14 +9,17 @@ arguments of its constructor as its parameters:
 * ``cave``: a new cellular-automaton cave each reset (:func:`envs.coverage.cave.generate_cave`);
 * ``maze``: a new maze of corridors and chambers each reset
   (:func:`envs.coverage.maze.generate_maze`);
+* ``rooms``: a new floor plan of rooms, hallways, doors and furniture each reset
+  (:func:`envs.coverage.rooms.generate_rooms`);
 * ``file``: one map file, every episode;
-* ``shipped``: one shipped map (``cave_100x50``, ``maze_100x50``), every episode.
+* ``shipped``: one shipped map (``cave_100x50``, ``maze_100x50``, ``rooms_100x50``), every
+  episode.
 
 :class:`MixGenerator` picks one of several sources per reset, with given weights, and
 :class:`WithoutMaps` keeps test-only maps out of training. Every procedural map has all its free
-cells connected, and the same ``rng`` state gives the same map. The procedural cave and maze
-never draw the seeds of the shipped ``cave_100x50`` and ``maze_100x50``, so they never remake
-those test maps.
+cells connected, and the same ``rng`` state gives the same map. The procedural cave, maze and
+floor plan never draw the seeds of the shipped ``cave_100x50``, ``maze_100x50`` and
+``rooms_100x50``, so they never remake those test maps.
 
 Sources may make maps of different sizes (:attr:`MapGenerator.shapes`); the env then sizes its
 observation space for the largest (see ``envs/coverage_v0.py``).
@@ -31,7 +34,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from envs.coverage import cave, maps, maze
+from envs.coverage import cave, maps, maze, rooms
 
 #: Seeds a procedural source draws from: below 2**31, never the shipped maps' seeds.
 _SEED_HIGH = 2**31
@@ -138,17 +141,18 @@ class _SeededMaps(MapGenerator):
 
     #: The seed of the shipped map this generator made (a test map: never remade).
     shipped_seed: ClassVar[int]
+    #: One map in words, for messages ("a 600x600 floor plan has ..."); ``None``: the name.
+    noun: ClassVar[str | None] = None
 
     def _set_size(self, height: int, width: int) -> None:
         self.height, self.width = _check_size(height, width)
+        noun = self.noun or self.name
         if min(self.height, self.width) < 3:  # a rock border around at least one cell
-            raise ValueError(
-                f"a {self.name} needs at least 3x3 cells, got {self.height}x{self.width}"
-            )
+            raise ValueError(f"a {noun} needs at least 3x3 cells, got {self.height}x{self.width}")
         cells, limit = self.height * self.width, self.max_cells
         if limit is not None and cells > limit:
             raise ValueError(
-                f"a {self.height}x{self.width} {self.name} has {cells:,} cells, over the limit "
+                f"a {self.height}x{self.width} {noun} has {cells:,} cells, over the limit "
                 f"of {limit:,} ({type(self).__name__}.max_cells: a larger one takes seconds to "
                 "minutes to draw, and each reset draws one)"
             )
@@ -269,6 +273,57 @@ class MazeMaps(_SeededMaps):
         return maze.generate_maze(seed, self.height, self.width, **self.shape)
 
 
+class RoomsMaps(_SeededMaps):
+    """A new floor plan each reset (:mod:`envs.coverage.rooms` explains the steps).
+
+    Args:
+        height: Rows (at least 3: the plan has a wall border).
+        width: Columns (at least 3).
+        min_room: Fewest cells of a room's side where the floor is cut, in [2, 1,000].
+        max_room: Most cells of a room's side, at least ``2 * min_room + 1``.
+        wide_door_share: Chance in [0, 1] that a door is 2 cells wide rather than 1.
+        corridor_share: Chance in [0, 1] that a cut of a long part is a 2-3 cell hallway.
+        furniture_share: Share of a room's floor covered by furniture, in [0, 0.2].
+        loop_share: Chance in [0, 1] of an extra door between neighbours the spanning tree of
+            doors left apart (loops).
+    """
+
+    name = "rooms"
+    noun = "floor plan"
+    shipped_seed = rooms.ROOMS_SEED
+    #: 500x500: 0.2 s a map with the defaults, up to about 1.4 s with the most rooms
+    #: (``min_room: 2, max_room: 5``: the time grows with the rooms) or the most furniture.
+    #: docs/environment.md has the measurements.
+    max_cells: ClassVar[int | None] = 250_000
+
+    def __init__(
+        self,
+        height: int,
+        width: int,
+        min_room: int = 4,
+        max_room: int = 14,
+        wide_door_share: float = 0.4,
+        corridor_share: float = 0.5,
+        furniture_share: float = 0.08,
+        loop_share: float = 0.15,
+    ) -> None:
+        self._set_size(height, width)
+        min_room, max_room = rooms.check_room_sides(min_room, max_room)
+        self.shape = {
+            "min_room": min_room,
+            "max_room": max_room,
+            "wide_door_share": _check_share("wide_door_share", wide_door_share),
+            "corridor_share": _check_share("corridor_share", corridor_share),
+            "furniture_share": _check_share(
+                "furniture_share", furniture_share, *rooms.FURNITURE_RANGE
+            ),
+            "loop_share": _check_share("loop_share", loop_share),
+        }
+
+    def _generate(self, seed: int) -> np.ndarray:
+        return rooms.generate_rooms(seed, self.height, self.width, **self.shape)
+
+
 class FixedMap(MapGenerator):
     """The same map every episode; its ``S`` start cells, if any, are the agents' starts."""
 
@@ -345,7 +400,7 @@ class MixGenerator(MapGenerator):
 
 class WithoutMaps(MapGenerator):
     """``source`` with test-only maps kept out: a drawn map equal to one of ``excluded`` is
-    drawn again (the random, cave and maze sources essentially never hit one; this makes it a
+    drawn again (the random, cave, maze and rooms sources essentially never hit one; this makes it a
     promise rather than a likelihood).
 
     Args:
@@ -391,7 +446,7 @@ def _fixed_maps(source: MapGenerator) -> list[maps.MapSpec]:
 #: The map kinds a config can name (``env.map: {<name>: {<parameters>}}``); a kind's parameters
 #: are its constructor's keyword arguments.
 GENERATORS: dict[str, type[MapGenerator]] = {
-    g.name: g for g in (RandomMaps, CaveMaps, MazeMaps, FileMap, ShippedMap)
+    g.name: g for g in (RandomMaps, CaveMaps, MazeMaps, RoomsMaps, FileMap, ShippedMap)
 }
 
 

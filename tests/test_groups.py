@@ -211,7 +211,10 @@ def test_resuming_a_group_plans_each_seed_and_says_which(tiny, tmp_path):
     assert resume is not None and resume[3:6] == ["run", "--resume", str(group / "tiny-seed1")]
     start = plan[3].cmd
     assert start is not None and start[-2:] == ["--into", str(group / "tiny-seed3")]
-    assert "seed=3" in start and str(tiny) in start
+    # Started from a config inside the group (this hand-made one keeps no group-config.yaml:
+    # a started seed's), never from the file group.json names.
+    assert "seed=3" in start and str(group / "tiny-seed0" / "config.yaml") in start
+    assert str(tiny) not in start
     assert not (group / "tiny-seed3").exists()  # the empty leftover is cleared for the start
 
 

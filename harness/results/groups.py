@@ -1,8 +1,9 @@
 """Seed groups: one run per training seed, found together.
 
 ``harness run CONFIG --seeds 0,1,2 --jobs 2`` makes a group folder ``runs/<name>-<UTC time>/``
-holding ``group.json`` (the config, the seeds and each seed's run folder) and one ordinary run
-folder per seed, ``<name>-seed<k>-<UTC time>/``, each with its own log ``<name>-seed<k>.log``.
+holding ``group.json`` (the config, the seeds and each seed's run folder), ``group-config.yaml``
+(the config as resolved, which a resume starts a seed from) and one ordinary run folder per
+seed, ``<name>-seed<k>-<UTC time>/``, each with its own log ``<name>-seed<k>.log``.
 Every run is a separate ``harness run`` process, so a group is no more than the runs it holds:
 ``harness eval``, ``compare``, ``render`` and ``--resume`` work on each of them as on any run.
 
@@ -38,12 +39,16 @@ from harness.results.rundir import (
     RunDir,
     RunDirError,
     atomic_write_text,
-    leads_outside,
+    inside,
     unique_folder,
 )
 
 #: The file that marks a folder as a seed group.
 GROUP_FILE = "group.json"
+#: The group's config as its command resolved it (the config file with the ``--set``
+#: overrides): a seed that ``--resume GROUP`` starts is started from this copy inside the group,
+#: never from the file ``group.json`` names (a downloaded group.json could name any file).
+GROUP_CONFIG = "group-config.yaml"
 #: The numbers over seeds of ``harness eval GROUP`` (the standard evaluation of every run).
 GROUP_EVAL_FILE = "group-eval.json"
 
@@ -98,6 +103,16 @@ def is_group(folder: Path) -> bool:
     return (Path(folder) / GROUP_FILE).is_file()
 
 
+def group_file(folder: Path, name: str) -> Path:
+    """The group's own file ``name`` (``group.json``, ``group-eval.json``, a seed's log), asked
+    for through rundir's rule: it lies inside the group folder, links resolved.
+
+    Raises:
+        LinkOutError: for one that leads out of the group, naming it and where it leads.
+    """
+    return inside(Path(folder) / name, folder, "the group folder")
+
+
 def group_members(folder: Path) -> list[Path]:
     """Every run folder ``group.json`` names, in seed order, whether it exists or not.
 
@@ -110,8 +125,10 @@ def group_members(folder: Path) -> list[Path]:
     """
     folder = Path(folder)
     try:
-        data = json.loads((folder / GROUP_FILE).read_text(encoding="utf-8"))
+        data = json.loads(group_file(folder, GROUP_FILE).read_text(encoding="utf-8"))
         names = [entry["run"] for entry in data["runs"]]
+    except RunDirError:
+        raise
     except (OSError, ValueError, KeyError, TypeError) as exc:
         raise GroupError(f"{folder / GROUP_FILE}: not a readable group file ({exc})") from None
     return [_member(folder, name) for name in names]
@@ -146,32 +163,29 @@ def group_runs(folder: Path) -> list[Path]:
         GroupError: when ``group.json`` cannot be read or names no run that exists.
     """
     folder = Path(folder)
-    found = [run for run in group_members(folder) if RunDir(run).is_run]
+    members = group_members(folder)
+    for run in members:  # first: the group's own words for a file linked out of it
+        _check_member_files(folder, run)
+    found = [run for run in members if RunDir(run).is_run]
     if not found:
         raise GroupError(f"{folder}: the group has no run folder yet")
-    for run in found:
-        _check_member_files(folder, RunDir(run))
     return found
 
 
-def _check_member_files(folder: Path, run: RunDir) -> None:
+def _check_member_files(folder: Path, member: Path) -> None:
     """Refuse a member whose config or models (what ``eval`` and ``tune`` of a group read, and
     unpickle) lead outside the group folder: pickles are loaded only from paths named on the
-    command line, and a link in a downloaded group would name another.
+    command line, and a link in a downloaded group would name another. (Each run then asks the
+    same rule of its own files, against its own folder: :meth:`RunDir.inside`.)
 
     Raises:
         GroupError: naming the file, in one line.
     """
-    for path in (run.config, run.model, run.best_model):
+    for path in RunDir(member).loaded_files():
         try:
-            outside = leads_outside(path, folder)
-        except RunDirError as exc:  # a link loop
-            raise GroupError(str(exc)) from None
-        if outside:
-            raise GroupError(
-                f"{path} leads outside the group folder {folder} (a group's files live inside "
-                "it; copy the file in instead of linking it)"
-            )
+            inside(path, folder, "the group folder")
+        except RunDirError as exc:  # a link out, or a link loop
+            raise GroupError(f"{exc} (copy the file in instead of linking it)") from None
 
 
 @dataclass
@@ -190,8 +204,8 @@ class Job:
 
     @property
     def log(self) -> Path:
-        """The seed's log, ``<run folder>.log`` beside its run folder."""
-        return self.run.path.parent / f"{self.run.path.name}.log"
+        """The seed's log, ``<run folder>.log`` beside its run folder (in the group folder)."""
+        return group_file(self.run.path.parent, f"{self.run.path.name}.log")
 
     def error_line(self) -> str | None:
         """The last ``harness: error:`` line its process wrote to its log, without that prefix
@@ -252,11 +266,14 @@ def run_group(
     argv: Sequence[str],
     report: Callable[[str], None] | None = None,
     every: float = 30.0,
+    config_yaml: str | None = None,
 ) -> tuple[Path, list[Job]]:
     """Train one run per seed, ``jobs`` at a time, in a new group folder.
 
     Each seed is ``harness run CONFIG --set ... --seed k`` in its own process, writing into its
-    own run folder inside the group; its output goes to ``<name>-seed<k>.log`` there. With
+    own run folder inside the group; its output goes to ``<name>-seed<k>.log`` there.
+    ``config_yaml`` (the config as resolved, :meth:`ExperimentConfig.to_yaml`) is kept as
+    :data:`GROUP_CONFIG`, the config a resume starts a seed never started from. With
     ``report``, a line per running seed (:func:`seed_progress`) every ``every`` seconds when it
     changed, and one when a seed ends.
 
@@ -281,7 +298,9 @@ def run_group(
         "runs": [{"seed": job.seed, "run": job.run.path.name} for job in pending],
     }
     with RunDir(group).lock():  # a `--resume` of the group waits for this command to end
-        atomic_write_text(group / GROUP_FILE, json.dumps(data, indent=2) + "\n")
+        if config_yaml is not None:
+            atomic_write_text(group_file(group, GROUP_CONFIG), config_yaml)
+        atomic_write_text(group_file(group, GROUP_FILE), json.dumps(data, indent=2) + "\n")
         for job in pending:
             job.cmd = _start_command(job, config_path, overrides, threads)
         return group, _run_jobs(group, pending, jobs, threads, report, every)
@@ -398,7 +417,7 @@ def read_group(folder: Path) -> dict[str, Any]:
     Raises:
         GroupError: when it cannot be read or lacks them.
     """
-    path = Path(folder) / GROUP_FILE
+    path = group_file(folder, GROUP_FILE)
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
         ok = (
@@ -439,9 +458,9 @@ def plan_resume(folder: Path, jobs: int, state_of: SeedState) -> tuple[list[Job]
     """What ``harness run --resume GROUP`` does for each seed, and a line saying it per seed.
 
     A seed that ``state_of`` calls finished is left alone; one never started (no
-    ``config.yaml``) is started as the group's command would have; any other is resumed
-    (``harness run --resume RUN``: from its checkpoint, or from step 0 when it stopped before
-    the first).
+    ``config.yaml``) is started as the group's command would have, from the config inside the
+    group (:func:`start_config`); any other is resumed (``harness run --resume RUN``: from its
+    checkpoint, or from step 0 when it stopped before the first).
 
     Raises:
         GroupError: for a group file that cannot be used, a seed's folder that is neither a run
@@ -451,7 +470,6 @@ def plan_resume(folder: Path, jobs: int, state_of: SeedState) -> tuple[list[Job]
     data = read_group(folder)
     members = group_members(folder)
     threads = threads_per_job(jobs)
-    config_path = Path(data["config"])
     plan: list[Job] = []
     lines: list[str] = []
     for entry, member in zip(data["runs"], members, strict=True):
@@ -461,20 +479,45 @@ def plan_resume(folder: Path, jobs: int, state_of: SeedState) -> tuple[list[Job]
         if standing.finished:
             lines.append(f"seed {job.seed}: {standing.words} ({name}), left alone")
         elif standing.never_started:
-            if not config_path.is_file():
-                raise GroupError(
-                    f"{folder / GROUP_FILE}: seed {job.seed} was never started and its config "
-                    f"{config_path} is gone"
-                )
+            config_path = start_config(folder, members, job)
             _clear_unstarted(run, job.seed)
-            job.cmd = _start_command(job, config_path, data["overrides"], threads)
+            # The overrides are in that config already; the start sets the seed and threads.
+            job.cmd = _start_command(job, config_path, [], threads)
             lines.append(f"seed {job.seed}: {standing.words}, starting it ({name})")
         else:
             _check_not_running(run, job.seed)
             job.cmd = harness_command("run", "--resume", str(run.path), "--no-progress")
             lines.append(f"seed {job.seed}: {standing.words}, resuming it ({name})")
+        if job.cmd is not None:
+            _ = job.log  # a log linked out of the group: refused before any seed starts
         plan.append(job)
     return plan, lines
+
+
+def start_config(folder: Path, members: Sequence[Path], job: Job) -> Path:
+    """The config a seed that ``--resume GROUP`` starts is started from: the group's own copy
+    (:data:`GROUP_CONFIG`), or in a group made before groups kept one, a started seed's
+    ``config.yaml`` (the same config but for the seed and threads, which the start sets). Both
+    lie inside the group folder named on the command line; the ``config`` and ``overrides`` of
+    ``group.json`` only record what the group's command was given, and are never loaded (a
+    downloaded group.json could name any file, any env constructor).
+
+    Raises:
+        GroupError: when the group holds neither.
+        LinkOutError: for one that leads out of the group (or out of its run).
+    """
+    own = group_file(folder, GROUP_CONFIG)
+    if own.is_file():
+        return own
+    for member in members:
+        run = RunDir(member)
+        if run.is_run:
+            return run.config
+    raise GroupError(
+        f"{folder / GROUP_FILE}: seed {job.seed} was never started and the group holds no config "
+        f"to start it from (no {GROUP_CONFIG}, no started seed); start it with: harness run "
+        f"CONFIG --set seed={job.seed} --into {job.run.path}"
+    )
 
 
 def resume_group(
@@ -553,7 +596,10 @@ def seed_progress(job: Job) -> str:
     """``seed k: N transitions, validation M %`` from the run's logs so far (the last finished
     episode's transition count and the last in-training validation's median coverage)."""
     parts = [f"seed {job.seed}"]
-    steps = _number(_last_value(job.run.episodes_csv, "timesteps"))
+    try:
+        steps = _number(_last_value(job.run.episodes_csv, "timesteps"))
+    except RunDirError:  # a log linked out of its run is not read (the seed's command refuses it)
+        steps = None
     parts.append(f"{int(steps):,} transitions" if steps is not None else "starting")
     value = seed_progress_value(job.run)
     if value is not None:
@@ -563,17 +609,22 @@ def seed_progress(job: Job) -> str:
 
 def seed_progress_value(run: RunDir) -> float | None:
     """The last in-training validation's median coverage of ``run`` (a PettingZoo env of one's
-    own: its median team return; ``None``: none yet)."""
-    value = _last_value(run.evaluations_csv, "coverage_median")
+    own: its median team return; ``None``: none yet, or a log linked out of the run)."""
+    try:
+        path = run.evaluations_csv
+    except RunDirError:
+        return None
+    value = _last_value(path, "coverage_median")
     if value is None:
-        value = _last_value(run.evaluations_csv, "return_median")
+        value = _last_value(path, "return_median")
     return _number(value)
 
 
 def seed_progress_metric(run: RunDir) -> tuple[str, Callable[[float], str]]:
     """What :func:`seed_progress_value` of ``run`` measures, and how to write it."""
-    if _last_value(run.evaluations_csv, "return_median") is not None:
-        return "median team return", "{:.4g}".format
+    with contextlib.suppress(RunDirError):  # a log linked out of the run is not read
+        if _last_value(run.evaluations_csv, "return_median") is not None:
+            return "median team return", "{:.4g}".format
     return "median coverage", "{:.1%}".format
 
 
@@ -640,8 +691,9 @@ def _start(job: Job, env: dict[str, str]) -> subprocess.Popen[bytes]:
     """Start a seed's command, its output appended to ``<run>.log`` beside its folder, in a
     process group of its own (a terminal's Ctrl-C is passed on by the group's command, once)."""
     assert job.cmd is not None
+    path = job.log  # asks the rule first: a log linked out of the group is refused as such
     try:
-        log = job.log.open("ab")
+        log = path.open("ab")
         job.log_start = os.fstat(log.fileno()).st_size
     except OSError as exc:
         raise RunDirError(f"{job.run.path.parent}: cannot write a log ({exc.strerror})") from None

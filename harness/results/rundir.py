@@ -17,7 +17,9 @@
                        eval/tune/render results go to ``runs/evals/<name>/`` instead
 
 An existing run directory is never overwritten, and every file that matters is written
-atomically (a temporary file in the same folder, then a rename).
+atomically (a temporary file in the same folder, then a rename). Every file read from or written
+into a run (or a checkpoint, group, sweep or reference folder) lies inside it, links resolved:
+:func:`inside` is the one rule, and :class:`RunDir`'s paths ask it.
 """
 
 from __future__ import annotations
@@ -138,23 +140,56 @@ def results_folder(run_dir: Path) -> Path:
 
 
 def leads_outside(path: Path, root: Path) -> bool:
-    """Whether ``path``, where it is (a link too), resolves outside ``root``: pickles are loaded
-    only from inside the folder named on the command line, and a link in a downloaded folder
-    would name another file.
+    """Whether ``path``, links resolved, lies outside ``root``: pickles are loaded only from
+    inside the folder named on the command line, and a link in a downloaded folder would name
+    another file. A path that does not exist yet counts too: a folder above it may be a link out
+    (``tb/`` linked elsewhere), and a dangling link would create its target.
 
     Raises:
         RunDirError: for a link loop, naming the path.
     """
-    if not (path.exists() or path.is_symlink()):
-        return False
     try:
-        return not path.resolve().is_relative_to(Path(root).resolve())
+        return not Path(path).resolve().is_relative_to(Path(root).resolve())
     except (OSError, RuntimeError) as exc:  # a link loop
         raise RunDirError(f"{path}: not a usable file ({exc})") from None
 
 
 class RunDirError(OSError):
     """A run folder that cannot be created or read, with a one-line message."""
+
+
+class LinkOutError(RunDirError):
+    """A file of a run, checkpoint, group, sweep or reference folder that leads out of it (it, or
+    a folder above it inside the folder, is a link elsewhere): refused, never read or written."""
+
+
+def inside(path: Path, root: Path, what: str = "the run folder") -> Path:
+    """The one rule for every file the harness reads from or writes into one of its folders (a
+    run, a checkpoint, a seed group, a sweep, a reference, ``runs/evals/<name>/``): ``path``,
+    links resolved, lies inside ``root``. A link whose target is inside is fine; one leading out
+    would make a command load a pickle or a config (code) nobody named, or write over a file
+    elsewhere, so it is refused before anything is read or written. Only what the user names on
+    the command line is taken from elsewhere.
+
+    Args:
+        path: The file (or folder) of ``root`` about to be read or written.
+        root: The folder it belongs to.
+        what: ``root`` in words, for the message (``"the group folder"``).
+
+    Returns:
+        ``path``, unchanged.
+
+    Raises:
+        LinkOutError: one line naming the file and where it leads.
+        RunDirError: for a link loop.
+    """
+    path = Path(path)
+    if leads_outside(path, root):
+        raise LinkOutError(
+            f"{path} leads outside {what} {root} (to {os.path.realpath(path)}): a folder's "
+            "files live inside it; nothing was read from it or written to it"
+        )
+    return path
 
 
 def check_output_file(path: Path, flag: str) -> None:
@@ -345,6 +380,27 @@ class CheckpointDir:
         written before checkpoints kept it)."""
         return self.path / "config.yaml"
 
+    def check_inside(self) -> None:
+        """Ask :func:`inside` of the checkpoint's folder and each of its files, against its run
+        folder (``RUN/checkpoints/step-N/``: two folders up): a checkpoint is read only when
+        all of it lies in its run.
+
+        Raises:
+            LinkOutError: naming the first file that leads out.
+            RunDirError: for a link loop.
+        """
+        run = self.path.parent.parent
+        for path in (
+            self.path,
+            self.model,
+            self.replay_buffer,
+            self.replay_buffer_sha256,
+            self.rng,
+            self.state,
+            self.config,
+        ):
+            inside(path, run)
+
 
 def unique_folder(root: str | Path, name: str, now: datetime | None = None) -> Path:
     """Make a new folder ``<root>/<name>-<UTC timestamp>`` (a run, a seed group, a sweep); two
@@ -376,9 +432,22 @@ class RunDir:
 
     path: Path
 
+    def inside(self, path: Path) -> Path:
+        """``path`` once :func:`inside` allows it for this folder: every file of the folder that
+        a command reads or writes is asked for here (the properties below ask for theirs).
+
+        Raises:
+            LinkOutError: for a path that leads outside the folder, in one line.
+        """
+        return inside(path, self.path)
+
+    def _file(self, name: str) -> Path:
+        """The folder's file ``name``, asked for through :meth:`inside`."""
+        return self.inside(self.path / name)
+
     @property
     def config(self) -> Path:
-        return self.path / "config.yaml"
+        return self._file("config.yaml")
 
     @property
     def is_run(self) -> bool:
@@ -403,49 +472,73 @@ class RunDir:
 
     @property
     def command(self) -> Path:
-        return self.path / "command.txt"
+        return self._file("command.txt")
 
     @property
     def tb(self) -> Path:
-        return self.path / "tb"
+        return self._file("tb")
 
     @property
     def checkpoints(self) -> Path:
-        return self.path / "checkpoints"
+        return self._file("checkpoints")
 
     @property
     def episodes_csv(self) -> Path:
-        return self.path / "episodes.csv"
+        return self._file("episodes.csv")
 
     @property
     def evaluations_csv(self) -> Path:
-        return self.path / "evaluations.csv"
+        return self._file("evaluations.csv")
 
     @property
     def model(self) -> Path:
-        return self.path / "model.zip"
+        return self._file("model.zip")
 
     @property
     def best_model(self) -> Path:
-        return self.path / "best_model.zip"
+        return self._file("best_model.zip")
 
     @property
     def eval_json(self) -> Path:
         """The standard evaluation (see :func:`result_filename`)."""
-        return self.path / "eval.json"
+        return self._file("eval.json")
 
     @property
     def paths_png(self) -> Path:
-        return self.path / "paths.png"
+        return self._file("paths.png")
 
     @property
     def reference_marker(self) -> Path:
-        return self.path / REFERENCE_MARKER
+        return self._file(REFERENCE_MARKER)
 
     def result(self, name: str) -> Path:
         """A file of this folder by its name: a result named by :func:`result_filename`, or
         one of :data:`REFERENCE_FILES`."""
-        return self.path / name
+        return self._file(name)
+
+    def loaded_files(self) -> tuple[Path, ...]:
+        """The files ``eval`` and ``tune`` load from the run (its config, model and best
+        model), not yet asked for: a folder holding the run (a seed group) asks its own
+        :func:`inside` of them first."""
+        return tuple(self.path / name for name in ("config.yaml", "model.zip", "best_model.zip"))
+
+    def check_files(self) -> None:
+        """Ask :meth:`inside` of every file that training reads or writes in the run (its
+        config, command, logs, models, ``.lock``, ``tb/`` and what it holds, ``checkpoints/``;
+        each checkpoint is asked for its own files when it is read): ``harness run --resume``
+        asks this first, so that a link out of the run stops it before any file changes.
+
+        Raises:
+            LinkOutError: naming the first file that leads out.
+        """
+        for name in (
+            *("config.yaml", "command.txt", "episodes.csv", "evaluations.csv"),
+            *("model.zip", "best_model.zip", ".lock", "checkpoints", "tb"),
+        ):
+            self._file(name)
+        if self.tb.is_dir():
+            for path in self.tb.iterdir():  # SB3's progress CSVs and TensorBoard's events
+                self.inside(path)
 
     def model_named(self, name: str) -> Path:
         """A model zip of the run by its path without ``.zip`` (``"model"``, ``"best_model"``,
@@ -461,16 +554,14 @@ class RunDir:
                 f"model {name!r}: not a model of {self.path} (model, best_model or "
                 "checkpoints/step-N/model)"
             )
-        path = self.path / relative
-        if leads_outside(path, self.path):
-            raise RunDirError(f"{path} leads outside the run folder {self.path}")
-        return path
+        return self.inside(self.path / relative)
 
     def progress_csv(self, resumes: int = 0) -> Path:
         """SB3's CSV log of the scalars (beside the TensorBoard events): ``progress.csv``, and
         ``progress-resume<N>.csv`` after the N-th resume (SB3's writer empties the file it
         opens)."""
-        return self.tb / ("progress.csv" if resumes == 0 else f"progress-resume{resumes}.csv")
+        name = "progress.csv" if resumes == 0 else f"progress-resume{resumes}.csv"
+        return self.inside(self.tb / name)
 
     def write_result(self, name: str, data: dict[str, Any]) -> Path:
         """Save a result JSON of this folder (:func:`result_filename`'s ``name``), atomically."""
@@ -488,7 +579,7 @@ class RunDir:
                 f"{name!r} is not an evaluation's name: 'eval' (eval.json) or 'eval-...' "
                 "(eval-env.map-random.json and the like, as harness eval names them)"
             )
-        return self.path / f"{name}.json"
+        return self._file(f"{name}.json")
 
     def eval_names(self) -> list[str]:
         """The evaluations this folder holds, by the stem :meth:`eval_file` takes (sorted)."""
@@ -543,7 +634,7 @@ class RunDir:
     def write_reference_marker(self, origin: Path, model: str) -> None:
         """Mark this folder as a reference exported from run ``origin``'s model ``model``."""
         marker = {"exported_from": str(origin), "model": f"{model}.zip"}
-        self.reference_marker.write_text(json.dumps(marker, indent=2) + "\n", encoding="utf-8")
+        atomic_write_text(self.reference_marker, json.dumps(marker, indent=2) + "\n")
 
     @classmethod
     def create(cls, root: str | Path, name: str, now: datetime | None = None) -> RunDir:
@@ -565,14 +656,15 @@ class RunDir:
 
     @property
     def lock_file(self) -> Path:
-        return self.path / ".lock"
+        return self._file(".lock")
 
     @classmethod
     def made_names(cls) -> frozenset[str]:
         """The names a run folder holds from its making on, before anything is written into
         it: ``tb/`` and ``checkpoints/`` (:meth:`create`, :meth:`create_at`) and ``.lock``
         (:meth:`lock`)."""
-        blank = cls(Path())
+        # Under "/" every path lies inside: no file of the current folder is asked about.
+        blank = cls(Path(os.sep))
         return frozenset(p.name for p in (blank.tb, blank.checkpoints, blank.lock_file))
 
     @contextlib.contextmanager
@@ -633,7 +725,7 @@ class RunDir:
         """Append a ``# note`` line to ``command.txt`` (making it if it is missing)."""
         command = self.command
         before = command.read_text().rstrip("\n") + "\n" if command.is_file() else ""
-        command.write_text(f"{before}# {note}\n")
+        atomic_write_text(command, f"{before}# {note}\n")
 
     def write_command(self, args: Sequence[str]) -> None:
         """Append the ``harness`` command line with its arguments ``args`` (a resumed run gets a
@@ -645,7 +737,10 @@ class RunDir:
 def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
     """Write a file through ``write(tmp_path)`` then rename it into place.
 
-    A crash leaves either the old file or the new one, never a half-written file.
+    A crash, an error in ``write`` or a full disk leaves either the old file or the new one,
+    never a half-written file, and no temporary file. Every picture, JSON and CSV the harness
+    writes goes through here. A ``path`` that is a link is replaced by the new file, never
+    written through (the file it named is left as it was).
     """
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -659,6 +754,21 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
         os.replace(tmp_path, path)
     finally:
         tmp_path.unlink(missing_ok=True)
+
+
+def write_figure(figure: Any, path: Path, **savefig: Any) -> Path:
+    """Save a matplotlib figure whole or not at all (:func:`atomic_write`): ``savefig`` to a
+    temporary file beside ``path``, then renamed over it, so a full disk or an error while
+    drawing leaves the old picture as it was. The format comes from ``path``'s suffix unless
+    ``savefig`` names one (the temporary file's own suffix is ``.tmp``).
+
+    Returns:
+        ``path``.
+    """
+    path = Path(path)
+    savefig.setdefault("format", path.suffix.lstrip(".").lower() or "png")
+    atomic_write(path, lambda tmp: figure.savefig(tmp, **savefig))
+    return path
 
 
 def append_csv_rows(path: Path, columns: Sequence[str], rows: Sequence[Sequence[object]]) -> None:

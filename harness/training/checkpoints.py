@@ -39,7 +39,7 @@ import numpy as np
 
 from harness.config.loading import config_from_dict, parse_yaml
 from harness.config.schema import ConfigError, ExperimentConfig
-from harness.results.rundir import CheckpointDir, RunDir, RunDirError, leads_outside
+from harness.results.rundir import CheckpointDir, RunDir, RunDirError
 
 STEP_PREFIX = "step-"
 KEEP = 2  # checkpoints kept: the newest and the one before it
@@ -331,25 +331,18 @@ def check_guards(checkpoint: Path, state: TrainingState) -> None:
 
 
 def check_inside_the_run(checkpoint: Path) -> None:
-    """Refuse a checkpoint whose folder or files lead out of its run folder (a link in a
-    downloaded run): its pickles are loaded only from the folder named on the command line.
+    """Refuse a checkpoint whose folder or any of its files lead out of its run folder (a link
+    in a downloaded run; :meth:`CheckpointDir.check_inside`, the rule of every folder's files):
+    its pickles, state and config are read only from the folder named on the command line.
 
     Raises:
         CheckpointError: one line naming the file (a resume falls back to the older
             checkpoint, or refuses).
     """
-    files = CheckpointDir(checkpoint)
-    run = Path(checkpoint).parent.parent
-    for path in (files.path, files.model, files.replay_buffer, files.rng):
-        try:
-            outside = leads_outside(path, run)
-        except RunDirError as exc:  # a link loop
-            raise CheckpointError(str(exc)) from None
-        if outside:
-            raise CheckpointError(
-                f"{path} leads outside the run folder {run} (a run's checkpoints live inside "
-                "it; nothing was loaded from it)"
-            )
+    try:
+        CheckpointDir(checkpoint).check_inside()  # rundir's rule, for each of its files
+    except RunDirError as exc:  # a link out, or a link loop
+        raise CheckpointError(str(exc)) from None
 
 
 def check_replay_buffer(checkpoint: Path) -> None:
@@ -415,7 +408,9 @@ def latest_checkpoint(folder: Path) -> Path:
 
 
 def read_state(checkpoint: Path) -> TrainingState:
-    """The training state of a checkpoint folder."""
+    """The training state of a checkpoint folder (none of whose files leads out of its run:
+    :func:`check_inside_the_run`)."""
+    check_inside_the_run(checkpoint)
     try:
         return TrainingState.from_json(CheckpointDir(checkpoint).state.read_text(encoding="utf-8"))
     except (OSError, ValueError, TypeError) as exc:
@@ -423,7 +418,8 @@ def read_state(checkpoint: Path) -> TrainingState:
 
 
 def read_rng(checkpoint: Path) -> dict[str, Any]:
-    """The random states of a checkpoint folder."""
+    """The random states of a checkpoint folder (as :func:`read_state`, inside its run)."""
+    check_inside_the_run(checkpoint)
     try:
         with CheckpointDir(checkpoint).rng.open("rb") as f:
             states = pickle.load(f)
@@ -449,8 +445,10 @@ def read_checkpoint_config(checkpoint: Path) -> dict[str, Any] | None:
     before checkpoints kept their config.
 
     Raises:
-        CheckpointError: when the file is there but unreadable.
+        CheckpointError: when the file is there but unreadable, or a checkpoint file leads out
+            of the run (:func:`check_inside_the_run`).
     """
+    check_inside_the_run(checkpoint)
     path = CheckpointDir(checkpoint).config
     if not path.is_file():
         return None

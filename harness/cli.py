@@ -480,6 +480,7 @@ def _run_group(args: argparse.Namespace, config: ExperimentConfig) -> int:
             args.runs_dir,
             args.argv,
             report=None if args.no_progress else print_progress,
+            config_yaml=config.to_yaml(),
         )
     except GroupInterrupted as exc:
         return _group_stopped(exc)
@@ -575,6 +576,7 @@ def _resume(args: argparse.Namespace) -> int:
     if args.jobs is not None:
         raise HarnessError("--jobs goes with --seeds or a seed group's --resume")
     run = RunDir(args.resume)
+    run.check_files()  # a file linked out of the run: refused before anything is read or written
     if run.is_checkpoint:
         raise HarnessError(
             f"{run.path} is a checkpoint of {run.checkpoint_of.path}: resume the run "

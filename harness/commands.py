@@ -46,8 +46,10 @@ from harness.results.rundir import (
     RunDir,
     RunDirError,
     against_filename,
+    atomic_write,
     atomic_write_text,
     check_output_file,
+    inside,
     is_foreign_log,
     is_reference,
     result_filename,
@@ -142,6 +144,7 @@ def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) ->
     """A trained model: ``path`` is a run folder (its ``model.zip``), a checkpoint's folder (its
     ``model.zip``, evaluated for its run) or a model zip."""
     if path.is_dir() and RunDir(path).is_checkpoint:
+        CheckpointDir(path).check_inside()  # its model and files: inside its run, links resolved
         model_path = CheckpointDir(path).model
         if not model_path.is_file():
             raise TargetError(f"{path}: a checkpoint without its model.zip")
@@ -557,6 +560,8 @@ def export_reference(run: Path, out: Path, model: str = "model") -> Path:
     source = RunDir(run).model_named(model)
     if not source.is_file():
         raise TargetError(f"{source}: no such model")
+    for name in (*REFERENCE_FILES, result_filename("tune", [], model)):
+        RunDir(run).result(name)  # before anything is loaded: a file linked out is refused
     if out.exists():
         raise TargetError(f"{out}: already exists (a reference is never overwritten)")
     check_model_zip(source, source)
@@ -651,6 +656,10 @@ def evaluate(
         The summary (with per-episode ``coverage`` and ``wall_hits``), the episode results, and
         the saved file (``None`` for a baseline) as the summary's ``"saved"`` entry.
     """
+    out = None
+    if target.results_dir is not None:  # asked before the episodes: a link out stops it now
+        name = result_filename("eval", overrides, target.model_name, episodes, target.seed_changed)
+        out = RunDir(target.results_dir).result(name)
     results = run_episodes(
         target.policy, target.config.env, episodes, target.seed, progress=progress
     )
@@ -665,10 +674,7 @@ def evaluate(
         **summarize(results),
         **_per_episode(results),
     }
-    saved = None
-    if target.results_dir is not None:
-        name = result_filename("eval", overrides, target.model_name, episodes, target.seed_changed)
-        saved = RunDir(target.results_dir).write_result(name, summary)
+    saved = None if out is None else write_json(out, summary)
     return {**summary, "saved": saved}, results
 
 
@@ -695,6 +701,10 @@ def evaluate_against(
     from harness.results.stats import paired_difference
 
     episodes = summary["episodes"]
+    out = None
+    if target.results_dir is not None:  # asked before the episodes: a link out stops it now
+        name = against_filename(policy, overrides, target.model_name, episodes, target.seed_changed)
+        out = RunDir(target.results_dir).result(name)
     baseline = baseline_target(policy, target.config, target.seed)
     results = run_episodes(
         baseline.policy, baseline.config.env, episodes, target.seed, progress=progress
@@ -726,10 +736,7 @@ def evaluate_against(
         comparison["steps_to_99"] = paired_steps_to_99(ours_steps, their_steps)
         comparison["steps_to_99_each"] = ours_steps
         comparison["against_steps_to_99_each"] = their_steps
-    saved = None
-    if target.results_dir is not None:
-        name = against_filename(policy, overrides, target.model_name, episodes, target.seed_changed)
-        saved = RunDir(target.results_dir).write_result(name, comparison)
+    saved = None if out is None else write_json(out, comparison)
     return {**comparison, "saved": saved}
 
 
@@ -852,11 +859,12 @@ def evaluate_group(
     ``GROUP/group-against-BASELINE.json`` (:func:`group_against`), listed under the result's
     ``"against"``.
     """
-    from harness.results.groups import GROUP_EVAL_FILE, group_members, group_runs
+    from harness.results.groups import GROUP_EVAL_FILE, group_file, group_members, group_runs
     from harness.results.stats import describe, seed_statistics
 
     runs = group_runs(group)
     missing = [run.name for run in group_members(group) if run not in runs]
+    out = group_file(group, GROUP_EVAL_FILE)  # asked before the runs are evaluated
     summaries = {}
     for run in runs:
         evaluate_run(run)
@@ -876,7 +884,7 @@ def evaluate_group(
         "runs": {name: {k: s[k] for k in keys} for name, s in summaries.items()},
         over: describe(stats["group"]),
     }
-    saved = write_json(group / GROUP_EVAL_FILE, result)
+    saved = write_json(out, result)
     if against:
         result["against"] = [group_against(group, runs, policy) for policy in against]
     return result, saved, []
@@ -888,7 +896,7 @@ def group_against(group: Path, runs: Sequence[Path], policy: str) -> dict[str, A
     and IQM with rliable's 95 % intervals over the seeds' differences (one run: no interval),
     saved as ``GROUP/group-against-POLICY.json``. The question it answers is the training's:
     does a seed of this training beat the baseline on the same episodes, and by how much?"""
-    from harness.results.groups import group_against_file
+    from harness.results.groups import group_against_file, group_file
     from harness.results.stats import describe, seed_statistics
 
     differences: dict[str, float] = {}
@@ -912,7 +920,7 @@ def group_against(group: Path, runs: Sequence[Path], policy: str) -> dict[str, A
         result["steps_to_99_differences"] = steps
         over = seed_statistics({policy: list(steps.values())})[policy]
         result["steps_to_99_difference_over_seeds"] = describe(over)
-    saved = write_json(group / group_against_file(policy), result)
+    saved = write_json(group_file(group, group_against_file(policy)), result)
     return {**result, "saved": saved}
 
 
@@ -938,13 +946,14 @@ def tune(
         )
     if write:
         check_training_done(target.run_dir)
+    # tune.json, or tune-best_model.json, tune-env.max_steps-500.json, ... like harness eval's;
+    # asked before the episodes: a link out of the folder stops it now.
+    out = RunDir(target.results_dir).result(result_filename("tune", overrides, target.model_name))
     result = tune_temperature(target, temperatures, episodes)
     result["overrides"] = list(overrides)
     if write:
         result["previous_temperature"] = write_temperature(target.run_dir, result["chosen"])
-    # tune.json, or tune-best_model.json, tune-env.max_steps-500.json, ... like harness eval's.
-    name = result_filename("tune", overrides, target.model_name)
-    return result, RunDir(target.results_dir).write_result(name, result)
+    return result, write_json(out, result)
 
 
 def render(target: Target, out: Path | None, gif: Path | None, every: int | None) -> list[Path]:
@@ -963,6 +972,8 @@ def render(target: Target, out: Path | None, gif: Path | None, every: int | None
     note = sampling_note(target.config.eval.temperature) if target.run_dir else ""
     if isinstance(env, PettingZooEnvConfig):
         return _render_foreign(target, out, gif, every)
+    # Asked before the episode: a paths.png linked out of the folder stops it now.
+    out = out or RunDir(target.results_dir or Path()).paths_png
     if gif is not None:
         every = every or plots.gif_every(env.max_steps)
         largest = make_env(env)  # before its first reset: the largest map its source makes
@@ -985,7 +996,6 @@ def render(target: Target, out: Path | None, gif: Path | None, every: int | None
                 f"{plots.byte_size(limit)} limit; {advice}"
             )
     rec = plots.play_episode(env, target.policy, target.seed, every or 1, gif is not None)
-    out = out or RunDir(target.results_dir or Path()).paths_png
     title = f"{target.label}: coverage {rec.coverage:.1%}, seed {target.seed}"
     title += f", {note}" if note else ""
     saved = [plots.plot_paths(rec.walls, rec.paths, out, title)]
@@ -1032,11 +1042,11 @@ def _render_foreign(
             f"metadata['render_modes'] is {list(modes)})"
         )
     every = every or FOREIGN_RENDER_EVERY
+    out = out or RunDir(target.results_dir or Path()).result("render.png")  # asked first
     (result,) = run_episodes(target.policy, env, 1, target.seed, copies=1, frames_every=every)
     frames = [np.asarray(frame, dtype=np.uint8) for frame in result.frames]
-    out = out or RunDir(target.results_dir or Path()).result("render.png")
-    out.parent.mkdir(parents=True, exist_ok=True)
-    Image.fromarray(frames[-1]).save(out)
+    last = Image.fromarray(frames[-1])
+    atomic_write(out, lambda tmp: last.save(tmp, format="PNG"))  # whole or not at all
     saved = [out]
     if gif is not None:
         saved.append(plots.write_gif(frames, gif, plots.GIF_FPS, hold=plots.GIF_HOLD))
@@ -1070,6 +1080,8 @@ def compare(
     from harness.results.plots import plot_learning_curves
 
     check_output_file(out, "--out")
+    for picture in compare_pictures(out):  # made beside --out, never through a link out
+        inside(picture, out.parent, "the folder of --out")
     curves: dict[str, list[Any]] = {}
     evaluations: dict[str, list[Any]] = {}
     rows: list[tuple[str, str, dict[str, Any] | None]] = []
@@ -1114,6 +1126,17 @@ def compare(
     ]
     over_seeds, more = _over_seeds(rows, evaluations, Path(out), reps, eval_name)
     return Comparison(rows, over_seeds, saved + more, others)
+
+
+def compare_pictures(out: Path) -> tuple[Path, Path, Path]:
+    """The pictures ``harness compare --out OUT.png`` makes beside ``OUT.png``: the test numbers'
+    intervals, the probabilities of improvement and the validation curves with their intervals
+    (``OUT-intervals.png``, ``OUT-improvement.png``, ``OUT-curves-ci.png``)."""
+    intervals, improvement, curves = (
+        out.with_name(f"{out.stem}-{kind}.png")
+        for kind in ("intervals", "improvement", "curves-ci")
+    )
+    return intervals, improvement, curves
 
 
 def _over_seeds(
@@ -1183,16 +1206,15 @@ def _over_seeds(
                 pairs[x, y] = (p, ci)
     # One colour per group across every figure of this comparison.
     colours = group_colours(list(dict.fromkeys([*names, *evaluations])))
-    intervals_png = out.with_name(f"{out.stem}-intervals.png")
+    intervals_png, improvement_png, curves_png = compare_pictures(out)
     if unit:
         xlabel = f"test {unit}, 95 % stratified-bootstrap CIs"
         saved = [plot_intervals(stats, intervals_png, colours, xlabel, scale)]
     else:
         saved = [plot_intervals(stats, intervals_png, colours)]
     if pairs:
-        saved.append(plot_improvement(pairs, out.with_name(f"{out.stem}-improvement.png")))
+        saved.append(plot_improvement(pairs, improvement_png))
     if evaluations:
-        curves_png = out.with_name(f"{out.stem}-curves-ci.png")
         if unit:
             ylabel = f"validation median {unit}, IQM"
             saved.append(plot_curves_with_ci(evaluations, curves_png, reps, colours, ylabel, 1.0))

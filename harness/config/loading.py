@@ -83,7 +83,9 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     if not sep or not key.strip():
         raise ConfigError(f"--set {text!r}: expected key.path=value")
     try:
-        value = yaml.safe_load(raw) if raw.strip() else None
+        value = yaml.load(raw, Loader=_BoundedLoader) if raw.strip() else None
+    except YamlAliasError as exc:
+        raise ConfigError(f"--set {text[:40]!r}: {exc}") from None
     except RecursionError:
         raise ConfigError(f"--set {text[:40]!r}...: value nested too deeply") from None
     except ValueError as exc:  # e.g. an integer of more digits than Python converts
@@ -185,10 +187,67 @@ def _list_index(items: list[Any], key: str) -> int | None:
 _MERGE, _VALUE, _STR = (f"tag:yaml.org,2002:{t}" for t in ("merge", "value", "str"))
 
 
-class _UniqueKeyLoader(yaml.SafeLoader):
+#: Most nodes a YAML document may hold with its aliases expanded, when they add any: a config
+#: has hundreds, and a file under the 1 MB cap without aliases at most about 500,000. Aliases
+#: share one node, so 1 KB of them can stand for billions ("billion laughs"), which the
+#: schema's checks and the run's config.yaml would write out one by one (gigabytes, a hang).
+MAX_YAML_NODES = 100_000
+
+
+class YamlAliasError(yaml.YAMLError):
+    """A document whose aliases expand it past :data:`MAX_YAML_NODES` nodes, or an alias
+    inside the node it names (a document without end)."""
+
+
+class _BoundedLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` that counts a document's nodes with its aliases expanded before
+    building it (each node once, so the count takes as long as the written document) and refuses
+    more than :data:`MAX_YAML_NODES` of them where aliases add nodes, and an alias that names a
+    node it lies in."""
+
+    def construct_document(self, node: yaml.Node) -> Any:
+        written: dict[int, int] = {}  # id of a node -> its nodes, aliases expanded
+        expanded = _expanded_size(node, written, set())
+        if expanded > MAX_YAML_NODES and expanded > len(written):
+            raise YamlAliasError(
+                f"YAML aliases expand it to more than {MAX_YAML_NODES:,} values (it holds "
+                f"{len(written):,}); write the values out, or use fewer aliases"
+            )
+        return super().construct_document(node)
+
+
+def _expanded_size(node: yaml.Node, sizes: dict[int, int], open_: set[int]) -> int:
+    """The number of nodes ``node`` stands for with its aliases expanded (an alias names the
+    same node object), each node's counted once into ``sizes``; past :data:`MAX_YAML_NODES`
+    the count stops growing, so a bomb is refused without adding its billions up.
+
+    Raises:
+        YamlAliasError: for a node inside itself (``&a [*a]``).
+    """
+    key = id(node)
+    if key in sizes:
+        return sizes[key]
+    if key in open_:
+        raise YamlAliasError("an alias names a node it lies inside (the document never ends)")
+    open_.add(key)
+    total = 1
+    if isinstance(node, yaml.SequenceNode):
+        children: list[yaml.Node] = list(node.value)
+    elif isinstance(node, yaml.MappingNode):
+        children = [part for pair in node.value for part in pair]
+    else:
+        children = []
+    for child in children:
+        total = min(total + _expanded_size(child, sizes, open_), MAX_YAML_NODES + 1)
+    open_.discard(key)
+    sizes[key] = total
+    return total
+
+
+class _UniqueKeyLoader(_BoundedLoader):
     """``yaml.SafeLoader`` that refuses a key given twice in one mapping (plain YAML keeps the
     last one silently, so a repeated ``learning_rate:`` would quietly win), and merges
-    ``<<: *base`` as YAML defines it."""
+    ``<<: *base`` as YAML defines it; aliases bounded (:class:`_BoundedLoader`)."""
 
     def flatten_mapping(self, node: yaml.MappingNode) -> None:
         """Check ``node``'s keys and merge its merge key into it (SafeLoader calls this for every
@@ -250,13 +309,16 @@ class _UniqueKeyLoader(yaml.SafeLoader):
 
 
 def parse_yaml(text: str, source: str) -> Any:
-    """Parse config YAML safely: no Python objects, no duplicate keys, bounded nesting.
+    """Parse config YAML safely: no Python objects, no duplicate keys, bounded nesting and
+    aliases (:data:`MAX_YAML_NODES`).
 
     Raises:
         ConfigError: naming ``source`` and, where known, the line and column.
     """
     try:
         return yaml.load(text, Loader=_UniqueKeyLoader)
+    except YamlAliasError as exc:
+        raise ConfigError(f"{source}: {exc}") from None
     except yaml.YAMLError as exc:
         mark = getattr(exc, "problem_mark", None)
         where = f"line {mark.line + 1}, column {mark.column + 1}: " if mark else ""

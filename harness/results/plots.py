@@ -27,6 +27,7 @@ from matplotlib.ticker import MaxNLocator, PercentFormatter
 
 from envs.coverage import render
 from harness.evaluation.episodes import CHECKPOINT_FRACTIONS, EpisodeResult, run_episodes
+from harness.results.rundir import atomic_write, write_figure
 
 if TYPE_CHECKING:  # only for annotations: keeps this module importable without a cycle
     from harness.config.schema import EnvConfig
@@ -696,15 +697,17 @@ def write_gif(
         table.putpalette(np.resize(colours, (256, 3)).ravel().tolist())
         images = [im.quantize(palette=table, dither=Image.Dither.NONE) for im in images]
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
     duration = max(20, round(1000 / fps))  # browsers treat < 20 ms as 100 ms
-    images[0].save(
+    atomic_write(  # whole or not at all: a full disk leaves the GIF that was there
         out,
-        format="GIF",
-        save_all=True,
-        append_images=images[1:],
-        duration=[duration] * (len(images) - 1) + [duration + round(1000 * hold)],
-        loop=0,
+        lambda tmp: images[0].save(
+            tmp,
+            format="GIF",
+            save_all=True,
+            append_images=images[1:],
+            duration=[duration] * (len(images) - 1) + [duration + round(1000 * hold)],
+            loop=0,
+        ),
     )
     return out
 
@@ -970,7 +973,5 @@ def gif_frames(rec: EpisodeResult, every: int, title: str) -> list[np.ndarray]:
 
 # ---------------------------------------------------------------------- helpers
 def _save(fig: Figure, out: str | Path) -> Path:
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, format="png", dpi=DPI, facecolor="white")
-    return out
+    """Save a picture of this module, whole or not at all (:func:`write_figure`)."""
+    return write_figure(fig, Path(out), format="png", dpi=DPI, facecolor="white")

@@ -20,6 +20,8 @@ from typing import Any
 
 import numpy as np
 
+from harness.results.rundir import write_figure
+
 #: Bootstrap resamples (rliable's default is 50,000; 2,000 keeps ``compare`` under a second and
 #: moves the 95 % bounds by well under a point of coverage here).
 REPS = 2000
@@ -222,7 +224,7 @@ def plot_intervals(
     )
     out.parent.mkdir(parents=True, exist_ok=True)
     try:
-        fig.savefig(out, dpi=120, bbox_inches="tight")
+        write_figure(fig, out, dpi=120, bbox_inches="tight")  # whole or not at all
     finally:
         plt.close(fig)  # rliable draws on pyplot figures; free them in long sessions
     return out
@@ -247,7 +249,7 @@ def plot_improvement(
         right_ylabel="group Y",
     )
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out, bbox_inches="tight")
+    write_figure(fig, out, bbox_inches="tight")  # whole or not at all
     return out
 
 
@@ -323,7 +325,7 @@ def plot_curves_with_ci(
     ax.legend(frameon=False)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out)
+    write_figure(fig, out)  # whole or not at all
     return out
 
 

@@ -69,6 +69,7 @@ from harness.results.rundir import (
     RunDirError,
     atomic_write_text,
     check_output_file,
+    finite_json,
 )
 from harness.results.stats import REPS
 from harness.training.checkpoints import CheckpointError
@@ -720,10 +721,15 @@ def cmd_eval(args: argparse.Namespace) -> int:
         out = {k: v for k, v in summary.items() if k not in hidden}
         if against:
             out["against"] = [_printable(c) for c in against]
-        print(json.dumps(out))
+        print(_json(out))
     else:
         print("\n".join([format_summary(summary), *map(format_against, against)]))
     return 0
+
+
+def _json(data: dict[str, Any]) -> str:
+    """``--json``'s line: valid JSON, a non-finite number (an env's NaN info) as null."""
+    return json.dumps(finite_json(data), allow_nan=False)
 
 
 def _printable(comparison: dict[str, Any]) -> dict[str, Any]:
@@ -772,7 +778,7 @@ def _eval_group(args: argparse.Namespace) -> int:
         if args.json:
             if "against" in result:
                 result["against"] = [_printable(c) for c in result["against"]]
-            print(json.dumps(result))
+            print(_json(result))
     return 0
 
 
@@ -799,7 +805,7 @@ def cmd_tune(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     print(f"saved {saved}", file=sys.stderr)
-    print(json.dumps(result) if args.json else format_tune(result))
+    print(_json(result) if args.json else format_tune(result))
     return 0
 
 
@@ -906,7 +912,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from harness.bench import format_bench, run_bench
 
     result = run_bench(args.what)
-    print(json.dumps(result) if args.json else format_bench(result))
+    print(_json(result) if args.json else format_bench(result))
     return 0
 
 

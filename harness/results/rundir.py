@@ -1017,8 +1017,20 @@ def _float_sized_int(text: str) -> int:
     return value
 
 
+def finite_json(data: Any) -> Any:
+    """``data`` with every non-finite float (NaN, inf: an env's info can be one) as ``None``,
+    JSON's null: JSON has no NaN, and ``json.dumps`` would write one that no reader takes."""
+    if isinstance(data, (float, np.floating)):
+        return float(data) if math.isfinite(data) else None
+    if isinstance(data, dict):
+        return {key: finite_json(value) for key, value in data.items()}
+    if isinstance(data, (list, tuple)):
+        return [finite_json(value) for value in data]
+    return data
+
+
 def write_json(path: Path, data: dict[str, Any]) -> Path:
-    """Write a result JSON atomically (never NaN: a non-finite number is a bug, not a result)."""
+    """Write a result JSON atomically, non-finite numbers as null (:func:`finite_json`)."""
     path.parent.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(path, json.dumps(data, indent=2, allow_nan=False))
+    atomic_write_text(path, json.dumps(finite_json(data), indent=2, allow_nan=False))
     return path

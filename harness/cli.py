@@ -57,6 +57,7 @@ from harness.commands import (
     tune,
 )
 from harness.config.loading import load_config
+from harness.config.pettingzoo import EnvFailed
 from harness.config.schema import MAX_SEED, ConfigError, ExperimentConfig, check_name, is_foreign
 
 # The help names the baselines from their registry (its planners' SciPy costs the start nothing
@@ -993,6 +994,9 @@ def _main(argv: list[str]) -> int:
     except OSError as exc:  # a file the command had to read or write (full disk, permissions)
         print(f"harness: error: {os_error_text(exc)}", file=sys.stderr)
         return EXIT_USAGE
+    except EnvFailed as exc:  # an env of one's own, past its check (an evaluation's episode)
+        print(f"harness: error: {exc}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:  # Ctrl-C outside training (which stops cleanly by itself)
         print("harness: interrupted", file=sys.stderr)
         return 128 + signal.SIGINT

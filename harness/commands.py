@@ -16,6 +16,7 @@ import json
 import math
 import os
 import shutil
+import sys
 import tempfile
 import zipfile
 from collections.abc import Callable, Sequence
@@ -1023,13 +1024,17 @@ def _render_foreign(
     """``harness render`` of a PettingZoo env of one's own: episode 0 of the target's seed
     played with the env's ``rgb_array`` frames; its last frame as ``out`` (by default
     ``render.png`` where the target's results go) and, with ``gif``, every ``every``-th frame
-    as an animated GIF. No path picture: paths are the coverage env's.
+    as an animated GIF. No path picture: paths are the coverage env's. The frames a GIF keeps
+    are bounded by :data:`harness.results.plots.MAX_GIF_BYTES`, measured from the first frame
+    (the env's frames can be of any size); without a GIF only the first and last are kept.
 
     Raises:
-        TargetError: when the env does not render ``rgb_array`` frames.
+        TargetError: when the env does not render ``rgb_array`` frames, or when the GIF's frames
+            would take more than that memory.
     """
     from PIL import Image
 
+    from harness.evaluation.foreign import TooManyFrames, run_foreign_episodes
     from harness.results import plots
 
     env = target.config.env
@@ -1043,7 +1048,23 @@ def _render_foreign(
         )
     every = every or FOREIGN_RENDER_EVERY
     out = out or RunDir(target.results_dir or Path()).result("render.png")  # asked first
-    (result,) = run_episodes(target.policy, env, 1, target.seed, copies=1, frames_every=every)
+    try:
+        (result,) = run_foreign_episodes(
+            target.policy,
+            env,
+            1,
+            target.seed,
+            copies=1,
+            # No GIF: the last frame alone is wanted (with the first, which costs one frame).
+            frames_every=every if gif is not None else sys.maxsize,
+            frame_bytes=plots.MAX_GIF_BYTES,
+        )
+    except TooManyFrames as exc:
+        raise TargetError(
+            f"--gif {gif}: {exc}: keep fewer with a larger --every, or no --gif"
+            if gif is not None
+            else f"render: {exc}"
+        ) from None
     frames = [np.asarray(frame, dtype=np.uint8) for frame in result.frames]
     last = Image.fromarray(frames[-1])
     atomic_write(out, lambda tmp: last.save(tmp, format="PNG"))  # whole or not at all

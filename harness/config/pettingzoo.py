@@ -5,20 +5,90 @@ One owner for each rule: :class:`harness.config.schema.PettingZooEnvConfig` call
 :func:`resolve_constructor` and :func:`probe` when a config is validated, and
 :func:`harness.factory.make_env` builds every env of such a config with :func:`build`.
 
+The env's own code runs in two places only, and each holds it to the contract: :func:`build`
+(the import, the constructor, the spaces; a ``ValueError`` in one line, which a config check
+turns into exit 2 before any run folder exists) and :class:`ContractGuard`, the wrapper every
+built env is stepped through (reset, step, render: :class:`EnvFailed`, "the env failed at step
+N: ...", which training turns into exit 1 with its newest checkpoint named). Whatever the env's
+code raises, ``SystemExit`` included, is named in that one line; ``KeyboardInterrupt`` is left
+to stop the harness as Ctrl-C does.
+
 An import path is code: importing the module runs it, and so does calling the constructor. A
 config that names one is as trusted as the code it names (``docs/reliability.md``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib
+import math
+import numbers
 import re
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any
 
+import numpy as np
+from pettingzoo.utils.wrappers import BaseParallelWrapper
+
 #: ``package.module:attribute`` (the attribute may be dotted: ``module:Class.method``).
 _MAKE_RE = re.compile(r"[A-Za-z_][\w]*(\.[A-Za-z_][\w]*)*:[A-Za-z_][\w]*(\.[A-Za-z_][\w]*)*")
+
+#: Most steps of an episode when ``env.pettingzoo.step_limit`` is not given: an episode still
+#: going then is an env that never ends it, refused (training would log no episode, and an
+#: evaluation would never end).
+DEFAULT_STEP_LIMIT = 100_000
+
+#: Characters of the env's own error message kept in the one line that names it.
+_MESSAGE_CHARS = 200
+
+
+class EnvFailed(Exception):
+    """The env raised, or broke the contract, while the harness reset, stepped or rendered it
+    (:class:`ContractGuard`). Its text is one line: "the env failed at step N: <its error>"
+    (``during`` ``"reset"``: "at reset"; ``"render"``: "rendering at step N")."""
+
+    def __init__(self, step: int, error: str, during: str = "step") -> None:
+        # (the arguments as given: the exception is pickled back from a SuperSuit worker)
+        super().__init__(step, error, during)
+        self.step, self.error, self.during = step, error, during
+
+    def __str__(self) -> str:
+        where = {"reset": "at reset", "render": f"rendering at step {self.step:,}"}.get(
+            self.during, f"at step {self.step:,}"
+        )
+        return f"the env failed {where}: {self.error}"
+
+
+def describe(exc: BaseException) -> str:
+    """One line naming an exception of the env's own code: its type and message (whitespace
+    folded, shortened to :data:`_MESSAGE_CHARS`), or the code a ``sys.exit`` gave."""
+    if isinstance(exc, SystemExit):
+        return f"SystemExit({exc.code!r}): it called sys.exit"
+    text = " ".join(str(exc).split())
+    if len(text) > _MESSAGE_CHARS:
+        text = text[: _MESSAGE_CHARS - 3] + "..."
+    return f"{type(exc).__name__}: {text}" if text else type(exc).__name__
+
+
+@contextlib.contextmanager
+def users_code(fail: Callable[[str], Exception]) -> Iterator[None]:
+    """Run the env's own code: whatever it raises becomes ``fail(describe(exc))``, raised in its
+    place. ``SystemExit`` too: a library's ``sys.exit`` would otherwise end the harness with its
+    code and no word. ``KeyboardInterrupt`` is left alone (Ctrl-C stops the harness cleanly)."""
+    try:
+        yield
+    except KeyboardInterrupt:
+        raise
+    except BaseException as exc:
+        raise fail(describe(exc)) from None
+
+
+def close_quietly(env: Any) -> None:
+    """Close an env; what its ``close`` raises changes nothing the harness has done (its results
+    are in), so it is dropped rather than shown as a traceback at the end of the work."""
+    with contextlib.suppress(Exception), users_code(RuntimeError):
+        env.close()
 
 
 def resolve_constructor(make: str) -> Callable[..., Any]:
@@ -33,12 +103,11 @@ def resolve_constructor(make: str) -> Callable[..., Any]:
             "(e.g. 'mpe2.simple_spread_v3:parallel_env')"
         )
     module_name, _, attribute = make.partition(":")
-    try:
+    # Any error of the imported code: ImportError, SyntaxError, a sys.exit at its top level ...
+    with users_code(
+        lambda text: ValueError(f"make: cannot import module {module_name!r} ({text})")
+    ):
         module = importlib.import_module(module_name)
-    except Exception as exc:  # any error of the imported code: ImportError, SyntaxError, ...
-        raise ValueError(
-            f"make: cannot import module {module_name!r} ({type(exc).__name__}: {exc})"
-        ) from None
     target: Any = module
     for part in attribute.split("."):
         try:
@@ -50,37 +119,46 @@ def resolve_constructor(make: str) -> Callable[..., Any]:
     return target
 
 
-def build(constructor: Callable[..., Any], kwargs: Mapping[str, Any], **extra: Any) -> Any:
-    """The ``ParallelEnv`` that ``constructor(**kwargs, **extra)`` makes; an AEC env (one with
-    ``agent_iter``) is converted by PettingZoo's ``aec_to_parallel``, which is valid for envs
-    whose agents all act once per cycle (PettingZoo's own caveat).
+def build(
+    constructor: Callable[..., Any],
+    kwargs: Mapping[str, Any],
+    step_limit: int = DEFAULT_STEP_LIMIT,
+    **extra: Any,
+) -> ContractGuard:
+    """The ``ParallelEnv`` that ``constructor(**kwargs, **extra)`` makes, its spaces checked
+    (:func:`check_spaces`), in the :class:`ContractGuard` that it is stepped through (episodes of
+    at most ``step_limit`` steps). An AEC env is converted by PettingZoo's ``aec_to_parallel``,
+    which is valid for envs whose agents all act once per cycle (PettingZoo's own caveat; one
+    that does not fails the probe's step: :func:`probe`).
 
     Raises:
-        ValueError: the constructor's error, or an object that is neither kind of env, in one line.
+        ValueError: the constructor's error (``SystemExit`` included), an object that is neither
+            kind of env, or spaces that break the contract, in one line.
     """
-    try:
+    with users_code(lambda text: ValueError(f"kwargs: the constructor failed ({text})")):
         env = constructor(**dict(kwargs), **extra)
-    except Exception as exc:  # the env's own code: any error is the config's
-        raise ValueError(
-            f"kwargs: the constructor failed ({type(exc).__name__}: {str(exc)[:200]})"
-        ) from None
-    from pettingzoo import AECEnv
+    from pettingzoo import AECEnv, ParallelEnv
 
     if isinstance(env, AECEnv):
         from pettingzoo.utils.conversions import aec_to_parallel
 
-        try:
+        with users_code(
+            lambda text: ValueError(f"make: cannot convert the AEC env to a parallel one ({text})")
+        ):
             env = aec_to_parallel(env)
-        except Exception as exc:
-            raise ValueError(
-                f"make: cannot convert the AEC env to a parallel one ({type(exc).__name__}: {exc})"
-            ) from None
-    if not all(hasattr(env, name) for name in ("possible_agents", "reset", "step")):
+    if not isinstance(env, ParallelEnv):
+        # An object with possible_agents, reset and step alone fails later, in SuperSuit (no
+        # metadata, ...): the classes are PettingZoo's contract.
         raise ValueError(
-            f"make: the constructor returned {type(env).__name__}, not a PettingZoo env "
-            "(ParallelEnv or AEC env)"
+            f"make: the constructor returned {type(env).__name__}, not a PettingZoo env (a "
+            "subclass of pettingzoo.ParallelEnv or pettingzoo.AECEnv)"
         )
-    return env
+    try:
+        spaces = check_spaces(env)
+    except ValueError:
+        close_quietly(env)
+        raise
+    return ContractGuard(env, spaces, step_limit)
 
 
 @dataclass(frozen=True)
@@ -107,25 +185,44 @@ def check_spaces(env: Any) -> EnvSpaces:
     """
     from gymnasium import spaces
 
-    agents = tuple(env.possible_agents)
+    with users_code(
+        lambda text: ValueError(
+            f"the env's possible_agents, observation_space() or action_space() failed ({text})"
+        )
+    ):
+        agents = tuple(env.possible_agents)
+        observations = {agent: env.observation_space(agent) for agent in agents}
+        actions = {agent: env.action_space(agent) for agent in agents}
     if not agents:
         raise ValueError("the env has no agents (possible_agents is empty)")
     first = agents[0]
-    observation, action = env.observation_space(first), env.action_space(first)
+    observation, action = observations[first], actions[first]
     if not isinstance(action, spaces.Discrete):
         raise ValueError(
             f"agent {first!r}: action space {action} is not Discrete (DQN picks one of n "
             "actions; for MPE envs set continuous_actions: false)"
+        )
+    if int(action.start) != 0 or int(action.n) < 1:
+        # The network's outputs are actions 0 .. n-1: another start is an index error at the
+        # first gradient step.
+        raise ValueError(
+            f"agent {first!r}: action space {action} is not Discrete(n) with n >= 1 starting "
+            "at 0 (the network picks actions 0 .. n-1: shift the env's actions)"
         )
     if not isinstance(observation, spaces.Box):
         raise ValueError(
             f"agent {first!r}: observation space {observation} is not a Box (flatten it, e.g. "
             "with gymnasium's spaces.flatten_space and spaces.flatten)"
         )
+    if not observation.shape or 0 in observation.shape:
+        raise ValueError(
+            f"agent {first!r}: observation space {observation} has shape {observation.shape}: "
+            "the network needs at least one number (a shape such as (1,))"
+        )
     for agent in agents[1:]:
         for what, mine, shared in (
-            ("action", env.action_space(agent), action),
-            ("observation", env.observation_space(agent), observation),
+            ("action", actions[agent], action),
+            ("observation", observations[agent], observation),
         ):
             if mine != shared:
                 raise ValueError(
@@ -137,15 +234,178 @@ def check_spaces(env: Any) -> EnvSpaces:
 
 
 def probe(make: str, kwargs: Mapping[str, Any]) -> EnvSpaces:
-    """Import ``make``, build its env once and check its spaces (:func:`check_spaces`).
+    """Import ``make``, build its env once (:func:`build`: the constructor and the spaces) and
+    play its first step: ``reset(seed=0)`` and every agent's action 0, through the
+    :class:`ContractGuard`, so that an env whose ``reset`` or ``step`` breaks the contract (the
+    API's shape, observations of another shape than the space, a non-finite reward, an error of
+    its own) is refused with the config, before any run folder exists.
 
     Raises:
-        ValueError: one line (see :func:`resolve_constructor`, :func:`build`, :func:`check_spaces`).
+        ValueError: one line (see :func:`resolve_constructor`, :func:`build`,
+            :func:`check_spaces`, :class:`EnvFailed`).
     """
     env = build(resolve_constructor(make), kwargs)
     try:
-        return check_spaces(env)
+        env.reset(seed=0)
+        env.step(dict.fromkeys(env.live_agents(), 0))
+    except EnvFailed as exc:
+        raise ValueError(str(exc)) from None
     finally:
-        close = getattr(env, "close", None)
-        if close is not None:
-            close()
+        env.close()
+    return env.spaces
+
+
+class ContractGuard(BaseParallelWrapper):
+    """A PettingZoo env of one's own as the harness resets, steps and renders it (:func:`build`
+    wraps every one: training's copies, evaluation's episodes, pictures): the one place where
+    the env's code runs once it is built, and where its answers are held to the contract. What
+    breaks it raises :class:`EnvFailed` naming the step of the episode and the fault:
+
+    * an error of the env's code (``SystemExit`` included);
+    * ``reset`` that returns no ``(observations, infos)`` pair, ``step`` that returns no five
+      dicts (the old API's four values among them);
+    * an observation of another shape than the observation space, or one holding NaN or inf;
+      a reward that is not a finite number (replay would learn NaN);
+    * an episode still going after ``step_limit`` steps (an env that never ends its episodes);
+    * ``render()`` that returns no ``(H, W, 3)`` picture; float frames in [0, 1] are scaled to
+      ``uint8`` (:func:`as_frame`).
+
+    The checks cost a few microseconds a step, next to the env's own step.
+    """
+
+    def __init__(self, env: Any, spaces: EnvSpaces, step_limit: int = DEFAULT_STEP_LIMIT) -> None:
+        super().__init__(env)
+        self.spaces, self.step_limit = spaces, step_limit
+        self.steps = 0  # of the episode under way
+        self._known = set(spaces.agents)
+
+    def _failed(self, error: str, during: str = "step") -> EnvFailed:
+        return EnvFailed(self.steps, error, during)
+
+    def live_agents(self) -> list[Any]:
+        """The env's ``agents`` (those still in the episode)."""
+        with users_code(self._failed):
+            return list(self.env.agents)
+
+    def reset(
+        self, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[Any, Any], dict[Any, Any]]:
+        self.steps = 0
+        with users_code(lambda text: self._failed(text, "reset")):
+            out = self.env.reset(seed=seed, options=options)
+        if not (isinstance(out, tuple) and len(out) == 2 and all(isinstance(x, dict) for x in out)):
+            raise self._failed(
+                f"reset() returned {_kind(out)}, not the pair (observations, infos) of dicts "
+                "that PettingZoo's API asks (since 1.22)",
+                "reset",
+            )
+        self._check_observations(out[0], "reset")
+        return out
+
+    def step(self, actions: dict[Any, Any]) -> tuple[dict[Any, Any], ...]:
+        self.steps += 1
+        with users_code(self._failed):
+            out = self.env.step(actions)
+        if not (isinstance(out, tuple) and len(out) == 5 and all(isinstance(x, dict) for x in out)):
+            old = (
+                " (the old API's four values: dones are now terminations and truncations)"
+                if isinstance(out, tuple) and len(out) == 4
+                else ""
+            )
+            raise self._failed(
+                f"step() returned {_kind(out)}, not five dicts (observations, rewards, "
+                f"terminations, truncations, infos){old}"
+            )
+        observations, rewards, terminations, truncations, _ = out
+        self._check_observations(observations)
+        for agent, reward in rewards.items():
+            if not _finite(reward):
+                raise self._failed(f"the reward of {agent!r} is {reward!r}, not a finite number")
+        if self.steps >= self.step_limit and not all(
+            terminations.get(agent, False) or truncations.get(agent, False) for agent in actions
+        ):
+            raise self._failed(
+                f"its episode has not ended in {self.step_limit:,} steps "
+                "(env.pettingzoo.step_limit): end it with a truncation (a time limit), or raise "
+                "the limit"
+            )
+        return out
+
+    def _check_observations(self, observations: dict[Any, Any], during: str = "step") -> None:
+        shape = self.spaces.observation_space.shape
+        for agent, value in observations.items():
+            if agent not in self._known:
+                raise self._failed(
+                    f"an observation for {agent!r}, not one of possible_agents", during
+                )
+            array = np.asarray(value)
+            if array.shape != shape:
+                raise self._failed(
+                    f"the observation of {agent!r} has shape {array.shape}, not the observation "
+                    f"space's {shape}",
+                    during,
+                )
+            if array.dtype.kind not in "biuf":
+                raise self._failed(
+                    f"the observation of {agent!r} holds {array.dtype} values, not numbers", during
+                )
+            if array.dtype.kind == "f" and not np.isfinite(array).all():
+                raise self._failed(f"the observation of {agent!r} holds NaN or inf", during)
+
+    def render(self) -> np.ndarray:  # type: ignore[override]
+        """The env's ``rgb_array`` frame as ``uint8`` (:func:`as_frame`)."""
+        with users_code(lambda text: self._failed(text, "render")):
+            frame = self.env.render()
+        try:
+            return as_frame(frame)
+        except ValueError as exc:
+            raise self._failed(str(exc), "render") from None
+
+    def close(self) -> None:
+        close_quietly(self.env)
+
+
+def as_frame(frame: Any) -> np.ndarray:
+    """An ``rgb_array`` frame as an ``uint8 (H, W, 3)`` picture: ``uint8`` as it is, floats in
+    [0, 1] scaled by 255 (saved as they are, they would be a black picture), other integers in
+    [0, 255] converted.
+
+    Raises:
+        ValueError: one line naming what ``render()`` returned instead.
+    """
+    if frame is None:
+        raise ValueError(
+            "render() returned None, not an rgb_array frame (the harness builds the env with "
+            "render_mode='rgb_array': does the constructor pass it on?)"
+        )
+    array = np.asarray(frame)
+    if array.ndim != 3 or array.shape[2] != 3 or 0 in array.shape:
+        raise ValueError(
+            f"render() returned {_kind(frame)} of shape {array.shape}, not an (H, W, 3) picture"
+        )
+    if array.dtype == np.uint8:
+        return array
+    kind = array.dtype.kind
+    low, high = (float(array.min()), float(array.max())) if kind in "biuf" else (0.0, -1.0)
+    if kind == "f" and low >= 0.0 and high <= 1.0:
+        return (array * 255.0).round().astype(np.uint8)
+    if kind in "biu" and low >= 0 and high <= 255:
+        return array.astype(np.uint8)
+    raise ValueError(
+        f"render() returned a {array.dtype} frame with values in [{low:g}, {high:g}]: give uint8 "
+        "in [0, 255] or floats in [0, 1]"
+    )
+
+
+def _kind(value: Any) -> str:
+    """What a value is, for a line that says it is not what was asked: ``a tuple of 4``."""
+    if isinstance(value, tuple):
+        return f"a tuple of {len(value)}"
+    return f"a {type(value).__name__}"
+
+
+def _finite(value: Any) -> bool:
+    """Whether a reward is a finite real number (a 0-d array's too)."""
+    if isinstance(value, np.ndarray) and value.shape == ():
+        value = value.item()
+    return isinstance(value, numbers.Real) and math.isfinite(value)

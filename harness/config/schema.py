@@ -50,7 +50,7 @@ from envs.coverage.maps import check_wall_fraction, shipped_maps
 from envs.coverage.observations import observation_options
 from envs.coverage.rollouts import SampledChooser
 from harness.config.maps import build_source, parse_source
-from harness.config.pettingzoo import EnvSpaces, probe
+from harness.config.pettingzoo import DEFAULT_STEP_LIMIT, EnvSpaces, probe
 from harness.sb3.registry import DEFAULT_POLICY, POLICIES
 
 
@@ -304,6 +304,9 @@ class PettingZooSource(_Section):
     or class that returns a PettingZoo ``ParallelEnv`` (an AEC env is converted)."""
     kwargs: dict[str, Any] = {}
     """Keyword arguments of the constructor (``render_mode`` is the harness's to give)."""
+    step_limit: PositiveInt = DEFAULT_STEP_LIMIT
+    """Most steps of an episode: one still going then stops training or evaluation in one line
+    (an env that never ends its episodes; :class:`harness.config.pettingzoo.ContractGuard`)."""
     _spaces: EnvSpaces | None = PrivateAttr(default=None)
 
     @field_validator("kwargs")

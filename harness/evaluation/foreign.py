@@ -12,6 +12,8 @@ infos the env reports at an episode's last step (``coverage`` among them, if it 
 from __future__ import annotations
 
 import numbers
+import sys
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any
@@ -24,9 +26,13 @@ from harness.factory import make_env
 #: ``summary["source"]`` of a summary made here (the coverage env's summaries have none).
 SOURCE = "pettingzoo"
 
-#: Most steps of one evaluation episode: an env whose agents never end their episode would
-#: otherwise hang the evaluation (training would never finish an episode either).
-MAX_EPISODE_STEPS = 1_000_000
+#: Seconds between two lines saying where a long episode is (an evaluation's episodes of an env
+#: that ends them late, or never: the env's guard stops it at ``env.pettingzoo.step_limit``).
+LONG_EPISODE_EVERY_S = 30.0
+
+
+class TooManyFrames(Exception):
+    """An episode's frames would take more memory than the caller allows (``frame_bytes``)."""
 
 
 @dataclass
@@ -83,16 +89,23 @@ def run_foreign_episodes(
     frames_every: int = 0,
     should_stop: Callable[[], bool] | None = None,
     progress: Callable[[int], None] | None = None,
+    frame_bytes: int | None = None,
 ) -> list[ForeignEpisodeResult]:
     """Run ``episodes`` seeded episodes with the batched ``policy`` (episode ``k``: the env reset
     with ``seed + k``) and return their metrics in order. See
-    :func:`harness.evaluation.episodes.run_episodes` for the arguments.
+    :func:`harness.evaluation.episodes.run_episodes` for the arguments; ``frame_bytes`` bounds
+    the memory of the frames kept (each counted twice: a picture made of it, as a GIF's, is
+    held too), measured from the first frame.
 
     An agent that has left the episode (``env.agents`` no longer holds it) is given zeros as its
-    observation in the batch and its action is dropped.
+    observation in the batch and its action is dropped. An episode that runs long says so on
+    stderr every :data:`LONG_EPISODE_EVERY_S` seconds; the env's guard ends the work at
+    ``env.pettingzoo.step_limit`` steps (:class:`harness.config.pettingzoo.EnvFailed`).
 
     Raises:
         EpisodesStopped: when ``should_stop()`` returned True.
+        EnvFailed: when the env raised or broke the contract.
+        TooManyFrames: when the frames would take more than ``frame_bytes``.
     """
     from harness.evaluation.episodes import EpisodesStopped
 
@@ -104,6 +117,20 @@ def run_foreign_episodes(
     n_copies = max(1, min(copies, episodes))
     envs = [make_env(env, render_mode) for _ in range(n_copies)]
     results: list[ForeignEpisodeResult] = []
+    limit = env.pettingzoo.step_limit
+    kept = 0  # frames, for frame_bytes
+
+    def keep(frame: np.ndarray) -> np.ndarray:
+        nonlocal kept
+        kept += 1
+        if frame_bytes is not None and kept * 2 * frame.nbytes > frame_bytes:
+            height, width = frame.shape[:2]
+            raise TooManyFrames(
+                f"the env's frames are {height}x{width} pixels ({2 * frame.nbytes:,} bytes each "
+                f"with the picture made of it): {kept - 1:,} of them fit in {frame_bytes:,}"
+            )
+        return frame
+
     try:
         for first in range(0, episodes, n_copies):
             size = min(n_copies, episodes - first)
@@ -115,29 +142,40 @@ def run_foreign_episodes(
             returns = np.zeros((size, n_agents))
             lengths = [0] * size
             last: list[dict[str, Any]] = [{} for _ in range(size)]
-            frames = [[e.render()] if frames_every else [] for e in batch]
-            live = [bool(e.agents) for e in batch]
+            frames = [[keep(e.render())] if frames_every else [] for e in batch]
+            live = [bool(e.live_agents()) for e in batch]
+            started = reported = time.monotonic()
             while any(live):
                 if should_stop is not None and should_stop():
                     raise EpisodesStopped(f"stopped in episode {first}")
+                if time.monotonic() - reported >= LONG_EPISODE_EVERY_S:
+                    reported = time.monotonic()
+                    print(
+                        f"  episode {first + lengths.index(max(lengths))}: step {max(lengths):,} "
+                        f"of at most {limit:,} (env.pettingzoo.step_limit), "
+                        f"{(reported - started) / 60:.1f} min",
+                        file=sys.stderr,
+                        flush=True,
+                    )
                 playing = [i for i in range(size) if live[i]]
                 stacked = np.stack([obs[i].get(a, zeros) for i in playing for a in agents])
                 actions = np.asarray(policy(stacked, [views[i] for i in playing]))
                 actions = actions.reshape(len(playing), n_agents)
                 for row, i in enumerate(playing):
                     e = batch[i]
-                    act = {a: int(actions[row, k]) for k, a in enumerate(agents) if a in e.agents}
+                    alive = e.live_agents()
+                    act = {a: int(actions[row, k]) for k, a in enumerate(agents) if a in alive}
                     obs[i], rewards, terms, truncs, infos = e.step(act)
                     lengths[i] += 1
                     for k, a in enumerate(agents):
                         returns[i, k] += float(rewards.get(a, 0.0))
                     last[i] = infos
-                    ended = not e.agents or all(
+                    ended = not e.live_agents() or all(
                         terms.get(a, False) or truncs.get(a, False) for a in act
                     )
                     if frames_every and (ended or lengths[i] % frames_every == 0):
-                        frames[i].append(e.render())
-                    if ended or lengths[i] >= MAX_EPISODE_STEPS:
+                        frames[i].append(keep(e.render()))
+                    if ended:
                         live[i] = False
             for i in range(size):
                 per_agent = [numeric_infos(last[i].get(a, {})) for a in agents]
@@ -209,7 +247,8 @@ def summarize_foreign(results: list[ForeignEpisodeResult]) -> dict[str, Any]:
     if "coverage" in keys:
         coverage = info_values("coverage")
         summary["coverage_mean"] = _nanmean(coverage)
-        summary["coverage_median"] = float(np.nanmedian(coverage))
+        finite = coverage[~np.isnan(coverage)]  # (nanmedian warns when all are NaN)
+        summary["coverage_median"] = float(np.median(finite)) if len(finite) else None
     return summary
 
 

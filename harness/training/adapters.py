@@ -18,6 +18,8 @@ from __future__ import annotations
 import functools
 import os
 import signal
+import sys
+import types
 import warnings
 from collections.abc import Callable, Mapping
 from typing import Any
@@ -31,9 +33,11 @@ from stable_baselines3.common.vec_env.base_vec_env import (
     VecEnvStepReturn,
 )
 from supersuit.vector import MakeCPUAsyncConstructor
+from supersuit.vector.multiproc_vec import ProcConcatVec
 from supersuit.vector.sb3_vector_wrapper import SB3VecEnvWrapper
 
 from envs.coverage.core import CoverageCore
+from harness.config.pettingzoo import EnvFailed
 from harness.config.schema import VEC_BACKENDS, EnvConfig, PettingZooEnvConfig
 from harness.factory import make_core_spec, make_env
 from harness.sb3.decisions import EXPERT_KEY
@@ -252,6 +256,8 @@ def _supersuit_vec_env(
     )
     if isinstance(env, PettingZooEnvConfig):
         probe.close()
+    if isinstance(inner, ProcConcatVec):
+        inner._receive_info = types.MethodType(_receive_quietly, inner)  # type: ignore[method-assign]
     with warnings.catch_warnings():
         # SuperSuit's inner VecEnv has no get_attr("render_mode"); SB3 warns and uses None,
         # which is right: training never renders.
@@ -263,3 +269,20 @@ def _supersuit_vec_env(
             keys = () if isinstance(env, PettingZooEnvConfig) else EPISODE_INFO_KEYS
             venv = VecMonitor(venv, info_keywords=keys)
     return venv
+
+
+def _receive_quietly(vec: ProcConcatVec) -> list[Any]:
+    """SuperSuit's ``ProcConcatVec._receive_info`` (each worker's answer; a worker's error raised
+    here), without printing a worker's traceback when the error is the env's
+    :class:`~harness.config.pettingzoo.EnvFailed`: its one line says it all (the training's
+    error line). Another error's traceback is still printed, on stderr."""
+    answers = []
+    for pipe in vec.pipes:
+        data = pipe.recv()
+        if isinstance(data, tuple):
+            error, trace = data
+            if not isinstance(error, EnvFailed):
+                print(trace, file=sys.stderr)
+            raise error
+        answers.append(data)
+    return answers

@@ -33,6 +33,7 @@ from stable_baselines3.common.type_aliases import TrainFreq, TrainFrequencyUnit
 from stable_baselines3.common.utils import set_random_seed
 from stable_baselines3.common.vec_env import VecEnv
 
+from harness.config.pettingzoo import EnvFailed
 from harness.config.schema import ExperimentConfig, PettingZooEnvConfig, PhaseConfig
 from harness.evaluation.episodes import (
     EpisodesStopped,
@@ -304,6 +305,8 @@ class Evaluator(PeriodicCallback):
         except EpisodesStopped:
             self.pending = step
             return
+        except EnvFailed as exc:  # (training names the step it stopped at and the checkpoint)
+            raise EnvFailed(exc.step, f"{exc.error} (an evaluation episode)", exc.during) from None
         self.pending = None
         summary = summarize(results)
         if isinstance(self.config.env, PettingZooEnvConfig):
@@ -498,7 +501,19 @@ class TrainingInterrupted(Exception):
 
 
 class TrainingFailed(Exception):
-    """Training cannot go on (e.g. a non-finite loss); the last good checkpoint is kept."""
+    """Training cannot go on (a non-finite loss, an env of one's own that failed); the last good
+    checkpoint is kept."""
+
+
+def _env_failure(exc: EnvFailed, run: RunDir, timesteps: int) -> TrainingFailed:
+    """The one line of an env that failed mid-training (:class:`EnvFailed`): where, the newest
+    checkpoint (the run resumes from it; with none yet, a resume starts it again)."""
+    found = complete_checkpoints(run.checkpoints)
+    kept = f"the newest checkpoint is {found[-1]}" if found else "no checkpoint yet"
+    return TrainingFailed(
+        f"{exc} (after {timesteps:,} transitions); training stopped, {kept}; once the env is "
+        f"fixed, resume with: harness run --resume {run.path}"
+    )
 
 
 @contextlib.contextmanager
@@ -583,7 +598,8 @@ def train(
 
     Raises:
         TrainingInterrupted: on SIGINT/SIGTERM, after writing a checkpoint.
-        TrainingFailed: on a non-finite loss (the last good checkpoint stays).
+        TrainingFailed: on a non-finite loss, or an env of one's own that failed (the last good
+            checkpoint stays).
         CheckpointError: when resuming without a usable checkpoint, or when the run's logs
             disagree with it (nothing is changed then).
     """
@@ -620,14 +636,17 @@ def train(
         f"{format_bytes(check_replay_memory(config))} when full",
         file=sys.stderr,
     )
-    venv = make_vec_env(
-        config.env,
-        config.vec.copies,
-        config.vec.num_cpus,
-        seed=_env_seed(config, state),
-        backend=config.vec.backend,
-        labeller=_labeller(config, state),
-    )
+    try:
+        venv = make_vec_env(
+            config.env,
+            config.vec.copies,
+            config.vec.num_cpus,
+            seed=_env_seed(config, state),
+            backend=config.vec.backend,
+            labeller=_labeller(config, state),
+        )
+    except EnvFailed as exc:  # an env of one's own, at its first reset
+        raise _env_failure(exc, run, state.num_timesteps) from None
     logger = make_logger(run, state, restart=restart)
     try:
         if resume:
@@ -647,6 +666,8 @@ def train(
             state.finished = True
             ctx.checkpointer.save()
         return model
+    except EnvFailed as exc:  # an env of one's own, stepped by training or its evaluation
+        raise _env_failure(exc, run, int(model.num_timesteps)) from None
     finally:
         logger.close()
         venv.close()

@@ -9,6 +9,7 @@ instances other than the ones the probe of issue 74 tried."""
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import sys
@@ -347,6 +348,8 @@ def test_a_nan_info_is_null_in_json(tmp_path, capsys):
     path = config(tmp_path, fault="nan_coverage")
     assert run(path, runs, "--set", "phases.only.timesteps=200") == 0
     (folder,) = runs.iterdir()
+    with (folder / "episodes.csv").open() as f:  # JSON in a CSV column
+        assert {row["infos"] for row in csv.DictReader(f)} == {'{"coverage":[null,null]}'}
     capsys.readouterr()
     assert main(["eval", str(folder), "--episodes", "2", "--json"]) == 0
     printed = capsys.readouterr().out

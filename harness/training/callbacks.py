@@ -16,7 +16,12 @@ from stable_baselines3.common.callbacks import BaseCallback, ProgressBarCallback
 from tqdm import TqdmExperimentalWarning
 from tqdm.rich import tqdm
 
-from harness.results.rundir import EPISODE_COLUMNS, FOREIGN_EPISODE_COLUMNS, append_csv_rows
+from harness.results.rundir import (
+    EPISODE_COLUMNS,
+    FOREIGN_EPISODE_COLUMNS,
+    append_csv_rows,
+    finite_json,
+)
 from harness.sb3.decisions import EXPERT_KEY
 from harness.sb3.schedules import epochs_for
 from harness.training.adapters import TIME_LIMIT_KEY
@@ -182,7 +187,7 @@ class ForeignEpisodeLogCallback(EpisodeLogCallback):
             "team_return": sum(returns),
             "returns": ";".join(f"{r:g}" for r in returns),
             "length": int(infos[0]["episode"]["l"]),
-            "infos": json.dumps(table, separators=(",", ":")),
+            "infos": json.dumps(finite_json(table), separators=(",", ":")),  # NaN: null
         }
 
 

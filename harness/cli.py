@@ -642,6 +642,8 @@ def _train(config: ExperimentConfig, run: RunDir, args: argparse.Namespace, mode
         train,
     )
 
+    if config.prior is not None:  # a map prior's run (docs/prior.md)
+        from harness.training.prior import train_prior as train  # type: ignore[assignment]
     try:
         train(
             config,
@@ -692,6 +694,10 @@ def cmd_eval(args: argparse.Namespace) -> int:
 
     if args.target is not None and is_group(args.target):
         return _eval_group(args)
+    from harness.prior.evaluate import is_prior_run
+
+    if args.target is not None and is_prior_run(args.target):
+        return _eval_prior(args)
     if args.plot is not None:
         check_image_output(args.plot, "--plot")
     target = _target(args)
@@ -731,6 +737,27 @@ def cmd_eval(args: argparse.Namespace) -> int:
 def _json(data: dict[str, Any]) -> str:
     """``--json``'s line: valid JSON, a non-finite number (an env's NaN info) as null."""
     return json.dumps(finite_json(data), allow_nan=False)
+
+
+def _eval_prior(args: argparse.Namespace) -> int:
+    """``harness eval PRIOR_RUN``: the prior's log-loss on the test episodes' partial maps."""
+    from harness.prior.evaluate import evaluate_prior, format_prior
+
+    if args.against or args.plot is not None or args.policy is not None:
+        raise HarnessError(
+            f"{args.target} is a map prior's run: it is scored by its log-loss (no --against, "
+            "--plot or --policy); plan with it: --policy rollout --set eval.rollout.prior=RUN"
+        )
+    from harness.training.threads import configure_torch
+
+    configure_torch(1)
+    try:
+        summary = evaluate_prior(Path(args.target), args.overrides, args.episodes, args.seed)
+    except ValueError as exc:
+        raise HarnessError(str(exc)) from None
+    print(f"saved {summary['saved']}", file=sys.stderr)
+    print(json.dumps(summary) if args.json else format_prior(summary))
+    return 0
 
 
 def _printable(comparison: dict[str, Any]) -> dict[str, Any]:

@@ -290,7 +290,15 @@ def baseline_target(policy: str, config: ExperimentConfig, seed: int) -> Target:
     config it plays (:meth:`~harness.evaluation.baselines.BaselineEntry.env_config`: the moves
     where the config's actions are goal slots)."""
     config = config.model_copy(update={"env": BASELINES[policy].env_config(config.env)})
-    return Target(make_baseline(policy, seed, config.eval), config, policy, None, seed)
+    prior = None
+    if BASELINES[policy].reads_prior and config.eval.rollout.prior is not None:
+        from harness.prior.model import load_prior  # torch: only for a prior
+
+        try:
+            prior = load_prior(config.eval.rollout.prior)
+        except ValueError as exc:
+            raise TargetError(f"eval.rollout.prior: {exc}") from None
+    return Target(make_baseline(policy, seed, config.eval, prior), config, policy, None, seed)
 
 
 def check_baseline(policy: str, config: ExperimentConfig, flag: str) -> None:

@@ -39,6 +39,7 @@ LAYERS = {
     "harness.factory": 2,
     "harness.evaluation": 3,
     "harness.results": 4,
+    "harness.prior": 4,
     "harness.training": 5,
     "harness.commands": 6,
     "harness.cli": 6,
@@ -234,7 +235,12 @@ CHECKPOINT_READERS = frozenset({"complete_checkpoints", "latest_checkpoint", "re
 #: Who may read them: the owner, and the training that loads the checkpoint a resume continues
 #: from (and the module that writes them).
 MAY_READ_CHECKPOINTS = frozenset(
-    {RUN_STATE_OWNER, "harness.training.train", "harness.training.checkpoints"}
+    {
+        RUN_STATE_OWNER,
+        "harness.training.train",
+        "harness.training.prior",
+        "harness.training.checkpoints",
+    }
 )
 #: What of the checkpoints module the layers above training may use: its errors.
 CHECKPOINT_ERRORS = frozenset({"CheckpointError", "ConfigChangedError"})

@@ -93,8 +93,8 @@ def test_in_page_anchors_exist() -> None:
 
 # ---------------------------------------------------------------------- configuration page
 #: What a documented key starts with; rows under "Old configs" name old keys and are left out.
-KEY_PREFIXES = ("env.", "vec.", "algo.", "phases[].", "eval.", "checkpoint.")
-TOP_LEVEL = ("name", "seed", "env")  # env: the env source itself (a union of sections)
+KEY_PREFIXES = ("env.", "vec.", "algo.", "phases[].", "eval.", "checkpoint.", "prior.")
+TOP_LEVEL = ("name", "seed", "env", "prior")  # env: the env source (a union); prior: optional
 #: Options of the env that a config writes as a mapping: documented as sub-option rows and
 #: checked against the env's options classes (not the pydantic schema, which takes a mapping).
 SUB_OPTIONS = {

@@ -69,6 +69,7 @@ __all__ = [
     "clear_of_noise",
     "held_walks",
     "in_threads",
+    "prior_wall_probability",
     "sampled_free",
     "shortest_walk",
 ]
@@ -361,14 +362,35 @@ def _seen_share(planner: FrontierPlanner) -> tuple[np.ndarray, np.ndarray, float
     return seen, free, free[seen].sum() / max(seen.sum(), 1)
 
 
-def sampled_free(planner: FrontierPlanner, rng: np.random.Generator) -> np.ndarray:
+def sampled_free(
+    planner: FrontierPlanner, rng: np.random.Generator, p_wall: np.ndarray | None = None
+) -> np.ndarray:
     """A map the team's knowledge allows: the free cells as they are where the team has seen,
-    elsewhere free with the share of free cells among the seen ones, drawn independently (the
-    random maps' own law; the outer ring stays wall). Padded and flat, like ``planner.free``."""
+    elsewhere drawn independently, free with the share of free cells among the seen ones (the
+    random maps' own law), or with ``p_wall`` (``(H, W)`` wall probabilities: a map prior's
+    prediction) a wall with that probability. The outer ring stays wall. Padded and flat, like
+    ``planner.free``."""
     seen, inner, share = _seen_share(planner)
     guess = np.asarray(planner.free, dtype=bool).reshape(-1, planner.stride).copy()
-    guess[1:-1, 1:-1] = np.where(seen, inner, rng.random(inner.shape) < share)
+    draw = rng.random(inner.shape)
+    unseen_free = draw < share if p_wall is None else draw >= p_wall
+    guess[1:-1, 1:-1] = np.where(seen, inner, unseen_free)
     return guess.ravel()
+
+
+#: What a map prior is to the choosers: ``prior(seen, free)`` with the team's ``(H, W)`` seen
+#: cells and free cells (read only where seen) to ``(H, W)`` wall probabilities. The harness
+#: hands one in (``harness.prior.model.MapPrior``); this module never imports a network.
+MapPriorFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+def prior_wall_probability(planner: FrontierPlanner, prior: MapPriorFn) -> np.ndarray:
+    """``prior``'s wall probabilities ``(H, W)`` for the team's map of ``planner``."""
+    seen, inner, _ = _seen_share(planner)
+    p = np.asarray(prior(seen, inner), dtype=np.float64)
+    if p.shape != seen.shape:
+        raise ValueError(f"the map prior gave a {p.shape} map for a {seen.shape} one")
+    return p
 
 
 def believed_coverage(planner: FrontierPlanner) -> float:
@@ -413,10 +435,17 @@ class SampledChooser(RolloutRule):
         after: The team's coverage from which it decides.
         threads: Maps scored side by side (the compiled rollouts release the GIL); the
             choices do not depend on it, as every map is drawn before any is scored.
+        prior: A map prior (:data:`MapPriorFn`) the unseen cells are drawn from, called once a
+            decision step; ``None``: the seen cells' free share.
     """
 
     def __init__(
-        self, samples: int = 4, sigmas: float = 4.0, after: float = 0.8, threads: int = 1
+        self,
+        samples: int = 4,
+        sigmas: float = 4.0,
+        after: float = 0.8,
+        threads: int = 1,
+        prior: MapPriorFn | None = None,
     ) -> None:
         super().__init__(horizon=None, margin=0.0, reach=0.99)
         if isinstance(samples, bool) or not isinstance(samples, (int, np.integer)) or samples < 1:
@@ -429,6 +458,7 @@ class SampledChooser(RolloutRule):
             raise ValueError(f"threads must be an integer >= 1, got {threads!r}")
         self.samples, self.sigmas, self.after = int(samples), float(sigmas), float(after)
         self.threads = int(threads)
+        self.prior = prior
         # One pool for the chooser's life (a decision takes ~10 ms), made here so that the
         # copies of an evaluation, deciding side by side, share it; threads start on first use.
         self._map = in_threads(min(self.threads, self.samples))
@@ -448,12 +478,14 @@ class SampledChooser(RolloutRule):
         steps_left: int,
         rng: np.random.Generator,
         walks: Mapping[int, Sequence[int]] | None = None,
+        p_wall: np.ndarray | None = None,
     ) -> np.ndarray:
-        """Every valid slot's score (slot order) on each sampled map: ``(samples, slots)``."""
+        """Every valid slot's score (slot order) on each sampled map: ``(samples, slots)``
+        (``p_wall``: the prior's wall probabilities the maps are drawn with)."""
         valid = np.flatnonzero(candidates.cells[agent] >= 0)
         # Every map is drawn before any is scored (scoring draws nothing), so the generator
         # gives the same maps in the same order whatever the threads.
-        maps = [sampled_free(planner, rng) for _ in range(self.samples)]
+        maps = [sampled_free(planner, rng, p_wall) for _ in range(self.samples)]
 
         def score(free: np.ndarray) -> np.ndarray:
             return self.scores_on(free, planner, candidates, agent, steps_left, walks)[valid]
@@ -481,9 +513,11 @@ class SampledChooser(RolloutRule):
             return slots
         committed = held_walks(planner, held) if held is not None else {}
         size = planner.passable.size
+        # The team's map is the same for every agent deciding at this step: one prediction.
+        p_wall = None if self.prior is None else prior_wall_probability(planner, self.prior)
         for a in np.flatnonzero(deciding).tolist():
             valid = np.flatnonzero(candidates.cells[a] >= 0)
-            per_map = self.per_map(planner, candidates, a, steps_left, rng, committed)
+            per_map = self.per_map(planner, candidates, a, steps_left, rng, committed, p_wall)
             slots[a] = valid[self.pick(clear_of_noise(per_map, self.sigmas), size)]
             if slots[a] != 0:
                 committed[a] = shortest_walk(planner, a, int(candidates.cells[a, slots[a]]))

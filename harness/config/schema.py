@@ -45,7 +45,7 @@ from pydantic import (
 
 from envs.coverage import generators, maps
 from envs.coverage.env import DEFAULT_REWARDS
-from envs.coverage.frontier import FrontierOptions
+from envs.coverage.frontier import PLANNERS, FrontierOptions
 from envs.coverage.maps import check_wall_fraction, shipped_maps
 from envs.coverage.observations import observation_options
 from envs.coverage.rollouts import SampledChooser
@@ -623,10 +623,15 @@ class RolloutConfig(_Section):
     after: Annotated[float, Field(ge=0.0, le=1.0)] = 0.8
     """The team's coverage (as its map tells it) from which it decides; slot 0 before."""
 
-    def chooser(self, threads: int = 1) -> SampledChooser:
+    prior: str | None = None
+    """A map prior to draw the unseen cells from (a prior run's folder or its ``model.zip``,
+    docs/prior.md); ``None``: every unseen cell a wall with the seen cells' wall share."""
+
+    def chooser(self, threads: int = 1, prior: Any = None) -> SampledChooser:
         """The chooser these parameters make (its noise rule the measured one, 4 standard
-        errors: no result asked for another), scoring its maps on ``threads`` threads."""
-        return SampledChooser(samples=self.samples, after=self.after, threads=threads)
+        errors: no result asked for another), scoring its maps on ``threads`` threads, drawing
+        them from ``prior`` (the loaded :attr:`prior`, :class:`harness.prior.model.MapPrior`)."""
+        return SampledChooser(samples=self.samples, after=self.after, threads=threads, prior=prior)
 
 
 class EvalConfig(_Section):
@@ -665,6 +670,34 @@ class EvalConfig(_Section):
         return self
 
 
+#: The written planners whose episodes a map prior learns from (``prior.planner``).
+PRIOR_PLANNERS = tuple(entry.baseline for entry in PLANNERS.values())
+
+
+class PriorConfig(_Section):
+    """``prior:``: the run trains a map prior instead of a policy (docs/prior.md). The partial
+    maps are the team's maps along episodes of ``planner`` on the env's maps; the phases'
+    ``timesteps`` count gradient steps (each on ``batch_size`` partial maps, at the phase's
+    ``learning_rate``), ``eval.every`` and ``checkpoint.every`` too, and ``eval.episodes``
+    validation episodes (``eval.validation_seed``) score it during training."""
+
+    channels: Annotated[list[PositiveInt], Field(min_length=1, max_length=5)] = [16, 32, 64]
+    """Features of the U-Net's levels (each level halves the map)."""
+    planner: str = "frontier_pocket"
+    """The written planner (a ``--policy`` name) whose episodes give the partial maps."""
+    episodes: Annotated[int, Field(ge=1, le=100_000)] = 200
+    """Training episodes recorded (seeds apart from the test and validation ones)."""
+    snapshots: Annotated[int, Field(ge=1, le=1_000)] = 10
+    """Team maps kept an episode, at steps drawn uniformly from it."""
+    augment: bool = True
+    """Train on the maps mirrored as well (up-down, left-right): the families have no side."""
+
+    @field_validator("planner")
+    @classmethod
+    def _known_planner(cls, v: str) -> str:
+        return _registered(v, dict.fromkeys(PRIOR_PLANNERS), "prior.planner")
+
+
 class CheckpointConfig(_Section):
     """Checkpoints (model, replay buffer and training state), written atomically."""
 
@@ -701,6 +734,9 @@ class ExperimentConfig(_Section):
     phases: list[PhaseConfig] = Field(default_factory=thesis_phases)
     eval: EvalConfig = EvalConfig()
     checkpoint: CheckpointConfig = CheckpointConfig()
+    prior: PriorConfig | None = None
+    """Set: the run trains a map prior (docs/prior.md), not a policy; ``algo`` and ``vec`` are
+    not used."""
 
     @field_validator("name")
     @classmethod
@@ -818,7 +854,7 @@ class ExperimentConfig(_Section):
 
     @model_validator(mode="after")
     def _policy_fits_observation(self) -> ExperimentConfig:
-        if not isinstance(self.env, EnvConfig):  # _foreign_env_fits checks it
+        if not isinstance(self.env, EnvConfig) or self.prior is not None:  # no policy trains
             return self
         wanted = POLICIES[self.algo.policy].observation
         if wanted != self.env.observation_kind:
@@ -834,6 +870,8 @@ class ExperimentConfig(_Section):
 
     @model_validator(mode="after")
     def _policy_fits_actions(self) -> ExperimentConfig:
+        if self.prior is not None:  # a prior's run trains no policy
+            return self
         entry = POLICIES[self.algo.policy]
         options = self.env.frontier_options
         slotted = options is not None and options.action is not None and options.action.slots
@@ -850,10 +888,33 @@ class ExperimentConfig(_Section):
         return self
 
     @model_validator(mode="after")
+    def _prior_reads_planned_maps(self) -> ExperimentConfig:
+        # A prior learns from the team maps of a written planner's episodes: the planner plays
+        # the moves, so the env is the coverage env with move actions.
+        if self.prior is None:
+            return self
+        if not isinstance(self.env, EnvConfig):
+            raise ValueError(
+                "prior: a map prior learns the coverage env's maps, not a pettingzoo env"
+            )
+        options = self.env.frontier_options
+        if options is not None and options.action is not None:
+            raise ValueError(
+                "prior: the partial maps are recorded along a planner's moves; drop "
+                "env.frontier.action (the goal action) from a prior's config"
+            )
+        if self.prior.snapshots > self.env.max_steps:
+            raise ValueError(
+                f"prior.snapshots: {self.prior.snapshots} is more than the "
+                f"{self.env.max_steps} steps of an episode"
+            )
+        return self
+
+    @model_validator(mode="after")
     def _something_trains(self) -> ExperimentConfig:
         # Learning starts after learning_starts transitions: at or past the run's end nothing
-        # would train, and the run would still say "done".
-        if self.algo.learning_starts >= self.total_timesteps:
+        # would train, and the run would still say "done". (A prior's steps are gradient steps.)
+        if self.prior is None and self.algo.learning_starts >= self.total_timesteps:
             raise ValueError(
                 f"algo.learning_starts: {self.algo.learning_starts:,} is not below the run's "
                 f"{self.total_timesteps:,} transitions (the phases' timesteps): nothing would train"

@@ -53,7 +53,7 @@ import numpy as np
 from envs.coverage import CoverageEnv
 from envs.coverage.frontier import PLANNERS, FrontierOptions
 from envs.coverage.planners import FrontierPlanner
-from envs.coverage.rollouts import SampledChooser, in_threads
+from envs.coverage.rollouts import MapPriorFn, SampledChooser, in_threads
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL
 from harness.config.schema import EvalConfig, RolloutConfig
 from harness.evaluation.episodes import BatchPolicy, batch_len, episode_draws, sample_categorical
@@ -88,6 +88,10 @@ class BaselineEntry:
     runs only on a config with the goal action (``env.frontier.action: {goal: ...}``), whose
     ``hold`` :meth:`env_config` turns on (slot 0 is never held, so the episodes are the
     same)."""
+
+    reads_prior: bool = False
+    """It can plan with a map prior (``eval.rollout.prior``): :func:`make_baseline` hands it
+    the loaded prior (``make(seed, options, prior)``)."""
 
     def env_config(self, env: Any) -> Any:
         """The env config it plays for ``env`` (an ``EnvConfig``, or a PettingZoo env's, which
@@ -156,16 +160,19 @@ BASELINES: dict[str, BaselineEntry] = {
         plays_moves=False,
     ),
     "rollout": BaselineEntry(
-        lambda seed, options: RolloutPolicy.from_config(options.rollout),
+        lambda seed, options, prior=None: RolloutPolicy.from_config(options.rollout, prior),
         "the goal action's slots chosen by rollouts on sampled maps (goal configs; eval.rollout)",
         needs_action=True,
         plays_moves=False,
         holds_goals=True,
+        reads_prior=True,
     ),
 }
 
 
-def make_baseline(name: str, seed: int, options: EvalConfig | None = None) -> BatchPolicy:
+def make_baseline(
+    name: str, seed: int, options: EvalConfig | None = None, prior: MapPriorFn | None = None
+) -> BatchPolicy:
     """Make a baseline batched policy.
 
     Args:
@@ -174,6 +181,8 @@ def make_baseline(name: str, seed: int, options: EvalConfig | None = None) -> Ba
             generator, ``frontier`` is deterministic).
         options: The config's ``eval`` section (``rollout`` reads its parameters there);
             default: the defaults.
+        prior: The loaded map prior of ``eval.rollout.prior``, for a baseline that
+            :attr:`~BaselineEntry.reads_prior`.
 
     Returns:
         A ``policy(obs, envs) -> actions`` callable (``harness.evaluation.episodes.BatchPolicy``).
@@ -183,7 +192,8 @@ def make_baseline(name: str, seed: int, options: EvalConfig | None = None) -> Ba
     """
     if name not in BASELINES:
         raise ValueError(f"unknown baseline {name!r}; known: {', '.join(BASELINES)}")
-    return BASELINES[name].make(seed, EvalConfig() if options is None else options)
+    entry, options = BASELINES[name], EvalConfig() if options is None else options
+    return entry.make(seed, options, prior) if entry.reads_prior else entry.make(seed, options)
 
 
 class FrontierStepPolicy:
@@ -239,11 +249,17 @@ class RolloutPolicy:
         self._map = in_threads(threads)
 
     @classmethod
-    def from_config(cls, config: RolloutConfig) -> RolloutPolicy:
+    def from_config(cls, config: RolloutConfig, prior: MapPriorFn | None = None) -> RolloutPolicy:
         """The policy with a config's ``eval.rollout`` parameters, on every core this process
-        may use (for the copies and for each decision's maps)."""
+        may use (for the copies and for each decision's maps), drawing its maps from ``prior``
+        (the loaded ``eval.rollout.prior``: the harness's commands load it)."""
         threads = available_cores()
-        return cls(config.chooser(threads=threads), threads=threads)
+        if config.prior is not None and prior is None:
+            raise ValueError(
+                "eval.rollout.prior names a map prior: load it (harness.prior.model.load_prior) "
+                "and hand it in"
+            )
+        return cls(config.chooser(threads=threads, prior=prior), threads=threads)
 
     def _decide(self, env: CoverageEnv) -> np.ndarray:
         frontier = env.frontier_state

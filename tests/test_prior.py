@@ -1,0 +1,280 @@
+"""The map prior (``harness.prior``): the partial maps' codes, the network's input, the score
+against hand-computed log-losses, the prior handed to the rollout chooser, and the prior's run
+end to end on a tiny config (train, evaluate, stop and resume to the same weights)."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import zipfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from envs.coverage.rollouts import SampledChooser, sampled_free
+from harness.cli import main
+from harness.config.loading import load_config
+from harness.config.schema import ConfigError
+from harness.prior.data import SEEN_FREE, SEEN_WALL, UNSEEN, code_team_map, record
+from harness.prior.model import MapPrior, UNet, encode, load_prior
+from harness.prior.score import EPS, score
+from harness.results.rundir import RunDir
+from harness.training import prior as prior_train
+from harness.training.train import TrainingInterrupted
+from tests.conftest import one_error_line
+from tests.test_teacher import W, corridor
+
+#: A prior run of a few seconds: 21x31 mazes, 2 agents, 200 steps, a 2-level network.
+TINY = """\
+name: prior_tiny
+seed: 3
+env:
+  map: {maze: {height: 21, width: 31}}
+  n_agents: 2
+  max_steps: 200
+algo: {threads: 1}
+prior: {channels: [4, 8], episodes: 6, snapshots: 4}
+phases:
+  - {name: a, timesteps: 12, learning_rate: 1.0e-3, batch_size: 4}
+  - {name: b, timesteps: 12, learning_rate: [1.0e-3, 1.0e-4], batch_size: 4}
+eval: {every: 8, episodes: 2}
+checkpoint: {every: 5}
+"""
+
+
+@pytest.fixture
+def tiny(tmp_path: Path) -> Path:
+    path = tmp_path / "prior_tiny.yaml"
+    path.write_text(TINY)
+    return path
+
+
+def test_a_team_map_is_coded_seen_free_seen_wall_or_unseen() -> None:
+    seen = np.array([[True, True, False], [False, True, True]])
+    walls = np.array([[False, True, True], [False, False, True]])
+    np.testing.assert_array_equal(
+        code_team_map(seen, walls),
+        [[SEEN_FREE, SEEN_WALL, UNSEEN], [UNSEEN, SEEN_FREE, SEEN_WALL]],
+    )
+
+
+def test_the_networks_input_is_one_hot_inside_the_map_and_padded_as_wall() -> None:
+    states = np.array([[[SEEN_FREE, SEEN_WALL, UNSEEN]]], dtype=np.uint8)  # 1x3
+    x = encode(states, 4).numpy()
+    assert x.shape == (1, 4, 4, 4)
+    np.testing.assert_array_equal(x[0, :3, 0, :3], np.eye(3))  # free, wall, unseen channels
+    np.testing.assert_array_equal(x[0, 3], [[1, 1, 1, 0], [0, 0, 0, 0]] + [[0] * 4] * 2)
+    # Outside the map: a seen wall, not inside.
+    assert (x[0, 1, 1:] == 1).all() and (x[0, 1, 0, 3] == 1) and (x[0, [0, 2], 1:] == 0).all()
+
+
+def test_the_score_is_the_mean_log_loss_of_the_unseen_cells_against_the_seen_share() -> None:
+    from harness.prior.data import PartialMaps
+
+    # One 2x2 partial map: a seen free and a seen wall cell (share 1/2), two unseen cells, the
+    # first a wall. The prior gives 0.8 and 0.4: -ln 0.8 = 0.2231, -ln 0.6 = 0.5108; the
+    # density prior 0.5 for both: ln 2 = 0.6931.
+    states = np.array([[[SEEN_FREE, SEEN_WALL], [UNSEEN, UNSEEN]]], dtype=np.uint8)
+    walls = np.array([[[False, True], [True, False]]])
+    data = PartialMaps(states, walls, np.zeros(1, dtype=np.int64))
+
+    def predict(s: np.ndarray) -> np.ndarray:
+        return np.array([[[0.0, 1.0], [0.8, 0.4]]])
+
+    result = score(predict, [data])
+    assert result["unseen_logloss"] == pytest.approx((0.223144 + 0.510826) / 2, abs=1e-6)
+    assert result["density_logloss"] == pytest.approx(np.log(2))
+    assert result["ratio"] == pytest.approx(0.366985 / 0.693147, abs=1e-5)
+    assert (result["cells"], result["maps"]) == (2, 1)
+    # A certain prior that is wrong is clipped, not infinite: -ln(EPS).
+    wrong = score(lambda s: np.array([[[0, 1], [0.0, 1.0]]]), [data])
+    assert wrong["unseen_logloss"] == pytest.approx(-np.log(EPS))
+
+
+def test_partial_maps_come_from_the_planners_episodes_with_their_true_maps() -> None:
+    env = load_config_text(TINY).env
+    sets = record(env, "frontier_pocket", 3, 11, 5)
+    assert len(sets) == 1 and len(sets[0]) <= 15
+    data = sets[0]
+    seen = data.states != UNSEEN
+    # Where the team has seen, the code is the truth; the border of a maze is rock.
+    np.testing.assert_array_equal(data.states[seen] == SEEN_WALL, data.walls[seen])
+    assert data.walls[:, 0].all() and data.unseen.any(axis=(1, 2)).all()
+    again = record(env, "frontier_pocket", 3, 11, 5)[0]
+    np.testing.assert_array_equal(again.states, data.states)  # a seed gives the same maps
+
+
+def load_config_text(text: str):
+    import tempfile
+
+    with tempfile.NamedTemporaryFile("w", suffix=".yaml", delete=False) as f:
+        f.write(text)
+    try:
+        return load_config(f.name)
+    finally:
+        os.unlink(f.name)
+
+
+def test_the_prior_keeps_the_seen_cells_and_reads_maps_of_any_size() -> None:
+    torch.manual_seed(0)
+    prior = MapPrior(UNet([4, 8, 8]))
+    rng = np.random.default_rng(0)
+    for h, w in ((5, 7), (13, 9)):
+        seen = rng.random((h, w)) < 0.5
+        free = rng.random((h, w)) < 0.7
+        p = prior(seen, free)
+        assert p.shape == (h, w)
+        np.testing.assert_array_equal(p[seen], np.where(free[seen], 0.0, 1.0))
+        assert ((p[~seen] > 0) & (p[~seen] < 1)).all()
+
+
+def test_a_prior_zip_reads_back_the_same_and_nothing_else_reads_as_one(tmp_path: Path) -> None:
+    torch.manual_seed(1)
+    prior = MapPrior(UNet([4, 8]))
+    prior.save(tmp_path / "p.zip")
+    states = np.full((1, 6, 6), UNSEEN, dtype=np.uint8)
+    states[0, :2] = SEEN_FREE
+    np.testing.assert_array_equal(
+        load_prior(tmp_path / "p.zip").logits(states), prior.logits(states)
+    )
+    with zipfile.ZipFile(tmp_path / "other.zip", "w") as zf:
+        zf.writestr("data", "{}")
+    with pytest.raises(ValueError, match="not a map prior"):
+        load_prior(tmp_path / "other.zip")
+    with pytest.raises(ValueError, match="no such prior"):
+        load_prior(tmp_path / "missing")
+
+
+def test_a_sampled_map_draws_the_unseen_cells_from_the_priors_probabilities() -> None:
+    planner, _ = corridor([3])
+    seen = np.zeros((1, W), dtype=bool)
+    seen[0, 1:8] = True
+    # The density draw is unchanged by the new argument (the reference numbers keep).
+    np.testing.assert_array_equal(
+        sampled_free(planner, np.random.default_rng(5)),
+        sampled_free(planner, np.random.default_rng(5), None),
+    )
+    walls = sampled_free(planner, np.random.default_rng(5), np.ones((1, W)))
+    free = sampled_free(planner, np.random.default_rng(5), np.zeros((1, W)))
+    inner_walls, inner_free = walls.reshape(3, -1)[1, 1:-1], free.reshape(3, -1)[1, 1:-1]
+    assert inner_walls[seen[0]].all() and not inner_walls[~seen[0]].any()
+    assert inner_free.all()
+    # Half and half, cell by cell: 400 draws of the 14 unseen cells.
+    half = np.full((1, W), 0.5)
+    draws = np.stack([sampled_free(planner, np.random.default_rng(s), half) for s in range(400)])
+    assert draws.reshape(400, 3, -1)[:, 1, 1:-1][:, ~seen[0]].mean() == pytest.approx(0.5, abs=0.03)
+
+
+def test_the_chooser_asks_its_prior_once_a_step_with_the_teams_map() -> None:
+    planner, cand = corridor([3])
+    calls: list[tuple[np.ndarray, np.ndarray]] = []
+
+    def all_walls(seen: np.ndarray, free: np.ndarray) -> np.ndarray:
+        calls.append((seen.copy(), free.copy()))
+        return np.where(seen, ~free, 1.0)
+
+    # Unseen cells predicted walls: the far end of the corridor is a dead end too, and both
+    # slots find the same cells on every map: slot 0 stays (the density prior's maps, all free
+    # at the seen share 1, make slot 1 the better one: tests/test_rollouts.py).
+    chooser = SampledChooser(samples=2, after=0.0, prior=all_walls)
+    assert chooser.decide(planner, cand, 10, np.random.default_rng(0)).tolist() == [0]
+    assert len(calls) == 1
+    seen, free = calls[0]
+    assert seen.shape == (1, W) and seen[0, 1:8].all() and not seen[0, 8:].any()
+    density = SampledChooser(samples=2, after=0.0)
+    assert density.decide(planner, cand, 10, np.random.default_rng(0)).tolist() == [1]
+
+
+def _weights(path: Path) -> dict[str, torch.Tensor]:
+    return load_prior(path).net.state_dict()
+
+
+def test_a_prior_run_trains_validates_and_is_scored_by_harness_eval(
+    tiny: Path, tmp_path: Path, capsys
+) -> None:
+    runs = tmp_path / "runs"
+    assert main(["run", str(tiny), "--runs-dir", str(runs), "--no-progress"]) == 0
+    (run,) = runs.iterdir()
+    files = RunDir(run)
+    assert files.model.is_file() and files.best_model.is_file() and files.tb.is_dir()
+    err = capsys.readouterr().err
+    assert "validation unseen_logloss" in err and "training:" in err
+    # The run's prior is the one validation chose (its best_model.zip).
+    assert files.model.read_bytes() == files.best_model.read_bytes()
+    assert main(["eval", str(run), "--episodes", "3", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert {"unseen_logloss", "density_logloss", "ratio", "cells", "maps"} <= set(out)
+    assert out["episodes"] == 3 and out["seed"] == 1_000_003 and out["cells"] > 0
+    assert (run / "eval-3ep.json").is_file()
+    # --against is a policy's comparison: one line, exit 2.
+    assert main(["eval", str(run), "--against", "frontier"]) == 2
+    assert "map prior" in one_error_line(capsys.readouterr().err)
+    # Resuming a finished prior run says so and changes nothing.
+    before = files.model.read_bytes()
+    assert main(["run", "--resume", str(run)]) == 0
+    assert "already finished" in capsys.readouterr().err
+    assert files.model.read_bytes() == before
+
+
+def test_a_stopped_prior_run_resumes_to_the_weights_of_an_unstopped_one(
+    tiny: Path, tmp_path: Path, monkeypatch
+) -> None:
+    config = load_config(tiny)
+    whole = RunDir.create(tmp_path / "a", "whole")
+    with whole.lock():
+        prior_train.train_prior(config, whole, progress_bar=False)
+
+    stopped = RunDir.create(tmp_path / "b", "stopped")
+    real = prior_train.logloss
+    steps = {"n": 0}
+
+    def signalled(*args, **kwargs):  # SIGTERM during the 15th gradient step (phase b)
+        steps["n"] += 1
+        if steps["n"] == 15:
+            os.kill(os.getpid(), signal.SIGTERM)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(prior_train, "logloss", signalled)
+    with stopped.lock(), pytest.raises(TrainingInterrupted) as stop:
+        prior_train.train_prior(config, stopped, progress_bar=False)
+    assert stop.value.checkpoint.name == "step-000000000015"
+    assert not stopped.model.exists()
+    monkeypatch.setattr(prior_train, "logloss", real)
+    with stopped.lock():
+        prior_train.train_prior(config, stopped, progress_bar=False, resume=True)
+    for key, tensor in _weights(whole.model).items():
+        torch.testing.assert_close(_weights(stopped.model)[key], tensor, rtol=0, atol=0)
+
+
+@pytest.mark.parametrize(
+    ("override", "words"),
+    [
+        ("prior.planner=frontier_nowhere", "unknown prior.planner"),
+        ("prior.snapshots=500", "more than the 200 steps"),
+        ("prior.channels=[]", "prior.channels"),
+    ],
+)
+def test_a_prior_config_that_cannot_work_is_refused_in_one_line(
+    tiny: Path, tmp_path: Path, capsys, override: str, words: str
+) -> None:
+    runs = tmp_path / "runs"
+    assert main(["run", str(tiny), "--runs-dir", str(runs), "--set", override]) == 2
+    assert words in one_error_line(capsys.readouterr().err)
+    assert not runs.exists() or list(runs.iterdir()) == []
+
+
+def test_the_goal_action_is_no_env_to_record_a_prior_on(tiny: Path) -> None:
+    with pytest.raises(ConfigError, match=r"drop env\.frontier\.action"):
+        load_config(
+            tiny,
+            ["env.observation=teammap", "env.frontier={planner: minpos, action: {goal: {k: 4}}}"],
+        )
+
+
+def test_a_rollout_prior_that_is_no_prior_is_one_line(tmp_path: Path, capsys) -> None:
+    args = ["eval", "--policy", "rollout", "--config", "configs/goals_2agents.yaml"]
+    assert main([*args, "--set", f"eval.rollout.prior={tmp_path}", "--episodes", "1"]) == 2
+    assert "eval.rollout.prior" in one_error_line(capsys.readouterr().err)

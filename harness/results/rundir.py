@@ -752,6 +752,10 @@ def atomic_write(path: Path, write: Callable[[Path], None]) -> None:
         with tmp_path.open("rb") as f:
             os.fsync(f.fileno())
         os.replace(tmp_path, path)
+    except OSError as exc:  # a full disk: named by the file being written, not the temporary one
+        if exc.filename in (tmp, str(tmp_path)):
+            exc.filename = str(path)
+        raise
     finally:
         tmp_path.unlink(missing_ok=True)
 

@@ -49,6 +49,7 @@ process holds.
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import json
 import logging
 import math
@@ -546,6 +547,9 @@ def _run_sweep(
             # one would fail the trials this one trains (--resume) and train them again.
             spec.folder.mkdir(parents=True, exist_ok=True)
             held.enter_context(RunDir(spec.folder).lock("a sweep of this study"))
+            _check_no_workers(spec.folder)
+        elif embedded:  # a --jobs worker: its sweep's --resume waits for it (_check_no_workers)
+            held.enter_context(_worker_hold(spec.folder))
         storage = None
         last_run: list[Path] = []  # the run folder of the trial this process started last
         try:
@@ -663,6 +667,48 @@ def _run_workers(spec: _Study, jobs: int) -> None:
     if failed:
         log = spec.folder / f"worker-{failed[0]}.log"
         raise SweepError(f"sweep worker {failed[0]} failed; see {log}")
+
+
+#: The file of a sweep folder that its ``--jobs`` workers hold (a shared ``flock``) as long as
+#: they live: the sweep folder's ``.lock`` is the sweep command's, gone with it when it is killed.
+WORKERS_LOCK = ".workers.lock"
+
+
+@contextlib.contextmanager
+def _worker_hold(folder: Path) -> Iterator[None]:
+    """Hold ``folder``'s :data:`WORKERS_LOCK` (shared with the sweep's other workers) for the
+    life of this worker; the kernel lets go of it when the process ends, however it ends."""
+    fd = os.open(folder / WORKERS_LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_SH)
+        yield
+    finally:
+        os.close(fd)
+
+
+def _check_no_workers(folder: Path) -> None:
+    """Refuse to go on while workers of an earlier sweep of ``folder`` live: their command was
+    killed (its ``.lock`` is free) but they still train, and a ``--resume`` would mark their
+    running trials failed and train them again. They stop by themselves once their parent is
+    gone (``harness.processes.follow_parent``).
+
+    Raises:
+        SweepError: naming the folder.
+    """
+    path = folder / WORKERS_LOCK
+    try:
+        fd = os.open(path, os.O_RDWR)
+    except FileNotFoundError:  # no sweep of this folder had --jobs
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        raise SweepError(
+            f"{folder}: workers of an earlier sweep of this study are still running (its "
+            "command ended without them); they stop by themselves: try again once they have"
+        ) from None
+    finally:
+        os.close(fd)
 
 
 def _fail_dead_trials(study: Any, folder: Path, embedded: bool) -> None:

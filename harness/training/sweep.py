@@ -94,6 +94,20 @@ class StorageLost(SweepError):
     sweep stops with one line; ``--resume`` continues it once the database is back."""
 
 
+class TrialFileError(SweepError):
+    """A file of a trial could not be written or read (a full disk, a lost mount): one line
+    naming the file, or the trial's run folder where the error names none (a full disk in the
+    middle of a write); the trial is marked failed and ``--resume`` continues the sweep."""
+
+
+def _trial_file_error(exc: OSError, trial: int, run: Path) -> TrialFileError:
+    where = exc.filename if exc.filename else f"{run} (a file of the trial's run folder)"
+    return TrialFileError(
+        f"trial {trial}: {exc.strerror or exc}: {where}; the trial is marked failed; once that "
+        "is mended, continue with the same command and --resume"
+    )
+
+
 class SweepInterrupted(KeyboardInterrupt):
     """A SIGTERM that reached the sweep outside a trial's training (which stops on its own:
     ``TrainingInterrupted``). A ``KeyboardInterrupt``, so that it stops the sweep wherever it
@@ -109,11 +123,13 @@ class _SignalState:
     that it cannot break the trial's checkpoint or its FAIL state being written), and the first
     signal that reached it: read before every trial starts (:meth:`check`), so that a signal
     that only training's handler saw, too late to stop its run (during the final save, or in
-    a round the pruner ended), still stops the sweep."""
+    a round the pruner ended), still stops the sweep. Also the file error that failed a trial
+    (:class:`TrialFileError`), which Optuna's own error on a full disk may hide."""
 
     def __init__(self) -> None:
         self.stopping = False
         self.signum: int | None = None
+        self.file_error: TrialFileError | None = None
 
     def note(self, signum: int) -> None:
         """Take note of a signal (called in a signal handler: nothing else)."""
@@ -155,7 +171,8 @@ def _stop_on_sigterm(state: _SignalState) -> Iterator[None]:
 
 class _QuietInterrupts(logging.Filter):
     """Leaves out Optuna's "Trial N failed ... because of the following error" warning (with the
-    traceback) of a trial stopped by a signal or by a lost database, and its warnings after it:
+    traceback) of a trial stopped by a signal, a lost database or a file it could not write
+    (:class:`TrialFileError`), and its warnings after it:
     the command says what happened in one line; and that warning of a trial skipped because the
     study already has its trials (:class:`StudyFull`: no failure, nothing to say)."""
 
@@ -169,7 +186,7 @@ class _QuietInterrupts(logging.Filter):
         error = record.exc_info[1] if record.exc_info else None
         if isinstance(error, StudyFull):
             return False
-        if isinstance(error, (KeyboardInterrupt, TrainingInterrupted)) or (
+        if isinstance(error, (KeyboardInterrupt, TrainingInterrupted, TrialFileError)) or (
             error is not None and _storage_failure(error) is not None
         ):
             self.quiet = True
@@ -565,8 +582,27 @@ def _run_sweep(
         except Exception as exc:
             lost = _storage_failure(exc) if storage is not None else None
             if lost is None:
+                _name_file_error(exc, spec.folder, state.file_error)
                 raise
             raise StorageLost(_lost_line(lost, last_run[-1] if last_run else None)) from None
+
+
+def _name_file_error(exc: Exception, folder: Path, trial_error: TrialFileError | None) -> None:
+    """Turn a file error into one line that says where: the trial's (``trial_error``) when
+    Optuna, failing to record that trial's end on the same full disk, raised its own error
+    instead (an ``OSError``, or its ``AssertionError`` for a trial left running); else one that
+    names no file is the sweep folder's (its journal).
+
+    Raises:
+        SweepError: for such an error (nothing for any other: the caller raises it).
+    """
+    if trial_error is not None:  # the sweep was ending on it: what came after is its doing
+        raise trial_error from None
+    if isinstance(exc, OSError) and not exc.filename:
+        raise SweepError(
+            f"{exc.strerror or exc}: {folder} (the sweep's folder); once that is mended, "
+            "continue with the same command and --resume"
+        ) from None
 
 
 def _run_study(
@@ -617,6 +653,9 @@ def _run_study(
                                   spec.trials, trial_lock, started, state.note)  # fmt: skip
             except TrainingInterrupted:
                 state.stopping = True  # its checkpoint is written; now the trial is marked failed
+                raise
+            except TrialFileError as exc:
+                state.file_error = exc  # recording the trial's end may fail on the same disk
                 raise
 
         counted = (optuna.trial.TrialState.COMPLETE, optuna.trial.TrialState.PRUNED)
@@ -907,19 +946,22 @@ def _objective(
         if trial.should_prune():
             raise optuna.TrialPruned(f"pruned at {timesteps} transitions")
 
-    model = train(
-        config, run, progress_bar=False, command=["sweep", str(trial.number)],
-        on_evaluation=report, on_signal=on_signal,
-    )  # fmt: skip
-    if last.get("timesteps") == model.num_timesteps:  # the last evaluation saw the final model
-        return last["value"]
-    ev = config.eval
-    results = run_episodes(
-        model_policy(model, ev.temperature, ev.shield),
-        config.env,
-        ev.episodes,
-        ev.validation_seed,
-    )
+    try:
+        model = train(
+            config, run, progress_bar=False, command=["sweep", str(trial.number)],
+            on_evaluation=report, on_signal=on_signal,
+        )  # fmt: skip
+        if last.get("timesteps") == model.num_timesteps:  # the last evaluation saw the model
+            return last["value"]
+        ev = config.eval
+        results = run_episodes(
+            model_policy(model, ev.temperature, ev.shield),
+            config.env,
+            ev.episodes,
+            ev.validation_seed,
+        )
+    except OSError as exc:  # a full disk: one line that names where, not Optuna's traceback
+        raise _trial_file_error(exc, trial.number, run.path) from None
     return headline(summarize(results))
 
 

@@ -5,6 +5,7 @@ overrides, the migration of old layouts, and validation against the schema
 from __future__ import annotations
 
 import contextlib
+import copy
 import difflib
 import re
 import stat
@@ -381,7 +382,11 @@ def config_from_dict(
 
     Overrides of the map keys (``env.map...``, ``env.test_maps``) are also applied before the
     first validation: the map they replace is never checked, so ``harness eval RUN --set
-    env.map=random`` works when the run's map file is gone."""
+    env.map=random`` works when the run's map file is gone.
+
+    A file that is invalid alone is validated once more with every override applied to it as
+    written, so that ``--set algo.learning_starts=100`` repairs a file whose phases are shorter
+    than the default warm-up: the file plus its ``--set``s is what is checked."""
     parsed: list[tuple[list[str], Any, str]] = []
     given: set[str] = set()
     for text in overrides:
@@ -404,9 +409,13 @@ def config_from_dict(
     try:
         config = ExperimentConfig.model_validate(data)
     except ValueError as err:
-        if not isinstance(err, ValidationError):
-            raise ConfigError(f"{first}: {err}") from None
-        raise ConfigError(_format_error(first, err)) from None
+        # The file plus its --sets is what is checked: a file invalid alone (a 600-transition
+        # phase under the default learning_starts) may be repaired by an override.
+        config = _validated_with_overrides(data, parsed, source)
+        if config is None:
+            if not isinstance(err, ValidationError):
+                raise ConfigError(f"{first}: {err}") from None
+            raise ConfigError(_format_error(first, err)) from None
     if overrides:
         data = config.model_dump(mode="json")
         for keys, value, text in parsed:
@@ -419,6 +428,38 @@ def config_from_dict(
         except ValueError as err:
             raise ConfigError(f"{source}: {err}") from None
     return config
+
+
+def _validated_with_overrides(
+    data: dict[str, Any],
+    parsed: Sequence[tuple[list[str], Any, str]],
+    source: str,
+) -> ExperimentConfig | None:
+    """The config of a file that is invalid alone, validated with the overrides applied to the
+    file as written (``data``, where those of the map keys are already applied); ``None`` when
+    there are no other overrides or one does not apply to the file as written
+    (``phases.initial...`` on a file without phases: the file's own error is the one to name).
+
+    Raises:
+        ConfigError: when the overrides apply but the file with them is still invalid, naming
+            the file with its ``--set``s.
+    """
+    rest = [item for item in parsed if not _replaces_a_map(item[0], item[1])]
+    if not rest:
+        return None
+    data = copy.deepcopy(data)
+    try:
+        for keys, value, text in rest:
+            _apply(data, keys, value, text)
+    except (ConfigError, KeyError, TypeError):
+        return None
+    both = f"{source} with --set {' '.join(text for _, _, text in parsed)}"
+    try:
+        return ExperimentConfig.model_validate(migrate(data))
+    except ValidationError as err:
+        raise ConfigError(_format_error(both, err)) from None
+    except ValueError as err:
+        raise ConfigError(f"{both}: {err}") from None
 
 
 def _replaces_a_map(keys: Sequence[str], value: Any) -> bool:

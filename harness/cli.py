@@ -408,10 +408,14 @@ def resolve_run_config(args: argparse.Namespace) -> ExperimentConfig:
     if args.name is not None:
         overrides.append(f"name={json.dumps(args.name)}")
     config = load_config(args.config, overrides)
-    from harness.training.checks import checked_config  # torch: only here
+    from harness.training.checks import checked_config, schedule_warnings  # torch: here
 
     source = f"{args.config}" + (f" with --set {' '.join(overrides)}" if overrides else "")
     checked_config(config, source)
+    # A shortened phase keeps the file's ε and β schedules: said, not changed (SB3 and the
+    # reference numbers count them in transitions, as written).
+    for line in schedule_warnings(config):
+        print(f"harness: warning: {line}", file=sys.stderr)
     try:
         config.env.check_training_map()
     except ValueError as exc:

@@ -22,6 +22,7 @@ from harness.sb3.buffers import replay_memory_bytes
 from harness.sb3.device_replay import buffer_on_device
 from harness.sb3.dqn import resolve_optimizer_class
 from harness.sb3.registry import POLICIES
+from harness.sb3.schedules import linear
 
 if TYPE_CHECKING:
     from harness.config.schema import ExperimentConfig
@@ -96,6 +97,30 @@ def check_runtime(config: ExperimentConfig) -> None:
     check_optimizer(config.algo.optimizer, config.algo.optimizer_kwargs, device)
     check_network_memory(config)
     check_replay_memory(config)
+
+
+def schedule_warnings(config: ExperimentConfig) -> list[str]:
+    """One line per phase schedule (ε, and β with prioritized replay) whose ``steps`` exceed the
+    phase's ``timesteps``: it stops part-way at the phase's end (a phase shortened with ``--set
+    phases.0.timesteps=...`` keeps the file's schedule, so ε may never leave ~1 and the whole
+    phase acts at random). Each names the phase, both numbers, the value reached and the
+    ``--set`` that fits the schedule to the phase; the schedule itself is left as written."""
+    lines = []
+    for i, phase in enumerate(config.phases):
+        schedules = [("exploration", phase.exploration)]
+        if config.algo.prioritized:  # β is read by the prioritized buffer alone
+            schedules.append(("beta", phase.beta))
+        for key, schedule in schedules:
+            if schedule.steps <= phase.timesteps or schedule.start == schedule.end:
+                continue
+            reached = linear(schedule.start, schedule.end, schedule.steps, phase.timesteps)
+            lines.append(
+                f"phases.{i} ({phase.name}): {key}.steps is {schedule.steps:,}, more than the "
+                f"phase's {phase.timesteps:,} timesteps: {key} goes {schedule.start:g} -> "
+                f"{reached:.3g} and never reaches {schedule.end:g} in it (to fit: --set "
+                f"phases.{i}.{key}.steps={phase.timesteps})"
+            )
+    return lines
 
 
 def fast_optimizer_kwargs(

@@ -70,6 +70,20 @@ def check_working_folder() -> None:
         raise SystemExit(2) from None
 
 
+def check_numba_threads() -> None:
+    """Exit with one line and code 2 for ``NUMBA_NUM_THREADS`` below 1: numba raises at its
+    import, a traceback from deep inside the first module that loads it (the env refuses it as
+    well, for the Python API: ``envs.coverage.numba_cache.check_thread_count``)."""
+    text = os.environ.get("NUMBA_NUM_THREADS", "").strip()
+    if text.lstrip("+-").isdigit() and int(text) < 1:
+        sys.stderr.write(
+            f"harness: error: NUMBA_NUM_THREADS={text}: numba needs at least 1 thread; unset it "
+            "or give a whole number of at least 1\n"
+        )
+        sys.stderr.flush()
+        raise SystemExit(2)
+
+
 def end_of_loading() -> None:
     """Give Ctrl-C back to Python (``KeyboardInterrupt``, which each command handles); called
     by ``harness.cli.main`` once the modules are loaded."""
@@ -85,6 +99,7 @@ if _started_as_command() and signal.getsignal(signal.SIGINT) is signal.default_i
         signal.signal(signal.SIGINT, _interrupted_while_loading)
 if _started_as_command():
     check_working_folder()
+    check_numba_threads()
 
 
 def __getattr__(name: str) -> Any:

@@ -28,6 +28,7 @@ in one place.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -57,6 +58,10 @@ DEFAULT_REWARDS: dict[str, float] = {
 }
 #: Attempts at drawing a random map with at least ``n_agents`` free cells before giving up.
 _MAX_MAP_DRAWS = 100
+#: Largest map (cells) the core builds: it keeps several arrays of the map's size per copy, and
+#: a larger one would be tried until memory runs out. The harness's configs have the same bound
+#: (``harness.config.schema.MAX_MAP_CELLS``).
+MAX_MAP_CELLS = 4_000_000
 
 
 # ---------------------------------------------------------------------- the objects
@@ -132,8 +137,10 @@ class CoreSpec:
             if str(map) == "random":
                 _check_int("height", height, 1)
                 _check_int("width", width, 1)
+                _check_map_size(int(height), int(width))
                 wall_fraction = maps.check_wall_fraction(wall_fraction)
             map = generators.from_name(map, height, width, wall_fraction)
+        _check_map_size(*map.max_shape)
         spec = map.fixed
         if spec is not None:
             n_free = int((~spec.grid).sum())
@@ -517,6 +524,14 @@ def _check_int(name: str, value: Any, minimum: int) -> None:
         raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
 
 
+def _check_map_size(height: int, width: int) -> None:
+    if height * width > MAX_MAP_CELLS:
+        raise ValueError(
+            f"a {height}x{width} map has {height * width:,} cells, more than the "
+            f"{MAX_MAP_CELLS:,} the core handles"
+        )
+
+
 def _check_bool(name: str, value: Any) -> None:
     if not isinstance(value, (bool, np.bool_)):
         raise ValueError(f"{name} must be True or False, got {value!r}")
@@ -530,6 +545,11 @@ def _check_rewards(rewards: Mapping[str, float] | None) -> dict[str, float]:
             raise ValueError(
                 f"unknown reward key(s) {sorted(unknown)}; known: {sorted(DEFAULT_REWARDS)}"
             )
+        for key, value in rewards.items():
+            # A NaN or infinite weight would only show as a NaN loss once training has started.
+            real = isinstance(value, (int, float, np.integer, np.floating))
+            if isinstance(value, bool) or not real or not math.isfinite(value):
+                raise ValueError(f"rewards.{key} must be a finite number, got {value!r}")
         merged.update({k: float(v) for k, v in rewards.items()})
     if not 0.0 <= merged["team"] <= 1.0:
         raise ValueError(f"rewards.team must be in [0, 1], got {merged['team']}")

@@ -487,6 +487,7 @@ def _run_group(args: argparse.Namespace, config: ExperimentConfig) -> int:
             args.argv,
             report=None if args.no_progress else print_progress,
             config_yaml=config.to_yaml(),
+            say=lambda line: print(line, file=sys.stderr, flush=True),
         )
     except GroupInterrupted as exc:
         return _group_stopped(exc)

@@ -267,6 +267,7 @@ def run_group(
     report: Callable[[str], None] | None = None,
     every: float = 30.0,
     config_yaml: str | None = None,
+    say: Callable[[str], None] | None = None,
 ) -> tuple[Path, list[Job]]:
     """Train one run per seed, ``jobs`` at a time, in a new group folder.
 
@@ -275,7 +276,9 @@ def run_group(
     ``config_yaml`` (the config as resolved, :meth:`ExperimentConfig.to_yaml`) is kept as
     :data:`GROUP_CONFIG`, the config a resume starts a seed never started from. With
     ``report``, a line per running seed (:func:`seed_progress`) every ``every`` seconds when it
-    changed, and one when a seed ends.
+    changed, and one when a seed starts or ends. ``say`` receives ``group folder: PATH`` as
+    soon as the folder is made, before any seed starts (a group runs for hours; its folder is
+    where to look meanwhile).
 
     Returns:
         The group folder and the jobs with their exit codes.
@@ -301,6 +304,8 @@ def run_group(
         if config_yaml is not None:
             atomic_write_text(group_file(group, GROUP_CONFIG), config_yaml)
         atomic_write_text(group_file(group, GROUP_FILE), json.dumps(data, indent=2) + "\n")
+        if say is not None:
+            say(f"group folder: {group}")
         for job in pending:
             job.cmd = _start_command(job, config_path, overrides, threads)
         return group, _run_jobs(group, pending, jobs, threads, report, every)
@@ -344,6 +349,8 @@ def _run_jobs(
                 job = queue.pop(0)
                 job.process = _start(job, env)
                 running.append(job)
+                if report is not None:  # a word at once: the first progress line is `every` away
+                    report(f"seed {job.seed}: started (log: {job.log})")
             forwarded = _forward(received, forwarded, running)
             time.sleep(0.2)
             forwarded = _forward(received, forwarded, running)

@@ -299,10 +299,9 @@ def _add_compare_parser(sub: Any) -> None:
     )
     cmp_.add_argument(
         "--eval",
-        default="eval",
         metavar="NAME",
-        help="which evaluation of each run: eval (eval.json, default) or another eval file's "
-        "stem, e.g. eval-env.map-random",
+        help="which evaluation of each run: eval (eval.json) or another eval file's stem, e.g. "
+        "eval-env.map-random (default: eval.json, else the run's only eval-*.json)",
     )
 
 
@@ -856,7 +855,9 @@ def cmd_compare(args: argparse.Namespace) -> int:
     last = f"{'return IQR':>12}" if foreign else f"{'IQR':>8}{'wall hits':>11}"
     first = f"{'median return':>14}" if foreign else f"{'median':>8}"
     print(f"{'experiment':<{wide}}{'run':<{runs}}{first}{last}")
-    for label, name, ev in result.rows:
+    for (label, name, ev), used in zip(result.rows, result.used, strict=True):
+        # An evaluation compare chose itself (the run's only one, not eval.json) is named.
+        note = f"  ({used}.json)" if args.eval is None and used not in (None, "eval") else ""
         if ev is None:
             others = result.others.get(name, [])
             hint = (
@@ -864,16 +865,16 @@ def cmd_compare(args: argparse.Namespace) -> int:
                 if others
                 else "run harness eval"
             )
-            print(f"{label:<{wide}}{name:<{runs}}(no {args.eval}.json; {hint})")
+            print(f"{label:<{wide}}{name:<{runs}}(no {args.eval or 'eval'}.json; {hint})")
         elif ev.get("source") == SOURCE:  # a PettingZoo env of one's own: team return
             print(
                 f"{label:<{wide}}{name:<{runs}}{ev['return_median']:>14.4g}"
-                f"{ev['return_iqr']:>12.4g}"
+                f"{ev['return_iqr']:>12.4g}{note}"
             )
         else:
             print(
                 f"{label:<{wide}}{name:<{runs}}{ev['coverage_median']:>8.1%}"
-                f"{ev['coverage_iqr']:>8.1%}{ev['wall_hits_mean']:>11.2f}"
+                f"{ev['coverage_iqr']:>8.1%}{ev['wall_hits_mean']:>11.2f}{note}"
             )
     if result.over_seeds:
         print()

@@ -1091,6 +1091,8 @@ class Comparison:
     saved: list[Path]
     #: Per run without the evaluation asked for: the evaluations it has (``--eval`` stems).
     others: dict[str, list[str]] = dataclasses.field(default_factory=dict)
+    #: Per row: the evaluation it read (its stem: ``eval``, ``eval-20ep``), ``None`` for none.
+    used: list[str | None] = dataclasses.field(default_factory=list)
 
 
 def compare(
@@ -1099,12 +1101,12 @@ def compare(
     out: Path,
     window: int,
     reps: int,
-    eval_name: str = "eval",
+    eval_name: str | None = None,
 ) -> Comparison:
     """``harness compare``'s work: learning curves of runs and seed groups, each run's test
-    numbers (its ``eval.json``, or the evaluation ``eval_name``), and over the seeds of each
-    group the mean and IQM with 95 % bootstrap intervals and the probability of improvement
-    (rliable, ``reps`` bootstrap resamples)."""
+    numbers (the evaluation ``eval_name``; ``None``: :func:`default_eval`'s), and over the seeds
+    of each group the mean and IQM with 95 % bootstrap intervals and the probability of
+    improvement (rliable, ``reps`` bootstrap resamples)."""
     from harness.results.groups import group_runs, is_group
     from harness.results.plots import plot_learning_curves
 
@@ -1115,6 +1117,7 @@ def compare(
     evaluations: dict[str, list[Any]] = {}
     rows: list[tuple[str, str, dict[str, Any] | None]] = []
     others: dict[str, list[str]] = {}
+    used: list[str | None] = []
     taken: dict[str, int] = {}
     seen: dict[Path, Path] = {}
     for item in items:  # a run counted twice would narrow every interval over seeds
@@ -1136,8 +1139,10 @@ def compare(
             curves.setdefault(label, []).append(episodes)
             if evals is not None:
                 evaluations.setdefault(label, []).append(evals)
-            found = read_eval_json(run, eval_name)
+            name = default_eval(run) if eval_name is None else eval_name
+            found = None if name is None else read_eval_json(run, name)
             rows.append((label, run.name, found))
+            used.append(name if found is not None else None)
             if found is None:
                 others[run.name] = RunDir(run).eval_names()
     foreign = [is_foreign_log(RunDir(run).episodes_csv) for run in seen]
@@ -1153,8 +1158,19 @@ def compare(
             curves, out, title, window=window, evaluations=evaluations, metric=metric
         )
     ]
-    over_seeds, more = _over_seeds(rows, evaluations, Path(out), reps, eval_name)
-    return Comparison(rows, over_seeds, saved + more, others)
+    over_seeds, more = _over_seeds(rows, evaluations, Path(out), reps, used)
+    return Comparison(rows, over_seeds, saved + more, others, used)
+
+
+def default_eval(run: Path) -> str | None:
+    """The evaluation ``compare`` reads of a run when ``--eval`` does not say: ``eval``
+    (``eval.json``, the standard one), else the run's only other one (``eval-20ep`` after
+    ``harness eval RUN --episodes 20``); ``None`` for none, or several others (which one is
+    the user's choice: compare lists them)."""
+    names = RunDir(run).eval_names()
+    if "eval" in names:
+        return "eval"
+    return names[0] if len(names) == 1 else None
 
 
 def compare_pictures(out: Path) -> tuple[Path, Path, Path]:
@@ -1173,7 +1189,7 @@ def _over_seeds(
     evaluations: dict[str, list[Any]],
     out: Path,
     reps: int,
-    eval_name: str = "eval",
+    used: Sequence[str | None] = (),
 ) -> tuple[str, list[Path]]:
     """The over-seeds part of ``compare``: a Markdown table, P(X > Y) per pair, two PNGs."""
     from harness.results.stats import (
@@ -1211,8 +1227,14 @@ def _over_seeds(
     else:
         metric, fmt, scale, unit = "test coverage", percent, 100.0, ""
         table = markdown_table(stats, {k: sum(v) / len(v) for k, v in hits.items()})
+    files = [f"{name}.json" for name in dict.fromkeys(n for n in used if n)] or ["eval.json"]
+    over = (
+        f"each seed's mean over its {files[0]} episodes"
+        if len(files) == 1  # runs evaluated differently are named: --eval makes them one
+        else f"each seed's mean over its own evaluation: {', '.join(files)}; --eval NAME for one"
+    )
     lines = [
-        f"Over seeds: {metric} (each seed's mean over its {eval_name}.json episodes)",
+        f"Over seeds: {metric} ({over})",
         "",
         table,
     ]

@@ -20,6 +20,7 @@ code 2, never a traceback.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import io
 import json
 import math
@@ -772,21 +773,48 @@ def _printable(comparison: dict[str, Any]) -> dict[str, Any]:
 
 
 def _eval_group(args: argparse.Namespace) -> int:
-    """``harness eval GROUP``: each run as ``harness eval RUN``, then the group's numbers."""
+    """``harness eval GROUP``: each run as ``harness eval RUN``, then the group's numbers. With
+    ``--json``, stdout is one JSON object: the group's numbers (when it has them) and each run's
+    evaluation under ``"evaluations"``. ``--plot X.png`` draws one picture per seed,
+    ``X-seed<k>.png``."""
+    from harness.results.groups import group_seeds
+
+    if args.plot is not None:
+        check_image_output(args.plot, "--plot")
+    seeds = group_seeds(Path(args.target))
+    evaluations: dict[str, Any] = {}
 
     def evaluate_run(run: Path) -> None:
-        print(f"== {run.name}")
-        cmd_eval(argparse.Namespace(**{**vars(args), "target": run, "json": False}))
+        plot = args.plot
+        if plot is not None:  # one picture per seed, not each over the one before
+            plot = plot.with_name(f"{plot.stem}-seed{seeds.get(run, run.name)}{plot.suffix}")
+        one = argparse.Namespace(**{**vars(args), "target": run, "plot": plot})
+        if not args.json:
+            print(f"== {run.name}")
+            cmd_eval(one)
+            return
+        text = io.StringIO()
+        with contextlib.redirect_stdout(text):
+            cmd_eval(one)
+        evaluations[run.name] = json.loads(text.getvalue())
 
     standard = not args.overrides and args.episodes == DEFAULT_EPISODES and args.seed is None
     result, saved, missing = evaluate_group(Path(args.target), evaluate_run, standard, args.against)
+    if args.json:
+        out = {"group": str(args.target), **(result or {}), "evaluations": evaluations}
+        if "against" in out:
+            out["against"] = [_printable(c) for c in out["against"]]
     if missing:
         print(
             f"harness: no group-eval.json: the group lacks {', '.join(missing)} (finish the "
             "missing seeds, then evaluate the group again)",
             file=sys.stderr,
         )
-    if saved is not None:
+    if saved is not None and args.json:
+        print(f"saved {saved}", file=sys.stderr)
+        for comparison in result.get("against", []):
+            print(f"saved {comparison['saved']}", file=sys.stderr)
+    elif saved is not None:
         from harness.results.stats import plain, with_ci
 
         if OVER_SEEDS in result:
@@ -807,10 +835,8 @@ def _eval_group(args: argparse.Namespace) -> int:
         for comparison in result.get("against", []):
             print(format_group_against(comparison))
             print(f"saved {comparison['saved']}", file=sys.stderr)
-        if args.json:
-            if "against" in result:
-                result["against"] = [_printable(c) for c in result["against"]]
-            print(_json(result))
+    if args.json:
+        print(_json(out))
     return 0
 
 

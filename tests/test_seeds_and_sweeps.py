@@ -145,14 +145,8 @@ def test_seed_group_trains_evaluates_and_compares(tiny, tmp_path, capsys):
         assert load_config(run / "config.yaml").eval.temperature == chosen
     capsys.readouterr()
     assert main(["eval", str(group), "--json"]) == 0
-    printed = capsys.readouterr().out.strip().splitlines()
-    result = json.loads(printed[-1])
-    over = result["coverage_mean_over_seeds"]
-    low, high = (f"{100 * x:.1f} %" for x in over["mean_ci95"])
-    assert printed[-2].startswith(
-        f"== over 2 seeds: mean coverage {100 * over['mean']:.1f} % [{low}, {high}], IQM "
-    )
-    assert set(result["runs"]) == {m.name for m in members}
+    result = json.loads(capsys.readouterr().out)  # stdout is the JSON object alone
+    assert set(result["runs"]) == set(result["evaluations"]) == {m.name for m in members}
     assert result["coverage_mean_over_seeds"]["seeds"] == 2
     # Both seeds were tested on the same episodes.
     evals = [json.loads((m / "eval.json").read_text()) for m in members]
@@ -161,9 +155,13 @@ def test_seed_group_trains_evaluates_and_compares(tiny, tmp_path, capsys):
         assert ev["temperature"] == json.loads((run / "tune.json").read_text())["chosen"]
     # Against a baseline: each run paired with it on its episodes, the differences over seeds.
     group_eval = (group / "group-eval.json").read_text()
-    assert main(["eval", str(group), "--against", "frontier", "--json"]) == 0
+    assert main(["eval", str(group), "--against", "frontier"]) == 0
     printed = capsys.readouterr().out.strip().splitlines()
-    assert json.loads(printed.pop())["against"][0]["against"] == "frontier"
+    over = result["coverage_mean_over_seeds"]
+    low, high = (f"{100 * x:.1f} %" for x in over["mean_ci95"])
+    assert printed[-2].startswith(
+        f"== over 2 seeds: mean coverage {100 * over['mean']:.1f} % [{low}, {high}], IQM "
+    )
     diffs = [json.loads((m / "against-frontier.json").read_text())["difference"] for m in members]
     over_seeds = json.loads((group / "group-against-frontier.json").read_text())
     assert over_seeds["differences"] == {m.name: d for m, d in zip(members, diffs, strict=True)}
@@ -240,10 +238,10 @@ def test_paired_difference_is_the_mean_difference_with_a_bootstrap_interval():
     assert paired_difference(x, y) == paired_difference(x, y)
 
 
-def _fake_run(folder: Path, coverage_mean: float, curve: dict[int, float]) -> Path:
+def _fake_run(folder: Path, coverage_mean: float, curve: dict[int, float], seed: int = 0) -> Path:
     """A run folder with hand-made files: the config, episodes, evaluations and eval JSON."""
     folder.mkdir(parents=True)
-    (folder / "config.yaml").write_text(TINY)
+    (folder / "config.yaml").write_text(f"{TINY}seed: {seed}\n")
     (folder / "episodes.csv").write_text(
         "episode,phase,timesteps,copy,coverage,reward_mean,wall_hits,new_cells,length\n"
         "0,0,20,0,0.5,0.1,0,10,20\n"
@@ -261,7 +259,7 @@ def _fake_run(folder: Path, coverage_mean: float, curve: dict[int, float]) -> Pa
 
 def _fake_group(folder: Path, scores: list[float], curves: list[dict[int, float]]) -> Path:
     for k, (score, curve) in enumerate(zip(scores, curves, strict=True)):
-        _fake_run(folder / f"run-seed{k}", score, curve)
+        _fake_run(folder / f"run-seed{k}", score, curve, seed=k)
     runs = [{"seed": k, "run": f"run-seed{k}"} for k in range(len(scores))]
     (folder / "group.json").write_text(json.dumps({"runs": runs}))
     return folder

@@ -123,15 +123,39 @@ def group_members(folder: Path) -> list[Path]:
     Raises:
         GroupError: when ``group.json`` cannot be read or names a run outside the group.
     """
+    return list(group_seeds(folder))
+
+
+def group_seeds(folder: Path) -> dict[Path, Any]:
+    """Every run folder ``group.json`` names (:func:`group_members`), with the seed it names for
+    it (``None`` where it names none), in seed order.
+
+    Raises:
+        GroupError: when ``group.json`` cannot be read, names a run outside the group, or names
+            a run folder or a seed twice (a group is one run per seed: a run counted twice, or
+            a seed trained twice, would be evaluated as two seeds without a word).
+    """
     folder = Path(folder)
+    where = folder / GROUP_FILE
     try:
         data = json.loads(group_file(folder, GROUP_FILE).read_text(encoding="utf-8"))
-        names = [entry["run"] for entry in data["runs"]]
+        entries = [(entry["run"], entry.get("seed")) for entry in data["runs"]]
     except RunDirError:
         raise
-    except (OSError, ValueError, KeyError, TypeError) as exc:
-        raise GroupError(f"{folder / GROUP_FILE}: not a readable group file ({exc})") from None
-    return [_member(folder, name) for name in names]
+    except (OSError, ValueError, KeyError, TypeError, AttributeError) as exc:
+        raise GroupError(f"{where}: not a readable group file ({exc})") from None
+    members: dict[Path, Any] = {}
+    seeds: set[int] = set()
+    for name, seed in entries:
+        member = _member(folder, name)
+        if member.resolve() in {m.resolve() for m in members}:
+            raise GroupError(f"{where}: names run {name!r} twice (one run folder per seed)")
+        if isinstance(seed, int) and not isinstance(seed, bool):
+            if seed in seeds:
+                raise GroupError(f"{where}: names seed {seed} twice (one run folder per seed)")
+            seeds.add(seed)
+        members[member] = seed
+    return members
 
 
 def _member(folder: Path, name: Any) -> Path:
@@ -163,13 +187,39 @@ def group_runs(folder: Path) -> list[Path]:
         GroupError: when ``group.json`` cannot be read or names no run that exists.
     """
     folder = Path(folder)
-    members = group_members(folder)
+    members = group_seeds(folder)
     for run in members:  # first: the group's own words for a file linked out of it
         _check_member_files(folder, run)
     found = [run for run in members if RunDir(run).is_run]
     if not found:
         raise GroupError(f"{folder}: the group has no run folder yet")
+    for run in found:
+        _check_member_seed(folder, run, members[run])
     return found
+
+
+def _check_member_seed(folder: Path, run: Path, seed: Any) -> None:
+    """Refuse a member whose ``config.yaml`` trains another seed than ``group.json`` says: its
+    numbers would be counted as that seed's (an edited or copied group file).
+
+    Raises:
+        GroupError: naming both seeds, in one line.
+    """
+    from harness.config.loading import parse_yaml, read_yaml_text
+
+    if not isinstance(seed, int) or isinstance(seed, bool):
+        return  # a group file that names no seed: nothing to hold the run to
+    config = RunDir(run).config
+    try:
+        data = parse_yaml(read_yaml_text(config, "config"), str(config))
+    except ValueError:  # a config that cannot be read is the run's own error, said where read
+        return
+    trained = data.get("seed", 0) if isinstance(data, dict) else None
+    if trained != seed:
+        raise GroupError(
+            f"{folder / GROUP_FILE}: names {run.name} as seed {seed}, but its config.yaml trains "
+            f"seed {trained!r}: the group file does not match its runs"
+        )
 
 
 def _check_member_files(folder: Path, member: Path) -> None:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import csv
 import dataclasses
 import io
+import itertools
 import json
 import math
 import os
@@ -1153,13 +1154,32 @@ def compare(
         )
     metric = "team return" if any(foreign) else None
     title = f"{metric or 'team coverage'} of the training episodes"
+    boundaries = sorted({b for run in seen for b in phase_boundaries(run)})
     saved = [
         plot_learning_curves(
-            curves, out, title, window=window, evaluations=evaluations, metric=metric
+            curves,
+            out,
+            title,
+            window=window,
+            evaluations=evaluations,
+            metric=metric,
+            boundaries=boundaries,
         )
     ]
-    over_seeds, more = _over_seeds(rows, evaluations, Path(out), reps, used)
+    over_seeds, more = _over_seeds(rows, evaluations, Path(out), reps, used, boundaries)
     return Comparison(rows, over_seeds, saved + more, others, used)
+
+
+def phase_boundaries(run: Path) -> list[int]:
+    """The transitions at which a run's training phases end, but the last (its config's phases'
+    ``timesteps`` summed): where compare draws a dotted line. None for a run whose config does
+    not load (its curves are still drawn)."""
+    try:
+        phases = load_config(RunDir(run).config).phases
+    except ConfigError:
+        return []
+    ends = itertools.accumulate(phase.timesteps for phase in phases)
+    return list(ends)[:-1]
 
 
 def default_eval(run: Path) -> str | None:
@@ -1190,9 +1210,11 @@ def _over_seeds(
     out: Path,
     reps: int,
     used: Sequence[str | None] = (),
+    boundaries: Sequence[float] = (),
 ) -> tuple[str, list[Path]]:
     """The over-seeds part of ``compare``: a Markdown table, P(X > Y) per pair, two PNGs."""
     from harness.results.stats import (
+        CONCLUSIVE_SEEDS,
         group_colours,
         markdown_table,
         percent,
@@ -1252,6 +1274,8 @@ def _over_seeds(
                 if ci is None
                 else f"95 % CI [{percent(ci[0])}, {percent(ci[1])}]"
             )
+            if ci is not None and min(len(scores[x]), len(scores[y])) < CONCLUSIVE_SEEDS:
+                where += f"; not conclusive: a group has under {CONCLUSIVE_SEEDS} seeds"
             lines += ["", f"P({x} > {y}) = {percent(p)} ({where})"]
             if ci is not None:
                 pairs[x, y] = (p, ci)
@@ -1268,7 +1292,13 @@ def _over_seeds(
     if evaluations:
         if unit:
             ylabel = f"validation median {unit}, IQM"
-            saved.append(plot_curves_with_ci(evaluations, curves_png, reps, colours, ylabel, 1.0))
+            saved.append(
+                plot_curves_with_ci(
+                    evaluations, curves_png, reps, colours, ylabel, 1.0, boundaries=boundaries
+                )
+            )
         else:
-            saved.append(plot_curves_with_ci(evaluations, curves_png, reps, colours))
+            saved.append(
+                plot_curves_with_ci(evaluations, curves_png, reps, colours, boundaries=boundaries)
+            )
     return "\n".join(lines), saved

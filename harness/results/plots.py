@@ -454,6 +454,7 @@ def plot_learning_curves(
     references: Mapping[str, float] | None = None,
     evaluations: Mapping[str, Sequence[tuple[np.ndarray, np.ndarray]]] | None = None,
     metric: str | None = None,
+    boundaries: Sequence[float] = (),
 ) -> Path:
     """Learning curves of several experiments, each over one or more runs (seeds).
 
@@ -477,6 +478,9 @@ def plot_learning_curves(
             unsmoothed).
         metric: ``None``: the curves are team coverage (fractions, drawn in %); else what they
             are (``"team return"``, a PettingZoo env's), drawn as numbers.
+        boundaries: Transitions where a training phase ends, drawn on both panels as dotted
+            lines (:func:`draw_phase_boundaries`): the drop when ε reaches 0 in a new phase
+            reads as the phase's start, not a collapse.
 
     Returns:
         The path of the PNG.
@@ -495,6 +499,7 @@ def plot_learning_curves(
     if drawn == 0:
         raise ValueError("plot_learning_curves: no run has any episode")
     _draw_references(ax, references or {})
+    draw_phase_boundaries(ax, boundaries)
     band_note = "" if band == "minmax" else " (band: IQR across runs)"
     _style_timesteps_axes(
         ax,
@@ -503,7 +508,8 @@ def plot_learning_curves(
         percent=metric is None,
     )
     if evaluations:
-        _plot_evaluations(fig.add_subplot(1, 2, 2), evaluations, list(curves), colours, metric)
+        right = fig.add_subplot(1, 2, 2)
+        _plot_evaluations(right, evaluations, list(curves), colours, metric, boundaries)
     fig.tight_layout()
     return _save(fig, out)
 
@@ -556,6 +562,16 @@ def _draw_references(ax: Any, references: Mapping[str, float]) -> None:
         )
 
 
+def draw_phase_boundaries(ax: Any, boundaries: Sequence[float]) -> None:
+    """Dotted vertical lines at the transitions where a training phase ends (those inside the
+    curves drawn; the axis keeps its range), labelled once "phase boundary"."""
+    low, high = ax.get_xlim()
+    inside = sorted({float(b) for b in boundaries if low < b < high})
+    for k, x in enumerate(inside):
+        ax.axvline(x, color="0.35", ls=":", lw=1.2, label="phase boundary" if k == 0 else None)
+    ax.set_xlim(low, high)
+
+
 def _style_timesteps_axes(ax: Any, ylabel: str, title: str, percent: bool = True) -> None:
     """Axes of coverage (in %; ``percent`` false: another score, as numbers) over timesteps,
     shared by both panels of the learning curves."""
@@ -576,9 +592,10 @@ def _plot_evaluations(
     labels: list[str],
     colours: list[str],
     metric: str | None = None,
+    boundaries: Sequence[float] = (),
 ) -> None:
-    """The evaluations panel: each label in its learning-curve colour (``metric``: see
-    :func:`plot_learning_curves`)."""
+    """The evaluations panel: each label in its learning-curve colour (``metric``,
+    ``boundaries``: see :func:`plot_learning_curves`)."""
     scale = 100.0 if metric is None else 1.0
     for label, runs in evaluations.items():
         k = labels.index(label) if label in labels else len(labels)
@@ -592,6 +609,7 @@ def _plot_evaluations(
         ax.plot(
             grid, scale * middle, color=colours[k % len(colours)], lw=1.4, marker=".", label=label
         )
+    draw_phase_boundaries(ax, boundaries)
     _style_timesteps_axes(
         ax,
         f"{metric or 'team coverage'} (median of the evaluation episodes)",

@@ -5,8 +5,9 @@ A group's score per seed is the mean test coverage of that seed's run (its ``eva
 the seeds of a group: the mean and the interquartile mean (IQM), each with a 95 %
 stratified-bootstrap confidence interval (``rliable.library.get_interval_estimates``); between two
 groups: the probability of improvement ``P(X > Y)`` with its interval. With one seed there is no
-interval, and the functions say so (``None``) rather than print a fake one. The pictures are
-rliable's own (``rliable.plot_utils``).
+interval, and the functions say so (``None``) rather than print a fake one; with fewer than
+:data:`CONCLUSIVE_SEEDS` the interval is printed and drawn with a caution (not conclusive). The
+pictures are rliable's own (``rliable.plot_utils``).
 """
 
 from __future__ import annotations
@@ -25,6 +26,9 @@ from harness.results.rundir import write_figure
 #: Bootstrap resamples (rliable's default is 50,000; 2,000 keeps ``compare`` under a second and
 #: moves the 95 % bounds by well under a point of coverage here).
 REPS = 2000
+#: Seeds from which an interval over seeds is drawn like a conclusive one. A bootstrap over 2
+#: seeds resamples 3 distinct sets (a a, a b, b b): its "interval" is the two values' range.
+CONCLUSIVE_SEEDS = 3
 
 
 @dataclass
@@ -159,24 +163,42 @@ def markdown_table(
     fmt: Callable[[float], str] = percent,
 ) -> str:
     """One row per group: seeds, mean and IQM of test coverage with 95 % CIs, wall hits (or of
-    another ``metric``, formatted by ``fmt``; ``wall_hits`` ``None``: no such column)."""
+    another ``metric``, formatted by ``fmt``; ``wall_hits`` ``None``: no such column). An
+    interval over fewer than :data:`CONCLUSIVE_SEEDS` seeds is marked ``(not conclusive)``,
+    and a line under the table names those groups."""
     hits = wall_hits is not None
     lines = [
         f"| group | seeds | mean {metric} [95 % CI] | IQM [95 % CI] |"
         + (" wall hits / episode |" if hits else ""),
         "|---|---|---|---|" + ("---|" if hits else ""),
     ]
+    few = []
     for name, s in stats.items():
+        caution = " (not conclusive)" if 1 < s.seeds < CONCLUSIVE_SEEDS else ""
+        if caution:
+            few.append(f"{name} ({s.seeds} seeds)")
         lines.append(
-            f"| {name} | {s.seeds} | {with_ci(s.mean, s.mean_ci, fmt)} | "
-            f"{with_ci(s.iqm, s.iqm_ci, fmt)} |"
+            f"| {name} | {s.seeds} | {with_ci(s.mean, s.mean_ci, fmt)}{caution} | "
+            f"{with_ci(s.iqm, s.iqm_ci, fmt)}{caution} |"
             + (f" {wall_hits[name]:.2f} |" if wall_hits is not None else "")
         )
+    if few:
+        lines += [
+            "",
+            f"Not conclusive: {', '.join(few)}; an interval needs at least {CONCLUSIVE_SEEDS} "
+            "seeds (train more with harness run CONFIG --seeds N)",
+        ]
     return "\n".join(lines)
 
 
 def _label(name: str, seeds: int) -> str:
-    return f"{name} (1 seed: no interval)" if seeds == 1 else f"{name} ({seeds} seeds)"
+    """A group's label in the pictures: its seeds, and a caution below
+    :data:`CONCLUSIVE_SEEDS`."""
+    if seeds == 1:
+        return f"{name} (1 seed: no interval)"
+    if seeds < CONCLUSIVE_SEEDS:
+        return f"{name} ({seeds} seeds: not conclusive)"
+    return f"{name} ({seeds} seeds)"
 
 
 def group_colours(names: Sequence[str]) -> dict[str, Any]:
@@ -195,7 +217,8 @@ def plot_intervals(
     scale: float = 100.0,
 ) -> Path:
     """rliable's interval plot (``plot_utils.plot_interval_estimates``) of mean and IQM test
-    coverage per group; a group of one seed is drawn as its point alone, labelled so.
+    coverage per group; a group of one seed is drawn as its value alone (a dot), an interval
+    over fewer than :data:`CONCLUSIVE_SEEDS` seeds as a grey hatched bar, each labelled so.
     ``colours``: per group (default :func:`group_colours` of these groups); ``xlabel`` and
     ``scale`` (drawn ``scale * value``) for another score (a PettingZoo env's team return)."""
     import matplotlib.pyplot as plt
@@ -203,15 +226,17 @@ def plot_intervals(
 
     points, intervals, colours = {}, {}, {}
     palette = colours or group_colours(list(stats))
+    seeds = {}
     for name, s in stats.items():
         label = _label(name, s.seeds)
+        seeds[label] = s.seeds
         colours[label] = palette[name]
         points[label] = scale * np.array([s.mean, s.iqm])
         # Zero width for one seed: the bar vanishes and only the point is drawn.
         mean_ci, iqm_ci = s.mean_ci or (s.mean, s.mean), s.iqm_ci or (s.iqm, s.iqm)
         intervals[label] = scale * np.array([[mean_ci[0], iqm_ci[0]], [mean_ci[1], iqm_ci[1]]])
     row_height = 0.6
-    fig, _ = plot_utils.plot_interval_estimates(
+    fig, axes = plot_utils.plot_interval_estimates(
         points,
         intervals,
         metric_names=["Mean", "IQM"],
@@ -222,12 +247,44 @@ def plot_intervals(
         # rliable places the label in figure fractions: half an inch below, whatever the rows.
         xlabel_y_coordinate=-0.55 / (row_height * len(points)),
     )
+    _caution_marks(np.atleast_1d(axes), points, seeds, colours)
     out.parent.mkdir(parents=True, exist_ok=True)
     try:
         write_figure(fig, out, dpi=120, bbox_inches="tight")  # whole or not at all
     finally:
         plt.close(fig)  # rliable draws on pyplot figures; free them in long sessions
     return out
+
+
+def _caution_marks(
+    axes: Sequence[Any],
+    points: Mapping[str, np.ndarray],
+    seeds: Mapping[str, int],
+    colours: Mapping[str, Any],
+) -> None:
+    """On rliable's interval axes (one per metric, a bar per group labelled as the group): a
+    one-seed group's value as a dot in its colour (its bar has no width: the chart would look
+    empty), and the bar of an interval over fewer than :data:`CONCLUSIVE_SEEDS` seeds grey and
+    hatched in the group's colour (not to be read like a conclusive one)."""
+    for metric, ax in enumerate(axes):
+        for container in ax.containers:
+            label = container.get_label()
+            if seeds.get(label, CONCLUSIVE_SEEDS) >= CONCLUSIVE_SEEDS:
+                continue
+            if seeds[label] == 1:
+                row = list(points).index(label)  # rliable's rows: the groups in order
+                ax.plot(points[label][metric], row, "o", color=colours[label], ms=7, zorder=3)
+                continue
+            for bar in container:
+                bar.set_facecolor("0.85")
+                bar.set_edgecolor(colours[label])
+                bar.set_hatch("///")
+                bar.set_alpha(1.0)
+        # A dot at the end of the range is drawn whole: bars hold the range at their edges
+        # (sticky edges) unless told not to.
+        ax.use_sticky_edges = False
+        ax.margins(x=0.05)
+        ax.autoscale_view()
 
 
 def plot_improvement(
@@ -294,13 +351,19 @@ def plot_curves_with_ci(
     colours: Mapping[str, Any] | None = None,
     ylabel: str = "validation coverage, IQM (%)",
     scale: float = 100.0,
+    boundaries: Sequence[float] = (),
 ) -> Path:
     """Validation coverage during training, IQM over seeds with 95 % bands, one line per group
-    (rliable's ``plot_utils.plot_sample_efficiency_curve``; one seed: its line, no band).
-    ``colours``: per group (default :func:`group_colours` of these groups); ``ylabel`` and
-    ``scale`` for another score (a PettingZoo env's median team return)."""
+    (rliable's ``plot_utils.plot_sample_efficiency_curve``; one seed: its line, no band; fewer
+    than :data:`CONCLUSIVE_SEEDS`: a hatched band, labelled not conclusive). ``colours``: per
+    group (default :func:`group_colours` of these groups); ``ylabel`` and ``scale`` for another
+    score (a PettingZoo env's median team return); ``boundaries``: the transitions where a
+    training phase ends, drawn as dotted lines (the drop at ε = 0 is a phase's start, not a
+    collapse)."""
     from matplotlib.figure import Figure
     from rliable import plot_utils
+
+    from harness.results.plots import draw_phase_boundaries
 
     fig = Figure(figsize=(7.0, 4.0), dpi=120)
     ax = fig.add_subplot()
@@ -310,6 +373,7 @@ def plot_curves_with_ci(
         if not len(steps):
             continue
         label = _label(name, len(curves))
+        before = len(ax.collections)
         # The groups evaluated at their own timesteps: one call per group on the same axes.
         plot_utils.plot_sample_efficiency_curve(
             steps,
@@ -322,6 +386,11 @@ def plot_curves_with_ci(
             labelsize="medium",
             ticklabelsize="medium",
         )
+        if 1 < len(curves) < CONCLUSIVE_SEEDS:
+            for band_area in ax.collections[before:]:  # the band rliable just filled
+                band_area.set_hatch("///")
+                band_area.set_edgecolor(colors[name])
+    draw_phase_boundaries(ax, boundaries)
     ax.legend(frameon=False)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -608,6 +608,9 @@ def _resume(args: argparse.Namespace) -> int:
                 file=sys.stderr,
             )
             return 0
+        from harness.training.train import check_training_device  # torch: here
+
+        check_training_device(config, run)  # (train asks too) before anything is said or done
         if status.state is RunState.NO_CHECKPOINT:
             print(
                 f"{run.path}: no checkpoint yet (stopped before the first one): starting the run "

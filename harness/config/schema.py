@@ -84,6 +84,15 @@ MAX_BUFFER_SIZE = 1 << 40
 #: Most torch threads: far beyond any useful count, and below where torch fails to start them.
 MAX_THREADS = 256
 
+#: Most VecEnv slots (``vec.copies`` x the env's agents): 16 times the largest run measured (64
+#: copies of 4 agents); beyond, the arrays of one step alone take minutes to fill, and a run
+#: would neither train nor stop on a signal in any useful time.
+MAX_SLOTS = 4096
+
+#: Most maps ``eval.rollout.samples`` rolls out at each decision: 16 times the most measured
+#: (docs/results.md); each costs a rollout of every slot, so more would take days an episode.
+MAX_ROLLOUT_SAMPLES = 256
+
 
 def _registered(name: str, registry: Mapping[str, Any], kind: str) -> str:
     """``name`` if the registry of its kind knows it, else a ValueError listing the known ones."""
@@ -396,7 +405,10 @@ class VecConfig(_Section):
     """How the env is vectorised: copies of the env, the VecEnv that steps them, and (SuperSuit)
     processes that run them."""
 
-    copies: PositiveInt = 4
+    # strict: ``true``, ``4.0`` or the text ``1e9`` (PyYAML's reading of 1e9) is not a count.
+    copies: Annotated[int, Field(strict=True, ge=1, le=MAX_SLOTS)] = 4
+    """Env copies; the VecEnv has ``copies`` x the env's agents slots, at most
+    :data:`MAX_SLOTS`."""
     backend: VecBackend = "core"
     """``core``: the batched core steps every copy in one call (the default); ``supersuit``:
     SuperSuit over the PettingZoo env, copy by copy. Both give the same episodes."""
@@ -618,8 +630,9 @@ class RolloutConfig(_Section):
     episodes of 50x50 random maps (docs/results.md). They stay the defaults: the caves and
     mazes, where sampled cells mislead, were not validated with the others."""
 
-    samples: PositiveInt = 4
-    """Maps sampled for the unseen cells at each decision; every slot is rolled out on each."""
+    samples: Annotated[int, Field(strict=True, ge=1, le=MAX_ROLLOUT_SAMPLES)] = 4
+    """Maps sampled for the unseen cells at each decision; every slot is rolled out on each (at
+    most :data:`MAX_ROLLOUT_SAMPLES`)."""
     after: Annotated[float, Field(ge=0.0, le=1.0)] = 0.8
     """The team's coverage (as its map tells it) from which it decides; slot 0 before."""
 
@@ -918,6 +931,15 @@ class ExperimentConfig(_Section):
             raise ValueError(
                 f"algo.learning_starts: {self.algo.learning_starts:,} is not below the run's "
                 f"{self.total_timesteps:,} transitions (the phases' timesteps): nothing would train"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _slots_fit(self) -> ExperimentConfig:
+        if self.prior is None and self.n_slots > MAX_SLOTS:
+            raise ValueError(
+                f"vec.copies: {self.vec.copies:,} copies of {self.env.n_agents} agents make "
+                f"{self.n_slots:,} slots, more than the {MAX_SLOTS:,} a run can step"
             )
         return self
 

@@ -286,16 +286,20 @@ def override(key: str, value: Any) -> str:
 
 
 def check_space(config_path: Path, overrides: Sequence[str], dims: Sequence[Dimension]) -> None:
-    """Every key of the space exists in the config schema and takes every value it can be given.
+    """Every key of the space exists in the config schema and takes every value it can be given,
+    on this machine too (``check_runtime``: a device it has, an optimizer that steps, memory
+    enough), as ``harness run --set`` would take it.
 
     Raises:
         SweepError: naming the key and the config's own message.
     """
+    from harness.training.checks import check_runtime  # torch: here
+
     for dim in dims:
         for value in dim.extremes():
             try:
-                load_config(config_path, [*overrides, override(dim.key, value)])
-            except ConfigError as exc:
+                check_runtime(load_config(config_path, [*overrides, override(dim.key, value)]))
+            except ValueError as exc:  # ConfigError too
                 raise SweepError(f"space key {dim.key}={value!r}: {exc}") from None
 
 

@@ -34,7 +34,12 @@ from stable_baselines3.common.utils import set_random_seed
 from stable_baselines3.common.vec_env import VecEnv
 
 from harness.config.pettingzoo import EnvFailed
-from harness.config.schema import ExperimentConfig, PettingZooEnvConfig, PhaseConfig
+from harness.config.schema import (
+    ConfigError,
+    ExperimentConfig,
+    PettingZooEnvConfig,
+    PhaseConfig,
+)
 from harness.evaluation.episodes import (
     EpisodesStopped,
     model_policy,
@@ -86,6 +91,7 @@ from harness.training.checkpoints import (
     set_rng_states,
 )
 from harness.training.checks import (
+    check_device,
     check_replay_memory,
     format_bytes,
     policy_class_name,
@@ -578,6 +584,20 @@ def make_logger(run: RunDir, state: TrainingState, restart: bool = False) -> Log
     return Logger(folder=folder, output_formats=[events, csv_log])
 
 
+def check_training_device(config: ExperimentConfig, run: RunDir) -> None:
+    """Refuse an ``algo.device`` this machine does not have (SB3 would train on the CPU without
+    a word). Every path that trains asks it (:func:`train`: a new run, a resume of an edited
+    ``config.yaml``, a sweep's trial of a sampled device): one rule, as for ``--set``.
+
+    Raises:
+        ConfigError: naming the run's config and the device.
+    """
+    try:
+        check_device(config.algo.device)
+    except ValueError as exc:
+        raise ConfigError(f"{run.config}: {exc}") from None
+
+
 def train(
     config: ExperimentConfig,
     run: RunDir,
@@ -602,7 +622,10 @@ def train(
             checkpoint stays).
         CheckpointError: when resuming without a usable checkpoint, or when the run's logs
             disagree with it (nothing is changed then).
+        ConfigError: for an ``algo.device`` this machine does not have, before anything is
+            changed (SB3 would train on the CPU without a word).
     """
+    check_training_device(config, run)
     configure_torch(config.algo.threads)
     if resume:
         point = find_resume_point(run, config)

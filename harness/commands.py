@@ -1209,10 +1209,11 @@ def _over_seeds(
     evaluations: dict[str, list[Any]],
     out: Path,
     reps: int,
-    used: Sequence[str | None] = (),
+    used: Sequence[str | None],
     boundaries: Sequence[float] = (),
 ) -> tuple[str, list[Path]]:
-    """The over-seeds part of ``compare``: a Markdown table, P(X > Y) per pair, two PNGs."""
+    """The over-seeds part of ``compare``: a Markdown table, P(X > Y) per pair, two PNGs.
+    ``used``: per row, the evaluation it read (``Comparison.used``)."""
     from harness.results.stats import (
         CONCLUSIVE_SEEDS,
         group_colours,
@@ -1249,7 +1250,8 @@ def _over_seeds(
     else:
         metric, fmt, scale, unit = "test coverage", percent, 100.0, ""
         table = markdown_table(stats, {k: sum(v) / len(v) for k, v in hits.items()})
-    files = [f"{name}.json" for name in dict.fromkeys(n for n in used if n)] or ["eval.json"]
+    # Some run has an evaluation here (scores): each one read is named.
+    files = [f"{name}.json" for name in dict.fromkeys(n for n in used if n)]
     over = (
         f"each seed's mean over its {files[0]} episodes"
         if len(files) == 1  # runs evaluated differently are named: --eval makes them one

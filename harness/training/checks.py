@@ -205,6 +205,10 @@ def check_optimizer(name: str, kwargs: dict[str, Any], device: str = "cpu") -> N
         optimizer, param = _throwaway(
             optimizer_class, fast_optimizer_kwargs(optimizer_class, kwargs, device), device
         )
+    except MemoryError:  # no word on the settings: the process is short of memory
+        raise ValueError(
+            f"out of memory building the optimizer {name} (a memory limit, ulimit -v?)"
+        ) from None
     except Exception as exc:
         raise ValueError(f"algo.optimizer_kwargs: {name} does not take {kwargs} ({exc})") from None
     try:
@@ -339,7 +343,43 @@ def check_replay_memory(config: ExperimentConfig, available: int | None = None) 
             f"algo.buffer_size: a replay buffer of {config.algo.buffer_size:,} transitions needs "
             f"about {format_bytes(need)}, more than the {format_bytes(available)} {where}"
         )
+    limit = address_space_limit()
+    if limit is not None and where == "available":  # (a GPU's buffer maps no host memory)
+        left = limit[0] - limit[1]
+        if need + ADDRESS_SPACE_MARGIN > left:
+            raise ValueError(
+                f"algo.buffer_size: a replay buffer of {config.algo.buffer_size:,} transitions "
+                f"needs about {format_bytes(need)}, more than the {format_bytes(left)} this "
+                f"process may still map under its address-space limit of "
+                f"{format_bytes(limit[0])} (ulimit -v)"
+            )
     return need
+
+
+#: What training maps beyond the replay buffer once the config is checked (the env's copies,
+#: the networks' first batches, thread stacks): kept free under an address-space limit.
+ADDRESS_SPACE_MARGIN = 256 << 20
+
+
+def address_space_limit() -> tuple[int, int] | None:
+    """This process's address-space limit (``RLIMIT_AS``, ``ulimit -v``) and what it maps now
+    (``VmSize``), in bytes; ``None`` without a limit, or where either is unknown. numpy maps a
+    replay buffer at once, so a buffer that fits the free memory can still exceed the limit."""
+    try:
+        import resource
+    except ImportError:  # not POSIX
+        return None
+    soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    if soft == resource.RLIM_INFINITY:
+        return None
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("VmSize:"):
+                    return soft, int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
 
 
 def format_bytes(n: float) -> str:

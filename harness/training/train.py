@@ -675,7 +675,14 @@ def train(
         if resume:
             model.set_env(venv)  # fresh episodes: the saved env state is gone with the process
         else:
-            model = build_model(config, venv)
+            try:
+                model = build_model(config, venv)
+            except MemoryError:  # a limit the checks could not see: one line, not numpy's
+                raise TrainingFailed(
+                    f"out of memory building the model and its replay buffer of "
+                    f"{config.algo.buffer_size:,} transitions: lower algo.buffer_size, or raise "
+                    "the memory limit"
+                ) from None
             model.action_space.seed(config.seed)
         model.set_logger(logger)
         ctx = RunContext.start(config, run, model, state, progress_bar, on_evaluation)

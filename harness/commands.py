@@ -574,18 +574,31 @@ def export_reference(run: Path, out: Path, model: str = "model") -> Path:
         RunDir(run).result(name)  # before anything is loaded: a file linked out is refused
     if out.exists():
         raise TargetError(f"{out}: already exists (a reference is never overwritten)")
-    check_model_zip(source, source)
-    from harness.sb3.dqn import DoubleDQN, OldModelError
+    from harness.prior.evaluate import is_prior_run
 
-    try:
-        policy = DoubleDQN.load(source, device="cpu")
-    except OldModelError as exc:
-        raise TargetError(str(exc)) from None
-    except Exception as exc:  # a damaged zip raises many kinds
-        raise TargetError(f"{source}: cannot load model ({type(exc).__name__}: {exc})") from None
-    old = policy.policy.optimizer
-    # SB3 (>= 2.4) optimises only the online network, not the target network.
-    policy.policy.optimizer = type(old)(policy.q_net.parameters(), **old.defaults)
+    policy: Any = None
+    if is_prior_run(run):  # a map prior's zip holds its weights alone: copied as it is
+        from harness.prior.model import MapPrior
+
+        try:
+            MapPrior.load(source)
+        except ValueError as exc:
+            raise TargetError(str(exc)) from None
+    else:
+        check_model_zip(source, source)
+        from harness.sb3.dqn import DoubleDQN, OldModelError
+
+        try:
+            policy = DoubleDQN.load(source, device="cpu")
+        except OldModelError as exc:
+            raise TargetError(str(exc)) from None
+        except Exception as exc:  # a damaged zip raises many kinds
+            raise TargetError(
+                f"{source}: cannot load model ({type(exc).__name__}: {exc})"
+            ) from None
+        old = policy.policy.optimizer
+        # SB3 (>= 2.4) optimises only the online network, not the target network.
+        policy.policy.optimizer = type(old)(policy.q_net.parameters(), **old.defaults)
     check_output_file(RunDir(out).model, "--out")
     # Written into a temporary folder beside `out`, renamed into place when complete: an
     # interrupted export leaves no half-made reference.
@@ -619,9 +632,12 @@ def _write_reference(run: Path, out: Path, model: str, policy: Any) -> None:
     if model != "model":
         # The run's command made model.zip too; say which of its models this folder holds.
         RunDir(out).note_command(f"exported: {model}.zip (harness export --model {model})")
-    buffer = io.BytesIO()
-    policy.save(buffer)
-    RunDir(out).model.write_bytes(_compact_target_network(buffer.getvalue()))
+    if policy is None:  # a map prior (export_reference checked it)
+        RunDir(out).model.write_bytes(RunDir(run).model_named(model).read_bytes())
+    else:
+        buffer = io.BytesIO()
+        policy.save(buffer)
+        RunDir(out).model.write_bytes(_compact_target_network(buffer.getvalue()))
     RunDir(out).write_reference_marker(run, model)
 
 

@@ -20,7 +20,7 @@ from harness.config.loading import load_config
 from harness.config.schema import ConfigError
 from harness.prior.data import SEEN_FREE, SEEN_WALL, UNSEEN, code_team_map, record
 from harness.prior.model import MapPrior, UNet, encode, load_prior
-from harness.prior.score import EPS, score
+from harness.prior.score import EPS, density, score
 from harness.results.rundir import RunDir
 from harness.training import prior as prior_train
 from harness.training.train import TrainingInterrupted
@@ -212,6 +212,12 @@ def test_a_prior_run_trains_validates_and_is_scored_by_harness_eval(
     # --against is a policy's comparison: one line, exit 2.
     assert main(["eval", str(run), "--against", "frontier"]) == 2
     assert "map prior" in one_error_line(capsys.readouterr().err)
+    # Exported, the reference holds the same prior (copied whole) and its config.
+    ref = tmp_path / "reference" / "prior_tiny"
+    assert main(["export", str(run), "--out", str(ref)]) == 0
+    assert (ref / "model.zip").read_bytes() == files.model.read_bytes()
+    assert (ref / "config.yaml").is_file() and (ref / "reference.json").is_file()
+    capsys.readouterr()
     # Resuming a finished prior run says so and changes nothing.
     before = files.model.read_bytes()
     assert main(["run", "--resume", str(run)]) == 0
@@ -278,3 +284,43 @@ def test_a_rollout_prior_that_is_no_prior_is_one_line(tmp_path: Path, capsys) ->
     args = ["eval", "--policy", "rollout", "--config", "configs/goals_2agents.yaml"]
     assert main([*args, "--set", f"eval.rollout.prior={tmp_path}", "--episodes", "1"]) == 2
     assert "eval.rollout.prior" in one_error_line(capsys.readouterr().err)
+
+
+REFERENCE = Path(__file__).resolve().parents[1] / "runs" / "reference"
+
+
+def _partial(shape: tuple[int, int]) -> np.ndarray:
+    return np.full(shape, UNSEEN, dtype=np.uint8)
+
+
+def test_the_maze_prior_continues_a_corridor_between_its_walls() -> None:
+    prior = load_prior(REFERENCE / "prior_maze")
+    # A one-cell corridor on row 25 seen from column 21 to 41 between walls on rows 24 and 26,
+    # in a 51x101 maze with its rock border seen; the rest unseen.
+    states = _partial((51, 101))
+    states[[0, -1], :] = states[:, [0, -1]] = SEEN_WALL
+    states[25, 21:42] = SEEN_FREE
+    states[[24, 26], 20:43] = SEEN_WALL
+    p = prior.wall_probability(states[None])[0]
+    # The corridor's next cell is more likely free than the cells beside it, which more likely
+    # continue its walls; the density prior gives all three the seen wall share (0.94 here:
+    # the rock border is seen).
+    assert density(states[None])[0] == pytest.approx(346 / 367)
+    assert p[25, 43] < p[24, 43] and p[25, 43] < p[26, 43]
+    assert p[25, 43] < 0.5 < min(p[24, 43], p[26, 43])
+
+
+def test_the_rooms_prior_carries_a_rooms_wall_on() -> None:
+    prior = load_prior(REFERENCE / "prior_rooms")
+    # A room's top wall seen on row 10 from column 10 to 30, its floor seen below it (rows 11
+    # to 18); beyond column 30 nothing is seen.
+    states = _partial((50, 100))
+    states[[0, -1], :] = states[:, [0, -1]] = SEEN_WALL
+    states[10, 10:31] = SEEN_WALL
+    states[11:19, 10:31] = SEEN_FREE
+    p = prior.wall_probability(states[None])[0]
+    # The wall goes on (a room's walls are straight), above it lies another room's floor or a
+    # hallway, and the floor beside the seen one is more likely free than wall; the density
+    # prior gives each the seen wall share (0.65 here: the border is seen).
+    assert density(states[None])[0] == pytest.approx(317 / 485)
+    assert p[10, 31] > 0.9 and p[9, 31] < 0.2 and p[14, 31] < 0.5

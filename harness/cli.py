@@ -873,6 +873,9 @@ def cmd_tune(args: argparse.Namespace) -> int:
 def cmd_compare(args: argparse.Namespace) -> int:
     if args.labels is not None and len(args.labels) != len(args.runs):
         raise HarnessError(f"--labels needs one label per run ({len(args.runs)})")
+    for label in args.labels or []:  # a newline or a control character breaks the tables
+        if not label.strip() or not label.isprintable():
+            raise HarnessError(f"--labels {label[:40]!r}: a label is one line of printable text")
     check_image_output(args.out, "--out")
     labels = args.labels or [None] * len(args.runs)
     result = compare(args.runs, labels, Path(args.out), args.window, args.reps, args.eval)

@@ -84,9 +84,12 @@ def parse_override(text: str) -> tuple[list[str], Any]:
     if not sep or not key.strip():
         raise ConfigError(f"--set {text!r}: expected key.path=value")
     try:
-        value = yaml.load(raw, Loader=_BoundedLoader) if raw.strip() else None
+        # A config file's loader: a key twice inside the value is refused, as in a file.
+        value = yaml.load(raw, Loader=_UniqueKeyLoader) if raw.strip() else None
     except YamlAliasError as exc:
         raise ConfigError(f"--set {text[:40]!r}: {exc}") from None
+    except yaml.constructor.ConstructorError as exc:  # a key twice, a leading zero, a !tag
+        raise ConfigError(f"--set {text[:40]!r}: {exc.problem}") from None
     except RecursionError:
         raise ConfigError(f"--set {text[:40]!r}...: value nested too deeply") from None
     except ValueError as exc:  # e.g. an integer of more digits than Python converts
@@ -215,6 +218,23 @@ class _BoundedLoader(yaml.SafeLoader):
                 f"{len(written):,}); write the values out, or use fewer aliases"
             )
         return super().construct_document(node)
+
+    def construct_yaml_int(self, node: yaml.ScalarNode) -> int:
+        """YAML 1.1's int, but not one written with a leading zero: ``010`` is octal 8 there (and
+        ``09`` text), where anyone writing ``max_steps: 010`` means 10."""
+        digits = str(node.value).replace("_", "").lstrip("+-")
+        if len(digits) > 1 and digits[0] == "0" and digits[1].isdigit():
+            raise yaml.constructor.ConstructorError(
+                None,
+                None,
+                f"{node.value}: a number with a leading zero (YAML reads it as octal); write it "
+                "without the zero",
+                node.start_mark,
+            )
+        return super().construct_yaml_int(node)
+
+
+_BoundedLoader.add_constructor("tag:yaml.org,2002:int", _BoundedLoader.construct_yaml_int)
 
 
 def _expanded_size(node: yaml.Node, sizes: dict[int, int], open_: set[int]) -> int:

@@ -406,7 +406,7 @@ class VecConfig(_Section):
     processes that run them."""
 
     # strict: ``true``, ``4.0`` or the text ``1e9`` (PyYAML's reading of 1e9) is not a count.
-    copies: Annotated[int, Field(strict=True, ge=1, le=MAX_SLOTS)] = 4
+    copies: Annotated[int, Field(strict=True, gt=0, le=MAX_SLOTS)] = 4
     """Env copies; the VecEnv has ``copies`` x the env's agents slots, at most
     :data:`MAX_SLOTS`."""
     backend: VecBackend = "core"
@@ -630,7 +630,7 @@ class RolloutConfig(_Section):
     episodes of 50x50 random maps (docs/results.md). They stay the defaults: the caves and
     mazes, where sampled cells mislead, were not validated with the others."""
 
-    samples: Annotated[int, Field(strict=True, ge=1, le=MAX_ROLLOUT_SAMPLES)] = 4
+    samples: Annotated[int, Field(strict=True, gt=0, le=MAX_ROLLOUT_SAMPLES)] = 4
     """Maps sampled for the unseen cells at each decision; every slot is rolled out on each (at
     most :data:`MAX_ROLLOUT_SAMPLES`)."""
     after: Annotated[float, Field(ge=0.0, le=1.0)] = 0.8
@@ -750,6 +750,15 @@ class ExperimentConfig(_Section):
     prior: PriorConfig | None = None
     """Set: the run trains a map prior (docs/prior.md), not a policy; ``algo`` and ``vec`` are
     not used."""
+
+    @field_validator("name", mode="before")
+    @classmethod
+    def _name_as_text(cls, v: Any) -> Any:
+        # YAML reads `name: 2024` as a number (taken as its text, as --name 2024 is) and
+        # `name: true` (yes, no, on, off) as a bool, which is no name anyone meant.
+        if isinstance(v, bool):
+            raise ValueError(f"a name is text; YAML read this one as {v} (a bool): quote it")
+        return str(v) if isinstance(v, int) else v
 
     @field_validator("name")
     @classmethod

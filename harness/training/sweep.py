@@ -35,7 +35,11 @@ collection round, writes a checkpoint and is marked failed; elsewhere (between t
 trial is evaluated) the sweep stops at once. Either way the command ends with one line (no
 Optuna traceback) and exit code 130 or 143; ``--resume`` continues it (a stopped trial of a grid
 is queued again and trained from step 0 in a new trial folder). With ``--jobs N`` a SIGTERM is
-passed on to the workers.
+passed on to the workers. No signal is lost: one that only a trial's training saw, too late to
+stop it (its final save), stops the sweep before the next trial (:class:`_SignalState`). A
+worker whose sweep command is killed stops by itself (``harness.processes.follow_parent``), and
+until it has, a ``--resume`` is refused (the workers hold :data:`WORKERS_LOCK`). A file error in a
+trial (a full disk) ends the sweep in one line naming the trial's folder (:class:`TrialFileError`).
 
 One process works on an embedded study: the sweep holds its folder's ``.lock`` (as a run holds
 its run folder), so a second sweep of it, new or ``--resume``, is refused naming the holder's pid

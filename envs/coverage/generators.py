@@ -11,6 +11,9 @@ arguments of its constructor as its parameters:
   (:func:`envs.coverage.maze.generate_maze`);
 * ``rooms``: a new floor plan of rooms, hallways, doors and furniture each reset
   (:func:`envs.coverage.rooms.generate_rooms`);
+* ``office``: a new office floor each reset, another style of floor plan: full-length hallways
+  lined with rows of like rooms, and open-plan areas with pillars
+  (:func:`envs.coverage.office.generate_office`; no shipped map);
 * ``file``: one map file, every episode;
 * ``shipped``: one shipped map (``cave_100x50``, ``maze_100x50``, ``rooms_100x50``), every
   episode.
@@ -34,7 +37,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from envs.coverage import cave, maps, maze, rooms
+from envs.coverage import cave, maps, maze, office, rooms
 
 #: Seeds a procedural source draws from: below 2**31, never the shipped maps' seeds.
 _SEED_HIGH = 2**31
@@ -324,6 +327,57 @@ class RoomsMaps(_SeededMaps):
         return rooms.generate_rooms(seed, self.height, self.width, **self.shape)
 
 
+class OfficeMaps(_SeededMaps):
+    """A new office floor each reset (:mod:`envs.coverage.office` explains the steps): another
+    style of floor plan than ``rooms``, to test what was learned on those.
+
+    There is no shipped office map: :attr:`shipped_seed` is -1, a seed the source never draws
+    (it draws from 0 up), so no seed is skipped.
+
+    Args:
+        height: Rows (at least 12: a hallway with a row of rooms each side, inside a wall border).
+        width: Columns (at least 12).
+        room_width: ``(low, high)``, the range a row's room width is drawn from, in [3, 1,000].
+        max_depth: Most cells of a row of rooms across, in [6, 1,000] (the floor gets the fewest
+            hallways that keep every row at most this deep).
+        wide_door_share: Chance in [0, 1] that a room's door is 2 cells wide rather than 1.
+        inner_door_share: Chance in [0, 1] of a door between neighbouring rooms in a row.
+        open_share: Share in [0, 1] of the rooms' floor given to open-plan areas (about).
+    """
+
+    name = "office"
+    noun = "office floor"
+    shipped_seed = -1
+    #: None: the harness's map limit (2000x2000) bounds it. A 2000x2000 floor draws in 0.28 s
+    #: with the defaults and 1.3 s with the most rooms (``room_width: [3, 3], max_depth: 6``),
+    #: a 500x500 one in 0.015 s and 0.06 s. docs/environment.md has the measurements.
+    max_cells: ClassVar[int | None] = None
+
+    def __init__(
+        self,
+        height: int,
+        width: int,
+        room_width: tuple[int, int] = (5, 9),
+        max_depth: int = 14,
+        wide_door_share: float = 0.2,
+        inner_door_share: float = 0.15,
+        open_share: float = 0.2,
+    ) -> None:
+        # Its own least size first: at least 12x12, and "an office floor" in the message.
+        office.check_size(*_check_size(height, width))
+        self._set_size(height, width)
+        self.shape = {
+            "room_width": office.check_room_width(room_width),
+            "max_depth": office.check_max_depth(max_depth),
+            "wide_door_share": _check_share("wide_door_share", wide_door_share),
+            "inner_door_share": _check_share("inner_door_share", inner_door_share),
+            "open_share": _check_share("open_share", open_share),
+        }
+
+    def _generate(self, seed: int) -> np.ndarray:
+        return office.generate_office(seed, self.height, self.width, **self.shape)
+
+
 class FixedMap(MapGenerator):
     """The same map every episode; its ``S`` start cells, if any, are the agents' starts."""
 
@@ -400,8 +454,8 @@ class MixGenerator(MapGenerator):
 
 class WithoutMaps(MapGenerator):
     """``source`` with test-only maps kept out: a drawn map equal to one of ``excluded`` is
-    drawn again (the random, cave, maze and rooms sources essentially never hit one; this makes it a
-    promise rather than a likelihood).
+    drawn again (the random, cave, maze, rooms and office sources essentially never hit one; this
+    makes it a promise rather than a likelihood).
 
     Args:
         source: The training source.
@@ -446,7 +500,7 @@ def _fixed_maps(source: MapGenerator) -> list[maps.MapSpec]:
 #: The map kinds a config can name (``env.map: {<name>: {<parameters>}}``); a kind's parameters
 #: are its constructor's keyword arguments.
 GENERATORS: dict[str, type[MapGenerator]] = {
-    g.name: g for g in (RandomMaps, CaveMaps, MazeMaps, RoomsMaps, FileMap, ShippedMap)
+    g.name: g for g in (RandomMaps, CaveMaps, MazeMaps, RoomsMaps, OfficeMaps, FileMap, ShippedMap)
 }
 
 

@@ -24,7 +24,8 @@ a square one either way):
    on a regular lattice (3 or 4 free cells apart and 2 or more from its walls, so none closes off
    floor) and 2-cell doors onto every hallway it lines, one per :data:`OPEN_DOOR_EVERY` cells;
 4. rooms: the rest of each segment is split into rooms of one width drawn from ``room_width``
-   (the rooms of a segment differ by a cell at most) behind one-cell walls reaching to the outer
+   (the rooms of a segment differ by a cell at most; a little wider where no count of rooms
+   fits the range in the segment's length) behind one-cell walls reaching to the outer
    wall or the next hallway. Each room gets exactly one door onto a hallway (1 cell, 2 with
    chance ``wide_door_share``, off the wall's ends), and neighbours in a row an inner door with
    chance ``inner_door_share``. No furniture;
@@ -194,7 +195,8 @@ def generate_office(
         height: Rows (at least :data:`MIN_SIDE`: a hallway with a row of rooms each side).
         width: Columns (at least :data:`MIN_SIDE`).
         room_width: ``(low, high)``, the range a row's room width is drawn from, in [3, 1,000]
-            (a segment of a row shorter than ``low`` is one narrower room).
+            (a segment of a row shorter than ``low`` is one narrower room, and where no count of
+            rooms fits the range in a segment, they are wider than ``high``).
         max_depth: Most cells of a row of rooms across, in [6, 1,000]: the floor gets the fewest
             hallways that keep every row at most this deep.
         wide_door_share: Chance in [0, 1] that a room's door is 2 cells wide rather than 1.
@@ -464,13 +466,13 @@ def _rooms(
         length = right - left
         for top, bottom, facing in row_spans:
             # As many rooms as a width drawn from the range asks, kept in the range where the
-            # length allows; the cells the walls leave are shared out evenly.
+            # length allows; the cells the walls leave are shared out evenly. Where no count
+            # fits the range, the most rooms no narrower than ``low``: a little wider instead.
             wanted = int(rng.integers(low, high + 1))
             fewest = -(-(length + 1) // (high + 1))
             most = (length + 1) // (low + 1)
-            count = max(1, round((length + 1) / (wanted + 1)))
-            if fewest <= most:
-                count = min(max(count, fewest), most)
+            count = min(max(round((length + 1) / (wanted + 1)), fewest), most)
+            count = max(count, 1)
             widths = np.full(count, (length - count + 1) // count)
             widths[rng.permutation(count)[: (length - count + 1) % count]] += 1
             start, previous = left, None

@@ -19,6 +19,7 @@ from envs.coverage.generators import (
     MapGenerator,
     MazeMaps,
     MixGenerator,
+    OfficeMaps,
     RandomMaps,
     RoomsMaps,
     ShippedMap,
@@ -34,6 +35,7 @@ SOURCES = {
     "cave": lambda: CaveMaps(30, 40, rock_share=0.45),
     "maze": lambda: MazeMaps(25, 31, n_chambers=3),
     "rooms": lambda: RoomsMaps(30, 45),
+    "office": lambda: OfficeMaps(30, 45),
 }
 
 
@@ -84,6 +86,8 @@ def test_a_perfect_maze_is_a_tree_of_passages():
         (lambda: CaveMaps(251, 250), r"a 251x250 cave has 62,750 cells, over the limit of 62,500"),
         (lambda: MazeMaps(3, 30_001), r"a 3x30001 maze has 90,003 cells, over the limit of 90,000"),
         (lambda: MazeMaps(9, 9, n_chambers=-1), r"n_chambers must be an integer in \[0, 10,000\]"),
+        (lambda: OfficeMaps(11, 30), "an office floor needs at least 12x12 cells"),
+        (lambda: OfficeMaps(30, 30, max_depth=5), r"max_depth must be an integer in \[6, 1,000\]"),
         (lambda: ShippedMap("nope"), "unknown shipped map 'nope'"),
         (lambda: FileMap("/no/such/map.txt"), "does not exist"),
         (lambda: MixGenerator([]), "at least one source"),
@@ -96,13 +100,16 @@ def test_bad_source_parameters_are_refused(make, message):
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("kind", ["cave", "maze", "rooms"])
+@pytest.mark.parametrize("kind", ["cave", "maze", "rooms", "office"])
 def test_a_map_at_its_kinds_cell_limit_draws_in_seconds(kind):
     # The limit is what one reset can afford (about a second here); a square map at it, with the
-    # defaults, draws within a generous bound on a busy machine.
+    # defaults, draws within a generous bound on a busy machine. A kind without a limit of its
+    # own (office) is bounded by the harness's.
     import time
 
-    side = int(GENERATORS[kind].max_cells ** 0.5)
+    from harness.config.schema import MAX_MAP_CELLS
+
+    side = int((GENERATORS[kind].max_cells or MAX_MAP_CELLS) ** 0.5)
     source = GENERATORS[kind](side, side)
     start = time.perf_counter()
     walls = source(np.random.default_rng(0))
@@ -253,7 +260,7 @@ def test_procedural_caves_mazes_and_floor_plans_never_draw_the_shipped_seeds():
 def test_generated_maps_never_equal_a_shipped_map_over_many_draws():
     shipped = [maps.load_map(name).grid for name in maps.shipped_maps()]
     rng = np.random.default_rng(11)
-    for gen in (CaveMaps(50, 100), MazeMaps(50, 100), RoomsMaps(50, 100)):
+    for gen in (CaveMaps(50, 100), MazeMaps(50, 100), RoomsMaps(50, 100), OfficeMaps(50, 100)):
         for _ in range(100):
             walls = gen(rng)
             assert not any(np.array_equal(walls, s) for s in shipped)
@@ -355,7 +362,11 @@ def test_eval_names_a_map_in_one_short_line(value, line, tmp_path, monkeypatch):
 @pytest.mark.parametrize(
     ("source", "message"),
     [
-        ({"caves": {}}, "env.map: unknown map kind 'caves'; known: random, cave, maze, rooms"),
+        (
+            {"caves": {}},
+            "env.map: unknown map kind 'caves'; known: random, cave, maze, rooms, office, file, "
+            "shipped, mix",
+        ),
         ({"cave": {"rocks": 0.4}}, "env.map: cave.rocks: Extra inputs are not permitted"),
         ({"cave": {"rock_share": 2}}, r"env.map: cave: rock_share must be in \[0.0, 1.0\]"),
         ({"maze": {"height": "tall"}}, "env.map: maze.height: Input should be a valid integer"),

@@ -348,9 +348,10 @@ class OfficeMaps(_SeededMaps):
     name = "office"
     noun = "office floor"
     shipped_seed = -1
-    #: None: the harness's map limit (2000x2000) bounds it. A 2000x2000 floor draws in 0.28 s
-    #: with the defaults and 1.3 s with the most rooms (``room_width: [3, 3], max_depth: 6``),
-    #: a 500x500 one in 0.015 s and 0.06 s. docs/environment.md has the measurements.
+    #: None: the harness's map limit (2000x2000) bounds it. A 2000x2000 floor draws in 0.3 to
+    #: 0.6 s with the defaults and up to 1.3 s with the most rooms (``room_width: [3, 3],
+    #: max_depth: 6``), a 500x500 one in 0.02 s and 0.09 s. docs/environment.md has the
+    #: measurements.
     max_cells: ClassVar[int | None] = None
 
     def __init__(

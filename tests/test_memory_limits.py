@@ -38,10 +38,13 @@ def test_a_buffer_over_the_address_space_limit_is_refused_naming_both(monkeypatc
     words = str(refused.value)
     assert words.startswith(
         f"algo.buffer_size: a replay buffer of 3,000,000 transitions needs about "
-        f"{checks.format_bytes(need)}, more than the "
+        f"{checks.format_bytes(need)} (and training about 128.0 MiB more), more than the "
     )
     assert "this process may still map under its address-space limit of " in words
     assert words.endswith("(ulimit -v)")
+    _limit_at(monkeypatch, need + checks.ADDRESS_SPACE_MARGIN // 2)  # the buffer fits, no more
+    with pytest.raises(ValueError, match=r"^the address-space limit of .* \(ulimit -v\) leaves"):
+        checks.check_replay_memory(config)
     _limit_at(monkeypatch, need + checks.ADDRESS_SPACE_MARGIN + (64 << 20))
     assert checks.check_replay_memory(config) == need  # room enough: passes
 

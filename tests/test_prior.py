@@ -324,3 +324,31 @@ def test_the_rooms_prior_carries_a_rooms_wall_on() -> None:
     # prior gives each the seen wall share (0.65 here: the border is seen).
     assert density(states[None])[0] == pytest.approx(317 / 485)
     assert p[10, 31] > 0.9 and p[9, 31] < 0.2 and p[14, 31] < 0.5
+
+
+@pytest.mark.parametrize("name", ["prior_rooms", "prior_maze", "prior_cave", "prior_random"])
+def test_a_reference_prior_beats_the_seen_wall_share_where_maps_have_structure(name: str) -> None:
+    # The committed scores on the 100 test episodes (docs/results.md, "Map priors"): at most
+    # 0.8 of the density prior's log-loss on floor plans, mazes and caves; on random maps,
+    # whose walls are independent, no more than it (the null result), within 2 %.
+    committed = json.loads((REFERENCE / name / "eval.json").read_text())
+    assert committed["episodes"] == 100 and committed["seed"] == 1_000_003
+    ratio = committed["unseen_logloss"] / committed["density_logloss"]
+    assert committed["ratio"] == pytest.approx(ratio)
+    if name == "prior_random":
+        assert 0.98 <= ratio <= 1.02
+    else:
+        assert ratio <= 0.8
+
+
+def test_a_reference_prior_repeats_its_committed_score(tmp_path: Path, capsys) -> None:
+    ref = REFERENCE / "prior_random"
+    committed = json.loads((ref / "eval.json").read_text())
+    copy = tmp_path / "prior_random"  # scored as a copy: the committed files stay as they are
+    copy.mkdir()
+    for f in ("config.yaml", "model.zip"):
+        (copy / f).write_bytes((ref / f).read_bytes())
+    assert main(["eval", str(copy), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    for key in ("unseen_logloss", "density_logloss", "cells", "maps"):
+        assert out[key] == pytest.approx(committed[key], rel=1e-9)

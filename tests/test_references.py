@@ -16,7 +16,12 @@ from harness.config import ConfigError, load_config
 from harness.config.schema import is_foreign
 
 ROOT = Path(__file__).resolve().parents[1]
-REFERENCES = sorted(p.parent.name for p in (ROOT / "runs" / "reference").glob("*/eval.json"))
+#: The references of trained policies (a map prior's reference is tests/test_prior.py's).
+REFERENCES = sorted(
+    p.parent.name
+    for p in (ROOT / "runs" / "reference").glob("*/eval.json")
+    if "\nprior:" not in (p.parent / "config.yaml").read_text()
+)
 #: The ablation that measured a knob since retired (docs/experiment-log.md).
 RETIRED_ABLATION = ROOT / "docs" / "ablations" / "teammap_2agents_mask" / "config.yaml"
 SAVED_CONFIGS = sorted(

@@ -4,6 +4,7 @@ end to end on a tiny config (train, evaluate, stop and resume to the same weight
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 import signal
@@ -352,3 +353,30 @@ def test_a_reference_prior_repeats_its_committed_score(tmp_path: Path, capsys) -
     out = json.loads(capsys.readouterr().out)
     for key in ("unseen_logloss", "density_logloss", "cells", "maps"):
         assert out[key] == pytest.approx(committed[key], rel=1e-9)
+
+
+def test_a_sweep_of_a_prior_minimises_its_validation_log_loss(tiny: Path, tmp_path: Path, capsys):
+    space = tmp_path / "space.yaml"
+    space.write_text("phases.a.learning_rate: {float: [1.0e-4, 3.0e-3], log: true}\n")
+    sweeps = tmp_path / "sweeps"
+    args = ["sweep", str(tiny), "--space", str(space), "--trials", "2", "--sweeps-dir", str(sweeps)]
+    assert main(args) == 0
+    best = json.loads((sweeps / "prior_tiny" / "best.json").read_text())
+    assert best["trials"]["complete"] == 2 and "log-loss" in best["objective"]
+    # A trial's value is minus its last validation's unseen_logloss (higher is better).
+    trial = RunDir(Path(best["run"]))
+    assert trial.model.is_file()
+    with (trial.tb / "progress.csv").open() as f:
+        scores = [row["eval/unseen_logloss"] for row in csv.DictReader(f)]
+    assert best["value"] == pytest.approx(-float([x for x in scores if x][-1]))
+    assert "validation unseen_logloss" in capsys.readouterr().err
+
+
+def test_seeds_of_a_prior_train_into_a_group(tiny: Path, tmp_path: Path, capsys) -> None:
+    runs = tmp_path / "runs"
+    args = ["run", str(tiny), "--runs-dir", str(runs), "--seeds", "0,1", "--no-progress"]
+    assert main(args) == 0
+    (group,) = [p for p in runs.iterdir() if p.is_dir()]
+    models = sorted(group.glob("*/model.zip"))
+    assert len(models) == 2
+    assert models[0].read_bytes() != models[1].read_bytes()  # two seeds, two priors

@@ -22,10 +22,11 @@ import shutil
 import signal
 import sys
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from contextlib import contextmanager
 from pathlib import Path
 from types import FrameType
+from typing import Any
 
 import numpy as np
 import torch
@@ -107,13 +108,17 @@ def logloss(net: UNet, states: np.ndarray, walls: np.ndarray) -> torch.Tensor:
 
 
 class _Stop:
-    """SIGINT and SIGTERM noted (the loop checkpoints and stops at the next step)."""
+    """SIGINT and SIGTERM noted (the loop checkpoints and stops at the next step), and passed
+    on to ``on_signal`` (a sweep stops starting trials)."""
 
-    def __init__(self) -> None:
+    def __init__(self, on_signal: Callable[[int], None] | None = None) -> None:
         self.signum: int | None = None
+        self.on_signal = on_signal
 
     def __call__(self, signum: int, frame: FrameType | None) -> None:
         self.signum = signum
+        if self.on_signal is not None:
+            self.on_signal(signum)
 
 
 @contextmanager
@@ -243,10 +248,14 @@ def train_prior(
     resume: bool = False,
     restart: bool = False,
     command: Sequence[str] | None = None,
+    on_evaluation: Callable[[int, dict[str, Any]], None] | None = None,
+    on_signal: Callable[[int], None] | None = None,
 ) -> MapPrior:
     """Train the map prior of ``config`` into ``run`` (the caller holds ``run.lock()``), as
     :func:`harness.training.train.train` trains a policy: ``resume`` continues from the newest
     readable checkpoint, ``restart`` starts again in a folder that has none.
+    ``on_evaluation(step, summary)`` hears each validation's score (a sweep's trial reports
+    it); ``on_signal(signum)`` each SIGINT/SIGTERM.
 
     Raises:
         TrainingInterrupted: on SIGINT/SIGTERM, after writing a checkpoint.
@@ -272,14 +281,16 @@ def train_prior(
     if command is not None:
         run.write_command(command)
     train_sets = record_sets(config, prior.episodes, training_seed(config), "training")
+    # Validated every eval.every steps, and at the end for a caller that hears the scores.
+    validating = bool(config.eval.every) or on_evaluation is not None
     validation = (
         record_sets(config, config.eval.episodes, config.eval.validation_seed, "validation")
-        if config.eval.every
+        if validating
         else []
     )
     batches = _Batches(train_sets, prior.augment)
     logger = make_logger(run, state, restart=restart)
-    stop = _Stop()
+    stop = _Stop(on_signal)
     step = state.num_timesteps
     total = config.total_timesteps
     last_line = time.monotonic()
@@ -302,6 +313,8 @@ def train_prior(
             file=sys.stderr,
             flush=True,
         )
+        if on_evaluation is not None:
+            on_evaluation(step, summary)
 
     def checkpoint() -> Path:
         return _save_checkpoint(run, net, opt, rng, state, config, step)
@@ -353,7 +366,7 @@ def train_prior(
                         raise TrainingInterrupted(stop.signum, checkpoint())
                 state.phase, state.phase_start = index + 1, step
                 checkpoint()
-            if config.eval.every and step % config.eval.every != 0:
+            if validating and (not config.eval.every or step % config.eval.every != 0):
                 validate()
             final = MapPrior(net)
             if run.best_model.is_file():  # the run's prior: the one validation chose

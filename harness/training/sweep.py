@@ -954,6 +954,23 @@ def _objective(
         if trial.should_prune():
             raise optuna.TrialPruned(f"pruned at {timesteps} transitions")
 
+    if config.prior is not None:  # a map prior's trial: its last validation log-loss, negated
+        from harness.training.prior import train_prior
+
+        def report_prior(step: int, summary: dict[str, Any]) -> None:
+            last.update(timesteps=step, value=-summary["unseen_logloss"])
+            trial.report(last["value"], step)
+            if trial.should_prune():
+                raise optuna.TrialPruned(f"pruned at {step} gradient steps")
+
+        try:
+            train_prior(
+                config, run, progress_bar=False, command=["sweep", str(trial.number)],
+                on_evaluation=report_prior, on_signal=on_signal,
+            )  # fmt: skip
+        except OSError as exc:
+            raise _trial_file_error(exc, trial.number, run.path) from None
+        return last["value"]
     try:
         model = train(
             config, run, progress_bar=False, command=["sweep", str(trial.number)],
@@ -978,6 +995,8 @@ def _objective(
 OBJECTIVE = "median coverage of the config's validation episodes"
 #: ... for a PettingZoo env of one's own.
 FOREIGN_OBJECTIVE = "median team return of the config's validation episodes"
+#: ... for a map prior (``prior:``): higher is better, as for the others.
+PRIOR_OBJECTIVE = "minus the mean log-loss per unseen cell of the validation episodes' maps"
 
 
 def trial_line(study: Any, trial: Any, total: int) -> str:
@@ -1030,7 +1049,13 @@ def write_best(
         "study": study.study_name,
         "trial": best.number,
         "value": best.value,
-        "objective": FOREIGN_OBJECTIVE if is_foreign(config.env) else OBJECTIVE,
+        "objective": (
+            PRIOR_OBJECTIVE
+            if config.prior is not None
+            else FOREIGN_OBJECTIVE
+            if is_foreign(config.env)
+            else OBJECTIVE
+        ),
         "params": best.params,
         "run": best.user_attrs.get("run"),
         "trials": {
@@ -1048,6 +1073,8 @@ def format_best(result: dict[str, Any] | None) -> str:
     params = ", ".join(f"{k}={v!r}" for k, v in result["params"].items())
     if result.get("objective") == FOREIGN_OBJECTIVE:
         value = f"validation team return {result['value']:.4g}"
+    elif result.get("objective") == PRIOR_OBJECTIVE:
+        value = f"validation unseen_logloss {-result['value']:.4f}"
     else:
         value = f"validation coverage {result['value']:.1%}"
     return (

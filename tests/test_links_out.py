@@ -2,13 +2,14 @@
 written whole or not at all.
 
 One rule (``harness.results.rundir.inside``): every file a command reads from or writes into a
-run, checkpoint, seed group or the folder of ``compare --out`` lies inside it, links resolved; a
-link whose target is inside is fine, one leading out is refused in one line (exit code 2) that
-names the file and where it leads, before anything is loaded or written. Only what the user
-names on the command line is taken from elsewhere. YAML aliases are bounded, and pictures, GIFs
-and JSON go through a temporary file renamed into place. (Other instances than the probe's of
-issue 74: ``best_model.zip``, ``evaluations.csv``, ``tb/progress.csv``, ``.lock``, a derived
-``eval-*.json`` and ``-curves-ci.png``, a checkpoint's ``state.json``, a seed's log.)
+run, checkpoint, seed group, sweep or the folder of ``compare --out`` lies inside it, links
+resolved; a link whose target is inside is fine, one leading out is refused in one line (exit
+code 2) that names the file and where it leads, before anything is loaded or written. Only what
+the user names on the command line is taken from elsewhere. YAML aliases are bounded, and
+pictures, GIFs and JSON go through a temporary file renamed into place. (Other instances than
+the probe's of issue 74: ``best_model.zip``, ``evaluations.csv``, ``tb/progress.csv``,
+``.lock``, a derived ``eval-*.json`` and ``-curves-ci.png``, a checkpoint's ``state.json``, a
+seed's log, a sweep's ``best.yaml`` or trial folder.)
 """
 
 from __future__ import annotations
@@ -28,6 +29,7 @@ from harness.results.plots import write_gif
 from harness.results.rundir import LinkOutError, RunDir, atomic_write, atomic_write_text
 from harness.training.checkpoints import complete_checkpoints
 from harness.training.state import run_state
+from harness.training.sweep import BEST_CONFIG, BEST_RESULT, TRIALS_TABLE, sweep_file
 from tests.conftest import one_error_line
 from tests.stopping import harness_lines, resume, snapshot
 from tests.test_seeds_and_sweeps import TINY, _fake_run
@@ -231,6 +233,43 @@ def test_a_group_file_linked_out_stops_its_resume_before_any_seed_starts(tmp_pat
     _refusal(capsys, group / linked, outside, "the group folder")
     assert outside.read_bytes() == content and not marker.exists()
     assert not (group / "tiny-seed0").exists()
+
+
+# ---------------------------------------------------------------------- sweep folders
+@pytest.mark.parametrize(
+    "linked",
+    [TRIALS_TABLE, BEST_CONFIG, BEST_RESULT, "journal.log", "worker-1.log", ".lock", "trial-0000"],
+)
+def test_a_sweep_file_linked_out_stops_the_sweep_before_anything_is_written(
+    tmp_path, capsys, linked
+):
+    config = tmp_path / "tiny.yaml"
+    config.write_text(TINY)
+    space = tmp_path / "space.yaml"
+    space.write_text("algo.gamma: {grid: [0.9, 0.95]}\n")
+    folder = tmp_path / "sweeps" / "tiny"
+    if linked.startswith("trial-"):  # a trial's run folder: an empty folder elsewhere
+        outside = tmp_path / "elsewhere" / "trial"
+        outside.mkdir(parents=True)
+        folder.mkdir(parents=True)
+        (folder / linked).symlink_to(outside)
+    else:
+        outside = _link_out(folder / linked, tmp_path / "elsewhere" / "linked")
+    args = ["sweep", str(config), "--space", str(space), "--trials", "2",
+            "--sweeps-dir", str(tmp_path / "sweeps"), "--jobs", "2", "--quiet"]  # fmt: skip
+    assert main(args) == 2
+    _refusal(capsys, folder / linked, outside, "the sweep folder")
+    if outside.is_dir():
+        assert list(outside.iterdir()) == []
+    else:
+        assert outside.read_bytes() == MINE
+    # Nothing was started or written: the folder holds the link alone.
+    assert [p.name for p in folder.iterdir()] == [linked]
+    # A link whose target lies inside the sweep folder is fine.
+    (folder / linked).unlink()
+    (folder / "kept").write_bytes(MINE)
+    (folder / linked).symlink_to(folder / "kept")
+    assert sweep_file(folder, linked) == folder / linked
 
 
 # ---------------------------------------------------------------------- YAML aliases

@@ -73,7 +73,13 @@ import yaml
 from harness.config.loading import load_config, parse_override, parse_yaml, read_yaml_text
 from harness.config.schema import ConfigError, is_foreign
 from harness.processes import harness_command
-from harness.results.rundir import RunDir, RunDirError, atomic_write_text
+from harness.results.rundir import (
+    LinkOutError,
+    RunDir,
+    RunDirError,
+    atomic_write_text,
+    inside,
+)
 
 #: Kinds of distribution a space file may name.
 KINDS = ("float", "int", "choice", "grid")
@@ -83,6 +89,8 @@ PRUNERS = ("median", "halving", "hyperband", "none")
 BEST_CONFIG, BEST_RESULT = "best.yaml", "best.json"
 #: Every trial of the study, one row each (Optuna's ``Study.trials_dataframe``).
 TRIALS_TABLE = "trials.csv"
+#: The embedded storage's file in the sweep folder (Optuna's journal).
+JOURNAL = "journal.log"
 #: How often a trial that died (killed worker) is queued again before it stays failed.
 MAX_RETRY = 2
 #: Seconds between a trial's heartbeats in a database, and without one before it counts as dead.
@@ -175,8 +183,9 @@ def _stop_on_sigterm(state: _SignalState) -> Iterator[None]:
 
 class _QuietInterrupts(logging.Filter):
     """Leaves out Optuna's "Trial N failed ... because of the following error" warning (with the
-    traceback) of a trial stopped by a signal, a lost database or a file it could not write
-    (:class:`TrialFileError`), and its warnings after it:
+    traceback) of a trial stopped by a signal, a lost database, a file it could not write
+    (:class:`TrialFileError`) or its run folder linked out of the sweep folder, and its warnings
+    after it:
     the command says what happened in one line; and that warning of a trial skipped because the
     study already has its trials (:class:`StudyFull`: no failure, nothing to say)."""
 
@@ -190,9 +199,9 @@ class _QuietInterrupts(logging.Filter):
         error = record.exc_info[1] if record.exc_info else None
         if isinstance(error, StudyFull):
             return False
-        if isinstance(error, (KeyboardInterrupt, TrainingInterrupted, TrialFileError)) or (
-            error is not None and _storage_failure(error) is not None
-        ):
+        if isinstance(
+            error, (KeyboardInterrupt, TrainingInterrupted, TrialFileError, LinkOutError)
+        ) or (error is not None and _storage_failure(error) is not None):
             self.quiet = True
         return not self.quiet
 
@@ -364,7 +373,7 @@ def _storage(url: str | None, folder: Path) -> Any:
 
     if url is None:
         folder.mkdir(parents=True, exist_ok=True)
-        return optuna.storages.JournalStorage(JournalFileBackend(str(folder / "journal.log")))
+        return optuna.storages.JournalStorage(JournalFileBackend(str(sweep_file(folder, JOURNAL))))
     from sqlalchemy.exc import ArgumentError
 
     error: Exception | None = None
@@ -541,6 +550,34 @@ class _Study:
         return cmd
 
 
+def sweep_file(folder: Path, name: str) -> Path:
+    """The sweep folder's own file ``name`` (its journal, locks, worker logs, ``trials.csv``,
+    ``best.yaml``, ``best.json``, a trial's run folder), asked for through rundir's rule: it lies
+    inside the sweep folder, links resolved.
+
+    Raises:
+        LinkOutError: for one that leads out of the sweep folder, naming it and where it leads.
+    """
+    return inside(Path(folder) / name, folder, "the sweep folder")
+
+
+def _check_sweep_files(folder: Path, jobs: int, embedded: bool) -> None:
+    """Ask every file the sweep reads from or writes into ``folder`` before it starts: a link
+    out found at the end (``best.yaml`` after every trial trained) would come too late, and a
+    trial folder linked out would have a trial write elsewhere.
+
+    Raises:
+        LinkOutError: for the first file that leads out, in one line.
+    """
+    names = [".lock", WORKERS_LOCK, TRIALS_TABLE, BEST_CONFIG, BEST_RESULT]
+    names += [JOURNAL] if embedded else []
+    names += [_worker_log_name(k) for k in range(jobs)] if jobs > 1 else []
+    if folder.is_dir():  # trial folders of an earlier sweep of the study (--resume)
+        names += sorted(p.name for p in folder.iterdir() if p.name.startswith("trial-"))
+    for name in names:
+        sweep_file(folder, name)
+
+
 def _run_sweep(
     spec: _Study,
     resume: bool,
@@ -566,6 +603,7 @@ def _run_sweep(
     if grid and spec.trials > points:
         raise SweepError(f"--trials {spec.trials}: the grid of {spec.space_path} has only {points}")
     embedded = spec.storage_url is None
+    _check_sweep_files(spec.folder, jobs, embedded)  # before anything is read or written
     with contextlib.ExitStack() as held:
         if embedded and not worker:
             # One process owns a journal's sweep (its --jobs workers are its children): a second
@@ -578,7 +616,8 @@ def _run_sweep(
         storage = None
         last_run: list[Path] = []  # the run folder of the trial this process started last
         try:
-            if embedded and (spec.folder / "journal.log").exists() and not resume and not worker:
+            journal = sweep_file(spec.folder, JOURNAL)
+            if embedded and journal.exists() and not resume and not worker:
                 raise SweepError(
                     f"{spec.folder}: a sweep of this study exists; add --resume to continue it"
                 )
@@ -698,7 +737,7 @@ def _run_workers(spec: _Study, jobs: int) -> None:
     processes: list[subprocess.Popen[bytes]] = []
     try:
         for k in range(jobs):
-            with (spec.folder / f"worker-{k}.log").open("wb") as log:
+            with sweep_file(spec.folder, _worker_log_name(k)).open("wb") as log:
                 processes.append(
                     subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
                 )
@@ -712,8 +751,13 @@ def _run_workers(spec: _Study, jobs: int) -> None:
         raise
     failed = [k for k, code in enumerate(codes) if code != 0]
     if failed:
-        log = spec.folder / f"worker-{failed[0]}.log"
+        log = spec.folder / _worker_log_name(failed[0])
         raise SweepError(f"sweep worker {failed[0]} failed; see {log}")
+
+
+def _worker_log_name(k: int) -> str:
+    """The name of worker ``k``'s log in the sweep folder."""
+    return f"worker-{k}.log"
 
 
 #: The file of a sweep folder that its ``--jobs`` workers hold (a shared ``flock``) as long as
@@ -725,7 +769,7 @@ WORKERS_LOCK = ".workers.lock"
 def _worker_hold(folder: Path) -> Iterator[None]:
     """Hold ``folder``'s :data:`WORKERS_LOCK` (shared with the sweep's other workers) for the
     life of this worker; the kernel lets go of it when the process ends, however it ends."""
-    fd = os.open(folder / WORKERS_LOCK, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = os.open(sweep_file(folder, WORKERS_LOCK), os.O_RDWR | os.O_CREAT, 0o644)
     try:
         fcntl.flock(fd, fcntl.LOCK_SH)
         yield
@@ -742,7 +786,7 @@ def _check_no_workers(folder: Path) -> None:
     Raises:
         SweepError: naming the folder.
     """
-    path = folder / WORKERS_LOCK
+    path = sweep_file(folder, WORKERS_LOCK)
     try:
         fd = os.open(path, os.O_RDWR)
     except FileNotFoundError:  # no sweep of this folder had --jobs
@@ -942,7 +986,7 @@ def _objective(
     _claim(trial, total)
     params = {d.key: d.suggest(trial) for d in dims}
     config = load_config(config_path, [*overrides, *(override(k, v) for k, v in params.items())])
-    run = RunDir.create_at(folder / f"trial-{trial.number:04d}")
+    run = RunDir.create_at(sweep_file(folder, f"trial-{trial.number:04d}"))
     lock.enter_context(run.lock())  # before the trial names it: a --resume leaves it alone
     started(run.path)
     trial.set_user_attr("run", str(run.path))
@@ -1035,7 +1079,7 @@ def write_best(
     table = study.trials_dataframe(
         attrs=("number", "state", "value", "params", "user_attrs", "duration")
     )
-    atomic_write_text(folder / TRIALS_TABLE, table.to_csv(index=False))
+    atomic_write_text(sweep_file(folder, TRIALS_TABLE), table.to_csv(index=False))
 
     complete = study.get_trials(deepcopy=False, states=(optuna.trial.TrialState.COMPLETE,))
     if not complete:
@@ -1044,7 +1088,7 @@ def write_best(
     config = load_config(
         config_path, [*overrides, *(override(k, v) for k, v in best.params.items())]
     )
-    atomic_write_text(folder / BEST_CONFIG, config.to_yaml())
+    atomic_write_text(sweep_file(folder, BEST_CONFIG), config.to_yaml())
     result = {
         "study": study.study_name,
         "trial": best.number,
@@ -1063,7 +1107,7 @@ def write_best(
             for state in optuna.trial.TrialState
         },
     }
-    atomic_write_text(folder / BEST_RESULT, json.dumps(result, indent=2) + "\n")
+    atomic_write_text(sweep_file(folder, BEST_RESULT), json.dumps(result, indent=2) + "\n")
     return result
 
 

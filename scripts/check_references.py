@@ -1,5 +1,6 @@
 """Re-evaluate every committed reference policy on all the episodes of its committed
-``eval.json`` and compare, episode by episode (coverage and wall hits), with what was stored;
+``eval.json`` and compare, episode by episode (coverage and wall hits), with what was stored (a
+map prior's reference: its log-loss scores);
 with ``--baselines``, every stored written-policy evaluation ``docs/baselines/*.json`` (the
 planner rows of docs/results.md and README's baseline tables), every number of it.
 
@@ -43,13 +44,23 @@ def check(name: str, scratch: Path) -> bool:
         code = harness(["eval", str(copy), "--episodes", str(committed["episodes"]), "--json"])
     (saved_file,) = copy.glob("eval*.json")
     saved = json.loads(saved_file.read_text())
+    took = time.perf_counter() - start
+    if "unseen_logloss" in committed:  # a map prior's reference (docs/prior.md): its score
+        keys = ("unseen_logloss", "density_logloss", "cells", "maps")
+        same = code == 0 and all(saved[k] == committed[k] for k in keys)
+        print(
+            f"{name:<28} {committed['episodes']:>4} episodes  unseen_logloss "
+            f"{saved['unseen_logloss']:.4f} (stored {committed['unseen_logloss']:.4f})  "
+            f"{'same' if same else 'DIFFERENT'}  {took:.0f} s",
+            flush=True,
+        )
+        return same
     same = (
         code == 0
         and saved["temperature"] == committed["temperature"]
         and saved["coverage"] == committed["coverage"]
         and saved["wall_hits"] == committed["wall_hits"]
     )
-    took = time.perf_counter() - start
     print(
         f"{name:<28} {committed['episodes']:>4} episodes  coverage_mean "
         f"{saved['coverage_mean']:.4f} (stored {committed['coverage_mean']:.4f})  "

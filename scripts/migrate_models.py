@@ -85,8 +85,12 @@ class _RenamingUnpickler(pickle.Unpickler):
 
 
 def shipped_models() -> list[Path]:
-    """The models the repository ships: every reference's and any under ``docs/seeds``."""
-    references = [RunDir(p).model for p in (ROOT / "runs" / "reference").iterdir()]
+    """The models the repository ships: every reference's and any under ``docs/seeds`` (a map
+    prior's reference holds no SB3 model: docs/prior.md)."""
+    from harness.prior.evaluate import is_prior_run
+
+    folders = (ROOT / "runs" / "reference").iterdir()
+    references = [RunDir(p).model for p in folders if not is_prior_run(p)]
     references = [model for model in references if model.is_file()]
     return sorted({*references, *(ROOT / "docs" / "seeds").rglob("*.zip")})
 

@@ -84,7 +84,12 @@ def snapshot(folder: Path) -> dict[str, str]:
 
 
 def harness_lines(err: str) -> list[str]:
-    return [line for line in err.splitlines() if line.startswith("harness:")]
+    """The harness's own lines of ``err`` but its warnings (a shortened phase's schedules)."""
+    return [
+        line
+        for line in err.splitlines()
+        if line.startswith("harness:") and not line.startswith("harness: warning:")
+    ]
 
 
 def signal_on_call(n: int, signum: int = signal.SIGTERM) -> Callable[[], None]:

@@ -569,7 +569,10 @@ def _check_sweep_files(folder: Path, jobs: int, embedded: bool) -> None:
     Raises:
         LinkOutError: for the first file that leads out, in one line.
     """
-    names = [".lock", WORKERS_LOCK, TRIALS_TABLE, BEST_CONFIG, BEST_RESULT]
+    # The sweep command's lock is a RunDir's (``RunDir.lock``), named by its owner; under "/"
+    # (as ``RunDir.made_names``) the name comes without asking about the file itself.
+    lock = RunDir(Path(os.sep)).lock_file.name
+    names = [lock, WORKERS_LOCK, TRIALS_TABLE, BEST_CONFIG, BEST_RESULT]
     names += [JOURNAL] if embedded else []
     names += [_worker_log_name(k) for k in range(jobs)] if jobs > 1 else []
     if folder.is_dir():  # trial folders of an earlier sweep of the study (--resume)

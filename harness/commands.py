@@ -145,6 +145,13 @@ def find_run_config(model_path: Path) -> Path:
 def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) -> Target:
     """A trained model: ``path`` is a run folder (its ``model.zip``), a checkpoint's folder (its
     ``model.zip``, evaluated for its run) or a model zip."""
+    from harness.prior.evaluate import is_prior_run
+
+    if path.is_dir() and is_prior_run(path):
+        raise TargetError(
+            f"{path} is a map prior's run, not a policy: score it with harness eval {path}, "
+            f"plan with it with --policy rollout --set eval.rollout.prior={path}"
+        )
     if path.is_dir() and RunDir(path).is_checkpoint:
         CheckpointDir(path).check_inside()  # its model and files: inside its run, links resolved
         model_path = CheckpointDir(path).model
@@ -1137,8 +1144,15 @@ def compare(
     used: list[str | None] = []
     taken: dict[str, int] = {}
     seen: dict[Path, Path] = {}
+    from harness.prior.evaluate import is_prior_run
+
     for item in items:  # a run counted twice would narrow every interval over seeds
         for run in group_runs(item) if is_group(item) else [item]:
+            if is_prior_run(run):  # its curves are TensorBoard's, its score harness eval's
+                raise TargetError(
+                    f"{run} is a map prior's run: its training curves are TensorBoard's "
+                    f"(tensorboard --logdir RUN), its score harness eval {run} --json"
+                )
             key = Path(run).resolve()
             if key in seen:
                 raise TargetError(f"{run} is compared twice (also in {seen[key]}): name it once")

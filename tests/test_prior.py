@@ -380,3 +380,21 @@ def test_seeds_of_a_prior_train_into_a_group(tiny: Path, tmp_path: Path, capsys)
     models = sorted(group.glob("*/model.zip"))
     assert len(models) == 2
     assert models[0].read_bytes() != models[1].read_bytes()  # two seeds, two priors
+
+
+@pytest.mark.parametrize(
+    ("command", "words"),
+    [
+        (["tune", "{ref}"], "not a policy"),
+        (["render", "{ref}", "--out", "{tmp}/paths.png"], "not a policy"),
+        (["compare", "{ref}", "{ref2}", "--out", "{tmp}/cmp.png"], "TensorBoard"),
+        (["eval", "{ref}", "--plot", "{tmp}/plot.png"], "log-loss"),
+    ],
+)
+def test_a_policys_command_on_a_prior_says_what_a_prior_takes(
+    command: list[str], words: str, tmp_path: Path, capsys
+) -> None:
+    values = {"ref": REFERENCE / "prior_random", "ref2": REFERENCE / "prior_maze", "tmp": tmp_path}
+    assert main([part.format(**values) for part in command]) == 2
+    assert words in one_error_line(capsys.readouterr().err)
+    assert list(tmp_path.iterdir()) == []

@@ -1,4 +1,4 @@
-"""A student of the sampled-map chooser (docs/experiment-log.md, "A chooser that sees only the
+"""A student of the sampled-map chooser (research/experiment-log.md, "A chooser that sees only the
 team's map"): a goal policy fitted offline to the decisions that ``goal_oracle.py --belief
 sampled --save`` recorded, played back with ``goal_oracle.py --model``.
 

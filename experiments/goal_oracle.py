@@ -1,5 +1,5 @@
 """How much the goal action's candidates could give: a rollout oracle against the planner,
-paired on the same episodes (docs/experiment-log.md, "The room in the candidates").
+paired on the same episodes (research/experiment-log.md, "The room in the candidates").
 
 At every step each agent that is not walking to a chosen target tries each of its candidate
 slots (docs/goals.md) on a copy of the planner's map: it walks a shortest path to the

@@ -1,6 +1,7 @@
-"""README is a short user guide and the reference lives in docs/: README's size and order, the CI
-blocks `.ci/run` reads, every relative link, the configuration page against the schema, and the
-pages' lists of policies, planners, action kinds and baselines against their registries."""
+"""README is a short user guide and the reference lives in docs/ (the lab record in research/):
+README's size and order, the CI blocks `.ci/run` reads, every relative link (research/'s too),
+the configuration page against the schema, and the pages' lists of policies, planners, action
+kinds and baselines against their registries."""
 
 from __future__ import annotations
 
@@ -17,8 +18,14 @@ from pydantic import BaseModel
 ROOT = Path(__file__).resolve().parents[1]
 README = ROOT / "README.md"
 DOCS = ROOT / "docs"
+RESEARCH = ROOT / "research"
 CONFIG_PAGE = DOCS / "configuration.md"
-PAGES = [README, ROOT / "experiments" / "README.md", *sorted(DOCS.glob("*.md"))]
+PAGES = [
+    README,
+    ROOT / "experiments" / "README.md",
+    *sorted(DOCS.glob("*.md")),
+    *sorted(RESEARCH.glob("*.md")),
+]
 
 
 # ---------------------------------------------------------------------- README

@@ -22,7 +22,7 @@ REFERENCES = sorted(
     for p in (ROOT / "runs" / "reference").glob("*/eval.json")
     if "\nprior:" not in (p.parent / "config.yaml").read_text()
 )
-#: The ablation that measured a knob since retired (docs/experiment-log.md).
+#: The ablation that measured a knob since retired (research/experiment-log.md).
 RETIRED_ABLATION = ROOT / "docs" / "ablations" / "teammap_2agents_mask" / "config.yaml"
 SAVED_CONFIGS = sorted(
     {*(ROOT / "runs" / "reference").glob("*/config.yaml"), *(ROOT / "docs").rglob("config.yaml")}

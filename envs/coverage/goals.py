@@ -17,7 +17,7 @@ literature's wins over written planners share (ACE, Yu et al. 2023; ARiADNE, Cao
   cells), the cluster's cell nearest to the agent (ties: the lower row-major cell), clusters by
   their distance (ties: the lower cell), leaving out slot 0's cluster and clusters the agent
   cannot reach (the nearest other cells instead were tried and retired:
-  docs/experiment-log.md);
+  research/experiment-log.md);
 * fewer candidates than ``k``: the remaining slots are empty, shown by the ``action_mask`` (0)
   and by all-zero features; an empty slot the policy takes anyway keeps the agent in place.
 

@@ -1,8 +1,9 @@
 """How fast DoubleDQN's prioritized gradient step could run on a GPU as one replayed CUDA graph.
 
-The probe that preceded ``harness.sb3.graphs`` (docs/performance.md, "One launch per gradient
-step"): it takes ``bench train``'s models (:func:`harness.bench._models`: the device replay
-buffer, filled with random-policy transitions) and times, for each network of ``bench train``:
+The probe that preceded ``harness.sb3.graphs`` (research/performance-history.md, "One launch
+per gradient step"): it takes ``bench train``'s models (:func:`harness.bench._models`: the device
+replay buffer, filled with random-policy transitions) and times, for each network of ``bench
+train``:
 
 - ``eager``: ``model.train(steps, batch)`` with ``cuda_graph=False`` (every kernel launched from
   Python);

@@ -1,7 +1,7 @@
-"""What the learner alone costs a run (docs/performance.md, "The learner's floor"): the time of
-one gradient step of a config's ``DoubleDQN`` (built as ``harness run`` builds it, its buffer
-filled by the env with ε = 1), at one and at two torch threads, and the transitions/s that
-the gradient steps alone would leave a run that spent nothing on collecting.
+"""What the learner alone costs a run (research/performance-history.md, "The learner's
+floor"): the time of one gradient step of a config's ``DoubleDQN`` (built as ``harness run``
+builds it, its buffer filled by the env with ε = 1), at one and at two torch threads, and the
+transitions/s that the gradient steps alone would leave a run that spent nothing on collecting.
 
 A run of ``--config`` takes ``epochs`` gradient steps every ``train_freq`` vector steps of
 ``copies x n_agents`` slots, so one gradient step per

@@ -14,7 +14,7 @@ them, each from a copy of its recorded map, timing in CPU time per step (best of
 
 The replays call the compiled functions from Python once per step, as the planner does; the
 rest of an episode is the env and Python around the planner, which ``frontier`` pays too.
-docs/performance.md quotes it.
+research/performance-history.md quotes it.
 
     python experiments/planner_time.py [EPISODES]     # default 8; under a minute
 """

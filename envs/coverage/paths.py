@@ -61,10 +61,10 @@ def breadth_first(
     (the same lengths as a new search without a limit). Returns how many cells it reached; they
     are ``queue``'s first, in the order reached (the start first).
     """
-    # Two things make the loop about a quarter faster than its plain form (docs/performance.md,
-    # "The searches' inner loop"): unsigned cell indices (numba adds a wrap-around for negative
-    # indices to every signed one), and one byte per cell, "passable and not yet reached",
-    # tested in place of two arrays (passable, then d against inf).
+    # Two things make the loop about a quarter faster than its plain form
+    # (research/performance-history.md, "The searches' inner loop"): unsigned cell indices (numba
+    # adds a wrap-around for negative indices to every signed one), and one byte per cell,
+    # "passable and not yet reached", tested in place of two arrays (passable, then d against inf).
     d[:] = np.inf
     unseen = passable.copy()
     down, right = np.uint64(stride), np.uint64(1)

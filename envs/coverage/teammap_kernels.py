@@ -55,8 +55,8 @@ def frontier_views(
         compass[i, 4] = 1.0
     tail = 0
     # "Free and not yet reached", one byte per cell: the search tests it alone (as
-    # envs.coverage.paths.breadth_first does, on unsigned indices; docs/performance.md, "The
-    # searches' inner loop").
+    # envs.coverage.paths.breadth_first does, on unsigned indices;
+    # research/performance-history.md, "The searches' inner loop").
     unseen = np.empty(n_cells, dtype=np.bool_)
     for k in range(n_cells):
         source = cat[k] == _KNOWN_FREE

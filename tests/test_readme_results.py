@@ -14,8 +14,8 @@ from harness.config.loading import load_config
 ROOT = Path(__file__).resolve().parents[1]
 #: The page that holds every results table (README links to it).
 RESULTS = ROOT / "docs" / "results.md"
-#: The page that describes the sweep on a real question.
-SWEEPS = ROOT / "docs" / "seeds-and-sweeps.md"
+#: The page that describes the sweep on a real question (the lab record, research/).
+SWEEPS = ROOT / "research" / "guide-measurements.md"
 TABLE_HEADER = "| experiment | thesis | this project | T | walls | greedy |"
 
 

@@ -75,7 +75,8 @@ from harness.results.rundir import (
 )
 from harness.results.stats import REPS
 from harness.training.checkpoints import CheckpointError
-from harness.training.state import RunState, check_resume_config, run_state, untrained
+from harness.training.start import StartMode, check_resumable, resume_start, train_run
+from harness.training.state import run_state, untrained
 from harness.training.sweep import BEST_CONFIG, PRUNERS, SweepError
 
 EXIT_USAGE = 2
@@ -440,7 +441,7 @@ def cmd_run(args: argparse.Namespace) -> int:
             # kill leaves a folder that `--resume` can start again.
             atomic_write_text(run.config, config.to_yaml())
             print(f"run folder: {run.path}", file=sys.stderr)
-            return _train(config, run, args, mode="new")
+            return _train(config, run, args, StartMode.NEW)
     except OSError as exc:  # e.g. a full disk before anything was trained
         if not _remove_unstarted(run):
             raise
@@ -583,44 +584,12 @@ def _resume(args: argparse.Namespace) -> int:
     if args.jobs is not None:
         raise HarnessError("--jobs goes with --seeds or a seed group's --resume")
     run = RunDir(args.resume)
-    run.check_files()  # a file linked out of the run: refused before anything is read or written
-    if run.is_checkpoint:
-        raise HarnessError(
-            f"{run.path} is a checkpoint of {run.checkpoint_of.path}: resume the run "
-            f"(harness run --resume {run.checkpoint_of.path}), which continues from its newest "
-            "checkpoint"
-        )
-    if run_state(run).never_started:
-        raise HarnessError(
-            f"{run.path}: not a run folder (no config.yaml) nor a seed group (no group.json)"
-        )
+    check_resumable(run)  # the training layer decides what a resume does; this prints it
     with run.lock():  # a second resume of a live run stops here
         config = load_config(run.config)
-        status = run_state(run)
-        if status.finished:
-            if status.training is None:  # its checkpoints deleted since: nothing to resume
-                raise HarnessError(
-                    f"{run.path}: this run is finished (it has its model.zip) and has no "
-                    "checkpoint to resume from; nothing was trained and its model.zip is kept"
-                )
-            print(
-                f"{run.path}: this run already finished ({status.training.num_timesteps} steps)",
-                file=sys.stderr,
-            )
-            return 0
-        from harness.training.train import check_training_device  # torch: here
-
-        check_training_device(config, run)  # (train asks too) before anything is said or done
-        if status.state is RunState.NO_CHECKPOINT:
-            print(
-                f"{run.path}: no checkpoint yet (stopped before the first one): starting the run "
-                "again from step 0 in the same folder",
-                file=sys.stderr,
-            )
-            return _train(config, run, args, mode="restart")
-        check_resume_config(status, config)  # before the slow start: one line, nothing changed
-        print(f"resuming {run.path}", file=sys.stderr)
-        return _train(config, run, args, mode="resume")
+        start = resume_start(run, config)
+        print(start.message, file=sys.stderr)
+        return _train(config, run, args, start.mode) if start.trains else 0
 
 
 def _resume_group(args: argparse.Namespace) -> int:
@@ -642,25 +611,13 @@ def _resume_group(args: argparse.Namespace) -> int:
     return _group_done(group, jobs)
 
 
-def _train(config: ExperimentConfig, run: RunDir, args: argparse.Namespace, mode: str) -> int:
-    """Train ``config`` into ``run``: ``mode`` is ``new``, ``resume`` or ``restart``."""
-    from harness.training.train import (  # torch, SB3: only here
-        TrainingFailed,
-        TrainingInterrupted,
-        train,
-    )
+def _train(config: ExperimentConfig, run: RunDir, args: argparse.Namespace, mode: StartMode) -> int:
+    """Train ``config`` into ``run`` (``train_run``: a policy or a prior) and say how it ended:
+    ``mode`` is new, resume or restart."""
+    from harness.training.train import TrainingFailed, TrainingInterrupted  # torch, SB3: here
 
-    if config.prior is not None:  # a map prior's run (docs/prior.md)
-        from harness.training.prior import train_prior as train  # type: ignore[assignment]
     try:
-        train(
-            config,
-            run,
-            progress_bar=not args.no_progress,
-            resume=mode == "resume",
-            restart=mode == "restart",
-            command=args.argv,
-        )
+        train_run(config, run, mode, progress_bar=not args.no_progress, command=args.argv)
     except TrainingInterrupted as exc:
         during = f" {exc.note}" if exc.note else ""
         print(

@@ -17,7 +17,8 @@ counts as much as one at the top):
   by ``harness/training/state.py``: only it (and ``harness/training/train.py``, which loads the
   checkpoint a resume continues from) reads a run's checkpoints to tell where it stands, and
   outside the training package nothing of ``harness/training/checkpoints.py`` but its errors is
-  used;
+  used; what a resume does with that state, and which trainer (policy or prior) a config gets,
+  is ``harness/training/start.py``'s: the CLI reads no state and picks no trainer;
 * the rollout teacher (``envs/coverage/teacher.py``), which sees the true map, is for training
   only: no code of evaluation (``harness/evaluation``, ``harness/commands.py``, the CLI's
   ``eval``, ``compare`` and ``render``, and the env they play) reaches it through its imports.
@@ -300,6 +301,63 @@ def test_the_run_state_check_finds_a_breach(tmp_path: Path) -> None:
         "from harness.training.state import run_state\n"
     )
     assert state_rule_breaches(asker) == ["check_config"]
+
+
+#: The module that decides what ``harness run`` does with a run folder.
+START = "harness.training.start"
+#: What decides what a run's command does with its state, and which trainer a config gets: the
+#: training layer's (:data:`START`), never the command line's.
+RUN_DECISIONS = frozenset(
+    {
+        "RunState",
+        "never_started",
+        "finished",
+        "NO_CHECKPOINT",
+        "RESUMABLE",
+        "FINISHED",
+        "check_resume_config",
+        "check_training_device",
+        "train_prior",
+        "train",
+        "prior",
+    }
+)
+
+
+def run_decisions(path: Path) -> list[str]:
+    """The names and attributes of :data:`RUN_DECISIONS` that ``path``'s code uses (a run's
+    state read, compared or acted on; a trainer picked), each once, sorted."""
+    used: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text(), str(path))):
+        if isinstance(node, ast.Name):
+            used.add(node.id)
+        elif isinstance(node, ast.Attribute):
+            used.add(node.attr)
+        elif isinstance(node, ast.alias):
+            used.add(node.asname or node.name)
+    return sorted(used & RUN_DECISIONS)
+
+
+def test_the_cli_decides_no_run_state_and_picks_no_trainer() -> None:
+    # harness.training.start says what a resume does (and the line to print) and trains a
+    # config, a policy or a prior; the command line parses, calls and prints.
+    bad = run_decisions(ROOT / "harness" / "cli.py")
+    assert not bad, f"harness.cli decides a run's state or its trainer ({bad}): see {START}"
+
+
+def test_the_run_decision_check_finds_one(tmp_path: Path) -> None:
+    cli = tmp_path / "cli.py"
+    cli.write_text(
+        "from harness.training.state import RunState, run_state\n"
+        "def resume(run, config):\n"
+        "    status = run_state(run)\n"
+        "    if status.finished:\n"
+        "        return 0\n"
+        "    if config.prior is not None:\n"
+        "        from harness.training.prior import train_prior as train\n"
+        "    train(config, run)\n"
+    )
+    assert run_decisions(cli) == ["RunState", "finished", "prior", "train"]
 
 
 # ------------------------------------------------------------------ the teacher, training only

@@ -21,9 +21,10 @@ import yaml
 
 from harness.cli import main
 from harness.config.loading import load_config
-from harness.results.rundir import RunDir
+from harness.results.rundir import RunDir, RunDirError
 from harness.sb3.dqn import DoubleDQN
 from harness.training.checkpoints import TrainingState, complete_checkpoints, save_checkpoint
+from harness.training.start import StartMode, check_resumable, resume_start, train_run
 from harness.training.train import StopOnSignal, stop_on_signals
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -119,6 +120,30 @@ def test_resume_before_the_first_checkpoint_starts_again_in_the_same_folder(tmp_
     assert "0.123456" not in text
     assert episode_numbers(run.path) == list(range(len(episode_numbers(run.path))))
     assert run.model.is_file()
+
+
+def test_the_training_layer_says_what_a_resume_does_and_changes_nothing(run_copy, tmp_path):
+    # The decision (and its line) is harness.training.start's; the CLI prints it and trains.
+    run = RunDir(run_copy)
+    before = snapshot(run_copy)
+    start = resume_start(run, load_config(run.config))
+    assert (start.mode, start.message, start.trains) == (
+        StartMode.RESUME,
+        f"resuming {run.path}",
+        True,
+    )
+    early = RunDir(tmp_path / "killed-early")
+    early.checkpoints.mkdir(parents=True)
+    early.config.write_text(run.config.read_text())
+    start = resume_start(early, load_config(early.config))
+    assert start.mode is StartMode.RESTART and "from step 0 in the same folder" in start.message
+    with pytest.raises(RunDirError, match="not a run folder"):
+        check_resumable(RunDir(tmp_path / "empty"))
+    with pytest.raises(RunDirError, match="is a checkpoint of"):
+        check_resumable(RunDir(newest(run_copy)))
+    with pytest.raises(ValueError, match="not trained"):
+        train_run(load_config(run.config), run, StartMode.FINISHED)
+    assert snapshot(run_copy) == before
 
 
 def test_a_second_process_on_a_live_run_is_refused(run_copy, capsys):

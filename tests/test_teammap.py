@@ -746,7 +746,7 @@ def test_an_old_config_loads_and_a_retired_knob_turned_on_is_refused():
     assert env.observation == {"teammap": {"crop": 9}}
     assert env.frontier == {"action": "step", "planner": "pocket"}
     # The own trail is retired: its old default (0, off) loads, a trail turned on does not.
-    with pytest.raises(ConfigError, match=r"env\.trail: 5: .*docs/experiment-log\.md"):
+    with pytest.raises(ConfigError, match=r"env\.trail: 5: .*research/experiment-log\.md"):
         load({**old, "trail": 5})
     # The old flags' rules: the tie-break needed the claims, the claims needed the compass.
     with pytest.raises(ConfigError, match=r"env\.frontier_tie_break needed env\.frontier_claims"):

@@ -6,7 +6,7 @@ the team-map observation (``observation: {teammap: {crop: 15, ...}}``); ``fronti
 ``frontier_action``, ``frontier_claims`` and ``frontier_tie_break`` became one option of the
 planner extension (``frontier: {action: step, planner: pocket}``).
 
-Retired (docs/experiment-log.md says what each measured and which commit had it): ``env.trail``,
+Retired (research/experiment-log.md says what each measured and which commit had it): ``env.trail``,
 ``eval.step_bonus``, ``algo.imitation.same_moves``, ``algo.action_mask``,
 ``env.frontier.action.goal.gather``, ``algo.teacher.horizon`` and ``gain`` (the teacher's
 rollouts go to the episode's end, any gain counts). A file that leaves
@@ -66,7 +66,7 @@ def _drop_retired(data: dict[str, Any], path: tuple[str, ...], default: Any) -> 
     if value != default:
         raise MigrationError(
             f"{'.'.join(path)}: {value!r}: this knob was retired (no shipped result needed it); "
-            "docs/experiment-log.md says what it measured and which commit had it"
+            "research/experiment-log.md says what it measured and which commit had it"
         )
 
 

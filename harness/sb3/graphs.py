@@ -5,8 +5,8 @@ On a GPU, a gradient step of :class:`~harness.sb3.dqn.DoubleDQN` is some hundred
 backward pass, the gradient clipping, the priority update), each launched from Python: on an
 H200 the thesis's MLP made about 340 gradient steps/s that way, what the machine's CPU makes.
 torch records the kernels of a function once (``torch.cuda.graph``) and launches all of them
-again in one call; recorded so, the same step made about 2,300 steps/s (docs/performance.md,
-"One launch per gradient step").
+again in one call; recorded so, the same step made about 2,300 steps/s
+(research/performance-history.md, "One launch per gradient step").
 
 A recorded step reads its tensors where they were when it was recorded and keeps every number
 it read from Python then. So what changes from step to step lives on the device and is written

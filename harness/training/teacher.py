@@ -38,7 +38,7 @@ class TeacherLabeller:
     ) -> None:
         # The oracle's measured setting: rollouts to the episode's end, scored by the cells found
         # (or with reach, by the steps to that coverage), any gain over slot 0
-        # (docs/experiment-log.md "The room in the candidates").
+        # (research/experiment-log.md "The room in the candidates").
         self.teacher = RolloutTeacher(reach=config.reach)
         self.share = config.share
         self.rng = np.random.default_rng(seed)

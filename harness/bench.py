@@ -446,8 +446,7 @@ def bench_sharing(
     net = THESIS_NET if net is None else net
     models, venvs = {}, []
     for mode in SHARING_MODES:
-        env = THESIS_ENV.model_copy()
-        env._agent_id = mode != "shared"
+        env = THESIS_ENV.with_agent_id(mode != "shared")  # as algo.sharing sets it in a config
         venv = make_vec_env(env, copies=4, seed=0)
         venvs.append(venv)
         # The policy, its network and its optimizer's step as `harness run` builds them for

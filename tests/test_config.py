@@ -12,8 +12,8 @@ import yaml
 
 from harness.cli import main
 from harness.config.loading import config_from_dict, load_config, parse_override
-from harness.config.schema import ConfigError, ExperimentConfig
-from harness.factory import check_env
+from harness.config.schema import AlgoConfig, ConfigError, EnvConfig, ExperimentConfig, VecConfig
+from harness.factory import check_env, env_kwargs
 from harness.training.checks import checked_config
 from tests.conftest import one_error_line
 from tests.test_seeds_and_sweeps import TINY
@@ -149,6 +149,44 @@ def test_resolved_yaml_round_trips():
     cfg = ExperimentConfig()
     again = ExperimentConfig.model_validate(yaml.safe_load(cfg.to_yaml()))
     assert again == cfg
+
+
+def test_validating_a_config_changes_none_of_the_sections_given_to_it():
+    # Validators only check; what one section derives from another (the coverage env's agent
+    # indication from algo.sharing) is filled in once, into the config's own copy.
+    env = EnvConfig(height=8, width=8, n_agents=2)
+    vec, algo = VecConfig(copies=2), AlgoConfig(sharing="shared_id")
+    before = [(s.model_dump(), dict(s.__pydantic_private__ or {})) for s in (env, vec, algo)]
+    indexed = ExperimentConfig(env=env, vec=vec, algo=algo)
+    assert indexed.env.agent_id and not env.agent_id
+    assert [(s.model_dump(), dict(s.__pydantic_private__ or {})) for s in (env, vec, algo)] == (
+        before
+    )
+    # Another config of the same env section says its own, and leaves the first one's alone.
+    shared = ExperimentConfig(env=indexed.env, vec=vec)
+    assert not shared.env.agent_id and indexed.env.agent_id
+    assert ExperimentConfig(env=env, algo={"sharing": "per_agent"}).env.agent_id
+
+
+def test_a_map_source_is_built_for_the_check_and_reused_by_the_factory(monkeypatch):
+    from harness.config import maps as config_maps
+
+    config_maps._built.cache_clear()
+    built: list[tuple[int, int]] = []
+    build = config_maps.MapSource.build
+
+    def counted(self, height: int, width: int):
+        built.append((height, width))
+        return build(self, height, width)
+
+    monkeypatch.setattr(config_maps.MapSource, "build", counted)
+    config = config_from_dict(
+        {"env": {"height": 24, "width": 30, "n_agents": 2, "map": {"cave": {"iterations": 3}}}}
+    )
+    assert built.count((24, 30)) == 1  # the check at the env's size (and one at the check size)
+    checked = len(built)
+    first, second = env_kwargs(config.env)["map"], env_kwargs(config.env)["map"]
+    assert len(built) == checked and first is second  # the factory builds none of its own
 
 
 def test_relative_map_path_is_stored_absolute_with_its_hash(tmp_path, monkeypatch):

@@ -15,7 +15,7 @@ import yaml
 
 from harness.cli import main
 from harness.config.loading import config_from_dict, load_config
-from harness.config.schema import ConfigError, PettingZooEnvConfig
+from harness.config.schema import ConfigError, ExperimentConfig, PettingZooEnvConfig, VecConfig
 from harness.evaluation.baselines import make_baseline
 from harness.evaluation.episodes import run_episodes, selection_score, summarize
 from harness.results.rundir import FOREIGN_EPISODE_COLUMNS, RunDir, rewind_logs
@@ -50,6 +50,16 @@ def test_a_pettingzoo_source_reads_its_agents_and_picks_supersuit():
     assert config.vec.backend == "supersuit"  # not given: chosen for it
     again = config_from_dict(yaml.safe_load(config.to_yaml()))  # a run's config.yaml reloads
     assert again.env == config.env and again.vec.backend == "supersuit"
+
+
+def test_the_backend_chosen_for_a_pettingzoo_env_leaves_the_vec_section_given_alone():
+    env = config_from_dict(meet()).env
+    vec = VecConfig(copies=3)
+    config = ExperimentConfig(env=env, vec=vec)
+    assert config.vec.backend == "supersuit" and config.vec.copies == 3
+    assert vec.backend == "core" and "backend" not in vec.model_fields_set
+    # The coverage env keeps the core with the very same section.
+    assert ExperimentConfig(vec=vec).vec.backend == "core"
 
 
 def test_an_env_padded_to_one_action_space_as_the_contract_advises_is_accepted():

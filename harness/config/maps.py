@@ -22,8 +22,10 @@ a file that changed since. A config saved without the hash gets it then.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import inspect
+import json
 import typing
 from pathlib import Path
 from typing import Any
@@ -151,8 +153,9 @@ def parse_source(data: dict[str, Any]) -> dict[str, Any]:
     for i, item in enumerate([source] if source.mix is None else source.mix):
         if item.file is not None:
             _pin_file(item.file, "file" if source.mix is None else f"{MIX}.{i}.file")
-    source.build(_CHECK_SIZE, _CHECK_SIZE)  # the generators' own checks of their parameters
-    return source.model_dump(mode="json", exclude_none=True)
+    checked = source.model_dump(mode="json", exclude_none=True)
+    build_source(checked, _CHECK_SIZE, _CHECK_SIZE)  # the generators' own checks of their values
+    return checked
 
 
 def file_sha256(path: Path) -> str:
@@ -193,8 +196,24 @@ def _pin_file(params: Any, where: str) -> None:
 
 
 def build_source(data: dict[str, Any], height: int, width: int) -> generators.MapGenerator:
-    """The generator of a (checked) mapping-form ``env.map``; sizes not given are the env's."""
-    return MapSource.model_validate(data).build(height, width)
+    """The generator of a (checked) mapping-form ``env.map``; sizes not given are the env's.
+
+    Built once per source and size: the check of an ``env`` section builds it (the generators
+    check their own parameters) and the factory's envs reuse that one. A generator keeps no
+    state between maps (each draw takes the env's ``rng``; a fixed map is handed out as a copy),
+    so envs may share it; a map file's source names its content's hash, so a changed file is
+    another source.
+
+    Raises:
+        ValueError: naming the kind, for parameters the generator refuses (not kept).
+    """
+    return _built(json.dumps(data, sort_keys=True), height, width)
+
+
+@functools.lru_cache(maxsize=64)
+def _built(text: str, height: int, width: int) -> generators.MapGenerator:
+    """:func:`build_source` of the JSON ``text`` of a source (a key the cache can hash)."""
+    return MapSource.model_validate(json.loads(text)).build(height, width)
 
 
 def describe_map(value: str | dict[str, Any], height: int, width: int) -> str:

@@ -160,7 +160,8 @@ class EnvConfig(_Section):
     starts: list[tuple[int, int]] | None = None
     _agent_id: bool = PrivateAttr(default=False)
     """Whether each observation holds the agent's one-hot index (the env's ``agent_id``): not a
-    key of its own, set by :class:`ExperimentConfig` from ``algo.sharing`` (its one owner)."""
+    key of its own, derived from ``algo.sharing`` (its one owner) when :class:`ExperimentConfig`
+    resolves its sections (:meth:`with_agent_id`)."""
     map_sha256: str | None = None
     """For a map file: SHA-256 of its content. Filled in when the config is loaded (with the
     file's absolute path in ``map``), so a run's ``config.yaml`` names exactly the map it was made
@@ -283,6 +284,15 @@ class EnvConfig(_Section):
     def agent_id(self) -> bool:
         """Whether each observation holds the agent's one-hot index (set from ``algo.sharing``)."""
         return self._agent_id
+
+    def with_agent_id(self, on: bool) -> EnvConfig:
+        """This section with agent indication ``on``: itself when it has it already, else a
+        copy (a section may be shared by several configs; none of them changes it)."""
+        if self._agent_id == on:
+            return self
+        env = self.model_copy()
+        env._agent_id = on
+        return env
 
     def test_grids(self) -> list[Any]:
         """The grids of ``test_maps``."""
@@ -773,13 +783,11 @@ class ExperimentConfig(_Section):
         # no coverage-specific test-time shield.
         if not isinstance(self.env, PettingZooEnvConfig):
             return self
-        if self.vec.backend == "core":
-            if "backend" in self.vec.model_fields_set:
-                raise ValueError(
-                    "vec.backend: core is the coverage env's batched core; a pettingzoo env "
-                    "runs on vec.backend: supersuit (the default for it)"
-                )
-            self.vec.backend = "supersuit"
+        if self.vec.backend == "core" and "backend" in self.vec.model_fields_set:
+            raise ValueError(
+                "vec.backend: core is the coverage env's batched core; a pettingzoo env "
+                "runs on vec.backend: supersuit (the default for it)"
+            )
         if self.algo.sharing != "shared":
             raise ValueError(
                 f"algo.sharing: {self.algo.sharing} adds the coverage env's agent index to the "
@@ -796,13 +804,6 @@ class ExperimentConfig(_Section):
             raise ValueError(
                 "eval.shield reads the coverage env's observation: not for a pettingzoo env"
             )
-        return self
-
-    @model_validator(mode="after")
-    def _agent_indication(self) -> ExperimentConfig:
-        # algo.sharing owns agent indication; the env only carries it out.
-        if isinstance(self.env, EnvConfig):
-            self.env._agent_id = self.algo.sharing != "shared"
         return self
 
     @model_validator(mode="after")
@@ -832,10 +833,10 @@ class ExperimentConfig(_Section):
             raise ValueError(
                 "algo.teacher and algo.imitation are two experts for one margin loss: set one"
             )
-        if self.vec.backend != "core":
+        if self._backend() != "core":
             raise ValueError(
                 f"algo.teacher reads the batched core's copies: it needs vec.backend: core, got "
-                f"{self.vec.backend!r}"
+                f"{self._backend()!r}"
             )
         return self
 
@@ -962,6 +963,29 @@ class ExperimentConfig(_Section):
                     f"phases.{phase.name}.batch_size: {phase.batch_size:,} is larger than "
                     f"algo.buffer_size ({self.algo.buffer_size:,})"
                 )
+        return self
+
+    def _backend(self) -> VecBackend:
+        """``vec.backend`` as the run uses it: as given, else the env's own (the batched core for
+        the coverage env, SuperSuit for a pettingzoo env, which the core cannot step)."""
+        if "backend" in self.vec.model_fields_set or not isinstance(self.env, PettingZooEnvConfig):
+            return self.vec.backend
+        return "supersuit"
+
+    @model_validator(mode="after")
+    def _resolved(self) -> ExperimentConfig:
+        # The one step that fills in values that depend on other sections, after every check
+        # above (which only check, reading them through _backend): the vec backend an env needs,
+        # and the coverage env's agent indication (algo.sharing owns it; the env carries it
+        # out). Into copies: a section given to this config may be another config's too, and
+        # validating one config must not change another. Kept last: validators run in order.
+        backend = self._backend()
+        if self.vec.backend != backend:  # an assignment checks the config again, once
+            self.vec = self.vec.model_copy(update={"backend": backend})
+        if isinstance(self.env, EnvConfig):
+            env = self.env.with_agent_id(self.algo.sharing != "shared")
+            if env is not self.env:
+                self.env = env
         return self
 
     @field_validator("phases")

@@ -25,7 +25,7 @@ from harness.prior.score import EPS, density, score
 from harness.results.rundir import RunDir
 from harness.training import prior as prior_train
 from harness.training.train import TrainingInterrupted
-from tests.conftest import one_error_line
+from tests.conftest import TINY_GOAL_RUN, one_error_line
 from tests.test_teacher import W, corridor
 
 #: A prior run of a few seconds: 21x31 mazes, 2 agents, 200 steps, a 2-level network.
@@ -398,3 +398,18 @@ def test_a_policys_command_on_a_prior_says_what_a_prior_takes(
     assert main([part.format(**values) for part in command]) == 2
     assert words in one_error_line(capsys.readouterr().err)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_the_rollout_baseline_plans_with_a_prior_end_to_end(capsys) -> None:
+    # The whole path: eval.rollout.prior loaded by the harness's commands and handed to the
+    # chooser, which decides from the start on 12x12 random maps (the random-map prior reads
+    # any size): the episodes play to their end with no wall hit.
+    args = ["eval", "--policy", "rollout", "--config", "configs/goals_2agents.yaml"]
+    for key in ("env.map", "env.height", "env.width", "env.max_steps", "env.test_maps"):
+        args += ["--set", f"{key}={TINY_GOAL_RUN[key]}"]
+    args += ["--set", "eval.rollout.after=0.0", "--episodes", "2", "--json"]
+    with_prior = [*args, "--set", f"eval.rollout.prior={REFERENCE / 'prior_random'}"]
+    assert main(with_prior) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["episodes"] == 2 and out["wall_hits_mean"] == 0
+    assert 0 < out["coverage_mean"] <= 1

@@ -30,16 +30,20 @@ import json
 import pickle
 import random
 import shutil
+import sys
 import warnings
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 
 from harness.config.loading import config_from_dict, parse_yaml
 from harness.config.schema import ConfigError, ExperimentConfig
 from harness.results.rundir import CheckpointDir, RunDir, RunDirError
+
+T = TypeVar("T")
 
 STEP_PREFIX = "step-"
 KEEP = 2  # checkpoints kept: the newest and the one before it
@@ -393,6 +397,35 @@ def set_aside(checkpoint: Path) -> Path:
     if target.exists():
         shutil.rmtree(target)
     return checkpoint.rename(target)
+
+
+def newest_readable(folder: Path, load: Callable[[Path], T]) -> tuple[Path, T]:
+    """The newest complete checkpoint under ``folder`` that ``load`` reads back whole, with what
+    it read; when the newest cannot be used, the line says why and which older one is used.
+
+    Raises:
+        CheckpointError: when none reads back whole (the reasons of each).
+        ConfigChangedError: at once (an older checkpoint is no fallback for an edited config).
+    """
+    found = complete_checkpoints(folder)
+    if not found:
+        raise CheckpointError(f"{folder}: no complete checkpoint to resume from")
+    problems: list[str] = []
+    for checkpoint in reversed(found):
+        try:
+            value = load(checkpoint)
+        except ConfigChangedError:
+            raise
+        except CheckpointError as exc:
+            problems.append(str(exc))
+            continue
+        if problems:
+            print(
+                f"harness: {'; '.join(problems)}; resuming from the older {checkpoint.name}",
+                file=sys.stderr,
+            )
+        return checkpoint, value
+    raise CheckpointError("; ".join(problems))
 
 
 def latest_checkpoint(folder: Path) -> Path:

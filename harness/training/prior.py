@@ -42,12 +42,12 @@ from harness.training.checkpoints import (
     KEEP,
     STEP_PREFIX,
     CheckpointError,
-    ConfigChangedError,
     TrainingState,
     check_config,
     check_guards,
     check_inside_the_run,
     complete_checkpoints,
+    newest_readable,
     read_state,
     set_aside,
 )
@@ -200,28 +200,14 @@ def _resume_point(
 ) -> tuple[TrainingState, UNet, torch.optim.Optimizer, np.random.Generator]:
     """The newest checkpoint that reads back whole (older ones are the fallback, and the newer
     unreadable ones are set aside)."""
-    found = complete_checkpoints(run.checkpoints)
-    if not found:
-        raise CheckpointError(f"{run.checkpoints}: no complete checkpoint to resume from")
-    problems: list[str] = []
-    for checkpoint in reversed(found):
-        try:
-            point = _load_checkpoint(checkpoint, config)
-        except ConfigChangedError:
-            raise
-        except CheckpointError as exc:
-            problems.append(str(exc))
-            continue
-        if problems:
-            print(
-                f"harness: {'; '.join(problems)}; resuming from {checkpoint.name}", file=sys.stderr
-            )
-        for newer in found:
-            if newer.name > checkpoint.name:
-                print(f"harness: set aside {set_aside(newer)}", file=sys.stderr)
-        print(f"resuming at step {point[0].num_timesteps} ({checkpoint})", file=sys.stderr)
-        return point
-    raise CheckpointError("; ".join(problems))
+    checkpoint, point = newest_readable(
+        run.checkpoints, lambda checkpoint: _load_checkpoint(checkpoint, config)
+    )
+    for newer in complete_checkpoints(run.checkpoints):
+        if newer.name > checkpoint.name:  # unreadable: passed over
+            print(f"harness: set aside {set_aside(newer)}", file=sys.stderr)
+    print(f"resuming at step {point[0].num_timesteps} ({checkpoint})", file=sys.stderr)
+    return point
 
 
 def record_sets(config: ExperimentConfig, episodes: int, seed: int, what: str) -> list[PartialMaps]:

@@ -84,6 +84,7 @@ from harness.training.checkpoints import (
     check_inside_the_run,
     check_replay_buffer,
     complete_checkpoints,
+    newest_readable,
     read_rng,
     read_state,
     save_checkpoint,
@@ -788,26 +789,11 @@ def find_resume_point(run: RunDir, config: ExperimentConfig) -> ResumePoint:
         ConfigChangedError: when the run's config is not the one a checkpoint was made with
             (at once: an older checkpoint is no fallback for an edited ``config.yaml``).
     """
-    found = complete_checkpoints(run.checkpoints)
-    if not found:
-        raise CheckpointError(f"{run.checkpoints}: no complete checkpoint to resume from")
-    problems = []
-    for checkpoint in reversed(found):
-        try:
-            point = load_resume_point(checkpoint, config)
-        except ConfigChangedError:
-            raise
-        except CheckpointError as exc:
-            problems.append(str(exc))
-            continue
-        if problems:
-            print(
-                f"harness: {'; '.join(problems)}; resuming from the older {checkpoint.name}",
-                file=sys.stderr,
-            )
-        print(f"resuming at step {point.state.num_timesteps} ({checkpoint})", file=sys.stderr)
-        return point
-    raise CheckpointError("; ".join(problems))
+    checkpoint, point = newest_readable(
+        run.checkpoints, lambda checkpoint: load_resume_point(checkpoint, config)
+    )
+    print(f"resuming at step {point.state.num_timesteps} ({checkpoint})", file=sys.stderr)
+    return point
 
 
 def load_resume_point(checkpoint: Path, config: ExperimentConfig) -> ResumePoint:

@@ -59,7 +59,7 @@ from harness.commands import (
 )
 from harness.config.loading import load_config
 from harness.config.pettingzoo import EnvFailed
-from harness.config.schema import MAX_SEED, ConfigError, ExperimentConfig, check_name, is_foreign
+from harness.config.schema import MAX_SEED, ConfigError, ExperimentConfig, check_name
 
 # The help names the baselines from their registry (its planners' SciPy costs the start nothing
 # more: the env, which every command imports, has loaded it already).
@@ -227,7 +227,11 @@ def _add_eval_parser(sub: Any) -> None:
         help="test episodes (default 100)",
     )
     ev.add_argument("--json", action="store_true", help="print one JSON object")
-    ev.add_argument("--plot", type=Path, help="coverage/wall hits per episode PNG (Fig. 4.11)")
+    ev.add_argument(
+        "--plot",
+        type=Path,
+        help="coverage/wall hits per episode PNG (Fig. 4.11); a pettingzoo env: the team return",
+    )
     ev.add_argument(
         "--against",
         nargs="+",
@@ -666,10 +670,6 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.plot is not None:
         check_image_output(args.plot, "--plot")
     target = _target(args)
-    if args.plot is not None and is_foreign(target.config.env):
-        raise HarnessError(
-            "--plot draws coverage and wall hits per episode: not for a pettingzoo env"
-        )
     for policy in args.against:  # before any episode is played
         check_baseline(policy, target.config, "--against")
     progress = EpisodeProgress(target.label, args.episodes)
@@ -684,9 +684,13 @@ def cmd_eval(args: argparse.Namespace) -> int:
         if comparison["saved"] is not None:
             print(f"saved {comparison['saved']}", file=sys.stderr)
     if args.plot is not None:
-        from harness.results.plots import plot_eval_episodes
+        from harness.results.plots import plot_eval_episodes, plot_eval_returns
 
-        plot_eval_episodes(results, None, args.plot, f"{target.label}: {len(results)} episodes")
+        title = f"{target.label}: {len(results)} episodes"
+        if "team_return" in summary:  # a PettingZoo env of one's own: no coverage to draw
+            plot_eval_returns(summary["team_return"], args.plot, title)
+        else:
+            plot_eval_episodes(results, None, args.plot, title)
         print(f"saved {args.plot}", file=sys.stderr)
     if args.json:
         hidden = (*PER_EPISODE_KEYS, "saved")

@@ -203,11 +203,27 @@ def test_eval_tune_and_render(trained, tmp_path, capsys):
     against = json.loads((trained / "against-random-4ep.json").read_text())
     assert against["metric"] == "team_return" and against["team_return"] == saved["team_return"]
     assert against["against_mean"] == pytest.approx(random_mean, rel=1e-3)
+    # --plot draws the team return of each episode (no coverage or wall hits to draw).
+    plot = tmp_path / "returns.png"
+    assert main(["eval", str(trained), "--episodes", "4", "--plot", str(plot)]) == 0
+    assert f"saved {plot}" in capsys.readouterr().err
+    assert plot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert main(["tune", str(trained), "--episodes", "2", "--temperatures", "0.5", "1"]) == 0
     assert "(team return)" in capsys.readouterr().out
     gif = tmp_path / "meet.gif"
     assert main(["render", str(trained), "--gif", str(gif), "--out", str(tmp_path / "m.png")]) == 0
     assert gif.stat().st_size > 0 and (tmp_path / "m.png").is_file()
+
+
+def test_the_return_plot_draws_the_team_and_each_group(tmp_path):
+    from harness.results.plots import plot_eval_returns
+
+    out = plot_eval_returns(
+        [3.0, -1.0, 2.5], tmp_path / "r.png", groups={"good": [2, 0, 1], "adversary": [1, -1, 1.5]}
+    )
+    assert out.read_bytes()[:4] == b"\x89PNG"
+    with pytest.raises(ValueError, match="at least one episode"):
+        plot_eval_returns([], tmp_path / "none.png")
 
 
 def test_render_refuses_an_env_without_frames(tmp_path, capsys):

@@ -359,6 +359,63 @@ def plot_eval_episodes(
     return _save(fig, out)
 
 
+def plot_eval_returns(
+    team_returns: Sequence[float] | np.ndarray,
+    out: str | Path,
+    title: str = "",
+    groups: Mapping[str, Sequence[float]] | None = None,
+) -> Path:
+    """The team return of each test episode with its median (a PettingZoo env of one's own,
+    whose episodes have no coverage or wall hits to draw), and each group's return per episode
+    where ``groups`` names some.
+
+    Args:
+        team_returns: The team return of each episode (the sum of its agents' returns).
+        out: PNG file to write.
+        title: Axes title.
+        groups: Per group name, its return in each episode (as many as ``team_returns``).
+
+    Returns:
+        The path of the PNG.
+    """
+    team = np.asarray(team_returns, dtype=float)
+    if not len(team):
+        raise ValueError("plot_eval_returns needs at least one episode")
+    episodes = np.arange(1, len(team) + 1)
+    median = float(np.median(team))
+
+    fig = Figure(figsize=(7.0, 3.8), dpi=DPI)
+    ax = fig.add_subplot()
+    (line,) = ax.plot(episodes, team, "-o", color=_LINE_COLOUR, ms=3.5, lw=1.0, label="team")
+    handles = [line]
+    # The agents' colours less the two blues, which the team's line would be mistaken for.
+    colours = [c for c in AGENT_HEX if c not in (_LINE_COLOUR.lower(), "#56b4e9")]
+    for k, (name, values) in enumerate((groups or {}).items()):
+        colour = colours[k % len(colours)]
+        (part,) = ax.plot(
+            episodes, np.asarray(values, dtype=float), "-", color=colour, lw=1.0, label=name
+        )
+        handles.append(part)
+    handles.append(
+        ax.axhline(median, color=_MEDIAN_COLOUR, ls="--", lw=1.2, label=f"median {median:.4g}")
+    )
+    ax.set_xlabel("test episode")
+    ax.set_ylabel("return")
+    ax.set_xlim(0.3, len(team) + 0.7)
+    ax.xaxis.set_major_locator(MaxNLocator(10, integer=True))
+    ax.grid(axis="y", alpha=0.3)
+    ax.legend(
+        handles=handles,
+        loc="upper center",
+        bbox_to_anchor=(0.5, -0.16),
+        ncol=min(len(handles), 5),
+        frameon=False,
+    )
+    ax.set_title(title or f"Team return of {len(team)} test episodes")
+    fig.tight_layout()
+    return _save(fig, out)
+
+
 def _style_episode_axes(ax: Any, n_episodes: int, handles: list[Any]) -> None:
     """Axes of coverage (in %) per test episode, the legend below them."""
     ax.set_xlabel("test episode")

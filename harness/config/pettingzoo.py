@@ -39,6 +39,9 @@ _MAKE_RE = re.compile(r"[A-Za-z_][\w]*(\.[A-Za-z_][\w]*)*:[A-Za-z_][\w]*(\.[A-Za
 #: evaluation would never end).
 DEFAULT_STEP_LIMIT = 100_000
 
+#: The ``metadata`` of an env that defines none (SuperSuit's VecEnv reads it).
+DEFAULT_METADATA: dict[str, Any] = {"render_modes": [], "is_parallelizable": True}
+
 #: Characters of the env's own error message kept in the one line that names it.
 _MESSAGE_CHARS = 200
 
@@ -158,7 +161,7 @@ def build(
     except ValueError:
         close_quietly(env)
         raise
-    return ContractGuard(env, spaces, step_limit)
+    return ContractGuard(env, spaces, step_limit, extra.get("render_mode"))
 
 
 @dataclass(frozen=True)
@@ -271,13 +274,35 @@ class ContractGuard(BaseParallelWrapper):
       ``uint8`` (:func:`as_frame`).
 
     The checks cost a few microseconds a step, next to the env's own step.
+
+    It also gives what SuperSuit's VecEnv reads of an env and many community envs do not define
+    (PettingZoo's ``parallel_api_test`` asks neither): ``render_mode``, the one the harness built
+    the env with (``None`` unless it renders), and ``metadata``, the env's own or
+    :data:`DEFAULT_METADATA`. SuperSuit reads ``render_mode`` of ``unwrapped``: the guard is
+    its own ``unwrapped`` (the env's code is reached through the guard only).
     """
 
-    def __init__(self, env: Any, spaces: EnvSpaces, step_limit: int = DEFAULT_STEP_LIMIT) -> None:
+    def __init__(
+        self,
+        env: Any,
+        spaces: EnvSpaces,
+        step_limit: int = DEFAULT_STEP_LIMIT,
+        render_mode: str | None = None,
+    ) -> None:
         super().__init__(env)
         self.spaces, self.step_limit = spaces, step_limit
         self.steps = 0  # of the episode under way
         self._known = set(spaces.agents)
+        self.render_mode = render_mode
+        with users_code(lambda text: ValueError(f"the env's metadata failed ({text})")):
+            metadata = getattr(env, "metadata", None)
+        self.metadata = metadata if isinstance(metadata, Mapping) else dict(DEFAULT_METADATA)
+
+    @property
+    def unwrapped(self) -> ContractGuard:  # type: ignore[override]
+        """The guard itself: SuperSuit reads ``unwrapped.render_mode``, which the env need not
+        define (the class docstring)."""
+        return self
 
     def _failed(self, error: str, during: str = "step") -> EnvFailed:
         return EnvFailed(self.steps, error, during)

@@ -5,6 +5,7 @@ mid-episode (knights_archers_zombies' style), trained and evaluated through the 
 
 from __future__ import annotations
 
+import csv
 import json
 import os
 from pathlib import Path
@@ -68,11 +69,31 @@ class BareEnv(ParallelEnv):
         }
 
 
+class LeavingEnv(BareEnv):
+    """:class:`BareEnv` whose ``agent_1`` terminates at step ``leaves`` and leaves ``agents``,
+    while ``agent_0`` goes on until the time limit; with a ``metadata`` and ``render_mode``."""
+
+    metadata = {"name": "leaving_v0", "render_modes": []}  # noqa: RUF012
+
+    def __init__(self, max_steps: int = 10, leaves: int = 3) -> None:
+        super().__init__(max_steps)
+        self.leaves, self.render_mode = leaves, None
+
+    def _ends(self, agent: str) -> tuple[bool, bool]:
+        if agent == "agent_1":
+            return self.t >= self.leaves, False
+        return False, self.t >= self.max_steps
+
+
 def bare(**kwargs: Any) -> BareEnv:
     """A :class:`BareEnv` without ``render_mode`` or ``metadata`` anywhere."""
     env = BareEnv(**kwargs)
     assert not hasattr(env, "render_mode") and not hasattr(env, "metadata")
     return env
+
+
+def leaving(**kwargs: Any) -> LeavingEnv:
+    return LeavingEnv(**kwargs)
 
 
 def config(tmp_path: Path, make: str) -> Path:
@@ -111,7 +132,7 @@ def _importable(monkeypatch):
     monkeypatch.setenv("PYTHONPATH", os.pathsep.join(p for p in (str(ROOT), path) if p))
 
 
-@pytest.mark.parametrize("make", [bare])
+@pytest.mark.parametrize("make", [bare, leaving])
 def test_the_envs_pass_pettingzoos_own_api_test(make):
     parallel_api_test(make(), num_cycles=20)
 
@@ -122,3 +143,42 @@ def test_an_env_without_render_mode_or_metadata_trains_and_evaluates(tmp_path, c
     assert main(["eval", str(run), "--episodes", "2"]) == 0
     saved = json.loads((run / "eval-2ep.json").read_text())
     assert saved["length_mean"] == 10
+
+
+def test_an_agent_that_left_keeps_its_slot_with_zeros_until_the_episode_ends(tmp_path):
+    from harness.config.loading import load_config
+    from harness.training.adapters import make_vec_env
+
+    env = load_config(config(tmp_path, "leaving")).env
+    venv = make_vec_env(env, copies=1, seed=0, backend="supersuit")
+    venv.reset()
+    for step in range(1, 11):
+        obs, rewards, dones, infos = venv.step(np.array([1, 1]))
+        gone = step > 3 and step < 10  # agent_1 left at step 3 (step 10: the next episode's)
+        assert (obs[1] == 0).all() == gone and rewards.tolist() == [1.0, float(step <= 3)]
+        assert dones.tolist() == [step == 10] * 2  # one end for both slots: the episode's
+    assert [info["episode"]["r"] for info in infos] == [10.0, 3.0]
+    assert "TimeLimit.truncated" not in infos[1]  # it terminated: no time-out to bootstrap
+    venv.close()
+
+
+def test_agents_that_leave_train_and_count_only_their_own_steps(tmp_path, capsys):
+    run = tmp_path / "run"
+    assert main(["run", str(config(tmp_path, "leaving")), "--no-progress", "--into", str(run)]) == 0
+    with (run / "episodes.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert rows and all(row["length"] == "10" for row in rows)  # one row per episode
+    for row in rows:  # agent_1 earns only in its 3 steps
+        first, second = (float(r) for r in row["returns"].split(";"))
+        assert 0 <= first <= 10 and 0 <= second <= 3
+    # The random baseline takes action 1 (1 point) half the time: agent_1 earns at most 3.
+    assert main(["eval", str(run), "--episodes", "4"]) == 0
+    saved = json.loads((run / "eval-4ep.json").read_text())
+    returns = {row["agent"]: row["return_mean"] for row in saved["per_agent"]}
+    assert 0 <= returns["agent_1"] <= 3 and 0 <= returns["agent_0"] <= 10
+    assert saved["length_mean"] == 10
+    # Each agent's infos are those of its own last step: agent_1's of step 3.
+    assert {row["agent"]: row["t_mean"] for row in saved["per_agent"]} == {
+        "agent_0": 10,
+        "agent_1": 3,
+    }

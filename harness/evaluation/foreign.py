@@ -46,8 +46,8 @@ class ForeignEpisodeResult:
     length: int
     """Steps of the episode."""
     infos: dict[str, list[float]] = field(default_factory=dict)
-    """Numeric infos at the episode's last step, per key, per agent (``nan`` where an agent did
-    not report it)."""
+    """Numeric infos at the episode's last step (an agent that left: at its own last step), per
+    key, per agent (``nan`` where an agent did not report it)."""
     frames: list[np.ndarray] = field(default_factory=list)
     """``rgb_array`` frames at step 0, every ``frames_every`` steps and the last step."""
 
@@ -98,7 +98,8 @@ def run_foreign_episodes(
     held too), measured from the first frame.
 
     An agent that has left the episode (``env.agents`` no longer holds it) is given zeros as its
-    observation in the batch and its action is dropped. An episode that runs long says so on
+    observation in the batch and its action is dropped; its return counts the steps it was in,
+    and its infos are those of its last step. An episode that runs long says so on
     stderr every :data:`LONG_EPISODE_EVERY_S` seconds; the env's guard ends the work at
     ``env.pettingzoo.step_limit`` steps (:class:`harness.config.pettingzoo.EnvFailed`).
 
@@ -168,8 +169,10 @@ def run_foreign_episodes(
                     obs[i], rewards, terms, truncs, infos = e.step(act)
                     lengths[i] += 1
                     for k, a in enumerate(agents):
-                        returns[i, k] += float(rewards.get(a, 0.0))
-                    last[i] = infos
+                        if a in act:  # (an agent that has left earns nothing)
+                            returns[i, k] += float(rewards.get(a, 0.0))
+                            if a in infos:
+                                last[i][a] = infos[a]
                     ended = not e.live_agents() or all(
                         terms.get(a, False) or truncs.get(a, False) for a in act
                     )

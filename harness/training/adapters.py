@@ -70,7 +70,7 @@ def _make_copy(
             signal.signal(signal.SIGPIPE, signal.SIG_DFL)
     built = make_env(env)
     if isinstance(env, PettingZooEnvConfig):
-        built = TimeLimitInfos(built)
+        built = LeavingAgents(TimeLimitInfos(built))
     vec = ss.pettingzoo_env_to_vec_env_v1(built)
     if seed is not None:
         vec.reset(seed=seed)
@@ -90,6 +90,57 @@ class TimeLimitInfos(BaseParallelWrapper):
             if truncated and not terms.get(agent, False):
                 infos[agent] = {**infos.get(agent, {}), TIME_LIMIT_KEY: True}
         return obs, rewards, terms, truncs, infos
+
+
+class LeavingAgents(BaseParallelWrapper):
+    """A PettingZoo env of one's own whose agents may leave mid-episode (a termination before
+    the others', after which ``agents`` no longer holds the agent: PettingZoo's
+    knights_archers_zombies), as SuperSuit's VecEnv can step it: every agent of
+    ``possible_agents`` keeps its slot until the episode ends. An agent that has left gets a
+    zero observation, reward 0 and empty infos, its action is dropped, and it is done when the
+    episode ends, with the others (SuperSuit's ``black_death_v3``, whose released version ends
+    an episode only when its agents are terminated *and* truncated at once). Its slot so earns
+    nothing after its last step, and its transitions after it (zero observations, reward 0)
+    teach only the value of the zero observation, which is 0.
+
+    The episode ends when the env's ``agents`` is empty or every agent of the step is terminated
+    or truncated; agents that left before are then terminated. Over an env whose agents never
+    leave, it changes nothing.
+    """
+
+    def reset(
+        self, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[Any, Any], dict[Any, Any]]:
+        obs, infos = self.env.reset(seed=seed, options=options)
+        self.agents = list(self.env.possible_agents)
+        return self._filled(obs), infos
+
+    def step(self, actions: dict[Any, Any]) -> tuple[dict[Any, Any], ...]:
+        live = set(self.env.live_agents())
+        obs, rewards, terms, truncs, infos = self.env.step(
+            {agent: action for agent, action in actions.items() if agent in live}
+        )
+        over = not self.env.live_agents() or all(
+            terms.get(agent, False) or truncs.get(agent, False) for agent in terms
+        )
+        agents = self.env.possible_agents
+        rewards = {agent: rewards.get(agent, 0.0) for agent in agents}
+        infos = {agent: infos.get(agent, {}) for agent in agents}
+        if over:  # (an agent that left before: terminated, with the others' end)
+            terms = {agent: terms.get(agent, agent not in truncs) for agent in agents}
+            truncs = {agent: truncs.get(agent, False) for agent in agents}
+            self.agents = []
+        else:  # one end for every slot: the episode's
+            terms = truncs = dict.fromkeys(agents, False)
+        return self._filled(obs), rewards, terms, truncs, infos
+
+    def _filled(self, obs: dict[Any, Any]) -> dict[Any, Any]:
+        """``obs`` with a zero observation for each agent it lacks."""
+        missing = [agent for agent in self.env.possible_agents if agent not in obs]
+        if not missing:
+            return obs
+        space = self.env.observation_space(missing[0])  # (one space for all: the contract)
+        return {**dict.fromkeys(missing, np.zeros(space.shape, space.dtype)), **obs}
 
 
 class CoreVecEnv(VecEnv):

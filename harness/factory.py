@@ -20,7 +20,7 @@ from envs import coverage_v0
 from envs.coverage import generators
 from envs.coverage.core import CoreSpec
 from harness.config.maps import build_source
-from harness.config.pettingzoo import EnvFailed, build, resolve_constructor
+from harness.config.pettingzoo import AgentIndicator, EnvFailed, build, resolve_constructor
 from harness.config.schema import ConfigError, EnvConfig, PettingZooEnvConfig
 
 #: Maps drawn by :func:`check_env` (random and generated sources).
@@ -75,7 +75,9 @@ def make_env(
 
 
 def make_foreign_env(env: PettingZooEnvConfig, render_mode: str | None = None) -> Any:
-    """The ``ParallelEnv`` of a ``pettingzoo`` source (``render_mode`` given when not ``None``).
+    """The ``ParallelEnv`` of a ``pettingzoo`` source (``render_mode`` given when not ``None``),
+    its observations ending in the agent's one-hot index where ``env.agent_id`` is on
+    (``algo.sharing``: :class:`~harness.config.pettingzoo.AgentIndicator`).
 
     Raises:
         ConfigError: the import's or the constructor's error, as one line naming ``env``.
@@ -83,9 +85,10 @@ def make_foreign_env(env: PettingZooEnvConfig, render_mode: str | None = None) -
     source = env.pettingzoo
     extra = {} if render_mode is None else {"render_mode": render_mode}
     try:
-        return build(resolve_constructor(source.make), source.kwargs, source.step_limit, **extra)
+        built = build(resolve_constructor(source.make), source.kwargs, source.step_limit, **extra)
     except ValueError as exc:
         raise ConfigError(f"env.pettingzoo: {exc}") from None
+    return AgentIndicator(built) if env.agent_id else built
 
 
 def make_core_spec(env: EnvConfig | Mapping[str, Any]) -> CoreSpec:

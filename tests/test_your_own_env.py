@@ -18,6 +18,7 @@ from harness.config.loading import config_from_dict, load_config
 from harness.config.schema import ConfigError, ExperimentConfig, PettingZooEnvConfig, VecConfig
 from harness.evaluation.baselines import make_baseline
 from harness.evaluation.episodes import run_episodes, selection_score, summarize
+from harness.factory import make_env
 from harness.results.rundir import FOREIGN_EPISODE_COLUMNS, RunDir, rewind_logs
 from harness.training.checkpoints import read_state
 from tests.conftest import one_error_line
@@ -89,7 +90,8 @@ def test_an_aec_env_is_converted_to_a_parallel_one():
         ("tests.envs.odd:continuous", {}, "action space Box(-1.0, 1.0, (1,), float32) is not"),
         ("tests.envs.odd:dict_observation", {}, "observation space Dict("),
         ("tests.envs.meet:parallel_env", {"vec": {"backend": "core"}}, "vec.backend: core"),
-        ("tests.envs.meet:parallel_env", {"algo": {"sharing": "per_agent"}}, "sharing: shared"),
+        ("tests.envs.odd:image", {"algo": {"sharing": "per_agent"}}, "needs vector observations"),
+        ("tests.envs.odd:block", {"algo": {"sharing": "shared_id"}}, "has 4 dimensions: the"),
         (
             "tests.envs.meet:parallel_env",
             {"algo": {"policy": "TeamMapPolicy"}},
@@ -226,6 +228,35 @@ def test_the_return_plot_draws_the_team_and_each_group(tmp_path):
         plot_eval_returns([], tmp_path / "none.png")
 
 
+@pytest.mark.parametrize("sharing", ["shared_id", "per_agent"])
+def test_agent_indication_trains_and_evaluates(tmp_path, capsys, sharing):
+    from harness.commands import load_model_target
+    from harness.sb3.policies import PerAgentQNetwork
+
+    run = tmp_path / "run"
+    overrides = ["--set", f"algo.sharing={sharing}"]
+    assert main(["run", str(MEET), "--no-progress", "--into", str(run), *overrides]) == 0
+    target = load_model_target(run, [], None)
+    # The observation: the env's 2 numbers, then the agent's one-hot index (SuperSuit's).
+    assert target.model.observation_space.shape == (2 + 2,)
+    assert isinstance(target.model.q_net, PerAgentQNetwork) == (sharing == "per_agent")
+    env = make_env(target.config.env)
+    obs, _ = env.reset(seed=3)
+    assert [o[2:].tolist() for o in obs.values()] == [[1.0, 0.0], [0.0, 1.0]]
+    assert main(["eval", str(run), "--episodes", "3", "--against", "random"]) == 0
+    assert "against   random on the same 3 episodes" in capsys.readouterr().out
+    assert len(json.loads((run / "eval-3ep.json").read_text())["team_return"]) == 3
+
+
+def test_an_image_observation_gains_the_index_as_channels():
+    raw = meet("tests.envs.odd:image")
+    raw["algo"]["sharing"] = "shared_id"
+    config = config_from_dict(raw)
+    assert config.env.spaces.observation_space.shape == (1, 2, 1 + 2)
+    (result,) = run_episodes(make_baseline("random", 0), config.env, 1, 5)
+    assert result.length == 10
+
+
 def test_render_refuses_an_env_without_frames(tmp_path, capsys):
     path = tmp_path / "no_frames.yaml"
     path.write_text(yaml.safe_dump(meet("tests.envs.odd:no_frames")))
@@ -306,6 +337,23 @@ def test_the_mpe_example_through_every_command(tmp_path, capsys):
     assert main([*sweep, "--sweeps-dir", str(tmp_path / "sweeps"), *tiny]) == 0
     best = json.loads((tmp_path / "sweeps" / "mpe_spread" / "best.json").read_text())
     assert best["objective"].startswith("median team return")
+
+
+def test_the_mpe_example_with_shared_id(tmp_path, capsys):
+    # One network that reads each agent's one-hot index (SuperSuit's agent indication).
+    pytest.importorskip("mpe2")
+    from harness.commands import load_model_target
+
+    base = load_config(MPE).env.spaces.observation_space.shape[0]
+    tiny = ["--set", "phases.initial.timesteps=300", "--set", "algo.learning_starts=120"]
+    tiny += ["--set", "eval.every=300", "--set", "eval.episodes=2", "--set", "vec.copies=2"]
+    run = tmp_path / "run"
+    args = ["run", str(MPE), "--no-progress", "--into", str(run), *tiny]
+    assert main([*args, "--set", "algo.sharing=shared_id"]) == 0
+    target = load_model_target(run, [], None)
+    assert target.model.observation_space.shape == (base + 3,)
+    assert main(["eval", str(run), "--episodes", "3", "--against", "random"]) == 0
+    assert "against   random on the same 3 episodes" in capsys.readouterr().out
 
 
 def _figure(value: float) -> str:

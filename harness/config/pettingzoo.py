@@ -390,6 +390,68 @@ class ContractGuard(BaseParallelWrapper):
         close_quietly(self.env)
 
 
+def indicated_spaces(spaces: EnvSpaces) -> EnvSpaces:
+    """``spaces`` with each observation followed by the agent's one-hot index (SuperSuit's agent
+    indication, :class:`AgentIndicator`): a vector ``(d,)`` becomes ``(d + n_agents,)``, an image
+    ``(h, w[, c])`` gains ``n_agents`` channels.
+
+    Raises:
+        ValueError: for an observation space SuperSuit's indication does not take (a ``Box`` of
+            more than 3 dimensions), in one line.
+    """
+    from supersuit.utils.agent_indicator import change_obs_space
+
+    observation = spaces.observation_space
+    if len(observation.shape) > 3:
+        raise ValueError(
+            f"observation space {observation} has {len(observation.shape)} dimensions: the "
+            "agent's one-hot index (algo.sharing) is appended to a vector or an image of at most "
+            "3 (flatten it, e.g. with SuperSuit's flatten_v0)"
+        )
+    return EnvSpaces(
+        spaces.agents, change_obs_space(observation, spaces.n_agents), spaces.action_space
+    )
+
+
+class AgentIndicator(BaseParallelWrapper):
+    """A guarded env (:class:`ContractGuard`) whose observations end in the agent's one-hot
+    index, for ``algo.sharing: shared_id`` and ``per_agent`` (:func:`harness.factory.make_env`
+    builds every env of such a config in it: training's copies, evaluation's episodes, so both
+    see one observation). The index is SuperSuit's (``agent_indicator_v0``'s functions, agent
+    ``k`` of ``possible_agents`` at entry ``k``): its value is the observation space's largest
+    bound, or 1 where a bound is infinite. (``agent_indicator_v0`` itself converts a parallel env
+    to an AEC one and back, which hides the guard's ``live_agents`` and ``spaces``.)"""
+
+    def __init__(self, env: ContractGuard) -> None:
+        from supersuit.utils.agent_indicator import change_observation
+
+        super().__init__(env)
+        self._change = change_observation
+        self._base = env.spaces.observation_space
+        self.spaces = indicated_spaces(env.spaces)
+        self._index = {agent: k for k, agent in enumerate(self.spaces.agents)}
+
+    def observation_space(self, agent: Any) -> Any:
+        return self.spaces.observation_space
+
+    def _indicated(self, observations: dict[Any, Any]) -> dict[Any, Any]:
+        n = self.spaces.n_agents
+        return {
+            agent: self._change(np.asarray(value), self._base, (self._index[agent], n))
+            for agent, value in observations.items()
+        }
+
+    def reset(
+        self, seed: int | None = None, options: dict[str, Any] | None = None
+    ) -> tuple[dict[Any, Any], dict[Any, Any]]:
+        observations, infos = self.env.reset(seed=seed, options=options)
+        return self._indicated(observations), infos
+
+    def step(self, actions: dict[Any, Any]) -> tuple[dict[Any, Any], ...]:
+        observations, *rest = self.env.step(actions)
+        return (self._indicated(observations), *rest)
+
+
 def as_frame(frame: Any) -> np.ndarray:
     """An ``rgb_array`` frame as an ``uint8 (H, W, 3)`` picture: ``uint8`` as it is, floats in
     [0, 1] scaled by 255 (saved as they are, they would be a black picture), other integers in

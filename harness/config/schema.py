@@ -50,7 +50,7 @@ from envs.coverage.maps import check_wall_fraction, shipped_maps
 from envs.coverage.observations import observation_options
 from envs.coverage.rollouts import SampledChooser
 from harness.config.maps import build_source, parse_source
-from harness.config.pettingzoo import DEFAULT_STEP_LIMIT, EnvSpaces, probe
+from harness.config.pettingzoo import DEFAULT_STEP_LIMIT, EnvSpaces, indicated_spaces, probe
 from harness.sb3.registry import DEFAULT_POLICY, POLICIES
 
 
@@ -352,10 +352,14 @@ class PettingZooSource(_Section):
 class PettingZooEnvConfig(_Section):
     """The ``env`` section for a PettingZoo env of your own: ``{pettingzoo: {make, kwargs}}``.
 
-    It answers what the rest of the harness asks of an ``env`` section (the team size, no
-    planner, no agent indication); the coverage env's keys do not apply to it."""
+    It answers what the rest of the harness asks of an ``env`` section (the team size, its
+    agent indication, no planner); the coverage env's keys do not apply to it."""
 
     pettingzoo: PettingZooSource
+    _agent_id: bool = PrivateAttr(default=False)
+    """Whether each observation ends in the agent's one-hot index (SuperSuit's agent indication,
+    :class:`harness.config.pettingzoo.AgentIndicator`): not a key of its own, derived from
+    ``algo.sharing`` when :class:`ExperimentConfig` resolves its sections."""
 
     @property
     def n_agents(self) -> int:
@@ -364,8 +368,25 @@ class PettingZooEnvConfig(_Section):
 
     @property
     def agent_id(self) -> bool:
-        """No agent indication: the env's observations are used as they are."""
-        return False
+        """Whether each observation ends in the agent's one-hot index (set from
+        ``algo.sharing``)."""
+        return self._agent_id
+
+    @property
+    def spaces(self) -> EnvSpaces:
+        """The agents and spaces as the harness's networks see them: the env's, the observation
+        with the one-hot index where :attr:`agent_id` is on."""
+        spaces = self.pettingzoo.spaces
+        return indicated_spaces(spaces) if self._agent_id else spaces
+
+    def with_agent_id(self, on: bool) -> PettingZooEnvConfig:
+        """This section with agent indication ``on``: itself when it has it already, else a
+        copy (the env is not probed again)."""
+        if self._agent_id == on:
+            return self
+        env = self.model_copy()
+        env._agent_id = on
+        return env
 
     @property
     def frontier_options(self) -> None:
@@ -779,8 +800,9 @@ class ExperimentConfig(_Section):
     @model_validator(mode="after")
     def _foreign_env_fits(self) -> ExperimentConfig:
         # What a PettingZoo env of one's own can be trained with: the SuperSuit VecEnv (the
-        # batched core is the coverage env's), one shared network over its vector observations,
-        # no coverage-specific test-time shield.
+        # batched core is the coverage env's), networks over its Box observations (with the
+        # agent's one-hot index for shared_id and per_agent), no coverage-specific test-time
+        # shield.
         if not isinstance(self.env, PettingZooEnvConfig):
             return self
         if self.vec.backend == "core" and "backend" in self.vec.model_fields_set:
@@ -789,10 +811,18 @@ class ExperimentConfig(_Section):
                 "runs on vec.backend: supersuit (the default for it)"
             )
         if self.algo.sharing != "shared":
-            raise ValueError(
-                f"algo.sharing: {self.algo.sharing} adds the coverage env's agent index to the "
-                "observation; a pettingzoo env trains with sharing: shared"
-            )
+            spaces = self.env.pettingzoo.spaces
+            try:
+                indicated_spaces(spaces)
+            except ValueError as exc:
+                raise ValueError(f"algo.sharing: {self.algo.sharing}: {exc}") from None
+            shape = spaces.observation_space.shape
+            if self.algo.sharing == "per_agent" and len(shape) != 1:
+                raise ValueError(
+                    f"algo.sharing: per_agent routes each observation by the one-hot index at its "
+                    f"end: it needs vector observations, not of shape {shape} (flatten them, e.g. "
+                    "with SuperSuit's flatten_v0, or use shared_id)"
+                )
         entry = POLICIES[self.algo.policy]
         if entry.team_map or entry.slots:
             vector = [name for name, p in POLICIES.items() if not (p.team_map or p.slots)]
@@ -976,16 +1006,15 @@ class ExperimentConfig(_Section):
     def _resolved(self) -> ExperimentConfig:
         # The one step that fills in values that depend on other sections, after every check
         # above (which only check, reading them through _backend): the vec backend an env needs,
-        # and the coverage env's agent indication (algo.sharing owns it; the env carries it
-        # out). Into copies: a section given to this config may be another config's too, and
+        # and the env's agent indication (algo.sharing owns it; the env carries it out).
+        # Into copies: a section given to this config may be another config's too, and
         # validating one config must not change another. Kept last: validators run in order.
         backend = self._backend()
         if self.vec.backend != backend:  # an assignment checks the config again, once
             self.vec = self.vec.model_copy(update={"backend": backend})
-        if isinstance(self.env, EnvConfig):
-            env = self.env.with_agent_id(self.algo.sharing != "shared")
-            if env is not self.env:
-                self.env = env
+        env = self.env.with_agent_id(self.algo.sharing != "shared")
+        if env is not self.env:
+            self.env = env
         return self
 
     @field_validator("phases")

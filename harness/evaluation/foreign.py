@@ -110,7 +110,7 @@ def run_foreign_episodes(
     """
     from harness.evaluation.episodes import EpisodesStopped
 
-    spaces = env.pettingzoo.spaces
+    spaces = env.spaces  # (the observation with the agent's one-hot index where it has one)
     agents, n_agents = spaces.agents, spaces.n_agents
     n_actions = int(spaces.action_space.n)
     zeros = np.zeros(spaces.observation_space.shape, dtype=spaces.observation_space.dtype)

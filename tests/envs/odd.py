@@ -1,7 +1,7 @@
 """PettingZoo envs that break (or bend) the contract of docs/your-own-env.md, for the tests:
 spaces that differ between agents, continuous actions, a Dict observation, an AEC env, a
-constructor that fails, a module that fails to import (``tests.envs.broken``); and one that
-reports a ``coverage`` in its infos."""
+constructor that fails, a module that fails to import (``tests.envs.broken``); one that
+reports a ``coverage`` in its infos, and ones observed as an image or a 4-dimensional block."""
 
 from __future__ import annotations
 
@@ -94,3 +94,25 @@ class _Coverage(MeetEnv):
 def reports_coverage(**kwargs):
     """The meet env with a ``coverage`` in every agent's infos."""
     return _Coverage(**kwargs)
+
+
+class _Shaped(MeetEnv):
+    """:class:`MeetEnv` whose two numbers are observed as an array of ``shape``."""
+
+    def __init__(self, shape, **kwargs):
+        super().__init__(**kwargs)
+        self.shape = shape
+        self._observation = spaces.Box(0.0, 1.0, shape=shape, dtype=self._observation.dtype)
+
+    def _observe(self):
+        return {a: o.reshape(self.shape) for a, o in super()._observe().items()}
+
+
+def image(**kwargs):
+    """The meet env observed as a 1 x 2 image (one channel)."""
+    return _Shaped((1, 2), **kwargs)
+
+
+def block(**kwargs):
+    """The meet env observed as a 1 x 1 x 1 x 2 block (4 dimensions)."""
+    return _Shaped((1, 1, 1, 2), **kwargs)

@@ -830,7 +830,7 @@ def test_seed_grid_on_two_local_workers_trains_every_seed_once(tiny, tmp_path):
     # Each worker trained with its share of the cores; best.yaml is the plain config.
     threads = {load_config(Path(run) / "config.yaml").algo.threads for run in runs}
     assert threads == {max(1, (os.cpu_count() or 1) // 2)}
-    assert load_config(folder / "best.yaml").algo.threads is None
+    assert load_config(folder / "best.yaml").algo.threads == load_config(tiny).algo.threads
 
 
 @pytest.mark.slow

@@ -543,10 +543,12 @@ class AlgoConfig(_Section):
     per-decision one), record a gradient step once as a CUDA graph and launch it again for every
     later step (``harness.sb3.graphs``): the same updates, several times the gradient steps/s
     (docs/performance.md). Without effect on a CPU; ``false`` for debugging."""
-    threads: Annotated[int, Field(ge=1, le=MAX_THREADS)] | None = None
+    threads: Annotated[int, Field(ge=1, le=MAX_THREADS)] | None = 1
     """torch CPU threads (``torch.set_num_threads``); ``null`` keeps torch's default (one per
-    core). On a 2-core machine 2 threads train the 3x512 net ~20 % faster than 1 (harness bench).
-    With ``teacher``, also the threads its labels are made on (``null``: every core)."""
+    core). One by default, from ``harness bench train`` (docs/performance.md): on a quiet 2-core
+    machine 2 threads make 1.12-1.54 x the gradient steps of the 3x512 net and 0.75-0.99 x those
+    of the small ones; on a busy one 0.18-0.85 x for every size. With ``teacher``, also the
+    threads its labels are made on (``null``: every core)."""
 
     imitation: ImitationConfig | None = None
     """DQfD's large-margin loss towards the planner-backed action (needs ``env.frontier.action``);

@@ -413,3 +413,10 @@ def test_the_rollout_baseline_plans_with_a_prior_end_to_end(capsys) -> None:
     out = json.loads(capsys.readouterr().out)
     assert out["episodes"] == 2 and out["wall_hits_mean"] == 0
     assert 0 < out["coverage_mean"] <= 1
+
+
+def test_a_rollout_chooser_of_one_map_is_refused_in_one_line(capsys) -> None:
+    # One map turns the noise rule off; measured, the team then walks back and forth.
+    args = ["eval", "--policy", "rollout", "--config", "configs/goals_2agents.yaml"]
+    assert main([*args, "--set", "eval.rollout.samples=1", "--episodes", "1"]) == 2
+    assert "2 maps or more" in one_error_line(capsys.readouterr().err)

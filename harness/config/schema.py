@@ -673,6 +673,18 @@ class RolloutConfig(_Section):
     """A map prior to draw the unseen cells from (a prior run's folder or its ``model.zip``,
     docs/prior.md); ``None``: every unseen cell a wall with the seen cells' wall share."""
 
+    @field_validator("samples")
+    @classmethod
+    def _noise_rule_has_maps(cls, v: int) -> int:
+        # One map turns the rule against chance gains off (it compares gains over the maps):
+        # measured, the team then chases noise (research/README.md, map priors).
+        if v < 2:
+            raise ValueError(
+                "needs 2 maps or more: with 1 the rule against chance gains is off and every "
+                "chance gain deviates (21 % coverage on a floor plan where the planner makes 89 %)"
+            )
+        return v
+
     def chooser(self, threads: int = 1, prior: Any = None) -> SampledChooser:
         """The chooser these parameters make (its noise rule the measured one, 4 standard
         errors: no result asked for another), scoring its maps on ``threads`` threads, drawing

@@ -42,6 +42,12 @@ DEFAULT_STEP_LIMIT = 100_000
 #: The ``metadata`` of an env that defines none (SuperSuit's VecEnv reads it).
 DEFAULT_METADATA: dict[str, Any] = {"render_modes": [], "is_parallelizable": True}
 
+#: The keys of PettingZoo's action-mask convention: an agent's ``Dict`` observation holds its
+#: observation (a ``Box``) and its mask (1 where an action is allowed), as the coverage env's
+#: (``harness.sb3.policies.ACTION_MASK_KEY``, which the learner honours in every choice).
+OBSERVATION_KEY = "observation"
+ACTION_MASK_KEY = "action_mask"
+
 #: Characters of the env's own error message kept in the one line that names it.
 _MESSAGE_CHARS = 200
 
@@ -212,14 +218,19 @@ def check_spaces(env: Any) -> EnvSpaces:
             f"agent {first!r}: action space {action} is not Discrete(n) with n >= 1 starting "
             "at 0 (the network picks actions 0 .. n-1: shift the env's actions)"
         )
-    if not isinstance(observation, spaces.Box):
+    if isinstance(observation, spaces.Dict):
+        check_masked_space(first, observation, int(action.n))
+        inner = observation[OBSERVATION_KEY]
+    elif isinstance(observation, spaces.Box):
+        inner = observation
+    else:
         raise ValueError(
             f"agent {first!r}: observation space {observation} is not a Box (flatten it, e.g. "
             "with gymnasium's spaces.flatten_space and spaces.flatten)"
         )
-    if not observation.shape or 0 in observation.shape:
+    if not inner.shape or 0 in inner.shape:
         raise ValueError(
-            f"agent {first!r}: observation space {observation} has shape {observation.shape}: "
+            f"agent {first!r}: observation space {inner} has shape {inner.shape}: "
             "the network needs at least one number (a shape such as (1,))"
         )
     for agent in agents[1:]:
@@ -236,9 +247,75 @@ def check_spaces(env: Any) -> EnvSpaces:
     return EnvSpaces(agents, observation, action)
 
 
+def check_masked_space(agent: Any, observation: Any, n_actions: int) -> None:
+    """The contract on a ``Dict`` observation space: PettingZoo's action-mask convention, an
+    :data:`OBSERVATION_KEY` ``Box`` and an ``int8`` :data:`ACTION_MASK_KEY` ``MultiBinary`` or
+    ``Box`` of ``n_actions`` entries (1 where the action is allowed), and no other key.
+
+    Raises:
+        ValueError: one line naming the agent and what breaks it.
+    """
+    from gymnasium import spaces
+
+    keys = set(observation.spaces)
+    if keys != {OBSERVATION_KEY, ACTION_MASK_KEY}:
+        raise ValueError(
+            f"agent {agent!r}: observation space {observation} is a Dict with the keys "
+            f"{sorted(keys)}: the harness reads PettingZoo's action-mask convention "
+            f"({OBSERVATION_KEY!r}: a Box, {ACTION_MASK_KEY!r}: the mask) and no other "
+            "(flatten the rest into the observation)"
+        )
+    inner, mask = observation[OBSERVATION_KEY], observation[ACTION_MASK_KEY]
+    if not isinstance(inner, spaces.Box):
+        raise ValueError(
+            f"agent {agent!r}: the {OBSERVATION_KEY!r} space {inner} is not a Box (flatten it, "
+            "e.g. with gymnasium's spaces.flatten_space and spaces.flatten)"
+        )
+    if not isinstance(mask, spaces.MultiBinary | spaces.Box) or tuple(mask.shape) != (n_actions,):
+        raise ValueError(
+            f"agent {agent!r}: the {ACTION_MASK_KEY!r} space {mask} is not a MultiBinary or "
+            f"Box of the {n_actions} actions (one entry per action, 1 where it is allowed)"
+        )
+
+
+def masked(spaces: EnvSpaces) -> bool:
+    """Whether the env's observations carry an action mask (PettingZoo's ``Dict`` convention,
+    :func:`check_masked_space`)."""
+    return hasattr(spaces.observation_space, "spaces")
+
+
+def blank_observation(space: Any) -> Any:
+    """The observation of an agent that is not in the episode: zeros, with every action allowed
+    where the space carries an action mask (the slot's action is dropped anyway, and a row with
+    nothing allowed would have no best action)."""
+    if hasattr(space, "spaces"):
+        inner, mask = space[OBSERVATION_KEY], space[ACTION_MASK_KEY]
+        return {
+            OBSERVATION_KEY: np.zeros(inner.shape, inner.dtype),
+            ACTION_MASK_KEY: np.ones(mask.shape, mask.dtype),
+        }
+    return np.zeros(space.shape, space.dtype)
+
+
+def stack_observations(observations: list[Any]) -> Any:
+    """A batch of observations: one array, or a dict of stacked arrays for ``Dict`` ones."""
+    if observations and isinstance(observations[0], dict):
+        return {key: np.stack([o[key] for o in observations]) for key in observations[0]}
+    return np.stack(observations)
+
+
+def first_allowed(observation: Any) -> int:
+    """Action 0, or the first action that the observation's action mask allows."""
+    if isinstance(observation, dict) and ACTION_MASK_KEY in observation:
+        allowed = np.flatnonzero(np.asarray(observation[ACTION_MASK_KEY]))
+        return int(allowed[0]) if len(allowed) else 0
+    return 0
+
+
 def probe(make: str, kwargs: Mapping[str, Any]) -> EnvSpaces:
     """Import ``make``, build its env once (:func:`build`: the constructor and the spaces) and
-    play its first step: ``reset(seed=0)`` and every agent's action 0, through the
+    play its first step: ``reset(seed=0)`` and every agent's action 0 (its first allowed one
+    where the observation carries an action mask), through the
     :class:`ContractGuard`, so that an env whose ``reset`` or ``step`` breaks the contract (the
     API's shape, observations of another shape than the space, a non-finite reward, an error of
     its own) is refused with the config, before any run folder exists.
@@ -249,8 +326,8 @@ def probe(make: str, kwargs: Mapping[str, Any]) -> EnvSpaces:
     """
     env = build(resolve_constructor(make), kwargs)
     try:
-        env.reset(seed=0)
-        env.step(dict.fromkeys(env.live_agents(), 0))
+        observations, _ = env.reset(seed=0)
+        env.step({agent: first_allowed(observations.get(agent)) for agent in env.live_agents()})
     except EnvFailed as exc:
         raise ValueError(str(exc)) from None
     finally:
@@ -357,25 +434,44 @@ class ContractGuard(BaseParallelWrapper):
         return out
 
     def _check_observations(self, observations: dict[Any, Any], during: str = "step") -> None:
-        shape = self.spaces.observation_space.shape
+        space = self.spaces.observation_space
         for agent, value in observations.items():
             if agent not in self._known:
                 raise self._failed(
                     f"an observation for {agent!r}, not one of possible_agents", during
                 )
-            array = np.asarray(value)
-            if array.shape != shape:
+            if not hasattr(space, "spaces"):
+                self._check_array(agent, value, space.shape, during)
+                continue
+            if not isinstance(value, dict) or set(value) != set(space.spaces):
                 raise self._failed(
-                    f"the observation of {agent!r} has shape {array.shape}, not the observation "
-                    f"space's {shape}",
+                    f"the observation of {agent!r} is not a dict of {sorted(space.spaces)}",
                     during,
                 )
-            if array.dtype.kind not in "biuf":
-                raise self._failed(
-                    f"the observation of {agent!r} holds {array.dtype} values, not numbers", during
-                )
-            if array.dtype.kind == "f" and not np.isfinite(array).all():
-                raise self._failed(f"the observation of {agent!r} holds NaN or inf", during)
+            for key, part in space.spaces.items():
+                self._check_array(agent, value[key], part.shape, during, key)
+            if not np.asarray(value[ACTION_MASK_KEY]).any():
+                raise self._failed(f"the action mask of {agent!r} allows no action", during)
+
+    def _check_array(
+        self, agent: Any, value: Any, shape: tuple[int, ...], during: str, key: str = ""
+    ) -> None:
+        """One observation array (``key``: its entry of a ``Dict`` observation) to the
+        contract: the space's shape, numbers, finite."""
+        name = f"{agent!r}[{key!r}]" if key else repr(agent)
+        array = np.asarray(value)
+        if array.shape != shape:
+            raise self._failed(
+                f"the observation of {name} has shape {array.shape}, not the observation "
+                f"space's {shape}",
+                during,
+            )
+        if array.dtype.kind not in "biuf":
+            raise self._failed(
+                f"the observation of {name} holds {array.dtype} values, not numbers", during
+            )
+        if array.dtype.kind == "f" and not np.isfinite(array).all():
+            raise self._failed(f"the observation of {name} holds NaN or inf", during)
 
     def render(self) -> np.ndarray:  # type: ignore[override]
         """The env's ``rgb_array`` frame as ``uint8`` (:func:`as_frame`)."""
@@ -402,6 +498,11 @@ def indicated_spaces(spaces: EnvSpaces) -> EnvSpaces:
     from supersuit.utils.agent_indicator import change_obs_space
 
     observation = spaces.observation_space
+    if masked(spaces):
+        raise ValueError(
+            "the observations carry an action mask (a Dict): the agent's one-hot index is "
+            "appended to a Box only (use algo.sharing: shared)"
+        )
     if len(observation.shape) > 3:
         raise ValueError(
             f"observation space {observation} has {len(observation.shape)} dimensions: the "

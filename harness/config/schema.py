@@ -50,7 +50,13 @@ from envs.coverage.maps import check_wall_fraction, shipped_maps
 from envs.coverage.observations import observation_options
 from envs.coverage.rollouts import SampledChooser
 from harness.config.maps import build_source, parse_source
-from harness.config.pettingzoo import DEFAULT_STEP_LIMIT, EnvSpaces, indicated_spaces, probe
+from harness.config.pettingzoo import (
+    DEFAULT_STEP_LIMIT,
+    EnvSpaces,
+    indicated_spaces,
+    masked,
+    probe,
+)
 from harness.sb3.registry import DEFAULT_POLICY, POLICIES
 
 
@@ -509,7 +515,7 @@ class AlgoConfig(_Section):
     policy: str = DEFAULT_POLICY
     """A policy of ``harness.sb3.registry.POLICIES``: ``MlpPolicy``, ``DuelingMlpPolicy`` (the
     thesis observation), ``TeamMapPolicy``, ``DuelingTeamMapPolicy``, ``SlotTeamMapPolicy``
-    (``teammap``)."""
+    (``teammap``), ``MaskedMlpPolicy`` (a pettingzoo env's action-mask ``Dict``)."""
     net_arch: list[PositiveInt] = list(POLICIES[DEFAULT_POLICY].default_net_arch)
     """Hidden layers; for the dueling policy, each of the value and advantage streams. Not given:
     the policy's ``default_net_arch`` (the thesis's ``[512, 512, 512]``, ``[]`` (none) for the
@@ -839,10 +845,24 @@ class ExperimentConfig(_Section):
                 )
         entry = POLICIES[self.algo.policy]
         if entry.team_map or entry.slots:
-            vector = [name for name, p in POLICIES.items() if not (p.team_map or p.slots)]
+            vector = [
+                name for name, p in POLICIES.items() if not (p.team_map or p.slots or p.masked)
+            ]
             raise ValueError(
                 f"algo.policy {self.algo.policy} reads the coverage env's team map; a pettingzoo "
                 f"env's Box observation takes one of {', '.join(vector)}"
+            )
+        if self.prior is None and entry.masked != masked(self.env.pettingzoo.spaces):
+            fitting = [name for name, p in POLICIES.items() if p.masked and not p.team_map]
+            if entry.masked:
+                raise ValueError(
+                    f"algo.policy {self.algo.policy} reads an action mask: the env's "
+                    "observations are a Box without one (use MlpPolicy or DuelingMlpPolicy)"
+                )
+            raise ValueError(
+                f"algo.policy {self.algo.policy} reads a Box, but the env's observations carry "
+                f"an action mask (PettingZoo's Dict of observation and action_mask): use "
+                f"algo.policy: {' or '.join(fitting)}"
             )
         if self.eval.shield:
             raise ValueError(

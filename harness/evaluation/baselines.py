@@ -279,16 +279,21 @@ class RolloutPolicy:
 
 class RandomPolicy:
     """Uniform random actions 0..4 from a seeded generator (repeatable for a given seed); of a
-    PettingZoo env of one's own, uniform over its actions."""
+    PettingZoo env of one's own, uniform over its actions (over the allowed ones where its
+    observations carry an action mask; the coverage env's goal action keeps its 0..4 draws)."""
 
     def __init__(self, seed: int) -> None:
         self.rng = np.random.default_rng(seed)
 
     def __call__(self, obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
         """One uniform action per agent in the batch."""
+        from harness.config.pettingzoo import ACTION_MASK_KEY
         from harness.evaluation.foreign import EpisodeView
 
         view = envs[0] if envs else None
+        if isinstance(view, EpisodeView) and isinstance(obs, dict) and ACTION_MASK_KEY in obs:
+            rows = np.asarray(obs[ACTION_MASK_KEY])
+            return np.array([self.rng.choice(np.flatnonzero(row)) for row in rows], np.int64)
         n_actions = view.n_actions if isinstance(view, EpisodeView) else 5
         return self.rng.integers(0, n_actions, size=batch_len(obs))
 

@@ -20,6 +20,7 @@ from typing import Any
 
 import numpy as np
 
+from harness.config.pettingzoo import blank_observation, stack_observations
 from harness.config.schema import PettingZooEnvConfig
 from harness.factory import make_env
 
@@ -113,7 +114,7 @@ def run_foreign_episodes(
     spaces = env.spaces  # (the observation with the agent's one-hot index where it has one)
     agents, n_agents = spaces.agents, spaces.n_agents
     n_actions = int(spaces.action_space.n)
-    zeros = np.zeros(spaces.observation_space.shape, dtype=spaces.observation_space.dtype)
+    zeros = blank_observation(spaces.observation_space)
     render_mode = "rgb_array" if frames_every else None
     n_copies = max(1, min(copies, episodes))
     envs = [make_env(env, render_mode) for _ in range(n_copies)]
@@ -159,7 +160,9 @@ def run_foreign_episodes(
                         flush=True,
                     )
                 playing = [i for i in range(size) if live[i]]
-                stacked = np.stack([obs[i].get(a, zeros) for i in playing for a in agents])
+                stacked = stack_observations(
+                    [obs[i].get(a, zeros) for i in playing for a in agents]
+                )
                 actions = np.asarray(policy(stacked, [views[i] for i in playing]))
                 actions = actions.reshape(len(playing), n_agents)
                 for row, i in enumerate(playing):

@@ -37,6 +37,10 @@ class PolicyEntry:
     team_map: bool = False
     """Its features extractor is the team map's CNN (``TeamMapExtractor``): it takes
     ``algo.features_dim`` and ``algo.cnn_channels``, which size its network."""
+    masked: bool = False
+    """It reads a ``Dict`` of a vector observation and an action mask (PettingZoo's convention,
+    ``observation`` and ``action_mask``): the network sees the observation, the mask restricts
+    every choice (``DoubleDQN``'s greedy, ε-random and target actions)."""
     default_net_arch: tuple[int, ...] = THESIS_NET_ARCH
     """Its hidden layers when a config gives no ``algo.net_arch``."""
 
@@ -88,6 +92,13 @@ POLICIES: dict[str, PolicyEntry] = {
         slots=True,
         team_map=True,
         default_net_arch=(128,),
+    ),
+    # A pettingzoo env's {observation, action_mask} Dict: SB3's combined extractor on the
+    # observation alone (the mask is left out of the network's input), the thesis's head.
+    "MaskedMlpPolicy": PolicyEntry(
+        "harness.sb3.policies:MultiInputPolicy",
+        "masked",
+        masked=True,
     ),
 }
 

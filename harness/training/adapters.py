@@ -37,7 +37,7 @@ from supersuit.vector.multiproc_vec import ProcConcatVec
 from supersuit.vector.sb3_vector_wrapper import SB3VecEnvWrapper
 
 from envs.coverage.core import CoverageCore
-from harness.config.pettingzoo import EnvFailed
+from harness.config.pettingzoo import EnvFailed, blank_observation
 from harness.config.schema import VEC_BACKENDS, EnvConfig, PettingZooEnvConfig
 from harness.factory import make_core_spec, make_env
 from harness.sb3.decisions import EXPERT_KEY
@@ -135,12 +135,13 @@ class LeavingAgents(BaseParallelWrapper):
         return self._filled(obs), rewards, terms, truncs, infos
 
     def _filled(self, obs: dict[Any, Any]) -> dict[Any, Any]:
-        """``obs`` with a zero observation for each agent it lacks."""
+        """``obs`` with a zero observation for each agent it lacks (every action allowed by
+        an action mask: :func:`~harness.config.pettingzoo.blank_observation`)."""
         missing = [agent for agent in self.env.possible_agents if agent not in obs]
         if not missing:
             return obs
         space = self.env.observation_space(missing[0])  # (one space for all: the contract)
-        return {**dict.fromkeys(missing, np.zeros(space.shape, space.dtype)), **obs}
+        return {**{agent: blank_observation(space) for agent in missing}, **obs}
 
 
 class CoreVecEnv(VecEnv):

@@ -136,8 +136,11 @@ def _model(env: dict[str, Any], policy: str, sharing: str, **kwargs: Any) -> Dou
 
 
 @pytest.mark.parametrize("sharing", ["shared_id", "per_agent"])
-# The slot policy needs the goal action's env and has no per-agent version (tests/test_goals.py).
-@pytest.mark.parametrize("policy", [name for name, p in POLICIES.items() if not p.slots])
+# The slot policy needs the goal action's env and has no per-agent version (tests/test_goals.py);
+# a masked env's policy takes no agent indication (tests/test_action_masks_pettingzoo.py).
+@pytest.mark.parametrize(
+    "policy", [name for name, p in POLICIES.items() if not p.slots and not p.masked]
+)
 def test_every_policy_trains_predicts_and_reloads_with_agent_indication(policy, sharing, tmp_path):
     env = TEAMMAP if POLICIES[policy].observation == "teammap" else SMALL
     dict_obs = POLICIES[policy].observation == "teammap"

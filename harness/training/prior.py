@@ -19,13 +19,10 @@ the same seeds give the same maps).
 from __future__ import annotations
 
 import shutil
-import signal
 import sys
 import time
-from collections.abc import Callable, Iterator, Sequence
-from contextlib import contextmanager
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from types import FrameType
 from typing import Any
 
 import numpy as np
@@ -52,7 +49,13 @@ from harness.training.checkpoints import (
     set_aside,
 )
 from harness.training.threads import configure_torch
-from harness.training.train import TrainingFailed, TrainingInterrupted, make_logger
+from harness.training.train import (
+    StopOnSignal,
+    TrainingFailed,
+    TrainingInterrupted,
+    make_logger,
+    stop_on_signals,
+)
 
 #: The training episodes' first seed is ``TRAIN_SEED + seed * SEED_STRIDE`` (modulo 2**31): far
 #: from the test (``eval.seed``) and validation (``eval.validation_seed``) episodes' seeds.
@@ -105,30 +108,6 @@ def logloss(net: UNet, states: np.ndarray, walls: np.ndarray) -> torch.Tensor:
     unseen = torch.from_numpy(states == UNSEEN)
     target = torch.from_numpy(walls).to(logits.dtype)
     return F.binary_cross_entropy_with_logits(logits[unseen], target[unseen])
-
-
-class _Stop:
-    """SIGINT and SIGTERM noted (the loop checkpoints and stops at the next step), and passed
-    on to ``on_signal`` (a sweep stops starting trials)."""
-
-    def __init__(self, on_signal: Callable[[int], None] | None = None) -> None:
-        self.signum: int | None = None
-        self.on_signal = on_signal
-
-    def __call__(self, signum: int, frame: FrameType | None) -> None:
-        self.signum = signum
-        if self.on_signal is not None:
-            self.on_signal(signum)
-
-
-@contextmanager
-def _signals(stop: _Stop) -> Iterator[None]:
-    previous = {s: signal.signal(s, stop) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        yield
-    finally:
-        for s, handler in previous.items():
-            signal.signal(s, handler)
 
 
 def _save_checkpoint(
@@ -276,7 +255,7 @@ def train_prior(
     )
     batches = _Batches(train_sets, prior.augment)
     logger = make_logger(run, state, restart=restart)
-    stop = _Stop(on_signal)
+    stop = StopOnSignal()  # the policy run's rule: a second Ctrl-C interrupts at once
     step = state.num_timesteps
     total = config.total_timesteps
     last_line = time.monotonic()
@@ -303,10 +282,11 @@ def train_prior(
             on_evaluation(step, summary)
 
     def checkpoint() -> Path:
-        return _save_checkpoint(run, net, opt, rng, state, config, step)
+        with stop.saving():  # a Ctrl-C waits for the write to end
+            return _save_checkpoint(run, net, opt, rng, state, config, step)
 
     try:
-        with _signals(stop):
+        with stop_on_signals(stop, on_signal):
             net.train()
             for index in range(state.phase, len(config.phases)):
                 phase = config.phases[index]

@@ -7,7 +7,7 @@ the team-map observation (``observation: {teammap: {crop: 15, ...}}``); ``fronti
 planner extension (``frontier: {action: step, planner: pocket}``).
 
 Retired (research/experiment-log.md says what each measured and which commit had it): ``env.trail``,
-``eval.step_bonus``, ``algo.imitation.same_moves``, ``algo.action_mask``,
+``eval.step_bonus``, ``algo.imitation.same_moves``, ``algo.action_mask``, ``prior.augment``,
 ``env.frontier.action.goal.gather``, ``algo.teacher.horizon`` and ``gain`` (the teacher's
 rollouts go to the episode's end, any gain counts). A file that leaves
 them at their old defaults (as every saved ``config.yaml`` does) loads; a file that turns one on
@@ -32,6 +32,7 @@ RETIRED = {
     ("env", "frontier", "action", "goal", "gather"): "clusters",
     ("algo", "teacher", "horizon"): None,
     ("algo", "teacher", "gain"): 0.0,
+    ("prior", "augment"): True,  # mirrored partial maps, always (research/README.md)
 }
 
 

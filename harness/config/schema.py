@@ -753,8 +753,6 @@ class PriorConfig(_Section):
     """Training episodes recorded (seeds apart from the test and validation ones)."""
     snapshots: Annotated[int, Field(ge=1, le=1_000)] = 10
     """Team maps kept an episode, at steps drawn uniformly from it."""
-    augment: bool = True
-    """Train on the maps mirrored as well (up-down, left-right): the families have no side."""
 
     @field_validator("planner")
     @classmethod

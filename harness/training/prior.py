@@ -4,7 +4,8 @@ The run records its partial maps (:func:`harness.prior.data.record`: training ep
 apart from the test and validation ones, and ``eval.episodes`` validation episodes), then takes
 the phases' gradient steps on them: binary cross-entropy of the U-Net's logits on the unseen
 cells, Adam at the phase's learning rate (a ``[start, end]`` pair decays linearly over the
-phase), batches of ``batch_size`` partial maps, mirrored at random with ``prior.augment``.
+phase), batches of ``batch_size`` partial maps, mirrored at random
+(up-down, left-right: the map families have no side).
 
 It is a run like any other (docs/prior.md): its folder holds ``config.yaml``, ``command.txt``,
 ``tb/`` (TensorBoard: ``prior/train_logloss``, ``eval/unseen_logloss``,
@@ -82,22 +83,20 @@ def learning_rate(phase: PhaseConfig, done: int) -> float:
 
 class _Batches:
     """Batches of partial maps drawn with ``rng``: a map size with the odds of its share of the
-    maps, then ``size`` maps of it, mirrored at random (``augment``)."""
+    maps, then ``size`` maps of it, mirrored at random."""
 
-    def __init__(self, sets: Sequence[PartialMaps], augment: bool) -> None:
+    def __init__(self, sets: Sequence[PartialMaps]) -> None:
         self.sets = [s for s in sets if len(s)]
         counts = np.array([len(s) for s in self.sets], dtype=np.float64)
         self.odds = counts / counts.sum()
-        self.augment = augment
 
     def draw(self, rng: np.random.Generator, size: int) -> tuple[np.ndarray, np.ndarray]:
         data = self.sets[int(rng.choice(len(self.sets), p=self.odds))]
         index = rng.integers(len(data), size=size)
         states, walls = data.states[index], data.walls[index]
-        if self.augment:
-            for axis in (1, 2):
-                if rng.random() < 0.5:
-                    states, walls = np.flip(states, axis), np.flip(walls, axis)
+        for axis in (1, 2):
+            if rng.random() < 0.5:
+                states, walls = np.flip(states, axis), np.flip(walls, axis)
         return np.ascontiguousarray(states), np.ascontiguousarray(walls)
 
 
@@ -253,7 +252,7 @@ def train_prior(
         if validating
         else []
     )
-    batches = _Batches(train_sets, prior.augment)
+    batches = _Batches(train_sets)
     logger = make_logger(run, state, restart=restart)
     stop = StopOnSignal()  # the policy run's rule: a second Ctrl-C interrupts at once
     step = state.num_timesteps

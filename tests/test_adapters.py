@@ -100,7 +100,7 @@ def test_final_coverage_is_not_hidden_by_the_automatic_reset(backend):
 
 def test_the_goal_actions_int8_mask_reaches_sb3_as_the_env_gives_it(backend):
     # The env follows PettingZoo (int8), and the models take the mask as it comes (the goal
-    # references, saved with a float32 one, were migrated: scripts/migrate_models.py): the
+    # references, saved with a float32 one, were migrated: research/performance-history.md): the
     # VecEnv, its terminal observations and the model checks all keep the env's form.
     from harness.config.loading import config_from_dict
     from harness.factory import make_env

@@ -183,10 +183,10 @@ def test_no_readable_checkpoint_is_one_line_and_changes_nothing(run_copy, capsys
     assert snapshot(run_copy) == before
 
 
-def test_a_checkpoint_of_an_older_model_format_names_the_migration(run_copy, capsys):
+def test_a_checkpoint_of_an_older_model_format_is_refused_in_one_line(run_copy, capsys):
     import zipfile
 
-    from harness.sb3.dqn import FORMAT_KEY, MIGRATE_COMMAND
+    from harness.sb3.dqn import FORMAT_KEY
 
     for checkpoint in complete_checkpoints(run_copy / "checkpoints"):
         model = checkpoint / "model.zip"
@@ -202,8 +202,20 @@ def test_a_checkpoint_of_an_older_model_format_names_the_migration(run_copy, cap
     before = snapshot(run_copy)
     assert resume(run_copy) == 2
     err = one_line_error(capsys)
-    assert "model format 1" in err and f"{MIGRATE_COMMAND} " in err
+    assert "older version of the harness (model format 1" in err
+    assert err.endswith("retrain it with this version")
     assert snapshot(run_copy) == before
+
+
+def test_every_shipped_model_is_in_todays_format():
+    from harness.prior.evaluate import is_prior_run
+    from harness.sb3.dqn import MODEL_FORMAT, saved_model_format
+
+    folders = (ROOT / "runs" / "reference").iterdir()
+    models = [RunDir(p).model for p in folders if not is_prior_run(p)]
+    models = [m for m in models if m.is_file()] + sorted((ROOT / "docs").rglob("*.zip"))
+    assert len(models) == 20
+    assert {saved_model_format(m) for m in models} == {MODEL_FORMAT}
 
 
 def test_tampered_state_never_deletes_episode_rows(run_copy, capsys):

@@ -29,21 +29,17 @@ from harness.sb3.registry import POLICIES
 from harness.sb3.targets import double_q_target, large_margin_loss, max_q_target
 
 #: The layout of the models :class:`DoubleDQN` saves, stored in each (``harness_model_format`` in
-#: its ``data``). Increased when a saved model's layout changes; older models are rewritten once
-#: by :data:`MIGRATE_COMMAND` rather than read through shims. 2: the classes under
+#: its ``data``). Increased when a saved model's layout changes; an older model is refused, not
+#: read through shims. 2: the classes under
 #: ``harness.sb3``, the target network always stored (a compact export stores it as the online
 #: network's tensors, once), an action mask in the env's dtype, no retired settings.
 MODEL_FORMAT = 2
-#: The command that rewrites older saved models into :data:`MODEL_FORMAT` (its own docstring says
-#: what it changes).
-MIGRATE_COMMAND = "python scripts/migrate_models.py"
 #: The ``data`` key that holds a saved model's :data:`MODEL_FORMAT`.
 FORMAT_KEY = "harness_model_format"
 
 
 class OldModelError(ValueError):
-    """A saved model in an older layout than :data:`MODEL_FORMAT`; the message names the
-    migration command (one line)."""
+    """A saved model in another layout than :data:`MODEL_FORMAT` (one line)."""
 
 
 def saved_model_format(path: str | Path | io.BufferedIOBase) -> int | None:
@@ -81,7 +77,6 @@ def target_as_online(policy_state: dict[str, th.Tensor]) -> dict[str, th.Tensor]
 
 __all__ = [
     "ACTION_MASK_KEY",
-    "MIGRATE_COMMAND",
     "MODEL_FORMAT",
     "DoubleDQN",
     "OldModelError",
@@ -516,15 +511,14 @@ class DoubleDQN(DQN):
         """SB3's ``load``, of a model in today's :data:`MODEL_FORMAT` only.
 
         Raises:
-            OldModelError: The model was saved in an older layout; the message names
-                :data:`MIGRATE_COMMAND`, which rewrites it once.
+            OldModelError: The model was saved in an older or newer layout (one line).
         """
         found = saved_model_format(path)
         where = path if isinstance(path, (str, Path)) else "the model"
         if found is not None and found < MODEL_FORMAT:
             raise OldModelError(
                 f"{where}: saved by an older version of the harness (model format {found}, this "
-                f"version reads {MODEL_FORMAT}); rewrite it once with: {MIGRATE_COMMAND} {where}"
+                f"version reads {MODEL_FORMAT}); retrain it with this version"
             )
         if found is not None and found > MODEL_FORMAT:
             raise OldModelError(

@@ -9,6 +9,8 @@ counts as much as one at the top):
   training < commands, cli, bench; in particular
   configuration imports no training, evaluation or CLI module;
 * only the factory (``harness/factory.py``) calls ``parallel_env``;
+* no module of ``harness``, ``envs``, ``scripts`` or ``tests`` imports the research record
+  (``research``, ``experiments``): research scripts may use the product, never the reverse;
 * a run folder's file names (``config.yaml``, ``checkpoints``, ``state.json``, ...) are spelled
   only by their owner, ``harness/results/rundir.py`` (``RunDir``, ``CheckpointDir``): no other
   ``harness`` module has a string literal that is such a name or a path through one (prose that
@@ -37,12 +39,6 @@ LAYERS = {
     "harness.sb3": 0,
     "harness.config": 1,
     "harness.processes": 1,
-    # A module of its own rank, listed before its package (the first prefix that matches
-    # counts): the run folder's names, which every layer reads, sit with the config; the map
-    # prior's network sits with the factory, which hands a prior to the env (env.prior).
-    "harness.results.rundir": 1,
-    "harness.prior.coding": 2,
-    "harness.prior.model": 2,
     "harness.factory": 2,
     "harness.evaluation": 3,
     "harness.results": 4,
@@ -136,7 +132,7 @@ def test_configuration_imports_no_training_evaluation_or_cli() -> None:
 
 def test_only_the_factory_calls_parallel_env() -> None:
     callers = []
-    for path in [*modules("harness"), *modules("scripts"), *modules("experiments")]:
+    for path in [*modules("harness"), *modules("scripts")]:
         for node in ast.walk(ast.parse(path.read_text())):
             if isinstance(node, ast.Call):
                 func = node.func
@@ -146,11 +142,31 @@ def test_only_the_factory_calls_parallel_env() -> None:
     assert set(callers) == {"harness.factory"}
 
 
+#: The lab record's packages, which the product and its tests never import.
+RESEARCH = ("research", "experiments")
+
+
+@pytest.mark.parametrize(
+    "path",
+    [*modules("harness"), *modules("envs"), *modules("scripts"), *modules("tests")],
+    ids=lambda p: str(p.relative_to(ROOT)),
+)
+def test_nothing_imports_the_research_record(path: Path) -> None:
+    bad = sorted(n for n in imports(path) if n.split(".")[0] in RESEARCH)
+    assert not bad, f"{module_name(path)} imports the research record: {bad}"
+
+
+def test_the_research_scripts_live_in_the_research_record() -> None:
+    assert not (ROOT / "experiments").exists() and (ROOT / "research" / "experiments").is_dir()
+
+
 def test_the_checks_find_a_violation(tmp_path: Path) -> None:
     # The reader sees lazy imports too: the test above would catch one.
     bad = tmp_path / "bad.py"
     bad.write_text("def f():\n    from envs.coverage import env\n    return env\n")
     assert "envs.coverage" in imports(bad)
+    bad.write_text("def f():\n    from research.experiments import goal_oracle\n")
+    assert "research.experiments" in imports(bad)
 
 
 # ----------------------------------------------------------------- run-file names, one owner
@@ -211,7 +227,7 @@ def test_the_run_file_names_are_read_from_their_owner() -> None:
 
 @pytest.mark.parametrize(
     "path",
-    [*modules("harness"), *modules("scripts"), *modules("experiments")],
+    [*modules("harness"), *modules("scripts")],
     ids=lambda p: str(p.relative_to(ROOT)),
 )
 def test_only_the_run_dir_spells_run_file_names(path: Path) -> None:
@@ -459,13 +475,13 @@ def test_the_teacher_check_finds_a_way_in(tmp_path: Path) -> None:
         "def cmd_eval(args):\n"
         "    return evaluate(_helper())\n"
         "def cmd_compare(args):\n"
-        "    from experiments.goal_oracle import play\n"
-        "    return play\n"
+        "    from harness.training.teacher import TeacherLabeller\n"
+        "    return TeacherLabeller\n"
     )
     assert command_imports(cli, ("cmd_run",)) >= {TEACHER, "envs.coverage.teacher.shortest_walk"}
     found = command_imports(cli, ("cmd_eval",))
     assert {"harness.commands", "harness.commands.evaluate", TEACHER} <= found
     assert "envs.coverage.teacher.shortest_walk" not in found  # used by cmd_run alone
-    # An import in a module the code imports counts too (the oracle script imports it).
+    # An import in a module the code imports counts too (the training labeller imports it).
     found = command_imports(cli, ("cmd_compare",))
     assert TEACHER not in found and TEACHER in reached(found)

@@ -22,7 +22,7 @@ RESEARCH = ROOT / "research"
 CONFIG_PAGE = DOCS / "configuration.md"
 PAGES = [
     README,
-    ROOT / "experiments" / "README.md",
+    RESEARCH / "experiments" / "README.md",
     *sorted(DOCS.glob("*.md")),
     *sorted(RESEARCH.glob("*.md")),
 ]

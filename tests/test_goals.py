@@ -6,11 +6,7 @@ end."""
 
 from __future__ import annotations
 
-import importlib.util
-import json
 import re
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -36,8 +32,6 @@ from tests.conftest import tiny_goal_run
 
 UP, DOWN, LEFT, RIGHT, STAY = range(5)
 ROOT = Path(__file__).resolve().parents[1]
-#: The research scripts (``experiments/``) that the tests below run or import.
-EXPERIMENTS = ROOT / "experiments"
 F = {name: i for i, name in enumerate(GOAL_FEATURES)}
 
 
@@ -315,110 +309,6 @@ def test_a_goal_run_trains_and_evaluates_end_to_end(tmp_path: Path) -> None:
     assert saved.is_file()
     env = make_env(load_config(run / "config.yaml").env)
     assert env.action_space("agent_0").n == 4
-    # The validation comparison against the planner (experiments/goal_validation.py) runs on it.
-    done = subprocess.run(
-        [sys.executable, str(EXPERIMENTS / "goal_validation.py"), str(run), "--episodes", "2"],
-        capture_output=True,
-        text=True,
-        check=False,
-    )
-    assert done.returncode == 0, done.stderr
-    result = json.loads(done.stdout.splitlines()[-1])[str(run)]
-    assert 0 < result["coverage_mean"] <= 1 and len(result["over_planner"]) == 3
-
-
-def _script(name: str):
-    spec = importlib.util.spec_from_file_location(name, EXPERIMENTS / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
-
-
-def test_the_oracles_rollouts_replay_the_planner_and_leave_the_env_alone() -> None:
-    oracle = _script("goal_oracle")
-    cfg = load_config(
-        ROOT / "configs" / "goals_2agents.yaml",
-        ["env.map=random", "env.height=15", "env.width=15", "env.max_steps=80"],
-    )
-    env = make_env(cfg.env)
-    env.reset(seed=5)
-    planner = env.frontier_state.planner
-    before = (list(planner.visited), list(planner.positions), planner.target.copy())
-    # Everybody on the planner from the reset: the copy's cells are the planner episode's.
-    new, _ = oracle.rollout(oracle.clone(planner), env.max_steps, {})
-    assert (list(planner.visited), list(planner.positions)) == before[:2]
-    assert (planner.target == before[2]).all()
-    start = int(env.visited.sum())
-    coverage, deviations, _ = oracle.play(env, 5, oracle=False)
-    assert deviations == 0 and coverage == pytest.approx((start + new) / env.free_cells)
-    # Steps to a coverage: the rollout's count (cells still to find) is the played episode's.
-    goal = int(np.ceil(0.6 * env.free_cells)) - start
-    env.reset(seed=5)
-    found, step = oracle.rollout(oracle.clone(env.frontier_state.planner), env.max_steps, {}, goal)
-    assert found == goal or found == goal + 1  # agents moving together may pass it by one
-    _, _, reached = oracle.play(env, 5, oracle=False, reach=0.6)
-    assert reached == step and 0 < step < env.max_steps
-    curve = []
-    env.reset(seed=5)
-    while env.agents and env.coverage < 0.6:
-        env.step(dict.fromkeys(env.agents, 0))
-        curve.append(env.coverage)
-    assert len(curve) == reached
-    # The oracle plays the same episode; every decision it records scores slot 0 at 0 and
-    # leaves empty slots without a score.
-    records: list = []
-    coverage_o, _, _ = oracle.play(env, 5, oracle=True, records=records)
-    assert 0 < coverage_o <= 1 and records
-    for features, advantages, t, agent_obs, best, _, gain, unit in records:
-        assert advantages[0] == 0 and 0 <= t < 1 and unit == 1.0  # scored by cells
-        assert (np.isnan(advantages) == (features[:, 0] == 0)).all()
-        # The chosen slot beats slot 0 (or is slot 0), and the deciding agent's observation
-        # holds the same candidates.
-        assert best == 0 or advantages[best] > 0
-        # One true map, no noise rule: the gains are the advantages, without an error.
-        np.testing.assert_array_equal(gain[0], advantages)
-        assert np.isnan(gain[1]).all()
-        np.testing.assert_array_equal(agent_obs["goals"], features)
-    # An oracle that decides only from a coverage it never reaches plays the planner.
-    assert oracle.play(env, 5, oracle=True, after=1.01)[:2] == (coverage, 0)
-    # A goal policy played with commitment: one that always takes its last candidate deviates,
-    # walks its paths through seen free cells (no wall hit) and keeps covering ground.
-
-    class LastSlot:
-        policy = None
-
-        def predict(self, obs, deterministic=True):
-            mask = obs[ACTION_MASK_KEY]
-            return mask.shape[1] - 1 - np.argmax(mask[:, ::-1], axis=1), None
-
-    chooser = LastSlot()
-    chooser.policy = chooser
-    coverage_m, deviations, _ = oracle.play(env, 5, oracle=False, model=chooser)
-    assert deviations > 0 and env.core.wall_hits[0].tolist() == [0, 0] and 0 < coverage_m <= 1
-
-
-def test_one_agents_oracle_scored_by_steps_is_never_slower_than_the_planner() -> None:
-    # Alone on the true map, the oracle's slot 0 at each decision continues the rollout it
-    # committed to (everybody on the planner after the walk), and it leaves slot 0 only for a
-    # strictly better rollout: its steps to the coverage can only fall below the planner's.
-    oracle = _script("goal_oracle")
-    cfg = load_config(
-        ROOT / "configs" / "goals_2agents.yaml",
-        ["env.map=random", "env.height=15", "env.width=15", "env.max_steps=300", "env.n_agents=1"],
-    )
-    env = make_env(cfg.env)
-    _, _, planner_steps = oracle.play(env, 5, oracle=False, reach=0.9)
-    _, deviations, oracle_steps = oracle.play(env, 5, oracle=True, reach=0.9)
-    assert planner_steps is not None and oracle_steps is not None
-    assert deviations > 0 and oracle_steps <= planner_steps
-
-
-def test_the_oracle_walks_the_shortest_path_of_the_predecessors() -> None:
-    oracle = _script("goal_oracle")
-    # Cells 0 -> 1 -> 2 -> 5 (a predecessor array as SciPy returns it; -9999: none).
-    pred = np.array([-9999, 0, 1, -9999, -9999, 2])
-    assert oracle.path_to(pred, 0, 5) == [1, 2, 5]
-    assert oracle.path_to(pred, 0, 1) == [1]
 
 
 @settings(max_examples=60, deadline=None)
@@ -441,51 +331,3 @@ def test_the_unknown_feature_equals_scipy_s_uniform_filter_value_for_value(h, w,
     flat = seen.ravel()
     got = np.array([_unknown_share(flat, w + 2, c) for c in range(flat.size)], dtype=np.float32)
     np.testing.assert_array_equal(got, want)
-
-
-def test_a_student_fitted_to_the_oracles_saved_decisions_plays_back(tmp_path, monkeypatch, capsys):
-    # goal_oracle.py --save writes what belief_student.py fits; the student then plays through
-    # goal_oracle.py --model (experiments/README.md). Tiny episodes, one epoch: it runs end to end.
-    oracle, student = _script("goal_oracle"), _script("belief_student")
-    config = str(ROOT / "configs" / "goals_2agents.yaml")
-    small = ["--config", config, "--set", "env.height=15", "--set", "env.width=15",
-             "--set", "env.max_steps=60"]  # fmt: skip
-    data, model = tmp_path / "d.npz", tmp_path / "s.zip"
-    monkeypatch.setattr(sys, "argv", ["goal_oracle", "--episodes", "2", "--after", "0.5",
-                                      "--save", str(data), *small])  # fmt: skip
-    oracle.main()
-    saved = np.load(data)
-    assert set(saved["episode"].tolist()) == {0, 1} and (saved["coverage"] >= 0.5).all()
-    # One true map: the gains are the advantages, the oracle's slot the best of them.
-    np.testing.assert_array_equal(saved["gain"], saved["advantages"])
-    assert saved["obs_goals"].shape == saved["features"].shape
-    for target in ("label", "gain"):
-        monkeypatch.setattr(sys, "argv", ["belief_student", str(data), "--out", str(model),
-                                          "--epochs", "1", "--held-out", "1",
-                                          "--config", config,
-                                          "--target", target])  # fmt: skip
-        student.main()
-        assert "held out:" in capsys.readouterr().out
-    # The candidates' features alone, fitted on the first episode only: reported, not saved.
-    model.unlink()
-    monkeypatch.setattr(sys, "argv", ["belief_student", str(data), "--student", "features",
-                                      "--epochs", "1", "--held-out", "1", "--fit-episodes", "1",
-                                      "--config", config])  # fmt: skip
-    student.main()
-    out = capsys.readouterr().out
-    assert "held out:" in out and not model.exists()
-    fitted = int(out.split("fitted on ")[1].split()[0])
-    assert fitted == ((saved["episode"] == 0) & (saved["coverage"] < 0.99)).sum()
-    monkeypatch.setattr(sys, "argv", ["belief_student", str(data), "--student", "features",
-                                      "--out", str(model)])  # fmt: skip
-    with pytest.raises(SystemExit):
-        student.main()
-    # The network student saved above plays back.
-    monkeypatch.setattr(sys, "argv", ["belief_student", str(data), "--out", str(model),
-                                      "--epochs", "1", "--held-out", "1",
-                                      "--config", config])  # fmt: skip
-    student.main()
-    monkeypatch.setattr(sys, "argv", ["goal_oracle", "--episodes", "1", "--model", str(model),
-                                      "--after", "0.5", *small])  # fmt: skip
-    oracle.main()
-    assert "1 episodes: planner" in capsys.readouterr().out

@@ -1,12 +1,12 @@
 """The rollout teacher (``envs.coverage.teacher``): its choices and scores on a hand-built
 corridor where the best slot is known and the cells can be counted by hand, and equality with
-the Python rollouts of ``experiments/goal_oracle.py`` (the oracle it compiles), per decision for
-every planner it plays and over whole oracle episodes. That evaluation never imports it is a
+the Python rollouts of ``tests/python_rollouts.py`` (the oracle it compiles, taken from the
+research script ``research/experiments/goal_oracle.py``), per decision for every planner it plays
+and over whole oracle episodes. That evaluation never imports it is a
 rule of ``tests/test_architecture.py``."""
 
 from __future__ import annotations
 
-import importlib.util
 from pathlib import Path
 
 import numpy as np
@@ -18,19 +18,11 @@ from envs.coverage.rollouts import shortest_walk
 from envs.coverage.teacher import RolloutTeacher
 from harness.config.loading import load_config
 from harness.factory import make_env
+from tests import python_rollouts as oracle
 
 ROOT = Path(__file__).resolve().parents[1]
 #: The corridor's length (a 1 x W map: outside it, wall).
 W = 21
-
-
-def _oracle():
-    """``experiments/goal_oracle.py`` as a module (its Python rollouts are the reference)."""
-    path = ROOT / "experiments" / "goal_oracle.py"
-    spec = importlib.util.spec_from_file_location("goal_oracle", path)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
 
 
 def padded(col: int) -> int:
@@ -154,7 +146,6 @@ def test_every_slots_score_equals_the_python_rollouts(planner: str, n_agents: in
     # The oracle's Python rollouts (clone, advance, rollout: the planner stepped by act) and
     # the compiled ones score every slot alike, on states of a played episode, with a
     # teammate committed to a walk, for each way of scoring.
-    oracle = _oracle()
     env = _small_env(planner, n_agents)
     env.reset(seed=11)
     teachers = [RolloutTeacher(), RolloutTeacher(horizon=12), RolloutTeacher(reach=0.8)]
@@ -188,22 +179,76 @@ def test_every_slots_score_equals_the_python_rollouts(planner: str, n_agents: in
 def test_the_oracle_plays_the_same_episode_with_either_rollouts(reach: float | None) -> None:
     # Whole oracle episodes (decisions in agent order, commitment to a chosen walk, the
     # recorded advantages) are the same with the compiled rollouts as with the Python ones.
-    oracle = _oracle()
     env = _small_env("pocket", 2, max_steps=80)
     played = []
     for python in (True, False):
-        records: list = []
-        result = oracle.play(env, 7, oracle=True, records=records, reach=reach, python=python)
-        played.append((result, records))
-    (python_result, python_records), (result, records) = played
+        decisions: list = []
+        result = oracle.play(env, 7, oracle=True, reach=reach, python=python, decisions=decisions)
+        played.append((result, decisions))
+    (python_result, python_decisions), (result, decisions) = played
     assert result == python_result and result[1] > 0  # it deviates
-    assert len(records) == len(python_records) > 0
-    # Scored by the steps, a step is worth the padded 15x15 map's cells + 1 score units.
-    unit = 17 * 17 + 1.0 if reach else 1.0
-    for (f1, a1, t1, o1, b1, c1, g1, u1), (f2, a2, t2, o2, b2, c2, g2, u2) in zip(
-        records, python_records
-    ):
-        assert np.array_equal(f1, f2) and np.array_equal(a1, a2, equal_nan=True) and t1 == t2
-        assert (b1, c1) == (b2, c2) and np.array_equal(g1, g2, equal_nan=True)
-        assert u1 == u2 == unit
-        assert o1.keys() == o2.keys() and all(np.array_equal(o1[k], o2[k]) for k in o1)
+    assert len(decisions) == len(python_decisions) > 0
+    for (t1, a1, s1, b1), (t2, a2, s2, b2) in zip(decisions, python_decisions):
+        assert (t1, a1, b1) == (t2, a2, b2)
+        np.testing.assert_array_equal(s1, s2)
+
+
+def _goal_env(**overrides: int):
+    sets = {"env.height": 15, "env.width": 15, "env.max_steps": 80, **overrides}
+    cfg = load_config(
+        ROOT / "configs" / "goals_2agents.yaml",
+        ["env.map=random", *(f"{k}={v}" for k, v in sets.items())],
+    )
+    return make_env(cfg.env)
+
+
+def test_the_rollouts_replay_the_planner_and_leave_the_env_alone() -> None:
+    env = _goal_env()
+    env.reset(seed=5)
+    planner = env.frontier_state.planner
+    before = (list(planner.visited), list(planner.positions), planner.target.copy())
+    # Everybody on the planner from the reset: the copy's cells are the planner episode's.
+    new, _ = oracle.rollout(oracle.clone(planner), env.max_steps, {})
+    assert (list(planner.visited), list(planner.positions)) == before[:2]
+    assert (planner.target == before[2]).all()
+    start = int(env.visited.sum())
+    coverage, deviations, _ = oracle.play(env, 5, oracle=False)
+    assert deviations == 0 and coverage == pytest.approx((start + new) / env.free_cells)
+    # Steps to a coverage: the rollout's count (cells still to find) is the played episode's.
+    goal = int(np.ceil(0.6 * env.free_cells)) - start
+    env.reset(seed=5)
+    found, step = oracle.rollout(oracle.clone(env.frontier_state.planner), env.max_steps, {}, goal)
+    assert found == goal or found == goal + 1  # agents moving together may pass it by one
+    _, _, reached = oracle.play(env, 5, oracle=False, reach=0.6)
+    assert reached == step and 0 < step < env.max_steps
+    curve = []
+    env.reset(seed=5)
+    while env.agents and env.coverage < 0.6:
+        env.step(dict.fromkeys(env.agents, 0))
+        curve.append(env.coverage)
+    assert len(curve) == reached
+    # Every decision scores each candidate; the choice beats slot 0 (or is slot 0).
+    decisions: list = []
+    assert 0 < oracle.play(env, 5, oracle=True, decisions=decisions)[0] <= 1 and decisions
+    for _, _, scores, best in decisions:
+        assert best == 0 or scores[best] > scores[0]
+    # An oracle that decides only from a coverage it never reaches plays the planner.
+    assert oracle.play(env, 5, oracle=True, after=1.01)[:2] == (coverage, 0)
+
+
+def test_one_agents_oracle_scored_by_steps_is_never_slower_than_the_planner() -> None:
+    # Alone on the true map, the oracle's slot 0 at each decision continues the rollout it
+    # committed to (everybody on the planner after the walk), and it leaves slot 0 only for a
+    # strictly better rollout: its steps to the coverage can only fall below the planner's.
+    env = _goal_env(**{"env.max_steps": 300, "env.n_agents": 1})
+    _, _, planner_steps = oracle.play(env, 5, oracle=False, reach=0.9)
+    _, deviations, oracle_steps = oracle.play(env, 5, oracle=True, reach=0.9)
+    assert planner_steps is not None and oracle_steps is not None
+    assert deviations > 0 and oracle_steps <= planner_steps
+
+
+def test_the_reference_walks_the_shortest_path_of_the_predecessors() -> None:
+    # Cells 0 -> 1 -> 2 -> 5 (a predecessor array as SciPy returns it; -9999: none).
+    pred = np.array([-9999, 0, 1, -9999, -9999, 2])
+    assert oracle.path_to(pred, 0, 5) == [1, 2, 5]
+    assert oracle.path_to(pred, 0, 1) == [1]

@@ -483,9 +483,9 @@ class CoordinatedPlanner(FrontierPlanner):
 
     The defaults (every known unvisited cell a candidate; for the utility planner
     ``beta=0.2``, ``radius=3``) were chosen on validation episodes by
-    ``experiments/planner_params.py`` (``docs/planners/validation.json``, docs/planners.md); the
-    horizon of 15 cells costs at most 0.15 points there and makes the planners about twice as
-    fast (docs/planners.md).
+    ``research/experiments/planner_params.py`` (``docs/planners/validation.json``,
+    docs/planners.md); the horizon of 15 cells costs at most 0.15 points there and makes the
+    planners about twice as fast (docs/planners.md).
 
     Args:
         height: Rows of the map.

@@ -22,7 +22,7 @@ of at most ``margin`` (cells, or steps with ``reach``), keep slot 0 (:class:`Rol
 Two choosers play by that rule, on two kinds of map:
 
 * the rollout teacher (:class:`envs.coverage.teacher.RolloutTeacher`) on the *true* map: the
-  rollout oracle of ``experiments/goal_oracle.py``, which labels training's states (DAgger)
+  rollout oracle of ``research/experiments/goal_oracle.py``, which labels training's states (DAgger)
   and must never choose in evaluation (``tests/test_architecture.py``);
 * :class:`SampledChooser` on maps the team's own knowledge allows (:func:`sampled_free`), with
   a rule against chance gains: the ``rollout`` baseline of ``harness eval``, a policy that sees
@@ -427,7 +427,7 @@ class SampledChooser(RolloutRule):
 
     Its rollouts run to the episode's end, score by the steps to 99 % coverage of their map and
     need no margin (the rule measured on validation episodes; the research script
-    ``experiments/goal_oracle.py`` varies them).
+    ``research/experiments/goal_oracle.py`` varies them).
 
     Args:
         samples: Sampled maps a decision.

@@ -6,8 +6,8 @@ following the planner) on a copy of the planner's map whose free cells are the *
 (the planner's ``free`` row is the episode's map), and keeps the best slot by the rollouts'
 rule (:class:`~envs.coverage.rollouts.RolloutRule`).
 
-It is the rollout oracle of ``experiments/goal_oracle.py`` (research/experiment-log.md, "The room
-in the candidates"), compiled. Its choices label the policy's own states (DAgger); it must
+It is the rollout oracle of ``research/experiments/goal_oracle.py`` (research/experiment-log.md,
+"The room in the candidates"), compiled. Its choices label the policy's own states (DAgger); it must
 never choose in evaluation, where no policy sees the true map (``tests/test_architecture.py``
 keeps it out of the evaluation code; the ``rollout`` baseline plays the same rule on maps
 the team's knowledge allows, :class:`~envs.coverage.rollouts.SampledChooser`).

@@ -131,8 +131,8 @@ def paired_difference(
 ) -> tuple[float, float, float]:
     """Mean of ``a - b`` over paired episodes (the same maps and starts) and its 95 %
     percentile-bootstrap interval over the episodes: how a policy and a baseline, or two
-    policies, are compared episode by episode (``experiments/goal_validation.py``,
-    ``experiments/goal_oracle.py``)."""
+    policies, are compared episode by episode (``research/experiments/goal_validation.py``,
+    ``research/experiments/goal_oracle.py``)."""
     diff = np.asarray(a, dtype=np.float64) - np.asarray(b, dtype=np.float64)
     rng = np.random.default_rng(seed)
     means = diff[rng.integers(0, diff.size, (reps, diff.size))].mean(axis=1)

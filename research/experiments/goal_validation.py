@@ -4,7 +4,8 @@ mean per-episode difference to always taking slot 0 (``--policy frontier_step``,
 itself) on the same episodes with a 95 % bootstrap interval. How the variants of
 docs/goals.md were chosen.
 
-    python experiments/goal_validation.py RUN [RUN ...] [--episodes 50] [--set KEY=VALUE ...]
+    python research/experiments/goal_validation.py RUN [RUN ...] [--episodes 50]
+        [--set KEY=VALUE ...]
 """
 
 from __future__ import annotations

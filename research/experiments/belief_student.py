@@ -16,7 +16,7 @@ only (a learning curve over the labels). ``--student features`` fits, instead of
 an MLP that scores each slot from its candidate features beside slot 0's alone (no team map):
 how much of the choice the candidates' features tell; it is reported, not saved.
 
-    python experiments/belief_student.py DATA.npz [DATA.npz ...] [--out student.zip]
+    python research/experiments/belief_student.py DATA.npz [DATA.npz ...] [--out student.zip]
         [--student network|features] [--config configs/goals_4agents.yaml] [--epochs 30]
         [--deviation-weight 10] [--held-out 2] [--fit-episodes N] [--below 0.99]
         [--target label|gain] [--margin-steps 2] [--seed 0]

@@ -1,14 +1,15 @@
 """What a label of the rollout teacher costs (docs/goals.md, "The teacher"): decisions labelled
 per CPU second (``time.process_time``) by the compiled teacher
 (:class:`envs.coverage.teacher.RolloutTeacher`) and by the oracle's Python rollouts
-(``experiments/goal_oracle.py``'s :func:`python_scores`), on the same states, with a check that
-both give every slot the same score.
+(``research/experiments/goal_oracle.py``'s :func:`python_scores`), on the same states, with a
+check that both give every slot the same score.
 
 The states are those of planner episodes (every agent on slot 0) of ``--config``'s env on
 random 50x50 maps, every ``--every`` steps from the start; at each, every agent with at least
 two candidates is labelled, its rollouts running to the episode's end (full horizon).
 
-    python experiments/teacher_speed.py [--config configs/goals_2agents.yaml] [--agents 2 4]
+    python research/experiments/teacher_speed.py [--config configs/goals_2agents.yaml]
+        [--agents 2 4]
         [--episodes 2] [--every 100] [--seed 2000003]
 """
 

@@ -16,7 +16,7 @@ The replays call the compiled functions from Python once per step, as the planne
 rest of an episode is the env and Python around the planner, which ``frontier`` pays too.
 research/performance-history.md quotes it.
 
-    python experiments/planner_time.py [EPISODES]     # default 8; under a minute
+    python research/experiments/planner_time.py [EPISODES]     # default 8; under a minute
 """
 
 from __future__ import annotations

@@ -8,7 +8,7 @@ coverage over the three settings, then the fewest median steps to 99 % with 4 ag
 every planner covers everything). Writes ``docs/planners/validation.json``; docs/planners.md
 quotes it.
 
-    python experiments/planner_params.py [EPISODES]     # default 20; about 15 min on 2 cores
+    python research/experiments/planner_params.py [EPISODES]  # default 20; 15 min on 2 cores
 """
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ import sys
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 SETTINGS = ("ddqn_2agents", "ddqn_4agents", "cave_2agents")
 GRID = {
     "utility": [

@@ -12,7 +12,7 @@ over the step's time, whatever the env costs: the ceiling this script prints.
 precision, where the CPU has bf16 instructions): a measurement only, the harness has no such
 option.
 
-    python experiments/learner_floor.py [--config configs/goals_2agents.yaml] [--fill 4000]
+    python research/experiments/learner_floor.py [--config configs/goals_2agents.yaml] [--fill 4000]
         [--steps 40] [--rounds 3] [--threads 1 2] [--bf16]
 """
 

@@ -10,7 +10,7 @@ where the student takes the label, the teacher's deviations from slot 0 (the pla
 and the share of those the student takes too, the student's own deviations and the share of
 those the teacher agrees with, and the episodes' mean coverage.
 
-    python experiments/teacher_agreement.py RUN [--model best_model] [--episodes 8]
+    python research/experiments/teacher_agreement.py RUN [--model best_model] [--episodes 8]
         [--set KEY=VALUE ...]
 """
 

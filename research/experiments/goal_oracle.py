@@ -36,7 +36,7 @@ docs/goals.md "The teacher"): one owner of the oracle's rule, which training's l
 ``--rollouts python`` steps them in Python instead (:func:`python_scores`, the reference the
 teacher was checked against, tests/test_teacher.py): the same choices, 3 to 12 times slower.
 
-    python experiments/goal_oracle.py [--config configs/goals_2agents.yaml] [--episodes 10]
+    python research/experiments/goal_oracle.py [--config configs/goals_2agents.yaml] [--episodes 10]
         [--seed 2000003] [--set KEY=VALUE ...] [--horizon H] [--belief true|sampled]
         [--samples M] [--sigmas Z] [--margin CELLS] [--model RUN/model.zip] [--save DECISIONS.npz]
         [--reach Q] [--after C] [--rollouts compiled|python]

@@ -18,7 +18,7 @@ against ``cuda_graph=False``.
 
 Usage (a GPU machine; exits with 2 where there is none)::
 
-    python experiments/cuda_graph_step.py [--steps 400] [--rounds 3]
+    python research/experiments/cuda_graph_step.py [--steps 400] [--rounds 3]
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """How much of the rollout teacher's choice the team's own map decides: the true-map teacher
 (``envs.coverage.teacher``, the labels ``algo.teacher`` distils) against the same teacher on
 maps whose unseen cells are sampled (``envs.coverage.rollouts.sampled_free``, as
-``experiments/goal_oracle.py`` samples: each unseen cell free with the share of free cells
+``research/experiments/goal_oracle.py`` samples: each unseen cell free with the share of free cells
 among the seen ones), on the states of the
 planner's own episodes (every agent always takes slot 0; *validation* seeds).
 
@@ -12,7 +12,7 @@ sampled maps. Reported: decisions, the share of true-map labels other than slot 
 of the true-map label with a sampled-map one and of the two sampled ones, the same agreement
 among the true-map teacher's deviations, and chance (the mean of ``1 / candidates``).
 
-    python experiments/teacher_belief.py [--config configs/goals_2agents_teacher.yaml]
+    python research/experiments/teacher_belief.py [--config configs/goals_2agents_teacher.yaml]
         [--episodes 4] [--every 10] [--reach Q] [--set KEY=VALUE ...]
 
 ``--reach Q`` scores by the steps to coverage ``Q`` (the teacher's ``reach``, for teams that

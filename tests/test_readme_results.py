@@ -1,5 +1,6 @@
-"""The results tables (docs/results.md, moved there from README) quote the committed reference
-evaluations and stored baselines, digit for digit."""
+"""The results tables (docs/results.md, and the finished research lines' tables in
+research/results-notes.md) quote the committed reference evaluations and stored baselines, digit
+for digit."""
 
 from __future__ import annotations
 
@@ -12,17 +13,20 @@ import pytest
 from harness.config.loading import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
-#: The page that holds every results table (README links to it).
+#: The page that holds the current results tables (README links to it).
 RESULTS = ROOT / "docs" / "results.md"
+#: The lab record's page beside it, which holds the tables of finished research lines (the
+#: team-map references), checked as those of docs/results.md are.
+RESULTS_NOTES = ROOT / "research" / "results-notes.md"
 #: The page that describes the sweep on a real question (the lab record, research/).
 SWEEPS = ROOT / "research" / "guide-measurements.md"
 TABLE_HEADER = "| experiment | thesis | this project | T | walls | greedy |"
 
 
-def table_rows(header_start: str) -> list[dict[str, str]]:
-    """The rows of the results table (docs/results.md) whose header line starts with
-    ``header_start``, as ``{column: cell}``."""
-    lines = RESULTS.read_text().splitlines()
+def table_rows(header_start: str, page: Path = RESULTS) -> list[dict[str, str]]:
+    """The rows of the results table of ``page`` (docs/results.md unless given) whose header
+    line starts with ``header_start``, as ``{column: cell}``."""
+    lines = page.read_text().splitlines()
     start = next(i for i, line in enumerate(lines) if line.startswith(header_start))
     header = [c.strip() for c in lines[start].strip("|").split("|")]
     rows = []
@@ -169,7 +173,7 @@ TEAMMAP_STEP_BASELINES: dict[tuple[str, str], str] = {
     ("maze_100x50, 1000 steps", "4"): "maze-4agents",
     ("15x15 random, 150 steps", "2"): "15x15-2agents",
 }
-TEAMMAP_ROWS = [r for r in table_rows(TEAMMAP_HEADER) if r["policy"].startswith("`")]
+TEAMMAP_ROWS = [r for r in table_rows(TEAMMAP_HEADER, RESULTS_NOTES) if r["policy"].startswith("`")]
 
 
 def teammap_eval(reference: str, stem: str, agents: str, variant: str = "") -> dict:
@@ -212,7 +216,9 @@ def test_teammap_table_has_every_setting_of_the_goals() -> None:
 
 
 @pytest.mark.parametrize(
-    "row", table_rows(TEAMMAP_HEADER), ids=lambda r: f"{r['test setting']}-{r['agents']}"
+    "row",
+    table_rows(TEAMMAP_HEADER, RESULTS_NOTES),
+    ids=lambda r: f"{r['test setting']}-{r['agents']}",
 )
 def test_teammap_row_quotes_the_stored_baselines_on_the_same_episodes(row: dict[str, str]) -> None:
     config = TEAMMAP_SETTINGS[(row["test setting"], row["agents"])][1]
@@ -260,7 +266,7 @@ def test_teammap_seeds_row_quotes_the_three_seeds(row_start: str, name: str, age
 
     (row,) = [
         r
-        for r in table_rows(TEAMMAP_HEADER)
+        for r in table_rows(TEAMMAP_HEADER, RESULTS_NOTES)
         if r["policy"].startswith(row_start) and r["agents"] == str(agents)
     ]
     folders = [ROOT / "runs" / "reference" / name] + [

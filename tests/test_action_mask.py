@@ -16,12 +16,13 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.utils import set_random_seed
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-import harness.sb3.dqn
+import harness.sb3.losses
 import harness.sb3.targets
 from harness.sb3.buffers import PrioritizedDictReplayBuffer
 from harness.sb3.device_replay import DevicePrioritizedDictReplayBuffer
 from harness.sb3.dqn import ACTION_MASK_KEY, DoubleDQN, allowed_actions
 from harness.sb3.policies import PerAgentQNetwork, TeamMapExtractor
+from tests.test_double_dqn import with_loss
 
 N_ACTIONS = 4
 GAMMA = 0.5
@@ -94,7 +95,7 @@ def make_model(
     settings: dict[str, Any] = {"device": "cpu", "seed": 0, "buffer_size": 64, **kwargs}
     if q is not None:
         settings = {"policy_kwargs": dict(net_arch=[]), "learning_rate": 0.0, **settings}
-    model = DoubleDQN("MultiInputPolicy", env, gamma=GAMMA, **settings)
+    model = DoubleDQN("MultiInputPolicy", env, gamma=GAMMA, **with_loss(settings))
     model.set_logger(configure(folder=None, format_strings=[]))
     if q is not None:
         for net, bias in ((model.q_net, q), (model.q_net_target, target_q or q)):
@@ -285,7 +286,7 @@ def test_the_targets_get_the_negated_mask(monkeypatch: pytest.MonkeyPatch) -> No
         seen.append(args[5])
         return harness.sb3.targets.double_q_target(*args)
 
-    monkeypatch.setattr(harness.sb3.dqn, "double_q_target", spy)
+    monkeypatch.setattr(harness.sb3.losses, "double_q_target", spy)
     model = make_model(n_envs=1, q=Q_ONLINE)
     assert model.replay_buffer is not None
     model.replay_buffer.add(
@@ -442,7 +443,7 @@ def test_without_a_mask_key_nothing_changes(monkeypatch: pytest.MonkeyPatch) -> 
         seen.append(args[5])
         return harness.sb3.targets.double_q_target(*args)
 
-    monkeypatch.setattr(harness.sb3.dqn, "double_q_target", spy)
+    monkeypatch.setattr(harness.sb3.losses, "double_q_target", spy)
     assert model.replay_buffer is not None
     first = {"obs": obs["obs"][:3]}
     model.replay_buffer.add(

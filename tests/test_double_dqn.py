@@ -22,9 +22,11 @@ from stable_baselines3.common.utils import ConstantSchedule, LinearSchedule, set
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 import harness.sb3.dqn
+import harness.sb3.losses
 import harness.sb3.targets
 from harness import DoubleDQN, DuelingDQNPolicy, PrioritizedReplayBuffer
 from harness.sb3.device_replay import DevicePrioritizedReplayBuffer
+from harness.sb3.losses import LossOptions
 
 S = np.array([[1.0, 0.0]], dtype=np.float32)  # state s
 S_NEXT = np.array([[0.0, 1.0]], dtype=np.float32)  # next state s'
@@ -68,6 +70,16 @@ def set_linear_weights(model: DQN, online: list[list[float]], target: list[list[
             layer.bias.zero_()
 
 
+LOSS_KEYS = ("double_q", "expert_action", "margin", "margin_weight")
+
+
+def with_loss(kwargs: dict[str, Any]) -> dict[str, Any]:
+    """``kwargs`` with DoubleDQN's loss options (``double_q=``, ``margin=``, ...) grouped into
+    its ``loss`` argument, a :class:`LossOptions`."""
+    options = {key: kwargs.pop(key) for key in LOSS_KEYS if key in kwargs}
+    return {**kwargs, "loss": LossOptions(**options)} if options else kwargs
+
+
 def make_linear_model(cls: type[DQN] = DoubleDQN, **kwargs: Any) -> DQN:
     """A model whose Q-networks are single Linear layers and whose updates change nothing."""
     kwargs = {
@@ -79,7 +91,7 @@ def make_linear_model(cls: type[DQN] = DoubleDQN, **kwargs: Any) -> DQN:
         "seed": 0,
         **kwargs,
     }
-    model = cls("MlpPolicy", DummyVecEnv([TinyEnv]), **kwargs)
+    model = cls("MlpPolicy", DummyVecEnv([TinyEnv]), **with_loss(kwargs))
     model.set_logger(configure(folder=None, format_strings=[]))
     set_linear_weights(model, W_ONLINE, W_TARGET)
     return model
@@ -139,7 +151,7 @@ def test_n_step_discounts_are_passed_through(monkeypatch: pytest.MonkeyPatch) ->
         seen.append(args[2])
         return harness.sb3.targets.double_q_target(*args)
 
-    monkeypatch.setattr(harness.sb3.dqn, "double_q_target", spy)
+    monkeypatch.setattr(harness.sb3.losses, "double_q_target", spy)
     model = make_linear_model(n_steps=2, buffer_size=8)
     assert type(model.replay_buffer).__name__ == "NStepReplayBuffer"
     for _ in range(3):
@@ -374,7 +386,7 @@ def _trained_greedy_actions(**kwargs: Any) -> np.ndarray:
         batch_size=32,
         device="cpu",
         seed=0,
-        **kwargs,
+        **with_loss(kwargs),
     )
     model.set_logger(configure(folder=None, format_strings=[]))
     assert model.replay_buffer is not None
@@ -480,7 +492,7 @@ def test_save_load_round_trip(tmp_path: Path) -> None:
     model = DoubleDQN(
         "DuelingMlpPolicy",
         env,
-        double_q=False,
+        loss=LossOptions(double_q=False),
         replay_buffer_class=PrioritizedReplayBuffer,
         replay_buffer_kwargs=dict(alpha=0.7, beta=0.3),
         policy_kwargs=dict(

@@ -15,7 +15,7 @@ from stable_baselines3.common.buffers import ReplayBufferSamples
 from stable_baselines3.common.logger import configure
 from stable_baselines3.common.vec_env import DummyVecEnv
 
-import harness.sb3.dqn
+import harness.sb3.losses
 from harness import DoubleDQN
 from harness.sb3.buffers import PrioritizedDictReplayBuffer
 from harness.sb3.device_replay import (
@@ -274,8 +274,8 @@ def test_a_nan_td_error_stops_a_prioritized_call_before_its_priorities_are_writt
 
 def test_step_stats_read_everything_in_one_transfer(monkeypatch: pytest.MonkeyPatch) -> None:
     reads = []
-    to_host = harness.sb3.dqn._to_host
-    monkeypatch.setattr(harness.sb3.dqn, "_to_host", lambda t: reads.append(t) or to_host(t))
+    to_host = harness.sb3.losses._to_host
+    monkeypatch.setattr(harness.sb3.losses, "_to_host", lambda t: reads.append(t) or to_host(t))
     stats = StepStats()
     assert stats.read() == {} and reads == []  # nothing added: no read
     for step in range(3):
@@ -300,13 +300,13 @@ def count_host_reads(monkeypatch: pytest.MonkeyPatch) -> Counter[str]:
     ``bool(t)``, ``np.asarray(t)``, ... Reads inside torch (an optimizer's step counter, which
     lives on the CPU whatever the device) are torch's and left out."""
     counts: Counter[str] = Counter()
-    to_host = harness.sb3.dqn._to_host
+    to_host = harness.sb3.losses._to_host
 
     def counted_to_host(tensor: th.Tensor) -> np.ndarray:
         counts["_to_host"] += 1
         return to_host(tensor)
 
-    monkeypatch.setattr(harness.sb3.dqn, "_to_host", counted_to_host)
+    monkeypatch.setattr(harness.sb3.losses, "_to_host", counted_to_host)
     for name in READS:
         original = getattr(th.Tensor, name)
 

@@ -22,13 +22,14 @@ settings, the weights' storage); the owner records the step again when it change
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from typing import Any
 
 import torch as th
 
-__all__ = ["GraphedStep", "side_stream"]
+__all__ = ["GraphedStep", "record_step", "side_stream"]
 
 
 @contextmanager
@@ -92,3 +93,25 @@ class GraphedStep:
             parameter.grad = grad
         self._graph.replay()
         return {name: value.clone() for name, value in self._outputs.items()}
+
+
+def record_step(
+    key: tuple[Any, ...],
+    step: Callable[[th.Tensor], dict[str, th.Tensor]],
+    batch: int,
+    draw: Callable[[int, th.Tensor], Any],
+    parameters: list[th.nn.Parameter],
+    device: th.device,
+) -> GraphedStep | None:
+    """A :class:`GraphedStep` of these arguments, or ``None`` with a warning (training goes on
+    without a graph) when the step cannot be recorded."""
+    try:
+        return GraphedStep(key, step, batch, draw, parameters, device)
+    except RuntimeError as error:
+        warnings.warn(
+            f"DoubleDQN: the gradient step could not be recorded as a CUDA graph "
+            f"({str(error).splitlines()[0]}); training goes on without one",
+            RuntimeWarning,
+            stacklevel=4,
+        )
+        return None

@@ -46,6 +46,8 @@ __all__ = [
     "SlotTeamMapPolicy",
     "TeamMapExtractor",
     "TeamMapPolicy",
+    "harness_policy_aliases",
+    "resolve_optimizer_class",
     "without_action_mask",
 ]
 
@@ -772,3 +774,34 @@ class PerAgentTeamMapPolicy(_PerAgent, TeamMapPolicy):
 
 class PerAgentDuelingTeamMapPolicy(_PerAgent, DuelingTeamMapPolicy):
     """``DuelingTeamMapPolicy`` with one parameter set per agent (``n_agents``)."""
+
+
+def resolve_optimizer_class(optimizer: str | type[th.optim.Optimizer]) -> type[th.optim.Optimizer]:
+    """The ``torch.optim`` class named ``optimizer`` (``"RMSprop"``, ``"Adam"``, ...); classes
+    pass through unchanged, so config files can use names and code can use classes."""
+    if isinstance(optimizer, str):
+        candidate = getattr(th.optim, optimizer, None)
+        if not (isinstance(candidate, type) and issubclass(candidate, th.optim.Optimizer)):
+            raise ValueError(f"unknown torch optimizer {optimizer!r}: not a class in torch.optim")
+        return candidate
+    if isinstance(optimizer, type) and issubclass(optimizer, th.optim.Optimizer):
+        return optimizer
+    raise ValueError(f"optimizer_class must be a torch.optim.Optimizer subclass, got {optimizer!r}")
+
+
+def harness_policy_aliases(algorithm: Any) -> dict[str, type[BasePolicy]]:
+    """``algorithm``'s policy aliases (SB3's ``MlpPolicy``, ...) and every name of the harness's
+    policy registry (:data:`harness.sb3.registry.POLICIES`, their per-agent names too), with
+    ``"MultiInputPolicy"`` the one that leaves the action mask out of the network's input."""
+    from harness.sb3.registry import POLICIES
+
+    return {
+        **algorithm.policy_aliases,
+        **{name: entry.load() for name, entry in POLICIES.items()},
+        **{
+            entry.per_agent_name: entry.load(per_agent=True)
+            for entry in POLICIES.values()
+            if entry.per_agent
+        },
+        "MultiInputPolicy": MultiInputPolicy,
+    }

@@ -63,6 +63,7 @@ from harness.sb3.decisions import per_decision_buffer_class
 from harness.sb3.device_replay import prioritized_buffer_class, uniform_buffer_class
 from harness.sb3.dqn import (
     DoubleDQN,
+    LossOptions,
     NonFiniteLossError,
     OldModelError,
 )
@@ -149,9 +150,8 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
         target_update_interval=algo.target_update_interval,
         # ε, β and the learning rate's schedules are installed by apply_phase, in one place.
         max_grad_norm=algo.max_grad_norm,
-        double_q=algo.double_q,
+        loss=LossOptions(double_q=algo.double_q, **_imitation_kwargs(config)),
         cuda_graph=algo.cuda_graph,
-        **_imitation_kwargs(config),
         # Enough finished episodes for the epochs table's median (one entry per slot).
         stats_window_size=max(
             100, max(p.epochs_window for p in config.phases) * config.env.n_agents
@@ -164,7 +164,7 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
 
 
 def _imitation_kwargs(config: ExperimentConfig) -> dict[str, Any]:
-    """DoubleDQN's arguments for ``algo.imitation``: DQfD's margin loss with the env's
+    """The :class:`LossOptions` of ``algo.imitation``: DQfD's margin loss with the env's
     planner-backed action as the expert's; for ``algo.teacher`` the loss's margin and weight
     (the samples carry the teacher's labels); none (DoubleDQN's defaults) without either."""
     teacher = config.algo.teacher

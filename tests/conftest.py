@@ -1,10 +1,17 @@
 """Shared fixtures and helpers: small hand-built grids and envs made for them, the check of a
-one-line error, and the overrides of a tiny goal-action run."""
+one-line error, the overrides of a tiny goal-action run, and the processes a test starts
+(:func:`spawn`), ended with the test whatever its outcome."""
 
 from __future__ import annotations
 
+import contextlib
+import os
 import signal
+import subprocess
+import time
+from collections.abc import Iterator, Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -19,6 +26,60 @@ def pytest_configure(config: pytest.Config) -> None:
     # commands it starts, the terminal's disposition wherever it runs.
     if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+#: The processes the running test started (:func:`spawn`), and whether each leads a process
+#: group of its own; each ends with the test.
+_SPAWNED: list[tuple[subprocess.Popen, bool]] = []
+
+
+def spawn(cmd: Sequence[str], **kwargs: Any) -> subprocess.Popen:
+    """``subprocess.Popen(cmd, **kwargs)`` in a process group of its own (a new session, unless
+    ``start_new_session`` says otherwise), killed whole when the test ends, however it ends
+    (:func:`_end_spawned`): the processes it started (env workers, seed runs, sweep workers) go
+    with it. A test that fails or times out is one failed test, not a hung suite with processes
+    left behind."""
+    kwargs.setdefault("start_new_session", True)
+    proc = subprocess.Popen(cmd, **kwargs)
+    _SPAWNED.append((proc, bool(kwargs["start_new_session"])))
+    return proc
+
+
+def group_left(proc: subprocess.Popen, seconds: float = 10.0) -> bool:
+    """Whether a process of ``proc``'s group (its own session: :func:`spawn`) still exists after
+    at most ``seconds`` (an ended process that nobody reaped yet counts until it is reaped)."""
+    deadline = time.monotonic() + seconds
+    while True:
+        try:
+            os.killpg(proc.pid, 0)
+        except ProcessLookupError:
+            return False
+        if time.monotonic() > deadline:
+            return True
+        time.sleep(0.1)
+
+
+def end_group(proc: subprocess.Popen, own_group: bool = True) -> None:
+    """Kill ``proc`` and, with ``own_group`` (it leads a process group: :func:`spawn`), every
+    process left in that group, also once ``proc`` itself has ended; reap it, close its pipes.
+    (A group's id is not given to a new process while a member of the group lives.)"""
+    if own_group:
+        with contextlib.suppress(ProcessLookupError):  # nothing left in it
+            os.killpg(proc.pid, signal.SIGKILL)
+    if proc.poll() is None:
+        proc.kill()
+    proc.wait()
+    for pipe in (proc.stdin, proc.stdout, proc.stderr):
+        if pipe is not None:
+            pipe.close()
+
+
+@pytest.fixture(autouse=True)
+def _end_spawned() -> Iterator[None]:
+    """End what the test started with :func:`spawn`, after it, passed, failed or timed out."""
+    yield
+    while _SPAWNED:
+        end_group(*_SPAWNED.pop())
 
 
 def root_first_env(**extra: str) -> dict[str, str]:

@@ -3,11 +3,15 @@ time-out, episode info."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
 from harness.config.schema import EnvConfig
 from harness.training.adapters import make_vec_env
+from tests.conftest import group_left, spawn
 
 SMALL = EnvConfig(height=8, width=9, n_agents=2, max_steps=6, coords="raw")
 
@@ -125,3 +129,26 @@ def test_the_goal_actions_int8_mask_reaches_sb3_as_the_env_gives_it(backend):
     # The model's slot spaces the memory checks size (the replay buffer holds int8 masks).
     config = config_from_dict({"env": goal, "algo": {"policy": "SlotTeamMapPolicy"}})
     assert _slot_spaces(config)[0] == venv.observation_space
+
+
+#: A process that starts SuperSuit env workers and ends without closing them, as a second
+#: Ctrl-C that lands in training's cleanup leaves it.
+UNCLOSED_WORKERS = (
+    "import sys\n"
+    "from harness.config.schema import EnvConfig\n"
+    "from harness.training.adapters import make_vec_env\n"
+    "venv = make_vec_env(EnvConfig(height=8, width=9, n_agents=2, max_steps=6), copies=2,\n"
+    "                    num_cpus=2, seed=0, backend='supersuit')\n"
+    "venv.reset()\n"
+    "print(*(proc.pid for proc in venv.unwrapped.procs), flush=True)\n"
+    "sys.exit(130)\n"
+)
+
+
+def test_env_workers_left_unclosed_end_with_their_process():
+    # multiprocessing's exit waits for every child that is not a daemon: the workers, waiting
+    # for an instruction that never comes, would hold the process there for ever.
+    proc = spawn([sys.executable, "-c", UNCLOSED_WORKERS], stdout=subprocess.PIPE, text=True)
+    out, _ = proc.communicate(timeout=60)
+    assert proc.returncode == 130 and len(out.split()) == 2
+    assert not group_left(proc)

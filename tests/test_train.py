@@ -24,6 +24,7 @@ from harness import DoubleDQN
 from harness.cli import main
 from harness.config.loading import load_config
 from harness.training.checkpoints import TrainingState, complete_checkpoints, latest_checkpoint
+from tests.conftest import group_left, spawn
 from tests.stopping import (
     ENDLESS_EPOCHS,
     ROOT,
@@ -341,7 +342,7 @@ def test_ctrl_c_twice_in_a_terminal_with_env_worker_processes_stops_without_trac
     # A terminal's Ctrl-C goes to the whole process group: the env worker processes too.
     cmd = [sys.executable, "-m", "harness.cli", "run", str(SMOKE), "--runs-dir", str(tmp_path)]
     cmd += ["--no-progress", *LONGER, "--set", "vec.backend=supersuit", "--set", "vec.num_cpus=2"]
-    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    proc = spawn(cmd, stderr=subprocess.PIPE, text=True)  # a group of its own, as a terminal's
     run = wait_for_checkpoint(tmp_path, proc, 1000)
     os.killpg(proc.pid, signal.SIGINT)
     time.sleep(0.05)  # the second one lands while stopping (or saving) the first
@@ -353,6 +354,48 @@ def test_ctrl_c_twice_in_a_terminal_with_env_worker_processes_stops_without_trac
     assert f"resume with: harness run --resume {run}" in err
     assert no_temporary_files(run) == []
     assert complete_checkpoints(run / "checkpoints")
+    assert not group_left(proc)  # its env workers ended with it
+
+
+#: ``harness run`` whose logger closes slowly (a TensorBoard flush on a loaded machine), saying
+#: so first: a Ctrl-C can then be sent while training cleans up, before it closes its workers.
+SLOW_CLEANUP = (
+    "import sys, time\n"
+    "from stable_baselines3.common.logger import Logger\n"
+    "close = Logger.close\n"
+    "def slow_close(self):\n"
+    "    print('closing the logger', file=sys.stderr, flush=True)\n"
+    "    time.sleep(3)\n"
+    "    close(self)\n"
+    "Logger.close = slow_close\n"
+    "from harness.cli import main\n"
+    "sys.exit(main())\n"
+)
+
+
+@pytest.mark.slow
+def test_a_second_ctrl_c_while_training_cleans_up_ends_it_and_its_env_workers(tmp_path):
+    # The first Ctrl-C's clean stop is over (its checkpoint written): the second one is a
+    # KeyboardInterrupt that cuts the cleanup short, before the env workers are closed.
+    cmd = [sys.executable, "-c", SLOW_CLEANUP, "run", str(SMOKE), "--runs-dir", str(tmp_path)]
+    cmd += ["--no-progress", *LONGER, "--set", "vec.backend=supersuit", "--set", "vec.num_cpus=2"]
+    proc = spawn(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    run = wait_for_checkpoint(tmp_path, proc, 1000)
+    os.killpg(proc.pid, signal.SIGINT)
+    read_until(proc, "closing the logger")
+    os.killpg(proc.pid, signal.SIGINT)
+    sent = time.monotonic()
+    _, err = proc.communicate(timeout=120)
+    took = time.monotonic() - sent
+    assert proc.returncode == 128 + signal.SIGINT, err
+    assert "Traceback" not in err, err
+    newest = complete_checkpoints(run / "checkpoints")[-1]
+    assert harness_lines(err) == [
+        f"harness: interrupted (the newest checkpoint is {newest}); resume with: harness run "
+        f"--resume {run}"
+    ]
+    assert not group_left(proc)  # its env workers ended with it
+    assert took < 30, f"ending took {took:.1f} s"
 
 
 def test_starting_again_over_a_damaged_log_is_one_line_and_changes_nothing(tmp_path, capsys):

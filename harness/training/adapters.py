@@ -15,6 +15,7 @@ that copy's generator, and a run with the same seed repeats, whatever ``num_cpus
 
 from __future__ import annotations
 
+import atexit
 import functools
 import os
 import signal
@@ -310,6 +311,7 @@ def _supersuit_vec_env(
         probe.close()
     if isinstance(inner, ProcConcatVec):
         inner._receive_info = types.MethodType(_receive_quietly, inner)  # type: ignore[method-assign]
+        _end_workers_at_exit(inner)
     with warnings.catch_warnings():
         # SuperSuit's inner VecEnv has no get_attr("render_mode"); SB3 warns and uses None,
         # which is right: training never renders.
@@ -321,6 +323,34 @@ def _supersuit_vec_env(
             keys = () if isinstance(env, PettingZooEnvConfig) else EPISODE_INFO_KEYS
             venv = VecMonitor(venv, info_keywords=keys)
     return venv
+
+
+def _end_workers_at_exit(vec: ProcConcatVec) -> None:
+    """Kill ``vec``'s env workers that are still alive when this process exits.
+
+    Training closes its workers as it ends (``venv.close()``, in a ``finally``), but a second
+    Ctrl-C can land in that cleanup, where it is a ``KeyboardInterrupt`` again (the first one's
+    clean stop is over), and skip or cut the close. Those workers would wait for their next
+    instruction for ever (they ignore SIGINT and SIGTERM: :func:`_make_copy`), and
+    multiprocessing's exit handler waits for every child that is not a daemon: the command
+    printed its last line and never ended. This exit handler, registered after
+    multiprocessing's (its workers are started), runs before it and kills them; a close that
+    ended takes it off again.
+    """
+    kill = functools.partial(_kill_alive, list(vec.procs))
+    atexit.register(kill)
+
+    def close() -> None:
+        ProcConcatVec.close(vec)
+        atexit.unregister(kill)
+
+    vec.close = close  # type: ignore[method-assign]
+
+
+def _kill_alive(procs: list[Any]) -> None:
+    for proc in procs:
+        if proc.is_alive():
+            proc.kill()
 
 
 def _receive_quietly(vec: ProcConcatVec) -> list[Any]:

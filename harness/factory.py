@@ -13,7 +13,9 @@ contract); it has no batched core.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Mapping
+from pathlib import Path
 from typing import Any
 
 from envs import coverage_v0
@@ -30,9 +32,11 @@ CHECK_DRAWS = 3
 def env_kwargs(env: EnvConfig) -> dict[str, Any]:
     """Keyword arguments of ``coverage_v0.parallel_env`` for the ``env`` section of a config:
     map sources built, test maps left out of generated ones, options as the env's objects."""
-    out = env.model_dump(exclude={"map_sha256", "test_maps", "frontier"})
+    out = env.model_dump(exclude={"map_sha256", "test_maps", "frontier", "prior"})
     out["wall_fraction"] = tuple(out["wall_fraction"])
     out["frontier"] = env.frontier_options
+    if env.prior is not None:
+        out["map_prior"] = map_prior(env.prior)
     if env.agent_id:
         out["agent_id"] = True
     if isinstance(env.map, dict):
@@ -50,6 +54,26 @@ def env_kwargs(env: EnvConfig) -> dict[str, Any]:
         except ValueError as exc:
             raise ConfigError(f"env.map: {exc} (it is in env.test_maps)") from None
     return out
+
+
+@functools.lru_cache(maxsize=4)
+def _load_prior(path: str, stamp: float) -> Any:
+    from harness.prior.model import load_prior  # torch: only for a prior
+
+    return load_prior(path)
+
+
+def map_prior(path: str) -> Any:
+    """The map prior of ``env.prior`` (:class:`harness.prior.model.MapPrior`), loaded once per
+    process and file version: every env copy of a process shares it.
+
+    Raises:
+        ConfigError: one line naming ``env.prior``.
+    """
+    try:
+        return _load_prior(str(Path(path).resolve()), Path(path).stat().st_mtime)
+    except (OSError, ValueError) as exc:
+        raise ConfigError(f"env.prior: {exc}") from None
 
 
 def make_env(

@@ -39,6 +39,12 @@ LAYERS = {
     "harness.sb3": 0,
     "harness.config": 1,
     "harness.processes": 1,
+    # A module of its own rank, listed before its package (the first prefix that matches
+    # counts): the run folder's names, which every layer reads, sit with the config; the map
+    # prior's network sits with the factory, which hands a prior to the env (env.prior).
+    "harness.results.rundir": 1,
+    "harness.prior.coding": 2,
+    "harness.prior.model": 2,
     "harness.factory": 2,
     "harness.evaluation": 3,
     "harness.results": 4,

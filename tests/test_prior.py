@@ -420,3 +420,100 @@ def test_a_rollout_chooser_of_one_map_is_refused_in_one_line(capsys) -> None:
     args = ["eval", "--policy", "rollout", "--config", "configs/goals_2agents.yaml"]
     assert main([*args, "--set", "eval.rollout.samples=1", "--episodes", "1"]) == 2
     assert "2 maps or more" in one_error_line(capsys.readouterr().err)
+
+
+# ------------------------------------------------ the goal action's candidates read a prior
+def test_the_predicted_features_are_the_expected_unseen_free_cells_of_the_windows() -> None:
+    from envs.coverage.goals import predicted_features
+
+    # A 5x6 map, nothing seen, every cell a wall with probability 1/4; one candidate at row 2,
+    # column 3 (padded: row 3, column 4 of a stride of 8) and an empty slot. The 7x7 window
+    # holds the map's 5 rows and 6 columns: 30 x 0.75 / 49 = 0.459; the 15x15 one all 30 cells:
+    # 30 x 0.75 / 225 = 0.1. Seeing a cell takes it out (it is no longer to be found).
+    h, w = 5, 6
+    p = np.full((h, w), 0.25)
+    seen = np.zeros((h + 2) * (w + 2), dtype=bool)
+    cells = np.array([[3 * (w + 2) + 4, -1]])
+    np.testing.assert_allclose(
+        predicted_features(p, seen, cells)[0], [[0.45918, 0.1], [0, 0]], 1e-4
+    )
+    seen[3 * (w + 2) + 4] = True  # the candidate's own cell is seen
+    np.testing.assert_allclose(
+        predicted_features(p, seen, cells)[0, 0], [29 * 0.75 / 49, 29 * 0.75 / 225], 1e-6
+    )
+
+
+def test_the_goal_action_with_a_prior_carries_its_columns_and_the_same_moves() -> None:
+    # A prior that calls every unseen cell a wall adds zero columns; one that calls them free
+    # adds the unseen share of the windows. Either way the candidates, moves and the other
+    # features are those of the env without a prior.
+    from envs import coverage_v0
+    from envs.coverage.goals import GOAL_FEATURES
+
+    def all_walls(seen: np.ndarray, free: np.ndarray) -> np.ndarray:
+        return np.where(seen, ~free, True).astype(float)
+
+    def all_free(seen: np.ndarray, free: np.ndarray) -> np.ndarray:
+        return np.where(seen, ~free, False).astype(float)
+
+    kwargs = dict(
+        height=14, width=16, n_agents=2, max_steps=30,
+        observation={"teammap": {"crop": 7, "global_size": 6}},
+        frontier={"action": {"goal": {"k": 4}}, "planner": "pocket"},
+    )  # fmt: skip
+    envs = [coverage_v0.parallel_env(**kwargs, map_prior=f) for f in (None, all_walls, all_free)]
+    n = len(GOAL_FEATURES)
+    assert [e.observation_space("agent_0")["goals"].shape for e in envs] == [
+        (4, n),
+        (4, n + 2),
+        (4, n + 2),
+    ]
+    obs = [e.reset(seed=5)[0] for e in envs]
+    for _ in range(12):
+        for o in obs[1:]:
+            np.testing.assert_array_equal(o["agent_0"]["goals"][:, :n], obs[0]["agent_0"]["goals"])
+        assert not obs[1]["agent_0"]["goals"][:, n:].any()
+        mask = obs[2]["agent_1"]["action_mask"].astype(bool)
+        assert (obs[2]["agent_1"]["goals"][mask, n:] > 0).any()
+        actions = {a: int(o["action_mask"].nonzero()[0][-1]) for a, o in obs[0].items()}
+        obs = [e.step(actions)[0] for e in envs]
+
+
+def test_env_prior_trains_a_goal_policy_that_reads_it(tmp_path: Path, capsys) -> None:
+    # The whole path: env.prior loaded by the factory (once per process), the policy trained on
+    # the wider candidate block and evaluated from its run folder.
+    from tests.conftest import tiny_goal_run
+
+    runs = tmp_path / "runs"
+    args = tiny_goal_run(Path("configs/goals_2agents.yaml"), runs)
+    args += ["--set", f"env.prior={REFERENCE / 'prior_random'}"]
+    assert main(args) == 0
+    (run,) = runs.iterdir()
+    assert load_config(RunDir(run).config).env.prior == str(REFERENCE / "prior_random")
+    capsys.readouterr()
+    assert main(["eval", str(run), "--episodes", "2", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["wall_hits_mean"] == 0
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        (["--set", "env.prior=no/such/prior"], "no prior run folder"),
+        (
+            [
+                "--set",
+                f"env.prior={REFERENCE / 'prior_random'}",
+                "--set",
+                "env.frontier.action=step",
+            ],
+            "feeds the goal action",
+        ),
+    ],
+)
+def test_an_env_prior_that_cannot_work_is_one_line(
+    change: list[str], words: str, tmp_path: Path, capsys
+) -> None:
+    args = ["run", "configs/goals_2agents.yaml"]
+    assert main([*args, *change, "--runs-dir", str(tmp_path / "runs")]) == 2
+    assert words in one_error_line(capsys.readouterr().err)
+    assert not (tmp_path / "runs").exists()

@@ -19,13 +19,21 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from envs.coverage.goals import Candidates, Goal, gather_candidates
+from envs.coverage.goals import (
+    GOAL_FEATURES,
+    PRIOR_FEATURES,
+    Candidates,
+    Goal,
+    gather_candidates,
+    predicted_features,
+)
 from envs.coverage.planners import (
     FrontierPlanner,
     HungarianPlanner,
     MinPosPlanner,
     UtilityPlanner,
 )
+from envs.coverage.rollouts import MapPriorFn, prior_wall_probability
 from envs.coverage.types import (
     CELL_VISITED,
     CELL_WALL,
@@ -269,10 +277,19 @@ class Frontier:
         options: What is on.
         height: Rows of the map.
         width: Columns of the map.
+        prior: A map prior (the env's ``map_prior``): the goal action's candidates then carry
+            the :data:`~envs.coverage.goals.PRIOR_FEATURES` too.
     """
 
-    def __init__(self, options: FrontierOptions, height: int, width: int) -> None:
+    def __init__(
+        self,
+        options: FrontierOptions,
+        height: int,
+        width: int,
+        prior: MapPriorFn | None = None,
+    ) -> None:
         self.options = options
+        self.prior = prior
         self.planner = (
             PLANNERS[options.planner].make(height, width) if options.planner is not None else None
         )
@@ -291,6 +308,11 @@ class Frontier:
         action = self.options.action
         return action if isinstance(action, Goal) else None
 
+    @property
+    def n_goal_features(self) -> int:
+        """Columns of the goal action's candidate features (with a prior, its columns too)."""
+        return len(GOAL_FEATURES) + (len(PRIOR_FEATURES) if self.prior is not None else 0)
+
     def planned_moves(self, state: GridState) -> list[int]:
         """Each agent's move by the planner on the team's map of ``state`` (needs a planner)."""
         assert self.planner is not None
@@ -306,9 +328,14 @@ class Frontier:
                 if state.steps == 0 or self.held.size != n:  # an episode starts: nothing held
                     self.held = np.full(n, -1, dtype=np.int64)
                 held = self.held
-            self.candidates = gather_candidates(
+            candidates = gather_candidates(
                 self.planner, moves, goal.k, self.height, self.width, held
             )
+            if self.prior is not None:
+                p_wall = prior_wall_probability(self.planner, self.prior)
+                extra = predicted_features(p_wall, self.planner.seen, candidates.cells)
+                candidates.features = np.concatenate([candidates.features, extra], axis=2)
+            self.candidates = candidates
         return moves
 
     def resolve(self, actions: Sequence[int], rng: np.random.Generator) -> list[int]:

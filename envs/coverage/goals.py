@@ -51,6 +51,14 @@ in the order of :data:`GOAL_FEATURES`:
                 pocket tie-break's count: a low value is a pocket's last cells)
 ``row``, ``col``  its offset from the agent over ``H`` and ``W``
 ==============  ==========================================================================
+
+**With a map prior** (the env's ``map_prior``, a function from the team's map to each cell's
+probability of being a wall, e.g. a prior run of the harness: ``env.prior``), two more columns
+follow, in the order of :data:`PRIOR_FEATURES`: the free cells the prior expects among the unseen
+ones in the 7x7 (``predicted_near``) and 15x15 (``predicted_far``) windows around the candidate,
+over the window's cells: how much unexplored floor lies behind it (MapEx's predicted information
+gain, Ho et al. 2025, as features a policy reads: MapExRL's recipe). Without a prior the block
+has the columns above alone, as the shipped goal models were trained.
 """
 
 from __future__ import annotations
@@ -73,9 +81,11 @@ __all__ = [
     "ACTION_MASK_KEY",
     "GOALS_KEY",
     "GOAL_FEATURES",
+    "PRIOR_FEATURES",
     "Candidates",
     "Goal",
     "gather_candidates",
+    "predicted_features",
 ]
 
 #: Key of the candidates' feature block in the observation (``(k, len(GOAL_FEATURES))``).
@@ -96,6 +106,11 @@ GOAL_FEATURES = (
     "row",
     "col",
 )
+
+#: Names of the columns a map prior adds after :data:`GOAL_FEATURES` (module docstring), and the
+#: half-width of each one's window.
+PRIOR_FEATURES = ("predicted_near", "predicted_far")
+PRIOR_RADII = (3, 7)
 
 #: Most slots a goal action may have (the candidate block is an observation of this width).
 MAX_K = 64
@@ -223,6 +238,34 @@ def gather_candidates(
         1.0 / (height + width), height, width,
         dist, scratch, out.cells, out.moves, out.features,
     )  # fmt: skip
+    return out
+
+
+def predicted_features(p_wall: np.ndarray, seen: np.ndarray, cells: np.ndarray) -> np.ndarray:
+    """The :data:`PRIOR_FEATURES` of candidate ``cells`` (padded flat, -1: an empty slot, whose
+    features are 0) for wall probabilities ``p_wall`` ``(H, W)`` and the team's padded flat
+    ``seen`` cells (a padding of one ring): ``float32 (*cells.shape, len(PRIOR_FEATURES))``.
+
+    A window's value is the sum over its unseen cells inside the map of ``1 - p_wall``, over the
+    window's cells (so in [0, 1])."""
+    h, w = p_wall.shape
+    unseen = ~np.asarray(seen, dtype=bool).reshape(h + 2, w + 2)[1:-1, 1:-1]
+    expected_free = np.where(unseen, 1.0 - np.asarray(p_wall, dtype=np.float64), 0.0)
+    out = np.zeros((*cells.shape, len(PRIOR_FEATURES)), dtype=np.float32)
+    valid = cells >= 0
+    rows, cols = np.divmod(cells[valid], w + 2)
+    rows, cols = rows - 1, cols - 1  # the padded cell's place in the map
+    for f, r in enumerate(PRIOR_RADII):
+        # Window sums from an integral image with a margin of r zeros on every side.
+        padded = np.zeros((h + 2 * r + 1, w + 2 * r + 1))
+        padded[r + 1 : r + 1 + h, r + 1 : r + 1 + w] = expected_free
+        ii = padded.cumsum(0).cumsum(1)
+        side = 2 * r + 1
+        total = (
+            ii[rows + side, cols + side] - ii[rows, cols + side]
+            - ii[rows + side, cols] + ii[rows, cols]
+        )  # fmt: skip
+        out[valid, f] = total / side**2
     return out
 
 

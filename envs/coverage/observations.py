@@ -21,7 +21,7 @@ import numpy as np
 from gymnasium import spaces
 
 from envs.coverage.frontier import Frontier
-from envs.coverage.goals import ACTION_MASK_KEY, GOAL_FEATURES, GOALS_KEY
+from envs.coverage.goals import ACTION_MASK_KEY, GOALS_KEY
 from envs.coverage.step import thesis_observation
 from envs.coverage.teammap_kernels import ego_counts, teammap_views
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL, GridState, kind_options
@@ -280,7 +280,8 @@ class TeamMapObservation(ObservationBuilder):
             views["frontier"] = spaces.Box(0.0, 1.0, (5,), np.float32)
         goal = self._frontier_ext.goal if self._frontier_ext is not None else None
         if goal is not None:
-            views[GOALS_KEY] = spaces.Box(-1.0, 1.0, (goal.k, len(GOAL_FEATURES)), np.float32)
+            width = self._frontier_ext.n_goal_features
+            views[GOALS_KEY] = spaces.Box(-1.0, 1.0, (goal.k, width), np.float32)
             # int8, PettingZoo's and Gymnasium's convention (Discrete.sample(mask) takes it).
             views[ACTION_MASK_KEY] = spaces.Box(0, 1, (goal.k,), np.int8)
         return spaces.Dict(views)

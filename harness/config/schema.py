@@ -45,7 +45,7 @@ from pydantic import (
 
 from envs.coverage import generators, maps
 from envs.coverage.env import DEFAULT_REWARDS
-from envs.coverage.frontier import PLANNERS, FrontierOptions
+from envs.coverage.frontier import PLANNERS, FrontierOptions, Goal
 from envs.coverage.maps import check_wall_fraction, shipped_maps
 from envs.coverage.observations import observation_options
 from envs.coverage.rollouts import SampledChooser
@@ -161,6 +161,11 @@ class EnvConfig(_Section):
     ``{action: step | {goal: {k: 8}} | null, planner: <a planner of the registry> | null}``: the
     field and compass in the team map, a planner-backed action (the frontier step, or the goal
     action's ``k`` candidate targets), and the planner the compass follows."""
+    prior: str | None = None
+    """A map prior (docs/prior.md): a prior run's folder or its ``model.zip``, relative to the
+    current directory like ``runs/``, whose prediction the goal action's candidates carry as
+    two more features (``envs.coverage.goals.PRIOR_FEATURES``); ``null``: none. Needs the goal
+    action (``frontier: {action: {goal: ...}}``)."""
     coords: Literal["normalized", "raw"] = "normalized"
     rewards: RewardsConfig = RewardsConfig()
     starts: list[tuple[int, int]] | None = None
@@ -213,6 +218,20 @@ class EnvConfig(_Section):
     @model_validator(mode="after")
     def _frontier_fits_observation(self) -> EnvConfig:
         FrontierOptions.check_fits(observation_options(self.observation), self.frontier_options)
+        return self
+
+    @model_validator(mode="after")
+    def _prior_needs_goals(self) -> EnvConfig:
+        if self.prior is None:
+            return self
+        options = self.frontier_options
+        if options is None or not isinstance(options.action, Goal):
+            raise ValueError(
+                "prior: a map prior feeds the goal action's candidates; set "
+                "frontier: {action: {goal: {k: 8}}, planner: ...} or drop env.prior"
+            )
+        if not Path(self.prior).exists():
+            raise ValueError(f"prior: {self.prior!r} is no prior run folder or prior file")
         return self
 
     @property

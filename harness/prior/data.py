@@ -19,18 +19,10 @@ import numpy as np
 from harness.config.schema import EnvConfig
 from harness.evaluation.baselines import make_baseline
 from harness.evaluation.episodes import BatchPolicy, run_episodes
+from harness.prior.coding import SEEN_FREE, SEEN_WALL, UNSEEN, code_team_map
 
-#: Codes of a partial map's cells.
-SEEN_FREE, SEEN_WALL, UNSEEN = 0, 1, 2
-
-
-def code_team_map(seen: np.ndarray, walls: np.ndarray) -> np.ndarray:
-    """The partial map of a team that has seen ``seen`` of a map whose walls are ``walls``
-    (only the seen cells of ``walls`` are read): ``uint8`` codes, same shape."""
-    seen = np.asarray(seen, dtype=bool)
-    out = np.full(seen.shape, UNSEEN, dtype=np.uint8)
-    out[seen] = np.where(np.asarray(walls, dtype=bool)[seen], SEEN_WALL, SEEN_FREE)
-    return out
+#: The codes are :mod:`harness.prior.coding`'s, re-exported here beside the recorder.
+__all__ = ["SEEN_FREE", "SEEN_WALL", "UNSEEN", "PartialMaps", "code_team_map", "record"]
 
 
 @dataclass

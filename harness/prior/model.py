@@ -25,7 +25,7 @@ import torch
 from torch import nn
 from torch.nn import functional as F
 
-from harness.prior.data import SEEN_FREE, SEEN_WALL, UNSEEN, code_team_map
+from harness.prior.coding import SEEN_FREE, SEEN_WALL, UNSEEN, code_team_map
 
 #: ``prior.json``'s ``kind``: what marks a zip as a map prior.
 KIND = "map_prior"

@@ -479,6 +479,29 @@ def test_the_goal_action_with_a_prior_carries_its_columns_and_the_same_moves() -
         obs = [e.step(actions)[0] for e in envs]
 
 
+def test_the_env_asks_its_prior_every_few_steps_and_at_each_episodes_start() -> None:
+    from envs import coverage_v0
+    from envs.coverage.goals import PRIOR_EVERY
+
+    steps: list[int] = []
+
+    def counting(seen: np.ndarray, free: np.ndarray) -> np.ndarray:
+        steps.append(int(seen.sum()))
+        return np.where(seen, ~free, False).astype(float)
+
+    env = coverage_v0.parallel_env(
+        height=14, width=16, n_agents=2, max_steps=12, map_prior=counting,
+        observation={"teammap": {"crop": 7, "global_size": 6}},
+        frontier={"action": {"goal": {"k": 4}}, "planner": "pocket"},
+    )  # fmt: skip
+    env.reset(seed=1)
+    for _ in range(11):
+        env.step({a: 0 for a in env.agents})
+    assert len(steps) == len(range(0, 12, PRIOR_EVERY))  # steps 0, 5 and 10
+    env.reset(seed=2)
+    assert len(steps) == len(range(0, 12, PRIOR_EVERY)) + 1
+
+
 def test_env_prior_trains_a_goal_policy_that_reads_it(tmp_path: Path, capsys) -> None:
     # The whole path: env.prior loaded by the factory (once per process), the policy trained on
     # the wider candidate block and evaluated from its run folder.

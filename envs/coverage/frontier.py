@@ -21,6 +21,7 @@ import numpy as np
 
 from envs.coverage.goals import (
     GOAL_FEATURES,
+    PRIOR_EVERY,
     PRIOR_FEATURES,
     Candidates,
     Goal,
@@ -290,6 +291,10 @@ class Frontier:
     ) -> None:
         self.options = options
         self.prior = prior
+        #: The prior's last wall probabilities and the step it gave them (asked every
+        #: :data:`~envs.coverage.goals.PRIOR_EVERY` steps).
+        self._p_wall = np.zeros((height, width))
+        self._prior_step = 0
         self.planner = (
             PLANNERS[options.planner].make(height, width) if options.planner is not None else None
         )
@@ -332,8 +337,10 @@ class Frontier:
                 self.planner, moves, goal.k, self.height, self.width, held
             )
             if self.prior is not None:
-                p_wall = prior_wall_probability(self.planner, self.prior)
-                extra = predicted_features(p_wall, self.planner.seen, candidates.cells)
+                if state.steps == 0 or state.steps - self._prior_step >= PRIOR_EVERY:
+                    self._p_wall = prior_wall_probability(self.planner, self.prior)
+                    self._prior_step = state.steps
+                extra = predicted_features(self._p_wall, self.planner.seen, candidates.cells)
                 candidates.features = np.concatenate([candidates.features, extra], axis=2)
             self.candidates = candidates
         return moves

@@ -57,7 +57,8 @@ probability of being a wall, e.g. a prior run of the harness: ``env.prior``), tw
 follow, in the order of :data:`PRIOR_FEATURES`: the free cells the prior expects among the unseen
 ones in the 7x7 (``predicted_near``) and 15x15 (``predicted_far``) windows around the candidate,
 over the window's cells: how much unexplored floor lies behind it (MapEx's predicted information
-gain, Ho et al. 2025, as features a policy reads: MapExRL's recipe). Without a prior the block
+gain, Ho et al. 2025, as features a policy reads: MapExRL's recipe). The prior is asked every
+:data:`PRIOR_EVERY` steps; the cells seen since count as seen. Without a prior the block
 has the columns above alone, as the shipped goal models were trained.
 """
 
@@ -111,6 +112,10 @@ GOAL_FEATURES = (
 #: half-width of each one's window.
 PRIOR_FEATURES = ("predicted_near", "predicted_far")
 PRIOR_RADII = (3, 7)
+#: The env asks its prior every this many steps (and at an episode's first) and reads the
+#: prediction in between with the team's seen cells of the step: a call took 3.4 ms for a 50x100
+#: map, 50 times the rest of the step, and the prediction of the unseen part changes slowly.
+PRIOR_EVERY = 5
 
 #: Most slots a goal action may have (the candidate block is an observation of this width).
 MAX_K = 64

@@ -24,6 +24,7 @@ from harness.results.rundir import RunDir
 from harness.training import sweep
 from harness.training.checkpoints import TrainingState
 from harness.training.train import TrainingInterrupted
+from tests.conftest import spawn
 from tests.test_seeds_and_sweeps import TINY
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -142,7 +143,7 @@ def test_a_seed_grid_stopped_in_its_first_trial_resumes_to_one_trial_per_seed(ti
     sweeps = tmp_path / "sweeps"
     args = ["sweep", str(tiny), "--space", str(space), "--trials", "2", "--pruner", "none",
             "--sweeps-dir", str(sweeps), *LONGER]  # fmt: skip
-    proc = subprocess.Popen(
+    proc = spawn(
         [sys.executable, "-m", "harness.cli", *args], stderr=subprocess.PIPE, text=True, cwd=ROOT
     )
     first = sweeps / "tiny" / "trial-0000"
@@ -261,7 +262,7 @@ def test_resuming_a_group_refuses_a_seed_folder_with_files_but_no_config(tiny, t
 
 def test_a_group_in_use_is_not_resumed_twice(tiny, tmp_path, capsys):
     group = _hand_made_group(tmp_path / "g", tiny)
-    holder = subprocess.Popen(
+    holder = spawn(
         [sys.executable, "-c", "import time; from pathlib import Path\n"
          "from harness.results.rundir import RunDir\n"
          f"with RunDir(Path({str(group)!r})).lock():\n print('held', flush=True); time.sleep(60)"],
@@ -295,7 +296,7 @@ def test_sigterm_stops_a_seed_group_and_resume_finishes_every_seed(tiny, tmp_pat
     runs = tmp_path / "runs"
     cmd = [sys.executable, "-m", "harness.cli", "run", str(tiny), "--seeds", "0,1,2", "--jobs",
            "1", "--runs-dir", str(runs), "--no-progress", *LONGER]  # fmt: skip
-    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    proc = spawn(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     deadline = time.monotonic() + 600
     while True:
         assert proc.poll() is None and time.monotonic() < deadline, "seed 0 never trained"

@@ -15,7 +15,7 @@ import pytest
 
 from harness.cli import main
 from harness.training.sweep import SweepError, _check_no_workers
-from tests.conftest import one_error_line, root_first_env
+from tests.conftest import one_error_line, root_first_env, spawn
 from tests.test_seeds_and_sweeps import TINY, trial_states
 
 #: A parent that starts ``python_command(CODE)`` (its pid on the first line), then waits.
@@ -48,7 +48,7 @@ def wait_gone(pids: list[int], seconds: float) -> list[int]:
 @pytest.mark.skipif(not Path("/proc").is_dir(), reason="reads /proc")
 def test_a_child_ends_soon_after_its_parent_is_killed(tmp_path):
     code = "import time\ntime.sleep(600)\n"
-    parent = subprocess.Popen(
+    parent = spawn(
         [sys.executable, "-c", PARENT, code], stdout=subprocess.PIPE, text=True,
         env=root_first_env(),
     )  # fmt: skip
@@ -102,8 +102,8 @@ def test_a_resume_waits_for_the_workers_of_a_killed_sweep(tmp_path):
         "with _worker_hold(Path(sys.argv[1])):\n"
         "    print('held', flush=True); time.sleep(600)\n"
     )
-    worker = subprocess.Popen([sys.executable, "-c", code, str(folder)], stdout=subprocess.PIPE,
-                              text=True, env=root_first_env())  # fmt: skip
+    worker = spawn([sys.executable, "-c", code, str(folder)], stdout=subprocess.PIPE,
+                   text=True, env=root_first_env())  # fmt: skip
     with worker:
         try:
             assert worker.stdout.readline() == "held\n"
@@ -127,8 +127,8 @@ def test_sigkill_to_a_two_worker_sweep_leaves_no_worker_and_a_resume_waits(tmp_p
             "--sweeps-dir", str(sweeps), "--pruner", "none",
             "--set", "phases.only.timesteps=400000", "--set", "eval.every=200000"]  # fmt: skip
     harness = Path(sys.executable).parent / "harness"
-    parent = subprocess.Popen([str(harness), *args, "--jobs", "2"], env=root_first_env(),
-                              stderr=subprocess.DEVNULL)  # fmt: skip
+    parent = spawn([str(harness), *args, "--jobs", "2"], env=root_first_env(),
+                   stderr=subprocess.DEVNULL)  # fmt: skip
     folder = sweeps / "tiny"
     workers: list[int] = []
     try:

@@ -29,7 +29,7 @@ from harness.results.stats import (
     seed_statistics,
 )
 from harness.training.sweep import SweepError, load_space
-from tests.conftest import root_first_env
+from tests.conftest import root_first_env, spawn
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = (
@@ -554,7 +554,7 @@ def test_a_sweep_held_by_another_process_is_refused_and_taken_over_once_it_died(
         "    print('held', flush=True); time.sleep(600)\n"
     )
     env = root_first_env()
-    holder = subprocess.Popen(
+    holder = spawn(
         [sys.executable, "-c", code, str(sweeps / "tiny")], env=env, stdout=subprocess.PIPE
     )
     try:
@@ -745,7 +745,7 @@ def test_sigterm_to_a_training_sweep_exits_143_with_one_line(tiny, tmp_path):
     # Long enough a trial to be stopped in training: its checkpoint is written, then it fails.
     longer = ["--set", "phases.only.timesteps=200000", "--set", "eval.every=100000"]
     cmd = [sys.executable, "-m", "harness.cli", *sweep_args(tiny, tmp_path), *longer]
-    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    proc = spawn(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     episodes = tmp_path / "sweeps" / "tiny" / "trial-0000" / "episodes.csv"
     deadline = time.monotonic() + 300
     while not (episodes.is_file() and episodes.read_text().count("\n") > 2):
@@ -855,7 +855,7 @@ def test_two_workers_share_one_postgresql_study(tiny, tmp_path):
             "--sweeps-dir", str(tmp_path / "sweeps"),
         ]  # fmt: skip
         env = root_first_env()
-        workers = [subprocess.Popen(cmd, cwd=ROOT, env=env, stderr=subprocess.PIPE) for _ in "ab"]
+        workers = [spawn(cmd, cwd=ROOT, env=env, stderr=subprocess.PIPE) for _ in "ab"]
         for worker in workers:
             _, err = worker.communicate(timeout=600)
             assert worker.returncode == 0, err.decode()[-2000:]
@@ -897,7 +897,7 @@ def test_a_sweep_whose_postgresql_server_dies_stops_in_one_line_and_resumes(tmp_
                "--trials", "1", "--storage", url, "--study", "s", "--pruner", "none",
                "--sweeps-dir", str(sweeps)]  # fmt: skip
         env = root_first_env()
-        sweep = subprocess.Popen(cmd, cwd=ROOT, env=env, stderr=subprocess.PIPE)
+        sweep = spawn(cmd, cwd=ROOT, env=env, stderr=subprocess.PIPE)
         evaluations = sweeps / "s" / "trial-0000" / "evaluations.csv"
         deadline = time.monotonic() + 300
         while not (evaluations.is_file() and len(evaluations.read_text().splitlines()) >= 2):

@@ -51,9 +51,7 @@ LONGER = [
 
 def start_run(runs: Path) -> subprocess.Popen:
     cmd = [sys.executable, "-m", "harness.cli", "run", str(SMOKE), "--runs-dir", str(runs)]
-    return subprocess.Popen(
-        [*cmd, "--no-progress", *LONGER], stderr=subprocess.PIPE, text=True, cwd=ROOT
-    )
+    return spawn([*cmd, "--no-progress", *LONGER], stderr=subprocess.PIPE, text=True, cwd=ROOT)
 
 
 def wait_for_checkpoint(runs: Path, proc: subprocess.Popen, min_steps: int) -> Path:
@@ -119,7 +117,7 @@ def test_an_endless_episode_evaluation_stops_on_a_signal(tmp_path, capsys):
 def test_sigterm_during_a_long_evaluation_stops_in_seconds_and_resumes(tmp_path):
     cmd = [sys.executable, "-m", "harness.cli"]
     cmd += run_args(tmp_path, "eval.every=800", "eval.episodes=5000")
-    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    proc = spawn(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     # The episodes of step 800 are logged just before its evaluation starts.
     err, took = sigterm_when(
         proc,
@@ -169,7 +167,7 @@ def test_a_signal_cuts_a_long_training_call_short_and_the_checkpoint_resumes(tmp
 @pytest.mark.slow
 def test_sigterm_during_an_endless_training_call_stops_in_seconds(tmp_path):
     cmd = [sys.executable, "-m", "harness.cli", *run_args(tmp_path, ENDLESS_EPOCHS)]
-    proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    proc = spawn(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     # The first episodes end at step 200; the first training call comes at 208.
     err, took = sigterm_when(
         proc, lambda: any(logged_steps(run) for run in tmp_path.iterdir()), settle=1.0
@@ -316,13 +314,13 @@ def no_temporary_files(run: Path) -> list[Path]:
 def test_kill_as_soon_as_the_run_folder_exists_then_a_resume_starts_again_alone(tmp_path, capsys):
     short = ["--set", "phases.initial.timesteps=1200", "--set", "phases.optimizing.timesteps=400"]
     cmd = [sys.executable, "-m", "harness.cli", "run", str(SMOKE), "--runs-dir", str(tmp_path)]
-    first = subprocess.Popen([*cmd, "--no-progress", *short], stderr=subprocess.PIPE, text=True)
+    first = spawn([*cmd, "--no-progress", *short], stderr=subprocess.PIPE, text=True)
     read_until(first, "run folder:")
     first.kill()  # at once: training has not even imported torch yet
     first.wait()
     (run,) = tmp_path.iterdir()
     resume_cmd = [sys.executable, "-m", "harness.cli", "run", "--resume", str(run), "--no-progress"]
-    second = subprocess.Popen(resume_cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
+    second = spawn(resume_cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT)
     read_until(second, "starting the run again from step 0")
     # While it trains, a third process on the folder is refused: exit 2, one line, its pid.
     capsys.readouterr()
@@ -432,7 +430,7 @@ def test_ctrl_c_while_the_modules_load_is_one_line_and_exit_130():
     cmd += ["--episodes", "100000"]
     outcomes = []
     for delay in (0.0, 0.01, 0.05, 0.15, 0.3, 0.5, 0.8):
-        proc = subprocess.Popen(
+        proc = spawn(
             cmd,
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
@@ -465,9 +463,7 @@ def test_sigkill_of_the_training_process_leaves_its_env_workers_quiet(tmp_path):
         tmp_path, "vec.backend=supersuit", "vec.num_cpus=2", "phases.initial.timesteps=100000"
     )
     # A session of its own: the workers left behind can be found (and killed) after the test.
-    proc = subprocess.Popen(
-        cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT, start_new_session=True
-    )
+    proc = spawn(cmd, stderr=subprocess.PIPE, text=True, cwd=ROOT, start_new_session=True)
     try:
         deadline = time.monotonic() + 600
         while not any(complete_checkpoints(run / "checkpoints") for run in tmp_path.iterdir()):

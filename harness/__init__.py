@@ -24,9 +24,9 @@ TYPE_CHECKING = False  # not typing's: nothing is imported before the Ctrl-C han
 if TYPE_CHECKING:
     from typing import Any
 
-    from harness.sb3.buffers import PrioritizedReplayBuffer
     from harness.sb3.dqn import DoubleDQN
     from harness.sb3.policies import DuelingDQNPolicy
+    from harness.sb3.replay import PrioritizedReplayBuffer
 
 __all__ = ["DoubleDQN", "DuelingDQNPolicy", "PrioritizedReplayBuffer"]
 

@@ -242,15 +242,14 @@ def train_devices() -> tuple[str, ...]:
 def _models(net: TrainNet, threads: int, device: str = "cpu") -> tuple[Any, Any, Any]:
     """DoubleDQN+PER and plain DQN (uniform replay) with ``net`` on ``device``, on the same
     VecEnv, both with a filled buffer: SB3's on the host, ours where ``harness run`` puts it
-    (:func:`harness.sb3.device_replay.prioritized_buffer_class`: on the device on CUDA)."""
+    (:func:`harness.sb3.replay.replay_for`: on the device on CUDA)."""
     import torch
-    from gymnasium import spaces
     from stable_baselines3 import DQN
     from stable_baselines3.common.logger import configure
 
     from harness import DoubleDQN
-    from harness.sb3.device_replay import prioritized_buffer_class
     from harness.sb3.registry import POLICIES
+    from harness.sb3.replay import replay_for
     from harness.training.adapters import make_vec_env
     from harness.training.checks import policy_class_name, policy_kwargs
 
@@ -267,12 +266,12 @@ def _models(net: TrainNet, threads: int, device: str = "cpu") -> tuple[Any, Any,
         "policy_kwargs": policy_kwargs(net.algo, net.env.n_agents, device),
         "device": device,
     }
-    dict_obs = isinstance(venv.observation_space, spaces.Dict)
+    buffer_class, buffer_kwargs = replay_for(device, prioritized=True)
     ours = DoubleDQN(
         policy_class_name(net.algo),
         venv,
-        replay_buffer_class=prioritized_buffer_class(device, dict_obs),
-        replay_buffer_kwargs={"alpha": 0.55, "beta": 0.4},
+        replay_buffer_class=buffer_class,
+        replay_buffer_kwargs={**buffer_kwargs, "alpha": 0.55, "beta": 0.4},
         **common,
     )
     # SB3's DQN knows only its own aliases: it gets the registry's class (SB3's MlpPolicy for

@@ -18,10 +18,9 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 import harness.sb3.losses
 import harness.sb3.targets
-from harness.sb3.buffers import PrioritizedDictReplayBuffer
-from harness.sb3.device_replay import DevicePrioritizedDictReplayBuffer
 from harness.sb3.dqn import ACTION_MASK_KEY, DoubleDQN, allowed_actions
 from harness.sb3.policies import PerAgentQNetwork, TeamMapExtractor
+from tests.replay_variants import DevicePrioritizedDictReplayBuffer, PrioritizedDictReplayBuffer
 from tests.test_double_dqn import with_loss
 
 N_ACTIONS = 4

@@ -17,22 +17,20 @@ from stable_baselines3.common.type_aliases import ReplayBufferSamples
 from stable_baselines3.common.utils import set_random_seed
 
 from harness.sb3.buffers import (
-    PrioritizedDictReplayBuffer,
-    PrioritizedReplayBuffer,
     PrioritizedReplayBufferSamples,
     SumTree,
     _last_occurrences,
     importance_weights,
     n_step_returns,
+    n_step_returns_on_device,
 )
-from harness.sb3.device_replay import (
+from harness.sb3.replay import PrioritizedReplayBuffer, Replay, replay_for
+from tests.replay_variants import (
     DeviceDictReplayBuffer,
     DevicePrioritizedDictReplayBuffer,
     DevicePrioritizedReplayBuffer,
     DeviceReplayBuffer,
-    n_step_returns_on_device,
-    prioritized_buffer_class,
-    uniform_buffer_class,
+    PrioritizedDictReplayBuffer,
 )
 
 OBS_SPACE = spaces.Box(-1e6, 1e6, shape=(2,), dtype=np.float32)
@@ -332,9 +330,9 @@ def test_samples_extend_sb3_samples(make_buffer: Callable[..., PrioritizedReplay
     first_values(batch.observations)  # a Dict batch holds every key, read from one slot
 
 
-def test_array_buffer_refuses_a_dict_space() -> None:
-    with pytest.raises(ValueError, match="PrioritizedDictReplayBuffer"):
-        PrioritizedReplayBuffer(8, DICT_OBS_SPACE, ACTION_SPACE, device="cpu")
+def test_dict_observations_are_a_storage_option_of_the_one_buffer_class() -> None:
+    buffer = PrioritizedReplayBuffer(8, DICT_OBS_SPACE, ACTION_SPACE, device="cpu")
+    assert type(buffer) is PrioritizedReplayBuffer and isinstance(buffer.observations, dict)
 
 
 def test_new_transitions_get_max_priority(
@@ -771,13 +769,18 @@ def test_a_pickled_device_buffer_draws_what_the_original_draws() -> None:
 
 
 def test_the_prioritized_buffer_is_the_devices_on_cuda_and_the_hosts_elsewhere() -> None:
-    assert prioritized_buffer_class("cpu", False) is PrioritizedReplayBuffer
-    assert prioritized_buffer_class("cpu", True) is PrioritizedDictReplayBuffer
+    host = (PrioritizedReplayBuffer, {"placement": "host"})
+    assert replay_for("cpu", prioritized=True) == host
     if th.backends.mps.is_available():  # no float64 on MPS: the host path
-        assert prioritized_buffer_class("mps", False) is PrioritizedReplayBuffer
+        assert replay_for("mps", prioritized=True) == host
     if th.cuda.is_available():
-        assert prioritized_buffer_class("cuda", False) is DevicePrioritizedReplayBuffer
-        assert prioritized_buffer_class("cuda", True) is DevicePrioritizedDictReplayBuffer
+        assert replay_for("cuda", prioritized=True) == (
+            PrioritizedReplayBuffer,
+            {"placement": "device"},
+        )
+    # One transition per decision stays on the host (either sampler).
+    per_decision = {"sampler": "prioritized", "per_decision": True}
+    assert replay_for("cuda", prioritized=True, per_decision=True) == (Replay, per_decision)
 
 
 # ------------------------------------------------------------------ uniform replay on the device
@@ -820,7 +823,7 @@ def test_uniform_device_n_step_samples_match_sb3s_n_step_buffer() -> None:
 
 def test_the_uniform_device_buffer_pickles_resets_and_refuses_what_it_cannot_do() -> None:
     buffer = _uniform()
-    with pytest.raises(ValueError, match="empty DeviceReplayBuffer"):
+    with pytest.raises(ValueError, match="empty"):
         buffer.sample(2)
     for step in range(6):  # wraps: full
         add_step(buffer, step)
@@ -852,8 +855,6 @@ def test_the_uniform_device_dict_buffer_samples_dicts() -> None:
 
 
 def test_the_uniform_buffer_is_the_devices_on_cuda_and_sb3s_choice_elsewhere() -> None:
-    assert uniform_buffer_class("cpu", False) is None
-    assert uniform_buffer_class("cpu", True) is None
+    assert replay_for("cpu", prioritized=False) == (None, {})
     if th.cuda.is_available():
-        assert uniform_buffer_class("cuda", False) is DeviceReplayBuffer
-        assert uniform_buffer_class("cuda", True) is DeviceDictReplayBuffer
+        assert replay_for("cuda", prioritized=False) == (Replay, {"placement": "device"})

@@ -59,7 +59,7 @@ def test_the_optimizer_is_checked_on_the_models_device() -> None:
 def test_a_buffer_kept_on_the_gpu_is_checked_against_the_gpus_free_memory(
     monkeypatch: pytest.MonkeyPatch,
 ) -> None:
-    # On CUDA the replay buffer is allocated on the GPU (harness.sb3.device_replay): a buffer
+    # On CUDA the replay buffer is allocated on the GPU (harness.sb3.replay): a buffer
     # larger than the GPU's free memory is one line, not an out-of-memory error at the start.
     import harness.training.checks as checks
     from harness.config.schema import ExperimentConfig

@@ -18,7 +18,7 @@ from harness import DoubleDQN, DuelingDQNPolicy
 from harness.cli import main
 from harness.config.loading import load_config
 from harness.results.rundir import RunDir
-from harness.sb3.buffers import PrioritizedDictReplayBuffer, PrioritizedReplayBuffer
+from harness.sb3.replay import PrioritizedReplayBuffer
 from harness.training.checkpoints import complete_checkpoints, latest_checkpoint
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -153,7 +153,7 @@ def test_imitation_config_trains_towards_the_frontier_step(tmp_path):
     ("observation", "prioritized", "buffer_class"),
     [
         ("thesis", True, PrioritizedReplayBuffer),
-        ("teammap", True, PrioritizedDictReplayBuffer),
+        ("teammap", True, PrioritizedReplayBuffer),  # Dict observations: a storage option
         ("thesis", False, NStepReplayBuffer),
     ],
 )

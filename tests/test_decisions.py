@@ -26,13 +26,13 @@ from harness.cli import main
 from harness.config.schema import EnvConfig
 from harness.evaluation.baselines import make_baseline
 from harness.evaluation.episodes import run_episodes
-from harness.sb3.buffers import PrioritizedReplayBuffer
-from harness.sb3.decisions import (
-    EXPERT_KEY,
+from harness.sb3.decisions import EXPERT_KEY
+from harness.sb3.replay import PrioritizedReplayBuffer
+from tests.conftest import refused_run, tiny_goal_run
+from tests.replay_variants import (
     PerDecisionDictReplayBuffer,
     PerDecisionPrioritizedDictReplayBuffer,
 )
-from tests.conftest import refused_run, tiny_goal_run
 
 ROOT = Path(__file__).resolve().parents[1]
 F = {name: i for i, name in enumerate(GOAL_FEATURES)}
@@ -448,8 +448,8 @@ def test_a_run_with_hold_and_per_decision_trains_resumes_and_evaluates(
     with (checkpoint / "replay_buffer.pkl").open("rb") as f:
         model.load_replay_buffer(f)
     buffer = model.replay_buffer
-    wanted = PerDecisionPrioritizedDictReplayBuffer if prioritized else PerDecisionDictReplayBuffer
-    assert type(buffer) is wanted and buffer.slots == 4 and buffer.n_envs == 1
+    assert buffer.decisions is not None and buffer.sampler.prioritized == prioritized
+    assert buffer.slots == 4 and buffer.n_envs == 1
     n = buffer.size()
     steps = np.rint(np.log(buffer.step_discounts[:n, 0]) / np.log(0.995)).astype(int)
     assert steps.min() >= 1 and steps.max() > 1

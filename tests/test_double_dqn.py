@@ -25,8 +25,8 @@ import harness.sb3.dqn
 import harness.sb3.losses
 import harness.sb3.targets
 from harness import DoubleDQN, DuelingDQNPolicy, PrioritizedReplayBuffer
-from harness.sb3.device_replay import DevicePrioritizedReplayBuffer
 from harness.sb3.losses import LossOptions
+from tests.replay_variants import DevicePrioritizedReplayBuffer
 
 S = np.array([[1.0, 0.0]], dtype=np.float32)  # state s
 S_NEXT = np.array([[0.0, 1.0]], dtype=np.float32)  # next state s'

@@ -17,13 +17,13 @@ from stable_baselines3.common.vec_env import DummyVecEnv
 
 import harness.sb3.losses
 from harness import DoubleDQN
-from harness.sb3.buffers import PrioritizedDictReplayBuffer
-from harness.sb3.device_replay import (
-    DevicePrioritizedDictReplayBuffer,
-    DevicePrioritizedReplayBuffer,
-)
 from harness.sb3.dqn import NonFiniteLossError, StepStats
 from tests import test_action_mask as masking
+from tests.replay_variants import (
+    DevicePrioritizedDictReplayBuffer,
+    DevicePrioritizedReplayBuffer,
+    PrioritizedDictReplayBuffer,
+)
 from tests.test_double_dqn import (
     GAMMA,
     S_NEXT,

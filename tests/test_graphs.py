@@ -17,8 +17,8 @@ from stable_baselines3.common.logger import configure
 from stable_baselines3.common.vec_env import DummyVecEnv
 
 from harness import DoubleDQN
-from harness.sb3.device_replay import DevicePrioritizedReplayBuffer, DeviceReplayBuffer
 from harness.sb3.dqn import StepStats
+from tests.replay_variants import DevicePrioritizedReplayBuffer, DeviceReplayBuffer
 from tests.test_double_dqn import TinyEnv
 from tests.test_dqn_update import cuda_synchronisations
 
@@ -185,7 +185,7 @@ def test_the_recorded_step_trains_as_the_step_without_it(n_steps: int, uniform: 
 @cuda
 def test_a_cuda_run_keeps_uniform_replay_on_the_device(tmp_path: Any) -> None:
     from harness.cli import main
-    from harness.sb3.device_replay import DeviceReplayBuffer as Uniform
+    from harness.sb3.replay import Replay
     from harness.training.checkpoints import complete_checkpoints
 
     args = ["run", "configs/smoke.yaml", "--runs-dir", str(tmp_path), "--no-progress"]
@@ -194,7 +194,8 @@ def test_a_cuda_run_keeps_uniform_replay_on_the_device(tmp_path: Any) -> None:
     assert main(args) == 0
     (run,) = tmp_path.iterdir()
     with (complete_checkpoints(run / "checkpoints")[-1] / "replay_buffer.pkl").open("rb") as f:
-        assert type(pickle.load(f)) is Uniform
+        buffer = pickle.load(f)
+    assert type(buffer) is Replay and buffer.sampler.on_device and not buffer.sampler.prioritized
 
 
 @cuda

@@ -478,10 +478,13 @@ def _buffers() -> dict[str, Any]:
     from gymnasium import spaces
     from stable_baselines3.common.buffers import DictReplayBuffer, ReplayBuffer
 
-    from harness.sb3.buffers import PrioritizedReplayBuffer
-    from harness.sb3.decisions import PerDecisionPrioritizedDictReplayBuffer
-    from harness.sb3.device_replay import DevicePrioritizedReplayBuffer, DeviceReplayBuffer
     from harness.sb3.policies import ACTION_MASK_KEY
+    from harness.sb3.replay import PrioritizedReplayBuffer
+    from tests.replay_variants import (
+        DevicePrioritizedReplayBuffer,
+        DeviceReplayBuffer,
+        PerDecisionPrioritizedDictReplayBuffer,
+    )
 
     # Observations large beside the sum tree and the scratch, as a real buffer's are.
     box = spaces.Box(-1, 1, shape=(OBS,), dtype=np.float32)
@@ -551,11 +554,14 @@ def test_a_saved_buffer_leaves_out_its_unfilled_rows_and_loads_equal(
 def test_a_device_buffers_state_keeps_its_tensors_until_the_checkpoint_has_cut_them() -> None:
     # A checkpoint cuts the unfilled rows where the tensors are (on a GPU), then copies only
     # the kept rows to the host: stored_state hands over the buffer's own tensors, not copies.
+    import torch
+
     buffer = _buffers()["device"]
-    state = buffer.stored_state()
-    assert state["observations"] is buffer.observations
-    assert state["_raw_priorities"] is buffer._raw_priorities
-    assert "_cursor" not in state  # made again on loading
+    state = buffer.stored_state()  # flat: each part's fields under its name
+    assert state["storage.observations"] is buffer.observations
+    assert state["sampler._raw_priorities"] is buffer._raw_priorities
+    assert "sampler._cursor" not in state  # made again on loading
     host = buffer.host_state(state)
-    assert all(host[name].device.type == "cpu" for name in buffer._tensors)
-    assert host["pos"] == buffer.pos and host["_generator"] == state["_generator"]
+    tensors = [value for value in host.values() if isinstance(value, torch.Tensor)]
+    assert tensors and all(tensor.device.type == "cpu" for tensor in tensors)
+    assert host["pos"] == buffer.pos and host["sampler._generator"] == state["sampler._generator"]

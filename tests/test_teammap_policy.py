@@ -17,10 +17,11 @@ from gymnasium import spaces
 from stable_baselines3.common.utils import set_random_seed
 
 from harness.cli import main
-from harness.sb3.buffers import PrioritizedDictReplayBuffer, replay_memory_bytes
+from harness.sb3.buffers import replay_memory_bytes
 from harness.sb3.dqn import DoubleDQN
 from harness.sb3.policies import DuelingTeamMapPolicy, TeamMapExtractor, TeamMapPolicy
 from harness.training.checks import format_bytes
+from tests.replay_variants import PrioritizedDictReplayBuffer
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -1,5 +1,6 @@
 """The Stable-Baselines3 extensions: ``DoubleDQN``, the dueling and team-map policies, the
-prioritized replay buffers (on the host, or on the model's device), the TD targets and schedules,
+replay buffer (a storage and a sampler: uniform or prioritized, on the host or the model's
+device), the TD targets and schedules,
 and the policy registry.
 
 This layer imports nothing from ``envs`` or from the rest of ``harness``: it works on any
@@ -13,31 +14,18 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from harness.sb3.buffers import PrioritizedDictReplayBuffer, PrioritizedReplayBuffer
-    from harness.sb3.device_replay import (
-        DevicePrioritizedDictReplayBuffer,
-        DevicePrioritizedReplayBuffer,
-    )
     from harness.sb3.dqn import DoubleDQN
     from harness.sb3.policies import DuelingDQNPolicy
+    from harness.sb3.replay import PrioritizedReplayBuffer, Replay
 
-__all__ = [
-    "DevicePrioritizedDictReplayBuffer",
-    "DevicePrioritizedReplayBuffer",
-    "DoubleDQN",
-    "DuelingDQNPolicy",
-    "PrioritizedDictReplayBuffer",
-    "PrioritizedReplayBuffer",
-]
+__all__ = ["DoubleDQN", "DuelingDQNPolicy", "PrioritizedReplayBuffer", "Replay"]
 
 # Lazy (PEP 562): the config layer reads the policy registry without importing torch.
 _EXPORTS = {
     "DoubleDQN": "harness.sb3.dqn",
     "DuelingDQNPolicy": "harness.sb3.policies",
-    "PrioritizedReplayBuffer": "harness.sb3.buffers",
-    "PrioritizedDictReplayBuffer": "harness.sb3.buffers",
-    "DevicePrioritizedReplayBuffer": "harness.sb3.device_replay",
-    "DevicePrioritizedDictReplayBuffer": "harness.sb3.device_replay",
+    "PrioritizedReplayBuffer": "harness.sb3.replay",
+    "Replay": "harness.sb3.replay",
 }
 
 

@@ -22,76 +22,59 @@ layer's teacher); the buffer keeps it with the decision's transition (-1: none g
 samples carry it as ``experts`` ``(batch, 1)``, which :class:`~harness.sb3.dqn.DoubleDQN`'s
 margin term pulls the greedy action towards, on the labelled samples only.
 
-Storage: completed transitions arrive per slot at different steps, so the buffer stores them in
-one flat column (SB3's ``[buffer_size, 1]`` layout: the parent buffer is made with
-``n_envs=1``, same capacity), in the order they complete, and takes SB3's ``add`` of ``n_envs``
-slots. The pending transitions are plain attributes: a pickled buffer (a resumed run) continues
-them. Nothing here knows the env: only the mask key.
+Storage: completed transitions arrive per slot at different steps, so the buffer
+(:class:`~harness.sb3.replay.Replay` with ``per_decision=True``, its sampler uniform or
+prioritized) stores them in one flat column (SB3's ``[buffer_size, 1]`` layout, ``n_envs=1``,
+same capacity), in the order they complete, and takes SB3's ``add`` of ``n_envs`` slots through
+:class:`Decisions`, whose pending transitions are pickled with the buffer (a resumed run
+continues them). Nothing here knows the env: only the mask key.
 """
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
 from gymnasium import spaces
-from stable_baselines3.common.buffers import DictReplayBuffer
-from stable_baselines3.common.vec_env import VecNormalize
 
-from harness.sb3.buffers import PrioritizedDictReplayBuffer, check_n_step_returns
 from harness.sb3.policies import ACTION_MASK_KEY
 
-__all__ = [
-    "EXPERT_KEY",
-    "PerDecisionDictReplayBuffer",
-    "PerDecisionPrioritizedDictReplayBuffer",
-    "per_decision_buffer_class",
-]
+__all__ = ["EXPERT_KEY", "Decisions", "LabelledSamples"]
 
 
 #: Info key of a slot's expert label for the decision of its step (module docstring).
 EXPERT_KEY = "expert_action"
 
 
-class _PerDecision:
-    """The per-decision storage (module docstring), mixed in before an SB3 ``Dict`` buffer.
+class Decisions:
+    """The pending transition of each slot (module docstring): the stage in front of a
+    per-decision buffer's storage.
 
     Args:
-        buffer_size: Most transitions stored (decisions, over all slots).
+        slots: VecEnv slots (each with its own pending transition).
         observation_space: A ``Dict`` space with an :data:`ACTION_MASK_KEY` entry.
         action_space: A ``Discrete`` space.
-        device: Where the samples go.
-        n_envs: VecEnv slots (each with its own pending transition).
-        optimize_memory_usage: Must be ``False``.
-        handle_timeout_termination: As in SB3: a timeout is not a terminal state.
+        action_dim: The stored action's width.
         gamma: Discount factor of the merged rewards (the algorithm's).
-        labels: Keep each decision's expert label (:data:`EXPERT_KEY`) and sample it as
-            ``experts``.
-        **kwargs: The parent buffer's own arguments (the prioritized one's ``alpha``, ``beta``,
-            ``eps``; its ``n_steps`` must be 1).
+        labels: Keep each decision's expert label (:data:`EXPERT_KEY`).
 
     Raises:
-        ValueError: for an observation without an action mask, ``n_steps`` other than 1,
-            ``optimize_memory_usage`` or a ``gamma`` outside ``(0, 1]``.
+        ValueError: for an observation without an action mask.
     """
 
-    observations: dict[str, np.ndarray]
-    pos: int
-    buffer_size: int
-    action_dim: int
+    #: The attributes a buffer pickles.
+    FIELDS = ("slots", "gamma", "labels", "pending_obs", "pending_action", "pending_return")
+    FIELDS += ("pending_steps", "pending_expert")
 
     def __init__(
         self,
-        buffer_size: int,
+        slots: int,
         observation_space: spaces.Space,
         action_space: spaces.Space,
-        device: Any = "auto",
-        n_envs: int = 1,
-        optimize_memory_usage: bool = False,
-        handle_timeout_termination: bool = True,
-        gamma: float = 0.99,
-        labels: bool = False,
-        **kwargs: Any,
+        action_dim: int,
+        gamma: float,
+        labels: bool,
     ) -> None:
         masked = isinstance(observation_space, spaces.Dict) and (
             ACTION_MASK_KEY in observation_space.spaces
@@ -101,43 +84,22 @@ class _PerDecision:
                 f"a per-decision buffer reads the observation's {ACTION_MASK_KEY!r} (a Dict "
                 f"observation with that key), got {observation_space}"
             )
-        if optimize_memory_usage:
-            raise ValueError("a per-decision buffer does not support optimize_memory_usage=True")
-        if kwargs.get("n_steps", 1) != 1:
-            raise ValueError(
-                f"a per-decision buffer stores one transition per decision; n_steps must be 1, "
-                f"got {kwargs['n_steps']!r}"
-            )
-        check_n_step_returns(1, gamma)
-        super().__init__(  # type: ignore[call-arg]
-            buffer_size,
-            observation_space,
-            action_space,
-            device=device,
-            n_envs=1,  # the flat column of completed transitions (module docstring)
-            optimize_memory_usage=False,
-            handle_timeout_termination=handle_timeout_termination,
-            **kwargs,
-        )
+        assert isinstance(observation_space, spaces.Dict)
+        self.slots = int(slots)
         self.gamma = float(gamma)
-        self.slots = int(n_envs)
-        #: ``gamma ** tau`` of every stored transition, in the storage's layout.
-        self.step_discounts = np.zeros((self.buffer_size, 1), dtype=np.float32)
-        # The pending transition of each slot: its decision's observation and action, the
-        # discounted rewards so far and the steps taken (0: none pending).
+        self.labels = bool(labels)
+        # Each slot's decision's observation and action, the discounted rewards so far, the
+        # steps taken (0: none pending) and its label (-1: none).
         self.pending_obs = {
             key: np.zeros((self.slots, *space.shape), dtype=space.dtype)
             for key, space in observation_space.spaces.items()
         }
-        self.pending_action = np.zeros((self.slots, self.action_dim), dtype=action_space.dtype)
+        self.pending_action = np.zeros((self.slots, action_dim), dtype=action_space.dtype)
         self.pending_return = np.zeros(self.slots, dtype=np.float64)
         self.pending_steps = np.zeros(self.slots, dtype=np.int64)
-        self.labels = bool(labels)
-        #: Each stored decision's expert label (-1: none), and each pending one's.
-        self.expert_actions = np.full((self.buffer_size, 1), -1, dtype=np.int64)
         self.pending_expert = np.full(self.slots, -1, dtype=np.int64)
 
-    def add(
+    def step(
         self,
         obs: dict[str, np.ndarray],
         next_obs: dict[str, np.ndarray],
@@ -145,9 +107,12 @@ class _PerDecision:
         reward: np.ndarray,
         done: np.ndarray,
         infos: list[dict[str, Any]],
+        n_actions: int,
+        store: Callable[..., None],
     ) -> None:
-        """Take one step of every slot (SB3's arguments, ``n_envs`` rows each) and store the
-        transitions it completes (module docstring), slot by slot in slot order."""
+        """Take one step of every slot (SB3's ``add`` arguments, ``slots`` rows each) and pass
+        each transition it completes to ``store`` (one row: observation, next observation,
+        action, reward, done, info, then ``gamma ** tau`` and the label), in slot order."""
         steps = self.pending_steps
         new = steps == 0  # a slot without a pending transition decides at obs
         if new.any():
@@ -156,11 +121,10 @@ class _PerDecision:
             self.pending_action[new] = np.asarray(action).reshape(self.pending_action.shape)[new]
             self.pending_return[new] = 0.0
             if self.labels:
-                n_actions = int(self.action_space.n)  # type: ignore[attr-defined]
                 for j in np.flatnonzero(new).tolist():
                     label = int(infos[j].get(EXPERT_KEY, -1))
                     # Checked here, where it enters: the margin loss then reads no device
-                    # for a range check (DoubleDQN._margin_loss).
+                    # for a range check (harness.sb3.losses.margin_term).
                     if not -1 <= label < n_actions:
                         raise ValueError(
                             f"slot {j}'s {EXPERT_KEY} {label} is no action in [0, {n_actions}) "
@@ -173,55 +137,23 @@ class _PerDecision:
         done = np.asarray(done).reshape(self.slots).astype(bool)
         complete = done | ((mask != 0).sum(axis=1) != 1)
         for j in np.flatnonzero(complete).tolist():
-            self._store(j, next_obs, bool(done[j]), infos[j])
+            store(
+                {key: pending[j : j + 1] for key, pending in self.pending_obs.items()},
+                {key: np.asarray(value)[j : j + 1] for key, value in next_obs.items()},
+                self.pending_action[j : j + 1],
+                np.array([self.pending_return[j]], dtype=np.float32),
+                np.array([bool(done[j])], dtype=np.float32),
+                [infos[j]],
+                self.gamma ** int(self.pending_steps[j]),
+                self.pending_expert[j],
+            )
         steps[complete] = 0
 
-    def _store(
-        self, slot: int, next_obs: dict[str, np.ndarray], done: bool, info: dict[str, Any]
-    ) -> None:
-        """Write slot ``slot``'s pending transition, ending at its ``next_obs``, through the
-        parent buffer's ``add`` (one row of the flat column; priorities and all)."""
-        row = self.pos
-        super().add(  # type: ignore[misc]
-            {key: pending[slot : slot + 1] for key, pending in self.pending_obs.items()},
-            {key: np.asarray(value)[slot : slot + 1] for key, value in next_obs.items()},
-            self.pending_action[slot : slot + 1],
-            np.array([self.pending_return[slot]], dtype=np.float32),
-            np.array([done], dtype=np.float32),
-            [info],
-        )
-        self.step_discounts[row, 0] = self.gamma ** int(self.pending_steps[slot])
-        self.expert_actions[row, 0] = self.pending_expert[slot]
-
-    def _get_samples(self, batch_inds: np.ndarray, env: VecNormalize | None = None) -> Any:
-        """SB3's uniform samples with their ``discounts`` ``gamma ** tau``."""
-        samples = super()._get_samples(batch_inds, env)  # type: ignore[misc]
-        return self._with_decisions(samples, batch_inds, np.zeros_like(batch_inds))
-
-    def _with_decisions(
-        self, samples: Any, rows: np.ndarray, columns: np.ndarray, labelled: bool = True
-    ) -> Any:
-        """``samples`` with their ``discounts`` ``gamma ** tau`` and, with ``labels`` (and
-        ``labelled``), as :class:`LabelledSamples` with their ``experts``."""
-        discounts = self.to_torch(self.step_discounts[rows, columns].reshape(-1, 1))  # type: ignore[attr-defined]
-        samples = samples._replace(discounts=discounts)
-        return self._labelled(samples, rows, columns) if labelled else samples
-
-    def _labelled(self, samples: Any, rows: np.ndarray, columns: np.ndarray) -> Any:
-        """``samples`` as :class:`LabelledSamples` with their ``experts`` when the buffer keeps
-        labels, else as they are."""
-        if not self.labels:
-            return samples
-        experts = self.to_torch(self.expert_actions[rows, columns].reshape(-1, 1))  # type: ignore[attr-defined]
-        return LabelledSamples(samples, experts)
-
     def reset(self) -> None:
-        """Empty the buffer and drop the pending transitions."""
-        super().reset()  # type: ignore[misc]
+        """Drop the pending transitions."""
         self.pending_steps[:] = 0
         self.pending_return[:] = 0.0
         self.pending_expert[:] = -1
-        self.expert_actions[:] = -1
 
 
 class LabelledSamples:
@@ -235,33 +167,3 @@ class LabelledSamples:
 
     def __getattr__(self, name: str) -> Any:
         return getattr(self.__dict__["samples"], name)
-
-
-class PerDecisionDictReplayBuffer(_PerDecision, DictReplayBuffer):
-    """SB3's uniform ``DictReplayBuffer`` with one transition per decision (module docstring)."""
-
-
-class PerDecisionPrioritizedDictReplayBuffer(_PerDecision, PrioritizedDictReplayBuffer):
-    """:class:`~harness.sb3.buffers.PrioritizedDictReplayBuffer` with one transition per
-    decision (module docstring): a decision's transition gets its priority when it is stored."""
-
-    def _get_samples_at(  # type: ignore[override]
-        self, batch_inds: np.ndarray, env_indices: np.ndarray, env: VecNormalize | None = None
-    ) -> Any:
-        """The prioritized samples at given indices, with their ``discounts`` (their labels
-        are added by :meth:`sample`, once the parent has added the IS weights)."""
-        samples = super()._get_samples_at(batch_inds, env_indices, env)
-        return self._with_decisions(samples, batch_inds, env_indices, labelled=False)
-
-    def sample(self, batch_size: int, env: VecNormalize | None = None) -> Any:  # type: ignore[override]
-        """The parent's prioritized batch (weights, indices, discounts), with its ``experts``
-        when the buffer keeps labels (rows of the one column: the flat indices)."""
-        samples = super().sample(batch_size, env)
-        return self._labelled(samples, samples.indices, np.zeros_like(samples.indices))
-
-
-def per_decision_buffer_class(prioritized: bool) -> type[DictReplayBuffer]:
-    """The per-decision buffer: prioritized or uniform. Both keep their transitions on the host
-    (the device buffer's storage has no per-decision variant; a model on an accelerator still
-    samples from these, its batches copied there as SB3's own buffers' are)."""
-    return PerDecisionPrioritizedDictReplayBuffer if prioritized else PerDecisionDictReplayBuffer

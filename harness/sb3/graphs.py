@@ -11,7 +11,7 @@ again in one call; recorded so, the same step made about 2,300 steps/s
 A recorded step reads its tensors where they were when it was recorded and keeps every number
 it read from Python then. So what changes from step to step lives on the device and is written
 in place: the replay buffer's stored count and beta
-(:class:`~harness.sb3.device_replay.DevicePrioritizedReplayBuffer`), the uniform draws of the
+(:class:`~harness.sb3.replay.Replay` on the device), the uniform draws of the
 sample, which are drawn before each launch into the graph's input with the buffer's own
 generator, in the order the step without a graph draws them, and the statistics, copied out
 after each launch. The optimizer's step stays outside the graph: its learning rate follows the

@@ -236,7 +236,7 @@ class _BufferPickler(pickle.Pickler):
     def reducer_override(self, obj: Any) -> Any:
         if obj is not self._buffer:
             return NotImplemented
-        # A device buffer (harness.sb3.device_replay.DeviceStorage) gives its state with the
+        # A harness buffer (harness.sb3.replay.Replay) gives its state with the
         # tensors where they are, and moves them to the host after the cut: only kept rows travel.
         on_device = hasattr(obj, "stored_state")
         if on_device:

@@ -19,9 +19,9 @@ from stable_baselines3.common.utils import get_device
 from envs.coverage.goals import GOALS_KEY
 from harness.config.schema import ConfigError
 from harness.sb3.buffers import replay_memory_bytes
-from harness.sb3.device_replay import buffer_on_device
 from harness.sb3.dqn import resolve_optimizer_class
 from harness.sb3.registry import POLICIES
+from harness.sb3.replay import buffer_on_device
 from harness.sb3.schedules import linear
 
 if TYPE_CHECKING:
@@ -332,7 +332,7 @@ def check_replay_memory(config: ExperimentConfig, available: int | None = None) 
     )
     where = "available"
     if available is None and buffer_on_device(config.algo.device) and not config.algo.per_decision:
-        # The buffer is allocated on the GPU (harness.sb3.device_replay), all at once.
+        # The buffer is allocated on the GPU (harness.sb3.replay), all at once.
         available, where = (
             int(th.cuda.mem_get_info(get_device(config.algo.device))[0]),
             "free on the GPU",

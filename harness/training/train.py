@@ -21,8 +21,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-from gymnasium import spaces
-from stable_baselines3.common.buffers import ReplayBuffer
 from stable_baselines3.common.callbacks import BaseCallback, CallbackList
 from stable_baselines3.common.logger import (
     CSVOutputFormat,
@@ -58,15 +56,13 @@ from harness.results.rundir import (
     log_columns,
     rewind_logs,
 )
-from harness.sb3.buffers import PrioritizedReplayBuffer
-from harness.sb3.decisions import per_decision_buffer_class
-from harness.sb3.device_replay import prioritized_buffer_class, uniform_buffer_class
 from harness.sb3.dqn import (
     DoubleDQN,
     LossOptions,
     NonFiniteLossError,
     OldModelError,
 )
+from harness.sb3.replay import replay_for
 from harness.sb3.schedules import PhaseLinearSchedule
 from harness.training.adapters import make_vec_env
 from harness.training.callbacks import (
@@ -107,32 +103,16 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
     """Make the ``DoubleDQN`` of ``config.algo`` with the first phase's settings."""
     algo, first = config.algo, config.phases[0]
     kwargs = policy_kwargs(algo, config.env.n_agents, algo.device)
-    buffer_kwargs: dict[str, Any] | None = None
-    buffer_class: type[ReplayBuffer] | None = None
-    dict_obs = isinstance(venv.observation_space, spaces.Dict)
-    if not algo.prioritized and not algo.per_decision:
-        # On CUDA uniform replay lives there too (and its sample joins the recorded step);
-        # elsewhere SB3 chooses its own buffer (n-step returns: its NStepReplayBuffer).
-        buffer_class = uniform_buffer_class(algo.device, dict_obs)
-        if buffer_class is not None:
-            buffer_kwargs = {"n_steps": algo.n_steps, "gamma": algo.gamma}
+    # On CUDA the buffer lives there (no host round trip per gradient step; its sample joins
+    # the recorded step), per-decision replay on the host; uniform replay on the host is SB3's
+    # own buffer (n-step returns: its NStepReplayBuffer).
+    buffer_class, buffer_kwargs = replay_for(algo.device, algo.prioritized, algo.per_decision)
+    if buffer_class is not None:  # n-step returns, as SB3 asks of a custom buffer
+        buffer_kwargs.update(n_steps=algo.n_steps, gamma=algo.gamma)
     if algo.prioritized:
-        buffer_kwargs = {
-            "alpha": first.alpha,
-            "beta": first.beta.start,
-            "eps": algo.per_eps,
-            # As SB3 asks of a custom buffer with n-step returns.
-            "n_steps": algo.n_steps,
-            "gamma": algo.gamma,
-        }
-        # On an accelerator the buffer lives there too (no host round trip per gradient step).
-        buffer_class = prioritized_buffer_class(algo.device, dict_obs)
-    if algo.per_decision:
-        # One transition per decision (on the host: the device buffer has no such variant).
-        buffer_class = per_decision_buffer_class(algo.prioritized)
-        # With a teacher, each decision keeps its label (harness.training.teacher).
-        labels = algo.teacher is not None
-        buffer_kwargs = {**(buffer_kwargs or {}), "gamma": algo.gamma, "labels": labels}
+        buffer_kwargs.update(alpha=first.alpha, beta=first.beta.start, eps=algo.per_eps)
+    if algo.per_decision:  # with a teacher, each decision keeps its label (training.teacher)
+        buffer_kwargs["labels"] = algo.teacher is not None
     return DoubleDQN(
         policy_class_name(algo),
         venv,
@@ -144,7 +124,7 @@ def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
         train_freq=(first.train_freq, "step"),
         gradient_steps=first.epochs[0][1],
         replay_buffer_class=buffer_class,
-        replay_buffer_kwargs=buffer_kwargs,
+        replay_buffer_kwargs=buffer_kwargs or None,
         # SB3 builds its NStepReplayBuffer from this when no buffer class is given.
         n_steps=algo.n_steps if buffer_class is None else 1,
         target_update_interval=algo.target_update_interval,
@@ -219,7 +199,7 @@ def apply_phase(model: DoubleDQN, phase: PhaseConfig, phase_start: int) -> None:
     model.lr_schedule = PhaseLinearSchedule(lr_start, lr_end, phase.timesteps, phase.timesteps)
     eps = phase.exploration
     model.exploration_schedule = PhaseLinearSchedule(eps.start, eps.end, eps.steps, phase.timesteps)
-    if isinstance(model.replay_buffer, PrioritizedReplayBuffer):
+    if model.prioritized:
         beta = phase.beta
         model.beta_schedule = PhaseLinearSchedule(beta.start, beta.end, beta.steps, phase.timesteps)
         model.replay_buffer.alpha = phase.alpha

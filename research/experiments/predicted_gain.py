@@ -54,9 +54,11 @@ def main() -> None:
         if base is None:
             base = cov
         d = cov - base
-        print(f"a={a} b={b} c={c}: coverage {100 * cov.mean():.2f} %, vs first "
-              f"{100 * d.mean():+.2f} ± {100 * 1.96 * d.std(ddof=1) / np.sqrt(len(d)):.2f}",
-              flush=True)
+        print(
+            f"a={a} b={b} c={c}: coverage {100 * cov.mean():.2f} %, vs first "
+            f"{100 * d.mean():+.2f} ± {100 * 1.96 * d.std(ddof=1) / np.sqrt(len(d)):.2f}",
+            flush=True,
+        )
 
 
 if __name__ == "__main__":

@@ -39,7 +39,6 @@ from harness.commands import (
     DEFAULT_EPISODES,
     DEFAULT_TEMPERATURES,
     DEFAULT_TUNE_EPISODES,
-    OVER_SEEDS,
     PER_EPISODE_KEYS,
     Target,
     TargetError,
@@ -51,6 +50,7 @@ from harness.commands import (
     export_reference,
     format_against,
     format_group_against,
+    format_over_seeds,
     format_summary,
     format_tune,
     render,
@@ -64,7 +64,6 @@ from harness.config.schema import MAX_SEED, ConfigError, ExperimentConfig, check
 # The help names the baselines from their registry (its planners' SciPy costs the start nothing
 # more: the env, which every command imports, has loaded it already).
 from harness.evaluation.baselines import BASELINES
-from harness.evaluation.foreign import SOURCE
 from harness.results.groups import GroupError, GroupInterrupted, Job
 from harness.results.rundir import (
     RunDir,
@@ -74,6 +73,7 @@ from harness.results.rundir import (
     finite_json,
 )
 from harness.results.stats import REPS
+from harness.tasks import TASKS, task_of_summary
 from harness.training.checkpoints import CheckpointError
 from harness.training.start import StartMode, check_resumable, resume_start, train_run
 from harness.training.state import run_state, untrained
@@ -779,22 +779,7 @@ def _eval_group(args: argparse.Namespace) -> int:
         for comparison in result.get("against", []):
             print(f"saved {comparison['saved']}", file=sys.stderr)
     elif saved is not None:
-        from harness.results.stats import plain, with_ci
-
-        if OVER_SEEDS in result:
-            over = result[OVER_SEEDS]
-            ci = over["mean_ci95"]
-            print(
-                f"== over {over['seeds']} seeds: mean coverage {with_ci(over['mean'], ci)}, "
-                f"IQM {with_ci(over['iqm'], over['iqm_ci95'])}"
-            )
-        else:  # a PettingZoo env of one's own: the team return
-            over = result["return_mean_over_seeds"]
-            print(
-                f"== over {over['seeds']} seeds: mean team return "
-                f"{with_ci(over['mean'], over['mean_ci95'], plain)}, "
-                f"IQM {with_ci(over['iqm'], over['iqm_ci95'], plain)}"
-            )
+        print(format_over_seeds(result))
         print(f"saved {saved}", file=sys.stderr)
         for comparison in result.get("against", []):
             print(format_group_against(comparison))
@@ -842,12 +827,10 @@ def cmd_compare(args: argparse.Namespace) -> int:
     result = compare(args.runs, labels, Path(args.out), args.window, args.reps, args.eval)
     wide = max([len(label) for label, _, _ in result.rows] + [len("experiment")]) + 2
     runs = max([len(name) for _, name, _ in result.rows] + [len("run")]) + 2
-    # Runs of one env kind (compare refuses a mix): a PettingZoo env of one's own has a team
-    # return and no wall hits, the coverage env a coverage and its wall hits.
-    foreign = any(ev is not None and ev.get("source") == SOURCE for _, _, ev in result.rows)
-    last = f"{'return IQR':>12}" if foreign else f"{'IQR':>8}{'wall hits':>11}"
-    first = f"{'median return':>14}" if foreign else f"{'median':>8}"
-    print(f"{'experiment':<{wide}}{'run':<{runs}}{first}{last}")
+    # Runs of one task (compare refuses a mix): its headline columns.
+    found = [ev for _, _, ev in result.rows if ev is not None]
+    task = task_of_summary(found[0]) if found else TASKS[0]
+    print(f"{'experiment':<{wide}}{'run':<{runs}}{task.compare_header()}")
     for (label, name, ev), used in zip(result.rows, result.used, strict=True):
         # An evaluation compare chose itself (the run's only one, not eval.json) is named.
         note = f"  ({used}.json)" if args.eval is None and used not in (None, "eval") else ""
@@ -859,16 +842,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
                 else "run harness eval"
             )
             print(f"{label:<{wide}}{name:<{runs}}(no {args.eval or 'eval'}.json; {hint})")
-        elif ev.get("source") == SOURCE:  # a PettingZoo env of one's own: team return
-            print(
-                f"{label:<{wide}}{name:<{runs}}{ev['return_median']:>14.4g}"
-                f"{ev['return_iqr']:>12.4g}{note}"
-            )
         else:
-            print(
-                f"{label:<{wide}}{name:<{runs}}{ev['coverage_median']:>8.1%}"
-                f"{ev['coverage_iqr']:>8.1%}{ev['wall_hits_mean']:>11.2f}{note}"
-            )
+            print(f"{label:<{wide}}{name:<{runs}}{task.compare_row(ev)}{note}")
     if result.over_seeds:
         print()
         print(result.over_seeds)

@@ -28,8 +28,7 @@ from typing import Any
 import numpy as np
 
 from harness.config.loading import load_config
-from harness.config.maps import describe_map
-from harness.config.schema import ConfigError, ExperimentConfig, PettingZooEnvConfig
+from harness.config.schema import ConfigError, ExperimentConfig
 from harness.evaluation.baselines import BASELINES, make_baseline
 from harness.evaluation.episodes import (
     BatchPolicy,
@@ -39,7 +38,6 @@ from harness.evaluation.episodes import (
     selection_score,
     summarize,
 )
-from harness.evaluation.foreign import SOURCE
 from harness.factory import make_env
 from harness.results.rundir import (
     REFERENCE_FILES,
@@ -52,12 +50,14 @@ from harness.results.rundir import (
     atomic_write_text,
     check_output_file,
     inside,
-    is_foreign_log,
     is_reference,
+    log_header,
     result_filename,
     results_folder,
     write_json,
 )
+from harness.tasks import TASKS, Task, task_of, task_of_columns, task_of_summary
+from harness.tasks.base import TooManyFrames, sampling_note
 
 #: Episodes of a standard evaluation (the thesis tested on 100).
 DEFAULT_EPISODES = STANDARD_EPISODES
@@ -317,82 +317,15 @@ def check_baseline(policy: str, config: ExperimentConfig, flag: str) -> None:
         raise TargetError(f"{flag}: unknown policy {policy!r}; known: {', '.join(BASELINES)}")
     try:
         BASELINES[policy].check(config.env.frontier_options)
-        if isinstance(config.env, PettingZooEnvConfig):
-            BASELINES[policy].check_foreign()
+        offered = [name for name, entry in BASELINES.items() if entry.any_env]
+        task_of(config.env).check_baseline(policy, BASELINES[policy].any_env, offered)
     except ValueError as exc:
         raise TargetError(f"{flag} {policy}: {exc}") from None
 
 
-def sampling_note(temperature: float | None) -> str:
-    """How a test policy picks actions: ``"Boltzmann, temperature T"`` (``""`` when greedy)."""
-    return f"Boltzmann, temperature {temperature:g}" if temperature else ""
-
-
 def format_summary(summary: dict[str, Any]) -> str:
-    """A readable table of :func:`harness.evaluation.episodes.summarize`'s numbers."""
-    if summary.get("source") == SOURCE:
-        return format_foreign_summary(summary)
-    pct = "{:6.1%}".format
-    env = summary["env"]
-    where = describe_map(env["map"], env["height"], env["width"])
-    at = summary["coverage_at_median"]
-    how = sampling_note(summary.get("temperature"))
-    lines = [
-        f"policy    {summary['policy']}{f' ({how})' if how else ''}",
-        f"episodes  {summary['episodes']} (seed {summary['seed']}), {where}; "
-        f"{env['n_agents']} agent(s), {env['max_steps']} steps",
-        f"coverage  median {pct(summary['coverage_median'])}   mean {pct(summary['coverage_mean'])}"
-        f"   IQR {pct(summary['coverage_iqr'])} ({pct(summary['coverage_q1'])} .."
-        f" {pct(summary['coverage_q3'])})",
-        f"bound     {pct(summary['bound'])} (every move a new cell)   efficiency "
-        f"{summary['efficiency']:.3f} (mean / bound)",
-        "steps to 90 % / 99 % (median): "
-        + " / ".join(
-            "not reached" if summary[k] is None else f"{summary[k]:g}"
-            for k in ("steps_to_90", "steps_to_99")
-        ),
-        "at 33 % / 66 % / 100 % of the episode (median): "
-        + " / ".join(pct(v).strip() for v in at.values()),
-        f"wall hits {summary['wall_hits_mean']:.2f} per episode; "
-        f"{summary['wall_hits_episodes']} episode(s) with any",
-        "",
-        f"{'agent':<10}{'useful coverage':>17}{'total coverage':>17}",
-    ]
-    for a in summary["per_agent"]:
-        lines.append(
-            f"{a['agent']:<10}{pct(a['useful_coverage']):>17}{pct(a['total_coverage']):>17}"
-        )
-    return "\n".join(lines)
-
-
-def format_foreign_summary(summary: dict[str, Any]) -> str:
-    """A readable table of a PettingZoo env's evaluation
-    (:func:`harness.evaluation.foreign.summarize_foreign`)."""
-    how = sampling_note(summary.get("temperature"))
-    low, high = summary["return_mean_ci"]
-    lines = [
-        f"policy    {summary['policy']}{f' ({how})' if how else ''}",
-        f"episodes  {summary['episodes']} (seed {summary['seed']}), "
-        f"{summary['env']['pettingzoo']['make']}",
-        f"team return  median {summary['return_median']:.4g}   mean {summary['return_mean']:.4g}"
-        f" [95 % CI {low:.4g}, {high:.4g}]   IQR {summary['return_iqr']:.4g}"
-        f" ({summary['return_q1']:.4g} .. {summary['return_q3']:.4g})",
-        f"length       mean {summary['length_mean']:.4g} steps",
-    ]
-    for key, value in summary["infos"].items():
-        lines.append(f"info {key:<8}team mean {'-' if value is None else f'{value:.4g}'}")
-    keys = [key for key in summary["per_agent"][0] if key != "agent"]
-    lines += ["", f"{'agent':<12}" + "".join(f"{key:>16}" for key in keys)]
-    for a in summary["per_agent"]:
-        cells = ("-" if a[key] is None else f"{a[key]:.4g}" for key in keys)
-        lines.append(f"{a['agent']:<12}" + "".join(f"{cell:>16}" for cell in cells))
-    return "\n".join(lines)
-
-
-#: Numbers of ``eval.json`` that ``harness compare`` reads.
-COMPARE_KEYS = ("coverage_median", "coverage_iqr", "coverage_mean", "wall_hits_mean")
-#: Those of a PettingZoo env of one's own (``"source": "pettingzoo"``).
-FOREIGN_COMPARE_KEYS = ("return_median", "return_iqr", "return_mean")
+    """A readable table of an evaluation's summary (its task's)."""
+    return task_of_summary(summary).format_summary(summary)
 
 
 def read_eval_json(run: Path, name: str = "eval") -> dict[str, Any] | None:
@@ -411,7 +344,11 @@ def read_eval_json(run: Path, name: str = "eval") -> dict[str, Any] | None:
         raise TargetError(str(exc)) from None
     if data is None:
         return None
-    for key in FOREIGN_COMPARE_KEYS if data.get("source") == SOURCE else COMPARE_KEYS:
+    try:
+        keys = task_of_summary(data).compare_keys
+    except ValueError as exc:
+        raise TargetError(f"{path}: {exc}") from None
+    for key in keys:
         value = data.get(key)
         if isinstance(value, bool) or not isinstance(value, (int, float)):
             raise TargetError(f"{path}: {key} must be a number, got {value!r}")
@@ -427,10 +364,17 @@ def read_run_curves(run: Path) -> tuple[Any, Any]:
     Raises:
         TargetError: naming the file and line of anything that is not a curve.
     """
+    task = task_of_log(run)
     try:
-        return RunDir(run).read_curves()
+        return RunDir(run).read_curves(task.episode_metric, f"{task.prefix}_median")
     except (RunDirError, ValueError, csv.Error) as exc:  # UnicodeDecodeError is a ValueError
         raise TargetError(str(exc).splitlines()[0]) from None
+
+
+def task_of_log(run: Path) -> type[Task]:
+    """The task of a run folder's logs (its ``episodes.csv``'s header; the coverage env's when
+    it is no task's: the reader then names the mismatch)."""
+    return task_of_columns(log_header(RunDir(run).episodes_csv)) or TASKS[0]
 
 
 def run_label(run: Path) -> str:
@@ -445,17 +389,6 @@ def run_label(run: Path) -> str:
 DEFAULT_TEMPERATURES = (0.25, 0.5, 0.75, 1.0, 1.5)
 #: Validation episodes per temperature in ``harness tune``.
 DEFAULT_TUNE_EPISODES = 50
-#: Numbers of an evaluation that ``harness tune`` keeps per temperature.
-TUNE_KEYS = (
-    "coverage_median",
-    "coverage_q1",
-    "coverage_q3",
-    "coverage_mean",
-    "wall_hits_mean",
-    "wall_hits_episodes",
-)
-#: Those of a PettingZoo env of one's own.
-FOREIGN_TUNE_KEYS = ("source", "return_median", "return_q1", "return_q3", "return_mean")
 
 
 def choose_temperature(rows: Sequence[dict[str, Any]]) -> dict[str, Any]:
@@ -485,7 +418,7 @@ def tune_temperature(
         ev = target.config.eval
         policy = model_policy(target.model, temperature, ev.shield)
         summary = summarize(run_episodes(policy, target.config.env, episodes, target.seed))
-        keys = FOREIGN_TUNE_KEYS if summary.get("source") == SOURCE else TUNE_KEYS
+        keys = task_of(target.config.env).tune_keys
         rows.append({"temperature": temperature, **{k: summary[k] for k in keys}})
     return {
         "policy": target.label,
@@ -505,13 +438,9 @@ def format_tune(result: dict[str, Any]) -> str:
         f"episodes  {result['episodes']} per temperature (seed {result['seed']})",
         "",
     ]
-    if result["rows"] and result["rows"][0].get("source") == SOURCE:
-        lines.append(f"{'T':>6}{'median':>10}{'q1':>10}{'q3':>10}{'mean':>10}   (team return)")
-        for r in result["rows"]:
-            mark = "  <- chosen" if r["temperature"] == result["chosen"] else ""
-            numbers = (r[f"return_{k}"] for k in ("median", "q1", "q3", "mean"))
-            lines.append(f"{r['temperature']:>6g}" + "".join(f"{v:>10.4g}" for v in numbers) + mark)
-        return "\n".join(lines)
+    if result["rows"]:
+        lines += task_of_summary(result["rows"][0]).format_tune(result)
+    return "\n".join(lines)
     lines += [
         f"{'T':>6}{'median':>9}{'q1':>9}{'q3':>9}{'mean':>9}{'wall hits':>11}{'episodes':>10}",
     ]
@@ -743,7 +672,7 @@ def evaluate_against(
         baseline.policy, baseline.config.env, episodes, target.seed, progress=progress
     )
     theirs = _per_episode(results)
-    metric = "team_return" if "team_return" in theirs else "coverage"
+    metric = task_of(baseline.config.env).episode_metric
     a = np.asarray(summary[metric], dtype=np.float64)
     b = np.asarray(theirs[metric], dtype=np.float64)
     difference, low, high = paired_difference(a, b)
@@ -855,30 +784,30 @@ def format_group_against(comparison: dict[str, Any]) -> str:
 
 
 def _per_episode(results: list[Any]) -> dict[str, list[Any]]:
-    """The per-episode numbers an evaluation keeps: coverage and wall hits (the coverage env),
-    team return and length (a PettingZoo env of one's own)."""
-    from harness.evaluation.foreign import ForeignEpisodeResult
-
-    if results and isinstance(results[0], ForeignEpisodeResult):
-        return {
-            "team_return": [r.team_return for r in results],
-            "length": [r.length for r in results],
-        }
-    return {
-        "coverage": [r.coverage for r in results],
-        "wall_hits": [sum(r.wall_hits) for r in results],
-        # None where the episode never reached 99 %.
-        "steps_to_99_each": [r.steps_to.get("steps_to_99") for r in results],
-    }
+    """The per-episode numbers an evaluation keeps (its task's: coverage, wall hits and steps to
+    99 % for the coverage env; team return and length for a PettingZoo env)."""
+    return type(results[0]).task.per_episode(results) if results else {}
 
 
 #: The per-episode lists of :func:`evaluate` that ``--json`` leaves out (the file keeps them).
 PER_EPISODE_KEYS = ("coverage", "wall_hits", "steps_to_99_each", "team_return", "length")
 
 
-#: ``group-eval.json``'s key of the numbers over seeds (a PettingZoo env of one's own:
-#: ``return_mean_over_seeds``).
-OVER_SEEDS = "coverage_mean_over_seeds"
+def format_over_seeds(result: dict[str, Any]) -> str:
+    """The line of ``group-eval.json``'s numbers over seeds (its task's headline, the mean with
+    its 95 % interval and the IQM): ``== over 3 seeds: mean coverage ...``."""
+    from harness.results.stats import percent, plain, with_ci
+
+    for task in TASKS:
+        over = result.get(f"{task.prefix}_mean_over_seeds")
+        if over is not None:
+            fmt = percent if task.percent else plain
+            return (
+                f"== over {over['seeds']} seeds: mean {task.metric} "
+                f"{with_ci(over['mean'], over['mean_ci95'], fmt)}, "
+                f"IQM {with_ci(over['iqm'], over['iqm_ci95'], fmt)}"
+            )
+    raise ValueError("no numbers over seeds in this group evaluation")
 
 
 def evaluate_group(
@@ -907,11 +836,8 @@ def evaluate_group(
     if missing or len(summaries) != len(runs):
         return None, None, missing
     stats = seed_statistics({"group": [headline(s, "mean") for s in summaries.values()]})
-    if any(s.get("source") == SOURCE for s in summaries.values()):
-        keys: tuple[str, ...] = ("seed", "return_mean", "return_median")
-        over = "return_mean_over_seeds"
-    else:
-        keys, over = ("seed", "coverage_mean", "coverage_median", "wall_hits_mean"), OVER_SEEDS
+    task = task_of_summary(next(iter(summaries.values())))
+    keys, over = task.group_keys, f"{task.prefix}_mean_over_seeds"
     result: dict[str, Any] = {
         "group": str(group),
         "runs": {name: {k: s[k] for k in keys} for name, s in summaries.items()},
@@ -1003,8 +929,9 @@ def render(target: Target, out: Path | None, gif: Path | None, every: int | None
 
     env = target.config.env
     note = sampling_note(target.config.eval.temperature) if target.run_dir else ""
-    if isinstance(env, PettingZooEnvConfig):
-        return _render_foreign(target, out, gif, every)
+    task = task_of(env)
+    if not task.paths:  # no path picture: the env's own frames
+        return _render_frames(target, out, gif, every or task.render_every)
     # Asked before the episode: a paths.png linked out of the folder stops it now.
     out = out or RunDir(target.results_dir or Path()).paths_png
     if gif is not None:
@@ -1046,14 +973,10 @@ def render(target: Target, out: Path | None, gif: Path | None, every: int | None
     return saved
 
 
-#: ``harness render``'s frame interval for a PettingZoo env of one's own when none is given.
-FOREIGN_RENDER_EVERY = 1
-
-
-def _render_foreign(
+def _render_frames(
     target: Target, out: Path | None, gif: Path | None, every: int | None
 ) -> list[Path]:
-    """``harness render`` of a PettingZoo env of one's own: episode 0 of the target's seed
+    """``harness render`` of a task without paths (a PettingZoo env): episode 0 of the target's seed
     played with the env's ``rgb_array`` frames; its last frame as ``out`` (by default
     ``render.png`` where the target's results go) and, with ``gif``, every ``every``-th frame
     as an animated GIF. No path picture: paths are the coverage env's. The frames a GIF keeps
@@ -1066,22 +989,17 @@ def _render_foreign(
     """
     from PIL import Image
 
-    from harness.evaluation.foreign import TooManyFrames, run_foreign_episodes
     from harness.results import plots
 
     env = target.config.env
-    probe = make_env(env)
-    modes = (getattr(probe, "metadata", None) or {}).get("render_modes", [])
-    probe.close()
-    if "rgb_array" not in modes:
-        raise TargetError(
-            f"render: {env.pettingzoo.make} does not render rgb_array frames (its "
-            f"metadata['render_modes'] is {list(modes)})"
-        )
-    every = every or FOREIGN_RENDER_EVERY
+    try:
+        task_of(env).check_renders()
+    except ValueError as exc:
+        raise TargetError(f"render: {exc}") from None
+    every = every or 1
     out = out or RunDir(target.results_dir or Path()).result("render.png")  # asked first
     try:
-        (result,) = run_foreign_episodes(
+        (result,) = run_episodes(
             target.policy,
             env,
             1,
@@ -1104,6 +1022,11 @@ def _render_foreign(
     if gif is not None:
         saved.append(plots.write_gif(frames, gif, plots.GIF_FPS, hold=plots.GIF_HOLD))
     return saved
+
+
+def _mixed(tasks: set[type[Any]]) -> str:
+    """Tasks that do not compare: ``coverage (coverage) and pettingzoo (team return)``."""
+    return " and ".join(sorted(f"{task.name} ({task.metric})" for task in tasks))
 
 
 @dataclass
@@ -1176,13 +1099,11 @@ def compare(
             used.append(name if found is not None else None)
             if found is None:
                 others[run.name] = RunDir(run).eval_names()
-    foreign = [is_foreign_log(RunDir(run).episodes_csv) for run in seen]
-    if any(foreign) and not all(foreign):
-        raise TargetError(
-            "compare: these runs mix the coverage env and a pettingzoo env (coverage and team "
-            "return do not compare)"
-        )
-    metric = "team return" if any(foreign) else None
+    tasks = {task_of_log(run) for run in seen}
+    if len(tasks) > 1:
+        raise TargetError(f"compare: these runs mix tasks: {_mixed(tasks)}, which do not compare")
+    task = tasks.pop() if tasks else None
+    metric = None if task is None or task.percent else task.metric
     title = f"{metric or 'team coverage'} of the training episodes"
     boundaries = sorted({b for run in seen for b in phase_boundaries(run)})
     saved = [
@@ -1260,26 +1181,26 @@ def _over_seeds(
     scores: dict[str, list[float]] = {}
     hits: dict[str, list[float]] = {}
     found = [ev for _, _, ev in rows if ev is not None]
-    foreign = [ev.get("source") == SOURCE for ev in found]
-    if any(foreign) and not all(foreign):
+    tasks = {task_of_summary(ev) for ev in found}
+    if len(tasks) > 1:
         raise TargetError(
-            "compare: these runs mix the coverage env's and a pettingzoo env's evaluations "
-            "(coverage and team return do not compare)"
+            f"compare: these runs' evaluations mix tasks: {_mixed(tasks)}, which do not compare"
         )
+    if not tasks:
+        return "", []
+    task = tasks.pop()
     for label, _, ev in rows:
         if ev is not None:
-            scores.setdefault(label, []).append(headline(ev, "mean"))
-            if not any(foreign):
-                hits.setdefault(label, []).append(float(ev["wall_hits_mean"]))
-    if not scores:
-        return "", []
+            scores.setdefault(label, []).append(task.headline(ev, "mean"))
+            if task.penalty is not None:
+                hits.setdefault(label, []).append(float(ev[task.penalty]))
     stats = seed_statistics(scores, reps)
-    if any(foreign):  # a PettingZoo env of one's own: the team return, as a number
-        metric, fmt, scale, unit = "test team return", plain, 1.0, "team return"
-        table = markdown_table(stats, None, metric, fmt)
-    else:
-        metric, fmt, scale, unit = "test coverage", percent, 100.0, ""
+    if task.percent:  # a fraction, in percent, with its penalty (the coverage env's wall hits)
+        metric, fmt, scale, unit = f"test {task.metric}", percent, 100.0, ""
         table = markdown_table(stats, {k: sum(v) / len(v) for k, v in hits.items()})
+    else:  # a plain number (a PettingZoo env's team return)
+        metric, fmt, scale, unit = f"test {task.metric}", plain, 1.0, task.metric
+        table = markdown_table(stats, None, metric, fmt)
     # Some run has an evaluation here (scores): each one read is named.
     files = [f"{name}.json" for name in dict.fromkeys(n for n in used if n)]
     over = (

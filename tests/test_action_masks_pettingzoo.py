@@ -18,8 +18,7 @@ from pettingzoo.test import parallel_api_test
 
 from harness.cli import main
 from harness.config.loading import config_from_dict
-from harness.evaluation.episodes import model_policy
-from harness.evaluation.foreign import run_foreign_episodes
+from harness.evaluation.episodes import model_policy, run_episodes
 from tests.conftest import one_error_line
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -224,6 +223,6 @@ def test_masked_actions_stay_out_even_when_their_q_values_are_best(temperature):
     with th.no_grad():
         last.weight.zero_()
         last.bias.copy_(th.tensor([0.0, 0.0, 100.0, 100.0]))
-    results = run_foreign_episodes(model_policy(model, temperature), cfg.env, 4, seed=0)
+    results = run_episodes(model_policy(model, temperature), cfg.env, 4, seed=0)
     # Only allowed actions were played (the env raises on another): action 0 earns 1 a step.
     assert len(results) == 4 and all(r.length == 10 for r in results)

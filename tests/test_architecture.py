@@ -8,6 +8,8 @@ counts as much as one at the top):
   sb3 < config (and processes, how a child Python is started) < factory < evaluation < results <
   training < commands, cli, bench; in particular
   configuration imports no training, evaluation or CLI module;
+* no import circle among ``harness`` modules (lazy imports counted): a module never reaches
+  itself through its imports;
 * only the factory (``harness/factory.py``) calls ``parallel_env``;
 * no module of ``harness``, ``envs``, ``scripts`` or ``tests`` imports the research record
   (``research``, ``experiments``): research scripts may use the product, never the reverse;
@@ -46,6 +48,7 @@ LAYERS = {
     "harness.prior.coding": 2,
     "harness.prior.model": 2,
     "harness.factory": 2,
+    "harness.tasks": 2,
     "harness.evaluation": 3,
     "harness.results": 4,
     "harness.prior": 4,
@@ -127,6 +130,90 @@ def test_layers_point_down(path: Path) -> None:
         other = layer(name)
         if other is not None:
             assert other <= own, f"{module_name(path)} (layer {own}) imports {name} ({other})"
+
+
+def runtime_imports(path: Path) -> set[str]:
+    """The modules that running ``path``'s code imports (lazy imports included, those under
+    ``if TYPE_CHECKING:`` left out: they never run). ``from package import module`` imports
+    ``module`` (the package is its parent, imported already); ``from module import name``
+    imports ``module``."""
+    tree = ast.parse(path.read_text(), str(path))
+    name = module_name(path)
+    package = name if path.name == "__init__.py" else name.rpartition(".")[0]
+    found: set[str] = set()
+
+    def visit(node: ast.AST) -> None:
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            for child in node.orelse:
+                visit(child)
+            return
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            names = imports_in(node, package)
+            if isinstance(node, ast.ImportFrom):
+                base = min(names, key=len)
+                submodules = {n for n in names - {base} if module_path(n) is not None}
+                found.update(submodules if len(submodules) == len(node.names) else names)
+            else:
+                found.update(names)
+        for child in ast.iter_child_nodes(node):
+            visit(child)
+
+    visit(tree)
+    return found
+
+
+def import_graph(paths: list[Path]) -> dict[str, set[str]]:
+    """Each module of ``paths`` and the modules among them it imports when it runs
+    (:func:`runtime_imports`)."""
+    names = {module_name(path): path for path in paths}
+    return {
+        name: {n for n in runtime_imports(path) if n in names and n != name}
+        for name, path in names.items()
+    }
+
+
+def import_cycle(graph: dict[str, set[str]]) -> list[str] | None:
+    """One import circle of ``graph`` (``[a, b, a]``: ``a`` imports ``b``, which imports
+    ``a``), or ``None``."""
+    done: set[str] = set()
+    for start in sorted(graph):
+        path: list[str] = []
+        on_path: set[str] = set()
+        stack = [(start, iter(sorted(graph[start])))]
+        if start in done:
+            continue
+        path.append(start)
+        on_path.add(start)
+        while stack:
+            node, children = stack[-1]
+            child = next(children, None)
+            if child is None:
+                stack.pop()
+                path.pop()
+                on_path.discard(node)
+                done.add(node)
+            elif child in on_path:
+                return [*path[path.index(child) :], child]
+            elif child not in done:
+                stack.append((child, iter(sorted(graph[child]))))
+                path.append(child)
+                on_path.add(child)
+    return None
+
+
+def test_no_import_circle_among_harness_modules() -> None:
+    cycle = import_cycle(import_graph(modules("harness")))
+    assert cycle is None, f"an import circle: {' -> '.join(cycle or [])}"
+
+
+def test_the_circle_check_finds_a_lazy_circle(tmp_path: Path) -> None:
+    graph = {"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}
+    assert import_cycle(graph) == ["a", "b", "c", "a"]
+    assert import_cycle({"a": {"b"}, "b": set(), "c": {"b"}}) is None
+    # A lazy import inside a function is an edge too.
+    lazy = tmp_path / "lazy.py"
+    lazy.write_text("def f():\n    from harness.evaluation import episodes\n")
+    assert "harness.evaluation.episodes" in imports(lazy)
 
 
 def test_configuration_imports_no_training_evaluation_or_cli() -> None:

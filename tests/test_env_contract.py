@@ -287,9 +287,9 @@ def test_an_env_that_fails_in_a_worker_process_is_one_line(tmp_path, capfd, monk
 
 # ---------------------------------------------------------------------- episodes that never end
 def test_an_episode_that_never_ends_stops_at_the_step_limit(tmp_path, capsys, monkeypatch):
-    from harness.evaluation import foreign
+    from harness.tasks import pettingzoo
 
-    monkeypatch.setattr(foreign, "LONG_EPISODE_EVERY_S", 0.0)  # a line at every step
+    monkeypatch.setattr(pettingzoo, "LONG_EPISODE_EVERY_S", 0.0)  # a line at every step
     path = config(tmp_path, step_limit=30, fault="endless")
     assert main(["eval", "--policy", "random", "--config", str(path), "--episodes", "2"]) == 1
     *progress, last = capsys.readouterr().err.strip().splitlines()

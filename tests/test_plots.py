@@ -14,7 +14,9 @@ from harness.config.schema import EnvConfig
 from harness.evaluation.baselines import make_baseline
 from harness.evaluation.episodes import EpisodeResult, run_episodes
 from harness.results import plots, rundir
-from harness.results.rundir import EPISODE_COLUMNS
+from harness.tasks.coverage import CoverageTask
+
+EPISODE_COLUMNS = CoverageTask.episode_columns
 
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 

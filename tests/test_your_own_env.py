@@ -19,13 +19,15 @@ from harness.config.schema import ConfigError, ExperimentConfig, PettingZooEnvCo
 from harness.evaluation.baselines import make_baseline
 from harness.evaluation.episodes import run_episodes, selection_score, summarize
 from harness.factory import make_env
-from harness.results.rundir import FOREIGN_EPISODE_COLUMNS, RunDir, rewind_logs
+from harness.results.rundir import RunDir, rewind_logs
+from harness.tasks.pettingzoo import PettingZooTask
 from harness.training.checkpoints import read_state
 from tests.conftest import one_error_line
 
 ROOT = Path(__file__).resolve().parents[1]
 MEET = ROOT / "tests" / "data" / "meet.yaml"
 MPE = ROOT / "configs" / "mpe_spread.yaml"
+MASKED = ROOT / "tests" / "data" / "meet_masked.yaml"
 
 
 def meet(make: str = "tests.envs.meet:parallel_env", **extra) -> dict:
@@ -172,7 +174,7 @@ def trained(tmp_path_factory):
 def test_run_logs_team_and_agent_returns_and_the_env_infos(trained):
     with (trained / "episodes.csv").open() as f:
         rows = list(csv.reader(f))
-    assert tuple(rows[0]) == FOREIGN_EPISODE_COLUMNS
+    assert tuple(rows[0]) == PettingZooTask.episode_columns
     first = dict(zip(rows[0], rows[1], strict=True))
     returns = [float(r) for r in first["returns"].split(";")]
     assert float(first["team_return"]) == pytest.approx(sum(returns)) and first["length"] == "10"
@@ -297,7 +299,9 @@ def test_compare_refuses_to_mix_the_coverage_env_and_a_pettingzoo_env(trained, t
     )
     args = ["compare", str(trained), str(coverage), "--out", str(tmp_path / "c.png")]
     assert main(args) == 2
-    assert "mix the coverage env and a pettingzoo env" in one_error_line(capsys.readouterr().err)
+    assert "mix tasks: coverage (coverage) and pettingzoo (team return)" in one_error_line(
+        capsys.readouterr().err
+    )
 
 
 def test_sweep(tmp_path, capsys):
@@ -403,8 +407,16 @@ def test_a_time_limit_reaches_the_replay_buffer_as_a_time_out():
 
 def test_the_docs_show_the_tested_env_and_config():
     page = (ROOT / "docs" / "your-own-env.md").read_text()
-    assert (ROOT / "tests" / "envs" / "meet.py").read_text() in page
-    assert MEET.read_text() in page
+    assert (ROOT / "tests" / "envs" / "meet_masked.py").read_text() in page
+    assert MASKED.read_text() in page
+
+
+def test_the_docs_masked_example_trains_and_beats_nothing_masked(tmp_path, capsys):
+    # The env raises on a masked action: training, evaluation and the random baseline play none.
+    run = tmp_path / "run"
+    assert main(["run", str(MASKED), "--into", str(run)]) == 0
+    assert main(["eval", str(run), "--episodes", "4", "--against", "random"]) == 0
+    assert "team return" in capsys.readouterr().out
 
 
 def test_a_run_repeats_from_its_seed(tmp_path):

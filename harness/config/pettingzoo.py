@@ -486,6 +486,40 @@ class ContractGuard(BaseParallelWrapper):
         close_quietly(self.env)
 
 
+def agent_groups(
+    agents: tuple[str, ...], named: Mapping[str, list[str]] | None = None
+) -> dict[str, tuple[str, ...]]:
+    """The agents' groups, each in the agents' order: those named in the config
+    (``env.pettingzoo.groups``), else by name prefix (PettingZoo's convention: ``adversary_0``
+    is in ``adversary``, the part before the last ``_``; a name without one is its own group).
+
+    Raises:
+        ValueError: one line naming the agent that is not the env's, or in no group, or in two.
+    """
+    if not named:
+        groups: dict[str, list[str]] = {}
+        for agent in agents:
+            groups.setdefault(agent.rpartition("_")[0] or agent, []).append(agent)
+        return {name: tuple(members) for name, members in groups.items()}
+    seen: dict[str, str] = {}
+    for name, members in named.items():
+        for agent in members:
+            if agent not in agents:
+                raise ValueError(
+                    f"env.pettingzoo.groups.{name}: {agent!r} is no agent of the env "
+                    f"(its possible_agents: {', '.join(agents)})"
+                )
+            if agent in seen:
+                raise ValueError(
+                    f"env.pettingzoo.groups: {agent!r} is in {seen[agent]!r} and {name!r}"
+                )
+            seen[agent] = name
+    missing = [agent for agent in agents if agent not in seen]
+    if missing:
+        raise ValueError(f"env.pettingzoo.groups: {', '.join(map(repr, missing))} in no group")
+    return {name: tuple(a for a in agents if seen[a] == name) for name in named}
+
+
 def indicated_spaces(spaces: EnvSpaces) -> EnvSpaces:
     """``spaces`` with each observation followed by the agent's one-hot index (SuperSuit's agent
     indication, :class:`AgentIndicator`): a vector ``(d,)`` becomes ``(d + n_agents,)``, an image

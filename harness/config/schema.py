@@ -25,7 +25,7 @@ import hashlib
 import re
 from collections.abc import Mapping
 from pathlib import Path
-from typing import Annotated, Any, Literal, Union, get_args
+from typing import Annotated, Any, ClassVar, Literal, Union, get_args
 
 import yaml
 from pydantic import (
@@ -323,6 +323,13 @@ class EnvConfig(_Section):
         """The grids of ``test_maps``."""
         return [maps.load_map(name).grid for name in self.test_maps]
 
+    #: Whether the team's size is a key (checked with the config); else it is known once the
+    #: env is built, where the run starts (:meth:`check_fits`).
+    agents_known: ClassVar[bool] = True
+
+    def check_fits(self, config: ExperimentConfig) -> None:
+        """Nothing left to check where the run starts: the config's validation checked it."""
+
     def check_training_map(self) -> None:
         """Refuse a fixed ``map`` that is one of ``test_maps`` (training; evaluation may use it).
 
@@ -339,9 +346,10 @@ class EnvConfig(_Section):
 
 class PettingZooSource(_Section):
     """A PettingZoo env of your own: its constructor by import path, and its keyword arguments
-    (``docs/your-own-env.md``). Validating it imports the module and builds the env once, to
-    check its spaces (:func:`harness.config.pettingzoo.probe`): a config that names an import
-    path runs that code (``docs/reliability.md``)."""
+    (``docs/your-own-env.md``). Validating it runs none of that code: the run's start builds the
+    env once (:meth:`probe`, :func:`harness.config.pettingzoo.probe`) to check its spaces, before
+    the run folder is made; a config that names an import path runs that code then
+    (``docs/reliability.md``)."""
 
     make: str
     """``package.module:constructor``, e.g. ``mpe2.simple_spread_v3:parallel_env``: a function
@@ -361,17 +369,32 @@ class PettingZooSource(_Section):
             raise ValueError("render_mode is given by the harness (harness render), not here")
         return v
 
-    @model_validator(mode="after")
-    def _probe(self) -> PettingZooSource:
-        self._spaces = probe(self.make, self.kwargs)
-        return self
+    def probe(self) -> EnvSpaces:
+        """The env's agents and their (shared) spaces: the env built and stepped once
+        (:func:`harness.config.pettingzoo.probe`) the first time they are asked for.
+
+        Raises:
+            ValueError: one line naming ``env.pettingzoo`` and the problem.
+        """
+        if self._spaces is None:
+            try:
+                self._spaces = probe(self.make, self.kwargs)
+            except ValueError as exc:
+                raise ValueError(f"env.pettingzoo: {exc}") from None
+        return self._spaces
 
     @property
     def spaces(self) -> EnvSpaces:
-        """The env's agents and their (shared) spaces, read when the config was validated."""
-        if self._spaces is None:  # (validated configs always have them)
-            self._spaces = probe(self.make, self.kwargs)
-        return self._spaces
+        """The env's agents and their (shared) spaces (:meth:`probe`)."""
+        return self.probe()
+
+    def __eq__(self, other: object) -> bool:
+        # The same source whether or not its env was built yet (the spaces are read of it).
+        if not isinstance(other, PettingZooSource):
+            return NotImplemented
+        return self.model_dump() == other.model_dump()
+
+    __hash__ = None  # type: ignore[assignment]  (as pydantic's models: mutable, unhashable)
 
 
 class PettingZooEnvConfig(_Section):
@@ -381,6 +404,8 @@ class PettingZooEnvConfig(_Section):
     agent indication, no planner); the coverage env's keys do not apply to it."""
 
     pettingzoo: PettingZooSource
+    #: The team's size is the env's: known once it is built, where the run starts.
+    agents_known: ClassVar[bool] = False
     _agent_id: bool = PrivateAttr(default=False)
     """Whether each observation ends in the agent's one-hot index (SuperSuit's agent indication,
     :class:`harness.config.pettingzoo.AgentIndicator`): not a key of its own, derived from
@@ -421,6 +446,44 @@ class PettingZooEnvConfig(_Section):
     def check_training_map(self) -> None:
         """Nothing to refuse: test maps are the coverage env's."""
 
+    def check_fits(self, config: ExperimentConfig) -> None:
+        """What of ``config`` the env's spaces decide, checked where the run starts (the env
+        built once, :meth:`PettingZooSource.probe`): the agent indication of ``algo.sharing``,
+        a network that reads the observations as they are (an action mask or none), and the
+        VecEnv's slots.
+
+        Raises:
+            ValueError: one line naming the key.
+        """
+        spaces = self.pettingzoo.spaces
+        algo = config.algo
+        if algo.sharing != "shared":
+            try:
+                indicated_spaces(spaces)
+            except ValueError as exc:
+                raise ValueError(f"algo.sharing: {algo.sharing}: {exc}") from None
+            shape = spaces.observation_space.shape
+            if algo.sharing == "per_agent" and len(shape) != 1:
+                raise ValueError(
+                    f"algo.sharing: per_agent routes each observation by the one-hot index at its "
+                    f"end: it needs vector observations, not of shape {shape} (flatten them, e.g. "
+                    "with SuperSuit's flatten_v0, or use shared_id)"
+                )
+        entry = POLICIES[algo.policy]
+        if config.prior is None and entry.masked != masked(spaces):
+            fitting = [name for name, p in POLICIES.items() if p.masked and not p.team_map]
+            if entry.masked:
+                raise ValueError(
+                    f"algo.policy {algo.policy} reads an action mask: the env's "
+                    "observations are a Box without one (use MlpPolicy or DuelingMlpPolicy)"
+                )
+            raise ValueError(
+                f"algo.policy {algo.policy} reads a Box, but the env's observations carry "
+                f"an action mask (PettingZoo's Dict of observation and action_mask): use "
+                f"algo.policy: {' or '.join(fitting)}"
+            )
+        config.check_slots()
+
 
 #: The env sources an ``env`` section can be, by the section's tag: the coverage env's keys, or
 #: ``{pettingzoo: ...}``.
@@ -444,11 +507,6 @@ AnyEnvConfig = Annotated[
     ],
     Discriminator(_env_source),
 ]
-
-
-def is_foreign(env: EnvConfig | PettingZooEnvConfig) -> bool:
-    """Whether an ``env`` section names a PettingZoo env of one's own (not the coverage env)."""
-    return isinstance(env, PettingZooEnvConfig)
 
 
 #: How the env is vectorised (``vec.backend``): the batched core's own VecEnv, or SuperSuit
@@ -525,12 +583,14 @@ class TeacherConfig(_Section):
 class AlgoConfig(_Section):
     """The learner: ``DoubleDQN`` with its policy, buffer and optimizer (thesis §2.9-2.11, §3.4)."""
 
-    sharing: Literal["shared", "shared_id", "per_agent"] = "shared"
+    sharing: Literal["shared", "shared_id", "per_agent", "per_group"] = "shared"
     """How the agents share the Q-network: ``shared``, one network for all (parameter sharing);
     ``shared_id``, one network that also reads the agent's one-hot index (agent indication);
     ``per_agent``, one set of parameters per agent (the thesis's independent learners), in one
     model that routes each agent to its set. Both non-shared modes add the one-hot index to the
-    observation (``env.agent_id``), so they are tied to the team size they were trained with."""
+    observation (``env.agent_id``), so they are tied to the team size they were trained with.
+    ``per_group`` (a network per agent group) is refused: not built yet (``per_agent`` gives
+    every agent, so every group, its own parameters)."""
     policy: str = DEFAULT_POLICY
     """A policy of ``harness.sb3.registry.POLICIES``: ``MlpPolicy``, ``DuelingMlpPolicy`` (the
     thesis observation), ``TeamMapPolicy``, ``DuelingTeamMapPolicy``, ``SlotTeamMapPolicy``
@@ -835,7 +895,7 @@ class ExperimentConfig(_Section):
         return check_name(v)
 
     @model_validator(mode="after")
-    def _foreign_env_fits(self) -> ExperimentConfig:
+    def _pettingzoo_env_fits(self) -> ExperimentConfig:
         # What a PettingZoo env of one's own can be trained with: the SuperSuit VecEnv (the
         # batched core is the coverage env's), networks over its Box observations (with the
         # agent's one-hot index for shared_id and per_agent), no coverage-specific test-time
@@ -847,19 +907,6 @@ class ExperimentConfig(_Section):
                 "vec.backend: core is the coverage env's batched core; a pettingzoo env "
                 "runs on vec.backend: supersuit (the default for it)"
             )
-        if self.algo.sharing != "shared":
-            spaces = self.env.pettingzoo.spaces
-            try:
-                indicated_spaces(spaces)
-            except ValueError as exc:
-                raise ValueError(f"algo.sharing: {self.algo.sharing}: {exc}") from None
-            shape = spaces.observation_space.shape
-            if self.algo.sharing == "per_agent" and len(shape) != 1:
-                raise ValueError(
-                    f"algo.sharing: per_agent routes each observation by the one-hot index at its "
-                    f"end: it needs vector observations, not of shape {shape} (flatten them, e.g. "
-                    "with SuperSuit's flatten_v0, or use shared_id)"
-                )
         entry = POLICIES[self.algo.policy]
         if entry.team_map or entry.slots:
             vector = [
@@ -869,18 +916,7 @@ class ExperimentConfig(_Section):
                 f"algo.policy {self.algo.policy} reads the coverage env's team map; a pettingzoo "
                 f"env's Box observation takes one of {', '.join(vector)}"
             )
-        if self.prior is None and entry.masked != masked(self.env.pettingzoo.spaces):
-            fitting = [name for name, p in POLICIES.items() if p.masked and not p.team_map]
-            if entry.masked:
-                raise ValueError(
-                    f"algo.policy {self.algo.policy} reads an action mask: the env's "
-                    "observations are a Box without one (use MlpPolicy or DuelingMlpPolicy)"
-                )
-            raise ValueError(
-                f"algo.policy {self.algo.policy} reads a Box, but the env's observations carry "
-                f"an action mask (PettingZoo's Dict of observation and action_mask): use "
-                f"algo.policy: {' or '.join(fitting)}"
-            )
+        # (what the env's spaces decide is checked where the run starts: check_env_fits)
         if self.eval.shield:
             raise ValueError(
                 "eval.shield reads the coverage env's observation: not for a pettingzoo env"
@@ -984,6 +1020,11 @@ class ExperimentConfig(_Section):
                 f"algo.policy {self.algo.policy} scores the goal action's candidates: it needs "
                 "env.frontier.action: {goal: {k: K}} (with a planner)"
             )
+        if self.algo.sharing == "per_group":
+            raise ValueError(
+                "algo.sharing: per_group (a network per agent group) is not built yet: use "
+                "per_agent (every agent, so every group, its own parameters) or shared_id"
+            )
         if self.algo.sharing == "per_agent" and not entry.per_agent:
             raise ValueError(
                 f"algo.sharing: per_agent: {self.algo.policy} has no per-agent version "
@@ -1027,12 +1068,31 @@ class ExperimentConfig(_Section):
 
     @model_validator(mode="after")
     def _slots_fit(self) -> ExperimentConfig:
+        if self.env.agents_known:  # (else where the run starts: check_env_fits)
+            self.check_slots()
+        return self
+
+    def check_slots(self) -> None:
+        """Refuse more VecEnv slots than a run can step.
+
+        Raises:
+            ValueError: naming ``vec.copies``.
+        """
         if self.prior is None and self.n_slots > MAX_SLOTS:
             raise ValueError(
                 f"vec.copies: {self.vec.copies:,} copies of {self.env.n_agents} agents make "
                 f"{self.n_slots:,} slots, more than the {MAX_SLOTS:,} a run can step"
             )
-        return self
+
+    def check_env_fits(self) -> None:
+        """What the env's spaces decide, checked where the run starts, once the env is built
+        (a user's constructor never runs while a config is validated): the env section's
+        :meth:`~PettingZooEnvConfig.check_fits`.
+
+        Raises:
+            ValueError: one line naming the key.
+        """
+        self.env.check_fits(self)
 
     @model_validator(mode="after")
     def _batch_fits_buffer(self) -> ExperimentConfig:

@@ -126,12 +126,6 @@ class BaselineEntry:
         if self.needs_action:
             FrontierStepPolicy.check(options)
 
-    def check_foreign(self) -> None:
-        """``ValueError`` (one line) unless it can play a PettingZoo env of one's own."""
-        if not self.any_env:
-            known = ", ".join(name for name, entry in BASELINES.items() if entry.any_env)
-            raise ValueError(f"plays the coverage env only; a pettingzoo env takes {known}")
-
 
 def _holdable(options: FrontierOptions | None) -> bool:
     """Whether the planner extension's action kind keeps chosen targets (its ``holdable``)."""
@@ -288,7 +282,7 @@ class RandomPolicy:
     def __call__(self, obs: np.ndarray, envs: Sequence[CoverageEnv]) -> np.ndarray:
         """One uniform action per agent in the batch."""
         from harness.config.pettingzoo import ACTION_MASK_KEY
-        from harness.evaluation.foreign import EpisodeView
+        from harness.tasks.pettingzoo import EpisodeView
 
         view = envs[0] if envs else None
         if isinstance(view, EpisodeView) and isinstance(obs, dict) and ACTION_MASK_KEY in obs:

@@ -44,77 +44,18 @@ from typing import Any
 
 import numpy as np
 
-from harness.config.schema import ExperimentConfig, is_foreign
-
-#: Columns of ``episodes.csv``, one row per finished training episode (see README).
-EPISODE_COLUMNS = (
-    "episode",
-    "phase",
-    "timesteps",
-    "copy",
-    "coverage",
-    "reward_mean",
-    "wall_hits",
-    "new_cells",
-    "length",
-)
-
-#: Columns of ``evaluations.csv``, one row per evaluation during training (``eval.every``).
-EVALUATION_COLUMNS = (
-    "timesteps",
-    "episodes",
-    "temperature",
-    "coverage_median",
-    "coverage_q1",
-    "coverage_q3",
-    "coverage_mean",
-    "wall_hits_mean",
-)
+from harness.config.schema import ExperimentConfig
 
 
-#: ``episodes.csv``'s columns for a PettingZoo env of one's own (``env: {pettingzoo: ...}``):
-#: the team's return (the sum of its agents'), each agent's (``a;b;c``), the length, and the
-#: numeric per-agent infos of the episode's last step as JSON (``{"key": [a, b, c]}``).
-FOREIGN_EPISODE_COLUMNS = (
-    "episode",
-    "phase",
-    "timesteps",
-    "copy",
-    "team_return",
-    "returns",
-    "length",
-    "infos",
-)
-
-#: ``evaluations.csv``'s columns for a PettingZoo env of one's own: the team return's numbers.
-FOREIGN_EVALUATION_COLUMNS = (
-    "timesteps",
-    "episodes",
-    "temperature",
-    "return_median",
-    "return_q1",
-    "return_q3",
-    "return_mean",
-    "length_mean",
-)
-
-
-def log_columns(config: ExperimentConfig) -> tuple[tuple[str, ...], tuple[str, ...]]:
-    """The columns of ``episodes.csv`` and ``evaluations.csv`` of a run of ``config``."""
-    if is_foreign(config.env):
-        return FOREIGN_EPISODE_COLUMNS, FOREIGN_EVALUATION_COLUMNS
-    return EPISODE_COLUMNS, EVALUATION_COLUMNS
-
-
-def _columns_of(path: Path, choices: Sequence[Sequence[str]]) -> Sequence[str]:
-    """The one of ``choices`` that ``path``'s header line names (the first when none does: the
-    reader then names the mismatch)."""
+def log_header(path: str | Path) -> tuple[str, ...]:
+    """The columns that a CSV log's header line names (none when it has none or cannot be
+    read: the reader then names the problem). Each task logs its own columns
+    (:attr:`harness.tasks.base.Task.episode_columns`): the header says whose a log is."""
     try:
-        with path.open(encoding="utf-8", newline="") as f:
-            header = next(csv.reader([f.readline()]), [])
+        with Path(path).open(encoding="utf-8", newline="") as f:
+            return tuple(next(csv.reader([f.readline()]), []))
     except (OSError, UnicodeDecodeError, csv.Error):
-        return choices[0]
-    return next((c for c in choices if tuple(header) == tuple(c)), choices[0])
+        return ()
 
 
 #: Marks a folder made by ``harness export`` (a shipped reference policy): commands read it but
@@ -607,10 +548,13 @@ class RunDir:
             raise RunDirError(f"{path}: expected a JSON object, got {type(data).__name__}")
         return data
 
-    def read_curves(self) -> tuple[Curve, Curve | None]:
-        """The training episodes' curve (``episodes.csv``: timesteps, coverage) and the
-        in-training evaluations' (``evaluations.csv``: timesteps, median coverage; ``None`` for a
-        run made without them).
+    def read_curves(
+        self, episode_column: str = "coverage", evaluation_column: str = "coverage_median"
+    ) -> tuple[Curve, Curve | None]:
+        """The training episodes' curve (``episodes.csv``: timesteps, ``episode_column``) and
+        the in-training evaluations' (``evaluations.csv``: timesteps, ``evaluation_column``;
+        ``None`` for a run made without them). The columns are the run's task's (the coverage
+        env's by default).
 
         Raises:
             RunDirError: for a folder without ``episodes.csv``, or an empty one.
@@ -625,11 +569,11 @@ class RunDir:
                     raise RunDirError(f"{episodes}: empty")
         except (UnicodeDecodeError, csv.Error):
             raise RunDirError(f"{episodes}: not a CSV text file") from None
-        curve = read_episodes_csv(episodes)
+        curve = read_episodes_csv(episodes, episode_column)
         if len(curve[0]) == 0:
             raise RunDirError(f"{episodes}: no finished episode yet")
         evals = self.evaluations_csv
-        return curve, read_evaluations_csv(evals) if evals.is_file() else None
+        return curve, read_evaluations_csv(evals, evaluation_column) if evals.is_file() else None
 
     def write_reference_marker(self, origin: Path, model: str) -> None:
         """Mark this folder as a reference exported from run ``origin``'s model ``model``."""
@@ -833,8 +777,16 @@ def read_csv_log(path: Path, columns: Sequence[str]) -> tuple[list[list[str]], i
     return rows[1:], torn
 
 
-def rewind_logs(run: RunDir, next_episode: int, num_timesteps: int) -> tuple[int, int]:
+def rewind_logs(
+    run: RunDir,
+    next_episode: int,
+    num_timesteps: int,
+    columns: tuple[Sequence[str], Sequence[str]] | None = None,
+) -> tuple[int, int]:
     """Drop from ``episodes.csv`` and ``evaluations.csv`` what was logged after a checkpoint.
+
+    ``columns``: the logs' columns (the run's task's, ``episodes.csv``'s and
+    ``evaluations.csv``'s: another header is a damaged log); ``None``: the headers they have.
 
     Only rows provably after the checkpoint go: episodes numbered ``next_episode`` or later whose
     ``timesteps`` exceed ``num_timesteps``, and evaluations after ``num_timesteps``. If the logs
@@ -848,10 +800,10 @@ def rewind_logs(run: RunDir, next_episode: int, num_timesteps: int) -> tuple[int
         LogMismatchError: with one line naming the file, the row and the checkpoint.
     """
     plans: list[tuple[Path, Sequence[str], list[list[str]], int]] = []
-    # (a PettingZoo env of one's own logs other columns: the header says which)
-    episode_columns = _columns_of(run.episodes_csv, (EPISODE_COLUMNS, FOREIGN_EPISODE_COLUMNS))
-    evaluation_columns = _columns_of(
-        run.evaluations_csv, (EVALUATION_COLUMNS, FOREIGN_EVALUATION_COLUMNS)
+    # (each task logs its own columns: the caller says which)
+    episode_columns, evaluation_columns = columns or (
+        log_header(run.episodes_csv),
+        log_header(run.evaluations_csv),
     )
     episodes, torn = (
         read_csv_log(run.episodes_csv, episode_columns) if run.episodes_csv.exists() else ([], 0)
@@ -920,12 +872,14 @@ def _write_csv(path: Path, columns: Sequence[str], rows: Sequence[Sequence[str]]
 Curve = tuple[np.ndarray, np.ndarray]
 
 
-def read_episodes_csv(path: str | Path) -> Curve:
+def read_episodes_csv(path: str | Path, column: str = "coverage") -> Curve:
     """Read a run's ``episodes.csv``.
 
     Args:
-        path: The file (columns ``episode, phase, timesteps, copy, coverage, reward_mean,
-            wall_hits, new_cells, length``; only ``timesteps`` and ``coverage`` are used).
+        path: The file (the coverage env's columns ``episode, phase, timesteps, copy, coverage,
+            reward_mean, wall_hits, new_cells, length``; only ``timesteps`` and ``column`` are
+            used).
+        column: The curve's column (the task's headline: a PettingZoo env's ``team_return``).
 
     Returns:
         ``(timesteps, coverage)``: int64 and float64 arrays, one entry per finished episode,
@@ -934,37 +888,21 @@ def read_episodes_csv(path: str | Path) -> Curve:
     Raises:
         ValueError: When a column is missing or a value is not a number (naming file and line).
     """
-    # Copies finish out of order only within a step; the sort puts them back. A PettingZoo env
-    # of one's own logs the team return instead (FOREIGN_EPISODE_COLUMNS).
-    return _read_columns(path, "timesteps", _curve_column(path, "coverage", "team_return"))
+    # Copies finish out of order only within a step; the sort puts them back.
+    return _read_columns(path, "timesteps", column)
 
 
-def read_evaluations_csv(path: str | Path) -> Curve:
+def read_evaluations_csv(path: str | Path, column: str = "coverage_median") -> Curve:
     """Read a run's ``evaluations.csv`` (the in-training evaluations of the test policy).
 
     Returns:
-        ``(timesteps, coverage_median)`` arrays (a PettingZoo env's: ``return_median``), one
+        ``(timesteps, column)`` arrays (a PettingZoo env's column: ``return_median``), one
         entry per evaluation, in order.
 
     Raises:
         ValueError: When a column is missing or a value is not a number (naming file and line).
     """
-    return _read_columns(path, "timesteps", _curve_column(path, "coverage_median", "return_median"))
-
-
-def is_foreign_log(path: str | Path) -> bool:
-    """Whether ``path`` (an ``episodes.csv``) is a PettingZoo env's log of one's own (its header
-    is :data:`FOREIGN_EPISODE_COLUMNS`)."""
-    choices = (EPISODE_COLUMNS, FOREIGN_EPISODE_COLUMNS)
-    return tuple(_columns_of(Path(path), choices)) == FOREIGN_EPISODE_COLUMNS
-
-
-def _curve_column(path: str | Path, coverage: str, foreign: str) -> str:
-    """``foreign`` when ``path``'s header is a PettingZoo env's log (it has that column and not
-    ``coverage``), else ``coverage`` (whose absence the reader then names)."""
-    choices = (EPISODE_COLUMNS, FOREIGN_EPISODE_COLUMNS, EVALUATION_COLUMNS)
-    header = _columns_of(Path(path), (*choices, FOREIGN_EVALUATION_COLUMNS))
-    return foreign if foreign in header and coverage not in header else coverage
+    return _read_columns(path, "timesteps", column)
 
 
 #: The range of a curve's ``x`` column (int64, as numpy stores it).

@@ -39,15 +39,14 @@ from supersuit.vector.sb3_vector_wrapper import SB3VecEnvWrapper
 
 from envs.coverage.core import CoverageCore
 from harness.config.pettingzoo import EnvFailed, blank_observation
-from harness.config.schema import VEC_BACKENDS, EnvConfig, PettingZooEnvConfig
+from harness.config.schema import VEC_BACKENDS, EnvConfig
 from harness.factory import make_core_spec, make_env
 from harness.sb3.decisions import EXPERT_KEY
+from harness.tasks import task_of
+from harness.tasks.coverage import EPISODE_INFO_KEYS
+from harness.tasks.pettingzoo import TIME_LIMIT_KEY
 
-#: The info key of a time-out (SB3's): the replay buffer bootstraps its transition.
-TIME_LIMIT_KEY = "TimeLimit.truncated"
-
-#: Env info keys that VecMonitor copies into each finished episode's ``info["episode"]``.
-EPISODE_INFO_KEYS = ("coverage", "new_cells", "wall_hits")
+__all__ = ["EPISODE_INFO_KEYS", "TIME_LIMIT_KEY"]
 
 
 def _make_copy(
@@ -70,7 +69,7 @@ def _make_copy(
         if hasattr(signal, "SIGPIPE"):  # POSIX
             signal.signal(signal.SIGPIPE, signal.SIG_DFL)
     built = make_env(env)
-    if isinstance(env, PettingZooEnvConfig):
+    if task_of(env).leaving_agents:
         built = LeavingAgents(TimeLimitInfos(built))
     vec = ss.pettingzoo_env_to_vec_env_v1(built)
     if seed is not None:
@@ -282,7 +281,7 @@ def make_vec_env(
     """
     if backend not in VEC_BACKENDS:
         raise ValueError(f"unknown vec backend {backend!r}; known: {', '.join(VEC_BACKENDS)}")
-    if backend == "core" and isinstance(env, PettingZooEnvConfig):
+    if backend == "core" and not task_of(env).batched_core:
         # (the config picks supersuit for such an env: harness.config.schema)
         raise ValueError("the batched core is the coverage env's: a pettingzoo env needs supersuit")
     if labeller is not None and backend != "core":
@@ -307,8 +306,7 @@ def _supersuit_vec_env(
     inner = MakeCPUAsyncConstructor(min(num_cpus, copies))(
         fns, probe.observation_space(agent), probe.action_space(agent)
     )
-    if isinstance(env, PettingZooEnvConfig):
-        probe.close()
+    probe.close()
     if isinstance(inner, ProcConcatVec):
         inner._receive_info = types.MethodType(_receive_quietly, inner)  # type: ignore[method-assign]
         _end_workers_at_exit(inner)
@@ -318,10 +316,9 @@ def _supersuit_vec_env(
         warnings.filterwarnings("ignore", message="The `render_mode` attribute is not defined")
         venv = SB3VecEnvWrapper(inner)
         if monitor:
-            # A PettingZoo env of one's own: return and length (its infos are read from the
-            # last step's infos by the episode log, harness.training.callbacks).
-            keys = () if isinstance(env, PettingZooEnvConfig) else EPISODE_INFO_KEYS
-            venv = VecMonitor(venv, info_keywords=keys)
+            # The task's info keys (a PettingZoo env: none; its infos are read from the last
+            # step's infos by the episode log, harness.training.callbacks).
+            venv = VecMonitor(venv, info_keywords=task_of(env).monitor_keys)
     return venv
 
 

@@ -16,15 +16,10 @@ from stable_baselines3.common.callbacks import BaseCallback, ProgressBarCallback
 from tqdm import TqdmExperimentalWarning
 from tqdm.rich import tqdm
 
-from harness.results.rundir import (
-    EPISODE_COLUMNS,
-    FOREIGN_EPISODE_COLUMNS,
-    append_csv_rows,
-    finite_json,
-)
+from harness.results.rundir import append_csv_rows
 from harness.sb3.decisions import EXPERT_KEY
 from harness.sb3.schedules import epochs_for
-from harness.training.adapters import TIME_LIMIT_KEY
+from harness.tasks.base import Task
 
 
 def recent_coverages(ep_info_buffer: Any, episodes: int, n_agents: int) -> list[float]:
@@ -71,23 +66,25 @@ class EpochsByCoverageCallback(BaseCallback):
 class EpisodeLogCallback(BaseCallback):
     """Write one ``episodes.csv`` row per finished episode and log rollout metrics.
 
-    An episode is one env copy's run of ``max_steps``; its row holds the team's coverage, the mean
-    of the agents' returns, the team's wall hits and the new cells of each agent (``a;b;c``).
+    An episode is one env copy's run until its agents are all done; its row holds the episode's
+    number, phase, transitions and copy, and the task's own columns
+    (:meth:`harness.tasks.base.Task.training_episode`: the coverage env's team coverage, mean
+    return, wall hits and new cells per agent; a PettingZoo env's team and agent returns, length
+    and last infos), whose numbers go to TensorBoard (``rollout/``).
 
     Args:
         csv_path: The run's ``episodes.csv`` (appended to; the header is written when new).
-        n_agents: Agents per copy.
+        task: The run's task (its columns and rows).
         phase: Phase name written in each row.
         first_episode: Number of the next episode (continues across phases and resumes).
     """
 
-    #: The table's columns.
-    columns: tuple[str, ...] = EPISODE_COLUMNS
-
-    def __init__(self, csv_path: Path, n_agents: int, phase: str, first_episode: int = 0) -> None:
+    def __init__(self, csv_path: Path, task: Task, phase: str, first_episode: int = 0) -> None:
         super().__init__()
         self.csv_path = Path(csv_path)
-        self.n_agents = n_agents
+        self.task = task
+        self.columns = task.episode_columns
+        self.n_agents = task.n_agents
         self.phase = phase
         self.next_episode = first_episode
 
@@ -124,71 +121,8 @@ class EpisodeLogCallback(BaseCallback):
 
     def _episode(self, copy: int, infos: list[dict[str, Any]]) -> dict[str, Any]:
         """The row's own columns for an episode that ended, from its agents' last infos (SB3's
-        ``VecMonitor`` put each one's ``episode`` there), and its rollout metrics logged."""
-        eps = [info["episode"] for info in infos]
-        row = {
-            "coverage": float(eps[0]["coverage"]),
-            "reward_mean": float(np.mean([e["r"] for e in eps])),
-            "wall_hits": int(sum(e["wall_hits"] for e in eps)),
-            "new_cells": ";".join(str(int(e["new_cells"])) for e in eps),
-            "length": int(eps[0]["l"]),
-        }
-        self.logger.record_mean("rollout/coverage", row["coverage"])
-        self.logger.record_mean("rollout/wall_hits", row["wall_hits"])
-        self.logger.record_mean("rollout/team_reward_mean", row["reward_mean"])
-        return row
-
-
-#: Info keys that the harness's VecEnvs add (not the env's own infos).
-VEC_INFO_KEYS = (TIME_LIMIT_KEY,)
-
-
-class ForeignEpisodeLogCallback(EpisodeLogCallback):
-    """:class:`EpisodeLogCallback` for a PettingZoo env of one's own: each row holds the team's
-    return (the sum of its agents'), each agent's return (``a;b;c``), the length, and the
-    numeric infos each agent reported at the episode's last step (JSON, ``{"key": [a, b, c]}``);
-    TensorBoard gets their means (``rollout/team_return``, ``rollout/<agent>/return``,
-    ``rollout/<agent>/<key>``, ``rollout/info/<key>``, the team's mean)."""
-
-    columns = FOREIGN_EPISODE_COLUMNS
-
-    def __init__(
-        self,
-        csv_path: Path,
-        agents: tuple[str, ...],
-        phase: str,
-        first_episode: int = 0,
-    ) -> None:
-        super().__init__(csv_path, len(agents), phase, first_episode)
-        self.agents = agents
-
-    def _episode(self, copy: int, infos: list[dict[str, Any]]) -> dict[str, Any]:
-        import json
-
-        from harness.evaluation.foreign import numeric_infos
-
-        returns = [float(info["episode"]["r"]) for info in infos]
-        # (less the VecEnv's own: the time limit's flag)
-        per_agent = [
-            {k: v for k, v in numeric_infos(info).items() if k not in VEC_INFO_KEYS}
-            for info in infos
-        ]
-        keys = sorted({key for info in per_agent for key in info})
-        table = {key: [info.get(key) for info in per_agent] for key in keys}
-        self.logger.record_mean("rollout/team_return", sum(returns))
-        for agent, value, info in zip(self.agents, returns, per_agent, strict=True):
-            self.logger.record_mean(f"rollout/{agent}/return", value)
-            for key, number in info.items():
-                self.logger.record_mean(f"rollout/{agent}/{key}", number)
-        for key, values in table.items():
-            given = [v for v in values if v is not None]
-            self.logger.record_mean(f"rollout/info/{key}", float(np.mean(given)))
-        return {
-            "team_return": sum(returns),
-            "returns": ";".join(f"{r:g}" for r in returns),
-            "length": int(infos[0]["episode"]["l"]),
-            "infos": json.dumps(finite_json(table), separators=(",", ":")),  # NaN: null
-        }
+        ``VecMonitor`` put each one's ``episode`` there): the task's."""
+        return self.task.training_episode(infos, self.logger.record_mean)
 
 
 class PeriodicCallback(BaseCallback):

@@ -267,13 +267,12 @@ def available_memory_bytes() -> int | None:
 
 
 def _slot_spaces(config: ExperimentConfig) -> tuple[Any, Any]:
-    """One VecEnv slot's observation and action spaces, as the model sees them (an env is built,
-    not reset)."""
-    from harness.factory import check_env
+    """One VecEnv slot's observation and action spaces, as the model sees them: the task's
+    start (:meth:`harness.tasks.base.Task.start`: the env built once, a user's constructor
+    run here, and what its spaces decide of the config checked)."""
+    from harness.tasks import task_of
 
-    env = check_env(config.env)
-    agent = env.possible_agents[0]
-    return env.observation_space(agent), env.action_space(agent)
+    return task_of(config.env).start(config)
 
 
 def network_parameters(config: ExperimentConfig) -> int:

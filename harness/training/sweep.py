@@ -71,7 +71,7 @@ from typing import Any
 import yaml
 
 from harness.config.loading import load_config, parse_override, parse_yaml, read_yaml_text
-from harness.config.schema import ConfigError, is_foreign
+from harness.config.schema import ConfigError
 from harness.processes import harness_command
 from harness.results.rundir import (
     LinkOutError,
@@ -80,6 +80,7 @@ from harness.results.rundir import (
     atomic_write_text,
     inside,
 )
+from harness.tasks import TASKS, task_of
 
 #: Kinds of distribution a space file may name.
 KINDS = ("float", "int", "choice", "grid")
@@ -1038,11 +1039,9 @@ def _objective(
 
 
 #: What a trial's value is (``best.json``'s ``objective``): :func:`headline` of the validation
-#: episodes of the trained model.
-OBJECTIVE = "median coverage of the config's validation episodes"
-#: ... for a PettingZoo env of one's own.
-FOREIGN_OBJECTIVE = "median team return of the config's validation episodes"
-#: ... for a map prior (``prior:``): higher is better, as for the others.
+#: episodes of the trained model (its task's objective, :meth:`harness.tasks.base.Task.objective`,
+#: "median coverage of the config's validation episodes" for the coverage env); for a map
+#: prior (``prior:``): higher is better, as for the others.
 PRIOR_OBJECTIVE = "minus the mean log-loss per unseen cell of the validation episodes' maps"
 
 
@@ -1097,11 +1096,7 @@ def write_best(
         "trial": best.number,
         "value": best.value,
         "objective": (
-            PRIOR_OBJECTIVE
-            if config.prior is not None
-            else FOREIGN_OBJECTIVE
-            if is_foreign(config.env)
-            else OBJECTIVE
+            PRIOR_OBJECTIVE if config.prior is not None else task_of(config.env).objective()
         ),
         "params": best.params,
         "run": best.user_attrs.get("run"),
@@ -1118,12 +1113,11 @@ def format_best(result: dict[str, Any] | None) -> str:
     if result is None:
         return "no trial has completed yet"
     params = ", ".join(f"{k}={v!r}" for k, v in result["params"].items())
-    if result.get("objective") == FOREIGN_OBJECTIVE:
-        value = f"validation team return {result['value']:.4g}"
-    elif result.get("objective") == PRIOR_OBJECTIVE:
+    task = next((t for t in TASKS if t.objective() == result.get("objective")), TASKS[0])
+    if result.get("objective") == PRIOR_OBJECTIVE:
         value = f"validation unseen_logloss {-result['value']:.4f}"
     else:
-        value = f"validation coverage {result['value']:.1%}"
+        value = f"validation {task.metric} {task.format_value(result['value'])}"
     return (
         f"best trial {result['trial']}: {value} ({params}); "
         f"trials {yaml.safe_dump(result['trials'], default_flow_style=True).strip()}"

@@ -35,15 +35,12 @@ from harness.config.pettingzoo import EnvFailed
 from harness.config.schema import (
     ConfigError,
     ExperimentConfig,
-    PettingZooEnvConfig,
     PhaseConfig,
 )
 from harness.evaluation.episodes import (
     EpisodesStopped,
     model_policy,
     run_episodes,
-    selection_score,
-    summarize,
 )
 from harness.processes import available_cores
 from harness.results.rundir import (
@@ -53,7 +50,6 @@ from harness.results.rundir import (
     append_csv_rows,
     atomic_write,
     atomic_write_text,
-    log_columns,
     rewind_logs,
 )
 from harness.sb3.dqn import (
@@ -64,11 +60,11 @@ from harness.sb3.dqn import (
 )
 from harness.sb3.replay import replay_for
 from harness.sb3.schedules import PhaseLinearSchedule
+from harness.tasks import task_of
 from harness.training.adapters import make_vec_env
 from harness.training.callbacks import (
     EpisodeLogCallback,
     EpochsByCoverageCallback,
-    ForeignEpisodeLogCallback,
     PeriodicCallback,
     PhaseProgressBar,
 )
@@ -213,17 +209,9 @@ def phase_callbacks(ctx: RunContext, index: int) -> tuple[list[BaseCallback], Ep
     checkpointer and stopper are the same objects in every phase."""
     config, phase = ctx.config, ctx.config.phases[index]
     n_agents = config.env.n_agents
-    if isinstance(config.env, PettingZooEnvConfig):
-        episode_log: EpisodeLogCallback = ForeignEpisodeLogCallback(
-            ctx.run.episodes_csv,
-            config.env.pettingzoo.spaces.agents,
-            phase.name,
-            ctx.state.next_episode,
-        )
-    else:
-        episode_log = EpisodeLogCallback(
-            ctx.run.episodes_csv, n_agents, phase.name, ctx.state.next_episode
-        )
+    episode_log = EpisodeLogCallback(
+        ctx.run.episodes_csv, task_of(config.env), phase.name, ctx.state.next_episode
+    )
     ctx.checkpointer.episode_log = episode_log  # the checkpoints store its episode counter
     callbacks: list[BaseCallback] = [
         EpochsByCoverageCallback(phase.epochs, phase.epochs_window, n_agents),
@@ -295,20 +283,12 @@ class Evaluator(PeriodicCallback):
         except EnvFailed as exc:  # (training names the step it stopped at and the checkpoint)
             raise EnvFailed(exc.step, f"{exc.error} (an evaluation episode)", exc.during) from None
         self.pending = None
-        summary = summarize(results)
-        if isinstance(self.config.env, PettingZooEnvConfig):
-            for key in ("return_median", "return_mean", "length_mean"):
-                model.logger.record(f"eval/{key}", summary[key])
-            for key, value in summary["infos"].items():
-                if value is not None:
-                    model.logger.record(f"eval/info/{key}", value)
-        else:
-            model.logger.record("eval/coverage_median", summary["coverage_median"])
-            model.logger.record("eval/coverage_mean", summary["coverage_mean"])
-            model.logger.record("eval/wall_hits_mean", summary["wall_hits_mean"])
+        task = task_of(self.config.env)
+        summary = task.summarize(results)
+        task.record_evaluation(summary, model.logger.record)
         model.logger.dump(step)
         self._append_row(step, summary)
-        score = selection_score(summary)
+        score = task.selection_score(summary)
         if score > self.best:
             self.best = score
             save_model(model, self.run.best_model)
@@ -326,6 +306,12 @@ class Evaluator(PeriodicCallback):
         }
         columns = log_columns(self.config)[1]
         append_csv_rows(self.run.evaluations_csv, columns, [[row[c] for c in columns]])
+
+
+def log_columns(config: ExperimentConfig) -> tuple[tuple[str, ...], tuple[str, ...]]:
+    """The columns of a run's ``episodes.csv`` and ``evaluations.csv``: its task's."""
+    task = task_of(config.env)
+    return task.episode_columns, task.evaluation_columns
 
 
 def save_model(model: DoubleDQN, path: Path) -> None:
@@ -612,7 +598,7 @@ def train(
         point = find_resume_point(run, config)
         state, model = point.state, point.model
         try:
-            rewind_logs(run, state.next_episode, state.num_timesteps)
+            rewind_logs(run, state.next_episode, state.num_timesteps, log_columns(config))
         except LogMismatchError as exc:
             raise CheckpointError(f"cannot resume from {point.checkpoint.name}: {exc}") from None
         for newer in complete_checkpoints(run.checkpoints):
@@ -625,7 +611,7 @@ def train(
     else:
         if restart:  # first, so that a log it cannot read stops it before any file changes
             try:
-                rewind_logs(run, 0, 0)
+                rewind_logs(run, 0, 0, log_columns(config))
             except LogMismatchError as exc:
                 raise CheckpointError(f"cannot start the run again: {exc}") from None
             run.best_model.unlink(missing_ok=True)

@@ -1,0 +1,176 @@
+"""Agent groups of a PettingZoo env (issue 72): by name prefix (or named), each
+group's return apart in an evaluation's summary (a competitive env's sides), on an in-file env
+with two sides; a network per group is refused in one line."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+from gymnasium import spaces
+from pettingzoo import ParallelEnv
+
+from harness.cli import main
+from harness.config.loading import config_from_dict
+from harness.config.pettingzoo import agent_groups
+from harness.config.schema import ConfigError
+from harness.evaluation.baselines import make_baseline
+from harness.evaluation.episodes import run_episodes, summarize
+from harness.tasks import task_of
+from tests.conftest import one_error_line
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class Chase(ParallelEnv):
+    """Two sides on a line: each chaser earns 1 per step on the runner's cell, the runner loses
+    as much; 6 steps."""
+
+    metadata = {"name": "chase_v0", "render_modes": []}  # noqa: RUF012
+
+    def __init__(self, chasers=2, render_mode=None):
+        self.possible_agents = [f"chaser_{i}" for i in range(chasers)] + ["runner_0"]
+        self.rng = np.random.default_rng()
+        self._observation = spaces.Box(0.0, 4.0, shape=(2,), dtype=np.float32)
+        self._action = spaces.Discrete(3)
+
+    def observation_space(self, agent):
+        return self._observation
+
+    def action_space(self, agent):
+        return self._action
+
+    def reset(self, seed=None, options=None):
+        if seed is not None:
+            self.rng = np.random.default_rng(seed)
+        self.agents, self.t = list(self.possible_agents), 0
+        self.cells = dict(zip(self.agents, self.rng.integers(0, 5, len(self.agents)), strict=True))
+        return self._observe(), {a: {} for a in self.agents}
+
+    def step(self, actions):
+        for a, action in actions.items():
+            self.cells[a] = int(np.clip(self.cells[a] + action - 1, 0, 4))
+        self.t += 1
+        runner = self.cells["runner_0"]
+        caught = sum(self.cells[a] == runner for a in self.agents if a != "runner_0")
+        rewards = {a: float(self.cells[a] == runner) for a in self.agents if a != "runner_0"}
+        rewards["runner_0"] = -float(caught)
+        done = self.t >= 6
+        obs = self._observe()
+        infos = {a: {} for a in self.agents}
+        terms = {a: False for a in self.agents}
+        truncs = {a: done for a in self.agents}
+        if done:
+            self.agents = []
+        return obs, rewards, terms, truncs, infos
+
+    def _observe(self):
+        runner = self.cells["runner_0"]
+        return {a: np.array([c, runner], np.float32) for a, c in self.cells.items()}
+
+
+def chase(**kwargs):
+    return Chase(**kwargs)
+
+
+def config(**pettingzoo) -> dict:
+    return {
+        "name": "chase",
+        "env": {"pettingzoo": {"make": "tests.test_agent_groups:chase", **pettingzoo}},
+        "vec": {"copies": 2},
+        "algo": {"net_arch": [16], "buffer_size": 500, "learning_starts": 50},
+        "phases": [
+            {"name": "p", "timesteps": 120, "exploration": {"start": 1.0, "end": 0.1, "steps": 60}}
+        ],
+        "eval": {"every": 0, "episodes": 3},
+        "checkpoint": {"every": 0},
+    }
+
+
+@pytest.fixture(autouse=True)
+def _importable(monkeypatch):
+    path = os.environ.get("PYTHONPATH", "")
+    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(p for p in (str(ROOT), path) if p))
+
+
+def test_groups_by_name_prefix_or_named():
+    agents = ("adversary_0", "adversary_1", "agent_0", "lone")
+    assert agent_groups(agents) == {
+        "adversary": ("adversary_0", "adversary_1"),
+        "agent": ("agent_0",),
+        "lone": ("lone",),
+    }
+    named = {"red": ["agent_0", "adversary_1"], "blue": ["adversary_0", "lone"]}
+    assert agent_groups(agents, named) == {
+        "red": ("adversary_1", "agent_0"),
+        "blue": ("adversary_0", "lone"),
+    }
+    with pytest.raises(ValueError, match=r"groups\.red: 'agent_9' is no agent of the env"):
+        agent_groups(agents, {"red": ["agent_9"]})
+    with pytest.raises(ValueError, match="'agent_0' is in 'a' and 'b'"):
+        agent_groups(agents, {"a": ["agent_0"], "b": ["agent_0", "adversary_0"]})
+    with pytest.raises(ValueError, match="'lone' in no group"):
+        agent_groups(agents, {"a": ["agent_0", "adversary_0", "adversary_1"]})
+
+
+def test_each_sides_return_is_summarised_apart():
+    env = config_from_dict(config()).env
+    results = run_episodes(make_baseline("random", 0), env, 4, 0)
+    summary = summarize(results)
+    groups = summary["groups"]
+    assert list(groups) == ["chaser", "runner"]
+    assert groups["chaser"]["agents"] == ["chaser_0", "chaser_1"]
+    chasers = [r.returns[0] + r.returns[1] for r in results]
+    runners = [r.returns[2] for r in results]
+    assert groups["chaser"]["return_mean"] == pytest.approx(np.mean(chasers))
+    assert groups["runner"]["return_mean"] == pytest.approx(np.mean(runners))
+    # The two sides cancel: the team's return (both added) is 0, each side's is not.
+    assert summary["return_mean"] == pytest.approx(0.0)
+    assert task_of(env).groups == {"chaser": ("chaser_0", "chaser_1"), "runner": ("runner_0",)}
+
+
+def test_one_group_adds_no_group_numbers():
+    env = config_from_dict(config(kwargs={"chasers": 0})).env
+    summary = summarize(run_episodes(make_baseline("random", 0), env, 2, 0))
+    assert "groups" not in summary
+
+
+def test_a_network_per_group_is_refused_in_one_line():
+    raw = config()
+    raw["algo"]["sharing"] = "per_group"
+    with pytest.raises(ConfigError, match=r"per_group .* is not built yet: use per_agent"):
+        config_from_dict(raw)
+
+
+def test_run_and_eval_report_each_group(tmp_path, capsys):
+    path = tmp_path / "chase.yaml"
+    path.write_text(yaml.safe_dump(config()))
+    run = tmp_path / "run"
+    assert main(["run", str(path), "--into", str(run)]) == 0
+    capsys.readouterr()
+    assert main(["eval", str(run), "--episodes", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "group chaser (2 agents): return median" in out
+    assert "group runner (1 agents)" in out
+    saved = json.loads(next((run).rglob("eval*.json")).read_text())
+    assert set(saved["groups"]) == {"chaser", "runner"}
+
+
+def test_continuous_actions_are_refused_naming_the_agent(tmp_path, capsys):
+    raw = config(make="tests.test_agent_groups:continuous")
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    assert main(["run", str(path), "--runs-dir", str(tmp_path / "runs")]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert "agent 'chaser_0': action space Box(" in line and "not Discrete" in line, line
+    assert not (tmp_path / "runs").exists()
+
+
+def continuous(**kwargs):
+    env = Chase(**kwargs)
+    env._action = spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
+    return env

@@ -22,7 +22,7 @@ from envs import coverage_v0
 from envs.coverage import generators
 from envs.coverage.core import CoreSpec
 from harness.config.maps import build_source
-from harness.config.pettingzoo import AgentIndicator, EnvFailed, build, resolve_constructor
+from harness.config.pettingzoo import AgentIndicator, build, resolve_constructor
 from harness.config.schema import ConfigError, EnvConfig, PettingZooEnvConfig
 
 #: Maps drawn by :func:`check_env` (random and generated sources).
@@ -88,7 +88,7 @@ def make_env(
             ...), as one line naming ``env``.
     """
     if isinstance(env, PettingZooEnvConfig):
-        return make_foreign_env(env, render_mode)
+        return make_pettingzoo_env(env, render_mode)
     kwargs = env_kwargs(env) if isinstance(env, EnvConfig) else dict(env)
     if render_mode is not None:
         kwargs["render_mode"] = render_mode
@@ -98,7 +98,7 @@ def make_env(
         raise ConfigError(f"env: {exc}") from None
 
 
-def make_foreign_env(env: PettingZooEnvConfig, render_mode: str | None = None) -> Any:
+def make_pettingzoo_env(env: PettingZooEnvConfig, render_mode: str | None = None) -> Any:
     """The ``ParallelEnv`` of a ``pettingzoo`` source (``render_mode`` given when not ``None``),
     its observations ending in the agent's one-hot index where ``env.agent_id`` is on
     (``algo.sharing``: :class:`~harness.config.pettingzoo.AgentIndicator`).
@@ -126,21 +126,16 @@ def make_core_spec(env: EnvConfig | Mapping[str, Any]) -> CoreSpec:
     return make_env(env).core.spec
 
 
-def check_env(env: EnvConfig | PettingZooEnvConfig) -> Any:
-    """Build the env once and draw :data:`CHECK_DRAWS` maps of a generated source, so that a map
-    too small or too walled to place the team is a config error; returns the env. A
-    ``pettingzoo`` source's env is reset once (seed 0) and its spaces checked again.
+def check_env(env: EnvConfig) -> Any:
+    """Build the coverage env once and draw :data:`CHECK_DRAWS` maps of a generated source, so
+    that a map too small or too walled to place the team is a config error; returns the env
+    (the coverage task's start, :meth:`harness.tasks.coverage.CoverageTask.start`; a
+    ``pettingzoo`` env is probed by its own, :meth:`harness.config.schema.PettingZooSource.probe`).
 
     Raises:
         ConfigError: naming ``env`` and the problem.
     """
     built = make_env(env)
-    if isinstance(env, PettingZooEnvConfig):
-        try:  # (its spaces are checked as it is built; the env's own code runs in its guard)
-            built.reset(seed=0)
-        except EnvFailed as exc:
-            raise ConfigError(f"env.pettingzoo: {exc}") from None
-        return built
     if env.map == "random" or isinstance(env.map, dict):
         for seed in range(CHECK_DRAWS):
             try:

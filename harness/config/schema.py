@@ -327,6 +327,13 @@ class EnvConfig(_Section):
     #: env is built, where the run starts (:meth:`check_fits`).
     agents_known: ClassVar[bool] = True
 
+    #: ``vec.backend`` when the config gives none (``None``: the vec section's default, the
+    #: batched core).
+    default_backend: ClassVar[VecBackend | None] = None
+
+    def check_with(self, config: ExperimentConfig) -> None:
+        """Nothing more to check of the other sections: their own validators know this env."""
+
     def check_fits(self, config: ExperimentConfig) -> None:
         """Nothing left to check where the run starts: the config's validation checked it."""
 
@@ -406,6 +413,8 @@ class PettingZooEnvConfig(_Section):
     pettingzoo: PettingZooSource
     #: The team's size is the env's: known once it is built, where the run starts.
     agents_known: ClassVar[bool] = False
+    #: SuperSuit steps it (the batched core is the coverage env's).
+    default_backend: ClassVar[VecBackend | None] = "supersuit"
     _agent_id: bool = PrivateAttr(default=False)
     """Whether each observation ends in the agent's one-hot index (SuperSuit's agent indication,
     :class:`harness.config.pettingzoo.AgentIndicator`): not a key of its own, derived from
@@ -445,6 +454,33 @@ class PettingZooEnvConfig(_Section):
 
     def check_training_map(self) -> None:
         """Nothing to refuse: test maps are the coverage env's."""
+
+    def check_with(self, config: ExperimentConfig) -> None:
+        """What a PettingZoo env can be trained with, as far as the config shows it: the
+        SuperSuit VecEnv (the batched core is the coverage env's), networks over its own
+        observations (not the coverage env's team map), no coverage-specific test-time shield.
+
+        Raises:
+            ValueError: one line naming the key.
+        """
+        if config.vec.backend == "core" and "backend" in config.vec.model_fields_set:
+            raise ValueError(
+                "vec.backend: core is the coverage env's batched core; a pettingzoo env "
+                "runs on vec.backend: supersuit (the default for it)"
+            )
+        entry = POLICIES[config.algo.policy]
+        if entry.team_map or entry.slots:
+            vector = [
+                name for name, p in POLICIES.items() if not (p.team_map or p.slots or p.masked)
+            ]
+            raise ValueError(
+                f"algo.policy {config.algo.policy} reads the coverage env's team map; a "
+                f"pettingzoo env's Box observation takes one of {', '.join(vector)}"
+            )
+        if config.eval.shield:
+            raise ValueError(
+                "eval.shield reads the coverage env's observation: not for a pettingzoo env"
+            )
 
     def check_fits(self, config: ExperimentConfig) -> None:
         """What of ``config`` the env's spaces decide, checked where the run starts (the env
@@ -895,32 +931,10 @@ class ExperimentConfig(_Section):
         return check_name(v)
 
     @model_validator(mode="after")
-    def _pettingzoo_env_fits(self) -> ExperimentConfig:
-        # What a PettingZoo env of one's own can be trained with: the SuperSuit VecEnv (the
-        # batched core is the coverage env's), networks over its Box observations (with the
-        # agent's one-hot index for shared_id and per_agent), no coverage-specific test-time
-        # shield.
-        if not isinstance(self.env, PettingZooEnvConfig):
-            return self
-        if self.vec.backend == "core" and "backend" in self.vec.model_fields_set:
-            raise ValueError(
-                "vec.backend: core is the coverage env's batched core; a pettingzoo env "
-                "runs on vec.backend: supersuit (the default for it)"
-            )
-        entry = POLICIES[self.algo.policy]
-        if entry.team_map or entry.slots:
-            vector = [
-                name for name, p in POLICIES.items() if not (p.team_map or p.slots or p.masked)
-            ]
-            raise ValueError(
-                f"algo.policy {self.algo.policy} reads the coverage env's team map; a pettingzoo "
-                f"env's Box observation takes one of {', '.join(vector)}"
-            )
-        # (what the env's spaces decide is checked where the run starts: check_env_fits)
-        if self.eval.shield:
-            raise ValueError(
-                "eval.shield reads the coverage env's observation: not for a pettingzoo env"
-            )
+    def _env_section_fits(self) -> ExperimentConfig:
+        # What the env section takes of the other sections, as far as the config shows it
+        # (what the env's spaces decide is checked where the run starts: check_env_fits).
+        self.env.check_with(self)
         return self
 
     @model_validator(mode="after")
@@ -1109,9 +1123,9 @@ class ExperimentConfig(_Section):
     def _backend(self) -> VecBackend:
         """``vec.backend`` as the run uses it: as given, else the env's own (the batched core for
         the coverage env, SuperSuit for a pettingzoo env, which the core cannot step)."""
-        if "backend" in self.vec.model_fields_set or not isinstance(self.env, PettingZooEnvConfig):
+        if "backend" in self.vec.model_fields_set or self.env.default_backend is None:
             return self.vec.backend
-        return "supersuit"
+        return self.env.default_backend
 
     @model_validator(mode="after")
     def _resolved(self) -> ExperimentConfig:

@@ -96,10 +96,11 @@ class BaselineEntry:
     def env_config(self, env: Any) -> Any:
         """The env config it plays for ``env`` (an ``EnvConfig``, or a PettingZoo env's, which
         is kept): ``env`` itself, or, for a baseline that plays the moves on an env whose
-        actions are the goal action's slots, ``env`` with ``frontier`` off. The maps and start
-        cells come from each episode's seed alone, so it plays the same episodes as a model
-        on ``env`` does; its moves read the env's state, not the observation, so what the
-        extension would add to the observation does not matter to it."""
+        actions are the goal action's slots, ``env`` with ``frontier`` (and ``prior``) off.
+        The maps and start cells come from each episode's seed alone, so it plays the same
+        episodes as a model on ``env`` does; its moves read the env's state, not the
+        observation, so what the extension would add to the observation does not matter to
+        it."""
         options = env.frontier_options
         if self.holds_goals and _holdable(options):
             held = dataclasses.replace(
@@ -112,7 +113,8 @@ class BaselineEntry:
             and options.action is not None
             and options.action.replaces_moves
         ):
-            return env.model_copy(update={"frontier": None})
+            # env.prior feeds the goal action's candidates alone: it goes with them
+            return env.model_copy(update={"frontier": None, "prior": None})
         return env
 
     def check(self, options: FrontierOptions | None) -> None:

@@ -1,7 +1,6 @@
 """The Stable-Baselines3 extensions: ``DoubleDQN``, the dueling and team-map policies, the
 replay buffer (a storage and a sampler: uniform or prioritized, on the host or the model's
-device), the TD targets and schedules,
-and the policy registry.
+device), the loss's parts, the TD targets and schedules, and the policy registry.
 
 This layer imports nothing from ``envs`` or from the rest of ``harness``: it works on any
 Gymnasium env or VecEnv. Anything env-specific (which actions are masked, which action is the

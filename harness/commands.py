@@ -245,8 +245,14 @@ def check_team_size(model: Any, model_path: Path, config: ExperimentConfig, env_
     sharing = config.algo.sharing
     if sharing == "shared":
         return
-    trained = trained_team_size(model, env_space, config.env.n_agents)
-    if trained is not None and trained != config.env.n_agents:
+    width = config.env.id_width  # (the team size; the groups for per_group)
+    trained = trained_team_size(model, env_space, width)
+    if trained is not None and trained != width:
+        if sharing == "per_group":
+            raise TargetError(
+                f"{model_path}: this algo.sharing=per_group model has one network per group "
+                f"for {trained} groups; it cannot play the env's {width} groups"
+            )
         what = "one network per agent" if sharing == "per_agent" else "an agent-id input per agent"
         raise TargetError(
             f"{model_path}: this algo.sharing={sharing} model has {what} for {trained} agents; "

@@ -101,7 +101,8 @@ def make_env(
 def make_pettingzoo_env(env: PettingZooEnvConfig, render_mode: str | None = None) -> Any:
     """The ``ParallelEnv`` of a ``pettingzoo`` source (``render_mode`` given when not ``None``),
     its observations ending in the agent's one-hot index where ``env.agent_id`` is on
-    (``algo.sharing``: :class:`~harness.config.pettingzoo.AgentIndicator`).
+    (``algo.sharing``: :class:`~harness.config.pettingzoo.AgentIndicator`; its group's index for
+    ``per_group``).
 
     Raises:
         ConfigError: the import's or the constructor's error, as one line naming ``env``.
@@ -112,7 +113,9 @@ def make_pettingzoo_env(env: PettingZooEnvConfig, render_mode: str | None = None
         built = build(resolve_constructor(source.make), source.kwargs, source.step_limit, **extra)
     except ValueError as exc:
         raise ConfigError(f"env.pettingzoo: {exc}") from None
-    return AgentIndicator(built) if env.agent_id else built
+    if not env.agent_id:
+        return built
+    return AgentIndicator(built, env.groups if env.by_group else None)
 
 
 def make_core_spec(env: EnvConfig | Mapping[str, Any]) -> CoreSpec:

@@ -1,6 +1,7 @@
-"""Agent groups of a PettingZoo env (issue 72): by name prefix (or named), each
-group's return apart in an evaluation's summary (a competitive env's sides), on an in-file env
-with two sides; a network per group is refused in one line."""
+"""Agent groups of a PettingZoo env (issue 72): by name prefix or named in the config
+(``env.pettingzoo.groups``), each group's return apart in an evaluation's summary (a competitive
+env's sides), and a network per group (``algo.sharing: per_group``: the group's one-hot index
+routes each agent to its group's network), on an in-file env with two sides."""
 
 from __future__ import annotations
 
@@ -32,8 +33,9 @@ class Chase(ParallelEnv):
 
     metadata = {"name": "chase_v0", "render_modes": []}  # noqa: RUF012
 
-    def __init__(self, chasers=2, render_mode=None):
+    def __init__(self, chasers=2, start=None, render_mode=None):
         self.possible_agents = [f"chaser_{i}" for i in range(chasers)] + ["runner_0"]
+        self.start = start  # (every agent's first cell; None: drawn)
         self.rng = np.random.default_rng()
         self._observation = spaces.Box(0.0, 4.0, shape=(2,), dtype=np.float32)
         self._action = spaces.Discrete(3)
@@ -48,7 +50,10 @@ class Chase(ParallelEnv):
         if seed is not None:
             self.rng = np.random.default_rng(seed)
         self.agents, self.t = list(self.possible_agents), 0
-        self.cells = dict(zip(self.agents, self.rng.integers(0, 5, len(self.agents)), strict=True))
+        cells = self.rng.integers(0, 5, len(self.agents))
+        if self.start is not None:
+            cells[:] = self.start
+        self.cells = dict(zip(self.agents, cells, strict=True))
         return self._observe(), {a: {} for a in self.agents}
 
     def step(self, actions):
@@ -139,11 +144,117 @@ def test_one_group_adds_no_group_numbers():
     assert "groups" not in summary
 
 
-def test_a_network_per_group_is_refused_in_one_line():
-    raw = config()
+def per_group(**pettingzoo) -> dict:
+    raw = config(**pettingzoo)
     raw["algo"]["sharing"] = "per_group"
-    with pytest.raises(ConfigError, match=r"per_group .* is not built yet: use per_agent"):
+    return raw
+
+
+def test_named_groups_override_the_name_prefix():
+    named = {"left": ["chaser_0"], "rest": ["runner_0", "chaser_1"]}
+    env = config_from_dict(config(groups=named)).env
+    assert task_of(env).groups == {"left": ("chaser_0",), "rest": ("chaser_1", "runner_0")}
+    summary = summarize(run_episodes(make_baseline("random", 0), env, 2, 0))
+    assert summary["groups"]["rest"]["agents"] == ["chaser_1", "runner_0"]
+
+
+def test_an_agent_in_two_groups_is_refused_with_the_config():
+    with pytest.raises(ConfigError, match="'chaser_0' is in 'a' and 'b'") as info:
+        config_from_dict(config(groups={"a": ["chaser_0"], "b": ["chaser_0", "runner_0"]}))
+    assert "\n" not in str(info.value)
+    with pytest.raises(ConfigError, match=r"groups\.b: the group has no agent"):
+        config_from_dict(config(groups={"a": ["chaser_0"], "b": []}))
+
+
+@pytest.mark.parametrize(
+    ("raw", "expected"),
+    [
+        (
+            config(groups={"a": ["chaser_0", "chaser_1"], "b": ["runner_9"]}),
+            "env.pettingzoo.groups.b: 'runner_9' is no agent of the env",
+        ),
+        (
+            config(groups={"a": ["chaser_0", "chaser_1"]}),
+            "env.pettingzoo.groups: 'runner_0' in no group",
+        ),
+        (
+            per_group(kwargs={"chasers": 0}),
+            "algo.sharing: per_group: the agents form one group ('runner': runner_0)",
+        ),
+    ],
+    ids=["unknown-agent", "agent-in-no-group", "one-group"],
+)
+def test_groups_that_do_not_fit_the_env_are_refused_at_the_start(tmp_path, capsys, raw, expected):
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    assert main(["run", str(path), "--runs-dir", str(tmp_path / "runs")]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert expected in line, line
+    assert not (tmp_path / "runs").exists()
+
+
+def test_per_group_is_refused_where_it_cannot_work():
+    coverage = {"name": "c", "algo": {"sharing": "per_group"}}
+    with pytest.raises(ConfigError, match=r"per_group: the agents form one group \('agent'"):
+        config_from_dict(coverage)
+    raw = per_group()
+    raw["algo"]["policy"] = "MaskedMlpPolicy"
+    with pytest.raises(ConfigError, match="per_group: MaskedMlpPolicy has no per-agent version"):
         config_from_dict(raw)
+
+
+def q_values(raw: dict) -> dict[str, np.ndarray]:
+    """Each agent's Q-values at the first step of an episode where every agent stands on one
+    cell (so sees the same observation), from an untrained policy built as a run builds it."""
+    import torch as th
+
+    from harness.factory import make_env
+    from harness.sb3.registry import POLICIES
+    from harness.training.checks import network_kwargs
+
+    cfg = config_from_dict(raw)
+    env = make_env(cfg.env)
+    observations, _ = env.reset(seed=0)
+    env.close()
+    th.manual_seed(0)
+    spaces = cfg.env.spaces
+    policy = POLICIES[cfg.algo.policy].load(per_agent=True)(
+        spaces.observation_space,
+        spaces.action_space,
+        lambda _: 1e-3,
+        **network_kwargs(cfg.algo, cfg.env.id_width),
+    )
+    agents = list(observations)
+    with th.no_grad():
+        q = policy.q_net(th.as_tensor(np.stack([observations[a] for a in agents])))
+    return dict(zip(agents, q.numpy(), strict=True))
+
+
+def test_the_groups_index_routes_each_agent_to_its_groups_network():
+    q = q_values(per_group(kwargs={"start": 2}))
+    assert np.array_equal(q["chaser_0"], q["chaser_1"])  # one group: one network
+    assert not np.allclose(q["chaser_0"], q["runner_0"])  # two groups: two networks
+    raw = per_group(kwargs={"start": 2})
+    raw["algo"]["sharing"] = "per_agent"  # (the contrast: every agent its own network)
+    q = q_values(raw)
+    assert not np.allclose(q["chaser_0"], q["chaser_1"])
+
+
+def test_per_group_trains_and_evaluates_each_group(tmp_path, capsys):
+    from harness.sb3.dqn import DoubleDQN
+
+    path = tmp_path / "chase.yaml"
+    path.write_text(yaml.safe_dump(per_group()))
+    run = tmp_path / "run"
+    assert main(["run", str(path), "--into", str(run)]) == 0
+    capsys.readouterr()
+    model = DoubleDQN.load(run / "model.zip", device="cpu")
+    assert model.q_net.n_agents == 2  # a network per group, not per agent (3)
+    assert model.observation_space.shape == (2 + 2,)  # the group's one-hot index
+    assert main(["eval", str(run), "--episodes", "3"]) == 0
+    out = capsys.readouterr().out
+    assert "group chaser (2 agents): return median" in out
+    assert "group runner (1 agents)" in out
 
 
 def test_run_and_eval_report_each_group(tmp_path, capsys):

@@ -520,10 +520,11 @@ def agent_groups(
     return {name: tuple(a for a in agents if seen[a] == name) for name in named}
 
 
-def indicated_spaces(spaces: EnvSpaces) -> EnvSpaces:
+def indicated_spaces(spaces: EnvSpaces, width: int | None = None) -> EnvSpaces:
     """``spaces`` with each observation followed by the agent's one-hot index (SuperSuit's agent
-    indication, :class:`AgentIndicator`): a vector ``(d,)`` becomes ``(d + n_agents,)``, an image
-    ``(h, w[, c])`` gains ``n_agents`` channels.
+    indication, :class:`AgentIndicator`): a vector ``(d,)`` becomes ``(d + n,)``, an image
+    ``(h, w[, c])`` gains ``n`` channels, ``n`` the index's ``width`` (the agents; the groups
+    where the index is the agent's group's).
 
     Raises:
         ValueError: for an observation space SuperSuit's indication does not take (a ``Box`` of
@@ -543,9 +544,8 @@ def indicated_spaces(spaces: EnvSpaces) -> EnvSpaces:
             "agent's one-hot index (algo.sharing) is appended to a vector or an image of at most "
             "3 (flatten it, e.g. with SuperSuit's flatten_v0)"
         )
-    return EnvSpaces(
-        spaces.agents, change_obs_space(observation, spaces.n_agents), spaces.action_space
-    )
+    width = spaces.n_agents if width is None else width
+    return EnvSpaces(spaces.agents, change_obs_space(observation, width), spaces.action_space)
 
 
 class AgentIndicator(BaseParallelWrapper):
@@ -555,22 +555,33 @@ class AgentIndicator(BaseParallelWrapper):
     see one observation). The index is SuperSuit's (``agent_indicator_v0``'s functions, agent
     ``k`` of ``possible_agents`` at entry ``k``): its value is the observation space's largest
     bound, or 1 where a bound is infinite. (``agent_indicator_v0`` itself converts a parallel env
-    to an AEC one and back, which hides the guard's ``live_agents`` and ``spaces``.)"""
+    to an AEC one and back, which hides the guard's ``live_agents`` and ``spaces``.)
 
-    def __init__(self, env: ContractGuard) -> None:
+    With ``groups`` (``algo.sharing: per_group``) the index is the agent's group's instead: group
+    ``g`` (of ``groups``' order) at entry ``g`` of ``len(groups)``, so that a per-agent policy of
+    ``len(groups)`` networks gives each group one network, shared by its agents."""
+
+    def __init__(
+        self, env: ContractGuard, groups: Mapping[str, tuple[str, ...]] | None = None
+    ) -> None:
         from supersuit.utils.agent_indicator import change_observation
 
         super().__init__(env)
         self._change = change_observation
         self._base = env.spaces.observation_space
-        self.spaces = indicated_spaces(env.spaces)
-        self._index = {agent: k for k, agent in enumerate(self.spaces.agents)}
+        agents = env.spaces.agents
+        if groups is None:
+            self._index = {agent: k for k, agent in enumerate(agents)}
+        else:
+            self._index = {a: g for g, members in enumerate(groups.values()) for a in members}
+        self._width = len(agents) if groups is None else len(groups)
+        self.spaces = indicated_spaces(env.spaces, self._width)
 
     def observation_space(self, agent: Any) -> Any:
         return self.spaces.observation_space
 
     def _indicated(self, observations: dict[Any, Any]) -> dict[Any, Any]:
-        n = self.spaces.n_agents
+        n = self._width
         return {
             agent: self._change(np.asarray(value), self._base, (self._index[agent], n))
             for agent, value in observations.items()

@@ -53,6 +53,7 @@ from harness.config.maps import build_source, parse_source
 from harness.config.pettingzoo import (
     DEFAULT_STEP_LIMIT,
     EnvSpaces,
+    agent_groups,
     indicated_spaces,
     masked,
     probe,
@@ -310,14 +311,25 @@ class EnvConfig(_Section):
         """Whether each observation holds the agent's one-hot index (set from ``algo.sharing``)."""
         return self._agent_id
 
-    def with_agent_id(self, on: bool) -> EnvConfig:
+    def with_agent_id(self, on: bool, by_group: bool = False) -> EnvConfig:
         """This section with agent indication ``on``: itself when it has it already, else a
-        copy (a section may be shared by several configs; none of them changes it)."""
+        copy (a section may be shared by several configs; none of them changes it). The
+        coverage env's agents are one group: ``by_group`` is refused before it gets here."""
         if self._agent_id == on:
             return self
         env = self.model_copy()
         env._agent_id = on
         return env
+
+    @property
+    def groups(self) -> dict[str, tuple[str, ...]]:
+        """The agents' groups: one (``agent_0``, ``agent_1``, ...)."""
+        return agent_groups(tuple(f"agent_{k}" for k in range(self.n_agents)))
+
+    @property
+    def id_width(self) -> int:
+        """Entries of the one-hot index that agent indication appends: one per agent."""
+        return self.n_agents
 
     def test_grids(self) -> list[Any]:
         """The grids of ``test_maps``."""
@@ -366,7 +378,29 @@ class PettingZooSource(_Section):
     step_limit: PositiveInt = DEFAULT_STEP_LIMIT
     """Most steps of an episode: one still going then stops training or evaluation in one line
     (an env that never ends its episodes; :class:`harness.config.pettingzoo.ContractGuard`)."""
+    groups: dict[str, list[str]] | None = None
+    """The agents' groups by name (``{predators: [adversary_0, adversary_1], prey: [agent_0]}``),
+    every agent in one (:func:`harness.config.pettingzoo.agent_groups`); ``null``: by name
+    prefix. An agent in two groups is refused with the config; one that is no agent of the env,
+    or an agent in none, where the run starts (the env built)."""
     _spaces: EnvSpaces | None = PrivateAttr(default=None)
+
+    @field_validator("groups")
+    @classmethod
+    def _groups_apart(cls, v: dict[str, list[str]] | None) -> dict[str, list[str]] | None:
+        if v is None:
+            return v
+        if not v:
+            raise ValueError("groups: {} names no group (leave it out: groups by name prefix)")
+        seen: dict[str, str] = {}
+        for name, members in v.items():
+            if not members:
+                raise ValueError(f"groups.{name}: the group has no agent")
+            for agent in members:
+                if agent in seen:
+                    raise ValueError(f"groups: {agent!r} is in {seen[agent]!r} and {name!r}")
+                seen[agent] = name
+        return v
 
     @field_validator("kwargs")
     @classmethod
@@ -419,6 +453,8 @@ class PettingZooEnvConfig(_Section):
     """Whether each observation ends in the agent's one-hot index (SuperSuit's agent indication,
     :class:`harness.config.pettingzoo.AgentIndicator`): not a key of its own, derived from
     ``algo.sharing`` when :class:`ExperimentConfig` resolves its sections."""
+    _by_group: bool = PrivateAttr(default=False)
+    """Whether that index is the agent's group's (``algo.sharing: per_group``)."""
 
     @property
     def n_agents(self) -> int:
@@ -432,19 +468,40 @@ class PettingZooEnvConfig(_Section):
         return self._agent_id
 
     @property
+    def by_group(self) -> bool:
+        """Whether the one-hot index is the agent's group's (``algo.sharing: per_group``)."""
+        return self._agent_id and self._by_group
+
+    @property
+    def groups(self) -> dict[str, tuple[str, ...]]:
+        """The agents' groups: ``env.pettingzoo.groups``, else by name prefix
+        (:func:`harness.config.pettingzoo.agent_groups`).
+
+        Raises:
+            ValueError: one line naming an agent that is not the env's, or in no group.
+        """
+        return agent_groups(self.pettingzoo.spaces.agents, self.pettingzoo.groups)
+
+    @property
+    def id_width(self) -> int:
+        """Entries of the one-hot index that agent indication appends: one per agent, or one per
+        group (:attr:`by_group`)."""
+        return len(self.groups) if self.by_group else self.n_agents
+
+    @property
     def spaces(self) -> EnvSpaces:
         """The agents and spaces as the harness's networks see them: the env's, the observation
         with the one-hot index where :attr:`agent_id` is on."""
         spaces = self.pettingzoo.spaces
-        return indicated_spaces(spaces) if self._agent_id else spaces
+        return indicated_spaces(spaces, self.id_width) if self._agent_id else spaces
 
-    def with_agent_id(self, on: bool) -> PettingZooEnvConfig:
-        """This section with agent indication ``on``: itself when it has it already, else a
-        copy (the env is not probed again)."""
-        if self._agent_id == on:
+    def with_agent_id(self, on: bool, by_group: bool = False) -> PettingZooEnvConfig:
+        """This section with agent indication ``on`` (the group's index where ``by_group``):
+        itself when it has it already, else a copy (the env is not probed again)."""
+        if self._agent_id == on and self._by_group == by_group:
             return self
         env = self.model_copy()
-        env._agent_id = on
+        env._agent_id, env._by_group = on, by_group
         return env
 
     @property
@@ -493,17 +550,20 @@ class PettingZooEnvConfig(_Section):
         """
         spaces = self.pettingzoo.spaces
         algo = config.algo
+        groups = self.groups  # (the named groups against the env's agents: ValueError)
+        if algo.sharing == "per_group" and len(groups) < 2:
+            config.check_groups()
         if algo.sharing != "shared":
             try:
                 indicated_spaces(spaces)
             except ValueError as exc:
                 raise ValueError(f"algo.sharing: {algo.sharing}: {exc}") from None
             shape = spaces.observation_space.shape
-            if algo.sharing == "per_agent" and len(shape) != 1:
+            if algo.sharing in ("per_agent", "per_group") and len(shape) != 1:
                 raise ValueError(
-                    f"algo.sharing: per_agent routes each observation by the one-hot index at its "
-                    f"end: it needs vector observations, not of shape {shape} (flatten them, e.g. "
-                    "with SuperSuit's flatten_v0, or use shared_id)"
+                    f"algo.sharing: {algo.sharing} routes each observation by the one-hot index "
+                    f"at its end: it needs vector observations, not of shape {shape} (flatten "
+                    "them, e.g. with SuperSuit's flatten_v0, or use shared_id)"
                 )
         entry = POLICIES[algo.policy]
         if config.prior is None and entry.masked != masked(spaces):
@@ -623,10 +683,11 @@ class AlgoConfig(_Section):
     """How the agents share the Q-network: ``shared``, one network for all (parameter sharing);
     ``shared_id``, one network that also reads the agent's one-hot index (agent indication);
     ``per_agent``, one set of parameters per agent (the thesis's independent learners), in one
-    model that routes each agent to its set. Both non-shared modes add the one-hot index to the
-    observation (``env.agent_id``), so they are tied to the team size they were trained with.
-    ``per_group`` (a network per agent group) is refused: not built yet (``per_agent`` gives
-    every agent, so every group, its own parameters)."""
+    model that routes each agent to its set; ``per_group``, one set per agent group (a
+    pettingzoo env's, ``env.pettingzoo.groups`` or by name prefix), shared by its agents: the
+    group's one-hot index routes them. The non-shared modes add the one-hot index to the
+    observation (``env.agent_id``), so they are tied to the team size (or groups) they were
+    trained with."""
     policy: str = DEFAULT_POLICY
     """A policy of ``harness.sb3.registry.POLICIES``: ``MlpPolicy``, ``DuelingMlpPolicy`` (the
     thesis observation), ``TeamMapPolicy``, ``DuelingTeamMapPolicy``, ``SlotTeamMapPolicy``
@@ -1034,17 +1095,30 @@ class ExperimentConfig(_Section):
                 f"algo.policy {self.algo.policy} scores the goal action's candidates: it needs "
                 "env.frontier.action: {goal: {k: K}} (with a planner)"
             )
-        if self.algo.sharing == "per_group":
+        if self.algo.sharing in ("per_agent", "per_group") and not entry.per_agent:
             raise ValueError(
-                "algo.sharing: per_group (a network per agent group) is not built yet: use "
-                "per_agent (every agent, so every group, its own parameters) or shared_id"
-            )
-        if self.algo.sharing == "per_agent" and not entry.per_agent:
-            raise ValueError(
-                f"algo.sharing: per_agent: {self.algo.policy} has no per-agent version "
+                f"algo.sharing: {self.algo.sharing}: {self.algo.policy} has no per-agent version "
                 "(use shared or shared_id)"
             )
+        if self.algo.sharing == "per_group" and self.env.agents_known:
+            self.check_groups()  # (else where the run starts: check_env_fits)
         return self
+
+    def check_groups(self) -> None:
+        """Refuse ``algo.sharing: per_group`` for a team of one group (one network would be
+        ``shared_id`` without the agent's index).
+
+        Raises:
+            ValueError: naming ``algo.sharing``.
+        """
+        groups = self.env.groups
+        if len(groups) < 2:
+            (name, members), *_ = groups.items()
+            raise ValueError(
+                f"algo.sharing: per_group: the agents form one group ({name!r}: "
+                f"{', '.join(members)}), so one network: use per_agent or shared_id, or name "
+                "two groups or more in env.pettingzoo.groups"
+            )
 
     @model_validator(mode="after")
     def _prior_reads_planned_maps(self) -> ExperimentConfig:
@@ -1137,7 +1211,9 @@ class ExperimentConfig(_Section):
         backend = self._backend()
         if self.vec.backend != backend:  # an assignment checks the config again, once
             self.vec = self.vec.model_copy(update={"backend": backend})
-        env = self.env.with_agent_id(self.algo.sharing != "shared")
+        env = self.env.with_agent_id(
+            self.algo.sharing != "shared", by_group=self.algo.sharing == "per_group"
+        )
         if env is not self.env:
             self.env = env
         return self

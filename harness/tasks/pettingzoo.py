@@ -23,7 +23,7 @@ from typing import Any, ClassVar
 
 import numpy as np
 
-from harness.config.pettingzoo import agent_groups, blank_observation, stack_observations
+from harness.config.pettingzoo import blank_observation, stack_observations
 from harness.config.schema import ConfigError, PettingZooEnvConfig
 from harness.factory import make_env
 from harness.tasks.base import (
@@ -194,7 +194,7 @@ class PettingZooPlayer(EpisodePlayer):
         self.n_actions = int(spaces.action_space.n)
         self.zeros = blank_observation(spaces.observation_space)
         self.limit = env.pettingzoo.step_limit
-        self.groups = agent_groups(self.agents)
+        self.groups = env.groups
         self.envs = [make_env(env, render_mode) for _ in range(copies)]
 
     def reset(self, seeds: Sequence[int]) -> Any:
@@ -336,8 +336,9 @@ class PettingZooTask(Task):
 
     @property
     def groups(self) -> dict[str, tuple[str, ...]]:
-        """The agents' groups, by name prefix (:func:`harness.config.pettingzoo.agent_groups`)."""
-        return agent_groups(self.agents)
+        """The agents' groups: ``env.pettingzoo.groups``, else by name prefix
+        (:func:`harness.config.pettingzoo.agent_groups`)."""
+        return self.env.groups
 
     def make_env(self, render_mode: str | None = None) -> Any:
         return make_env(self.env, render_mode)

@@ -33,18 +33,25 @@ TRAINING_DEVICE_TYPES = ("cpu", "cuda", "mps")
 
 def policy_class_name(algo: Any) -> str:
     """The policy ``DoubleDQN`` is built with: ``algo.policy``, or its per-agent version
-    (``PerAgentMlpPolicy``, ...) for ``algo.sharing: per_agent``."""
+    (``PerAgentMlpPolicy``, ...) for ``algo.sharing: per_agent`` and ``per_group``."""
     entry = POLICIES[algo.policy]
-    return entry.per_agent_name if algo.sharing == "per_agent" else algo.policy
+    return entry.per_agent_name if per_network(algo) else algo.policy
+
+
+def per_network(algo: Any) -> bool:
+    """Whether the policy has one parameter set per one-hot index (``per_agent``: per agent;
+    ``per_group``: per group, the index being the agent's group's)."""
+    return algo.sharing in ("per_agent", "per_group")
 
 
 def network_kwargs(algo: Any, n_agents: int) -> dict[str, Any]:
     """The policy's network settings from ``config.algo`` (the one place they are read):
     hidden layers, the dueling aggregator, the team-map extractor's sizes, and the number of
-    parameter sets (``n_agents``, the team size) for ``algo.sharing: per_agent``."""
+    parameter sets for ``algo.sharing: per_agent`` and ``per_group`` (``n_agents``: the one-hot
+    index's width, ``env.id_width``: the team size, or the groups)."""
     entry = POLICIES[algo.policy]
     kwargs: dict[str, Any] = {"net_arch": list(algo.net_arch)}
-    if algo.sharing == "per_agent":
+    if per_network(algo):
         kwargs["n_agents"] = n_agents
     if entry.dueling:
         kwargs["aggregator"] = algo.dueling_aggregator
@@ -280,8 +287,8 @@ def network_parameters(config: ExperimentConfig) -> int:
     ``meta`` device: the policy is built as ``DoubleDQN`` builds it, without allocating memory."""
     algo = config.algo
     entry = POLICIES[algo.policy]
-    kwargs = network_kwargs(algo, config.env.n_agents)
-    policy_class = entry.load(per_agent=algo.sharing == "per_agent")
+    kwargs = network_kwargs(algo, config.env.id_width)
+    policy_class = entry.load(per_agent=per_network(algo))
     # SB3 moves each new Q-network to ``policy.device`` (the CPU until it has weights); pointing
     # that hook at ``meta`` keeps every tensor on the meta device.
     sizing_class = type(

@@ -98,7 +98,7 @@ from harness.training.threads import configure_torch
 def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
     """Make the ``DoubleDQN`` of ``config.algo`` with the first phase's settings."""
     algo, first = config.algo, config.phases[0]
-    kwargs = policy_kwargs(algo, config.env.n_agents, algo.device)
+    kwargs = policy_kwargs(algo, config.env.id_width, algo.device)
     # On CUDA the buffer lives there (no host round trip per gradient step; its sample joins
     # the recorded step), per-decision replay on the host; uniform replay on the host is SB3's
     # own buffer (n-step returns: its NStepReplayBuffer).

@@ -255,6 +255,10 @@ def test_per_group_trains_and_evaluates_each_group(tmp_path, capsys):
     out = capsys.readouterr().out
     assert "group chaser (2 agents): return median" in out
     assert "group runner (1 agents)" in out
+    three = "env.pettingzoo.groups={a: [chaser_0], b: [chaser_1], c: [runner_0]}"
+    assert main(["eval", str(run), "--episodes", "1", "--set", three]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert "one network per group for 2 groups; it cannot play the env's 3 groups" in line, line
 
 
 def test_run_and_eval_report_each_group(tmp_path, capsys):

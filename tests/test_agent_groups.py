@@ -159,10 +159,10 @@ def test_named_groups_override_the_name_prefix():
 
 
 def test_an_agent_in_two_groups_is_refused_with_the_config():
-    with pytest.raises(ConfigError, match="'chaser_0' is in 'a' and 'b'") as info:
+    with pytest.raises(ConfigError, match="groups: 'chaser_0' is in 'a' and 'b'") as info:
         config_from_dict(config(groups={"a": ["chaser_0"], "b": ["chaser_0", "runner_0"]}))
     assert "\n" not in str(info.value)
-    with pytest.raises(ConfigError, match=r"groups\.b: the group has no agent"):
+    with pytest.raises(ConfigError, match="groups: group 'b' has no agent"):
         config_from_dict(config(groups={"a": ["chaser_0"], "b": []}))
 
 

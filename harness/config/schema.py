@@ -391,14 +391,14 @@ class PettingZooSource(_Section):
         if v is None:
             return v
         if not v:
-            raise ValueError("groups: {} names no group (leave it out: groups by name prefix)")
+            raise ValueError("{} names no group (leave it out: groups by name prefix)")
         seen: dict[str, str] = {}
         for name, members in v.items():
             if not members:
-                raise ValueError(f"groups.{name}: the group has no agent")
+                raise ValueError(f"group {name!r} has no agent")
             for agent in members:
                 if agent in seen:
-                    raise ValueError(f"groups: {agent!r} is in {seen[agent]!r} and {name!r}")
+                    raise ValueError(f"{agent!r} is in {seen[agent]!r} and {name!r}")
                 seen[agent] = name
         return v
 

@@ -207,9 +207,11 @@ def check_spaces(env: Any) -> EnvSpaces:
     first = agents[0]
     observation, action = observations[first], actions[first]
     if not isinstance(action, spaces.Discrete):
+        kind = "continuous: " if isinstance(action, spaces.Box) else ""
         raise ValueError(
-            f"agent {first!r}: action space {action} is not Discrete (DQN picks one of n "
-            "actions; for MPE envs set continuous_actions: false)"
+            f"agent {first!r}: action space {action} is not Discrete ({kind}DQN picks one of n "
+            "actions, and no SuperSuit wrapper makes such a space Discrete: discretise the "
+            "actions in the env, e.g. for MPE envs set continuous_actions: false)"
         )
     if int(action.start) != 0 or int(action.n) < 1:
         # The network's outputs are actions 0 .. n-1: another start is an index error at the
@@ -239,10 +241,11 @@ def check_spaces(env: Any) -> EnvSpaces:
             ("observation", observations[agent], observation),
         ):
             if mine != shared:
+                wrapper = "pad_observations_v0" if what == "observation" else "pad_action_space_v0"
                 raise ValueError(
                     f"agent {agent!r}: {what} space {mine} differs from {first!r}'s {shared} "
-                    "(agents share one network: pad them to one space, e.g. SuperSuit's "
-                    "pad_observations_v0 and pad_action_space_v0)"
+                    "(agents share one network: pad them to one space with SuperSuit's "
+                    f"{wrapper} in your constructor)"
                 )
     return EnvSpaces(agents, observation, action)
 
@@ -373,7 +376,9 @@ class ContractGuard(BaseParallelWrapper):
         self.render_mode = render_mode
         with users_code(lambda text: ValueError(f"the env's metadata failed ({text})")):
             metadata = getattr(env, "metadata", None)
-        self.metadata = metadata if isinstance(metadata, Mapping) else dict(DEFAULT_METADATA)
+        #: whether the env declares a ``metadata`` of its own (:data:`DEFAULT_METADATA` if not)
+        self.own_metadata = isinstance(metadata, Mapping)
+        self.metadata = metadata if self.own_metadata else dict(DEFAULT_METADATA)
 
     @property
     def unwrapped(self) -> ContractGuard:  # type: ignore[override]

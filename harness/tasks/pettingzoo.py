@@ -364,11 +364,18 @@ class PettingZooTask(Task):
     def check_renders(self) -> None:
         probe = make_env(self.env)
         modes = (getattr(probe, "metadata", None) or {}).get("render_modes", [])
+        declared = getattr(probe.unwrapped, "own_metadata", True)
         probe.close()
         if "rgb_array" not in modes:
+            why = (
+                f"its metadata['render_modes'] is {list(modes)}"
+                if declared
+                else "it has no metadata"
+            )
             raise ValueError(
-                f"{self.env.pettingzoo.make} does not render rgb_array frames (its "
-                f"metadata['render_modes'] is {list(modes)})"
+                f"{self.env.pettingzoo.make} does not render rgb_array frames ({why}: an env "
+                "that draws lists 'rgb_array' there, takes render_mode and returns the frame "
+                "from render())"
             )
 
     @classmethod

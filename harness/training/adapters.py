@@ -97,7 +97,8 @@ class LeavingAgents(BaseParallelWrapper):
     the others', after which ``agents`` no longer holds the agent: PettingZoo's
     knights_archers_zombies), as SuperSuit's VecEnv can step it: every agent of
     ``possible_agents`` keeps its slot until the episode ends. An agent that has left gets a
-    zero observation, reward 0 and empty infos, its action is dropped, and it is done when the
+    zero observation, reward 0 and empty infos (at the episode's end, those of its own last
+    step, as evaluation reports them), its action is dropped, and it is done when the
     episode ends, with the others (SuperSuit's ``black_death_v3``, whose released version ends
     an episode only when its agents are terminated *and* truncated at once). Its slot so earns
     nothing after its last step, and its transitions after it (zero observations, reward 0)
@@ -113,6 +114,7 @@ class LeavingAgents(BaseParallelWrapper):
     ) -> tuple[dict[Any, Any], dict[Any, Any]]:
         obs, infos = self.env.reset(seed=seed, options=options)
         self.agents = list(self.env.possible_agents)
+        self._last_infos: dict[Any, dict[Any, Any]] = {}  # each agent's, of its own last step
         return self._filled(obs), infos
 
     def step(self, actions: dict[Any, Any]) -> tuple[dict[Any, Any], ...]:
@@ -125,11 +127,18 @@ class LeavingAgents(BaseParallelWrapper):
         )
         agents = self.env.possible_agents
         rewards = {agent: rewards.get(agent, 0.0) for agent in agents}
+        self._last_infos.update(infos)
         infos = {agent: infos.get(agent, {}) for agent in agents}
         if over:  # (an agent that left before: terminated, with the others' end)
             terms = {agent: terms.get(agent, agent not in truncs) for agent in agents}
             truncs = {agent: truncs.get(agent, False) for agent in agents}
             self.agents = []
+            # The episode's last infos of an agent that left: those of its own last step (as
+            # evaluation reports them), less a time limit's flag (it ends terminated here).
+            for agent in agents:
+                if agent not in live and agent in self._last_infos:
+                    last = self._last_infos[agent]
+                    infos[agent] = {k: v for k, v in last.items() if k != TIME_LIMIT_KEY}
         else:  # one end for every slot: the episode's
             terms = truncs = dict.fromkeys(agents, False)
         return self._filled(obs), rewards, terms, truncs, infos

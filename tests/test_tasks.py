@@ -78,6 +78,19 @@ def test_a_constructor_that_raises_leaves_no_run_folder(tmp_path, capsys):
     assert not (tmp_path / "runs").exists()
 
 
+@pytest.mark.parametrize("command", ["eval", "render"])
+def test_a_constructor_that_raises_at_an_evaluations_start_is_one_line(tmp_path, capsys, command):
+    # No run built the env before: the evaluation's episode loop is where it is first built.
+    path = tmp_path / "failing.yaml"
+    path.write_text(yaml.safe_dump(meet("tests.envs.odd:failing")))
+    args = [command, "--policy", "random", "--config", str(path)]
+    if command == "render":
+        args += ["--out", str(tmp_path / "out.png")]
+    assert main(args) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert "env.pettingzoo" in line and "no such world" in line, line
+
+
 def test_what_the_spaces_decide_is_refused_at_the_run_start_in_one_line(tmp_path):
     raw = meet("tests.envs.odd:block")
     raw["algo"]["sharing"] = "shared_id"

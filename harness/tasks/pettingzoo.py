@@ -353,6 +353,10 @@ class PettingZooTask(Task):
         return spaces.observation_space, spaces.action_space
 
     def player(self, copies: int, render_mode: str | None, record_paths: bool) -> EpisodePlayer:
+        try:  # the constructor, where nothing built the env yet (an evaluation's start)
+            self.env.pettingzoo.probe()
+        except ValueError as exc:
+            raise ConfigError(str(exc)) from None
         return PettingZooPlayer(self.env, copies, render_mode, record_paths)
 
     def check_baseline(self, name: str, plays_any_env: bool, offered: Sequence[str]) -> None:

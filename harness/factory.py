@@ -13,6 +13,7 @@ contract); it has no batched core.
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 from collections.abc import Mapping
 from pathlib import Path
@@ -35,8 +36,8 @@ def env_kwargs(env: EnvConfig) -> dict[str, Any]:
     out = env.model_dump(exclude={"map_sha256", "test_maps", "frontier", "prior"})
     out["wall_fraction"] = tuple(out["wall_fraction"])
     out["frontier"] = env.frontier_options
-    if env.prior is not None:
-        out["map_prior"] = map_prior(env.prior)
+    if env.prior is not None:  # the loaded prior, an object of the env's frontier options
+        out["frontier"] = dataclasses.replace(out["frontier"], prior=map_prior(env.prior))
     if env.agent_id:
         out["agent_id"] = True
     if isinstance(env.map, dict):

@@ -459,9 +459,10 @@ def test_the_goal_action_with_a_prior_carries_its_columns_and_the_same_moves() -
     kwargs = dict(
         height=14, width=16, n_agents=2, max_steps=30,
         observation={"teammap": {"crop": 7, "global_size": 6}},
-        frontier={"action": {"goal": {"k": 4}}, "planner": "pocket"},
     )  # fmt: skip
-    envs = [coverage_v0.parallel_env(**kwargs, map_prior=f) for f in (None, all_walls, all_free)]
+    goal = {"action": {"goal": {"k": 4}}, "planner": "pocket"}
+    priors = (None, all_walls, all_free)
+    envs = [coverage_v0.parallel_env(**kwargs, frontier={**goal, "prior": f}) for f in priors]
     n = len(GOAL_FEATURES)
     assert [e.observation_space("agent_0")["goals"].shape for e in envs] == [
         (4, n),
@@ -490,9 +491,9 @@ def test_the_env_asks_its_prior_every_few_steps_and_at_each_episodes_start() -> 
         return np.where(seen, ~free, False).astype(float)
 
     env = coverage_v0.parallel_env(
-        height=14, width=16, n_agents=2, max_steps=12, map_prior=counting,
+        height=14, width=16, n_agents=2, max_steps=12,
         observation={"teammap": {"crop": 7, "global_size": 6}},
-        frontier={"action": {"goal": {"k": 4}}, "planner": "pocket"},
+        frontier={"action": {"goal": {"k": 4}}, "planner": "pocket", "prior": counting},
     )  # fmt: skip
     env.reset(seed=1)
     for _ in range(11):
@@ -540,3 +541,19 @@ def test_an_env_prior_that_cannot_work_is_one_line(
     assert main([*args, *change, "--runs-dir", str(tmp_path / "runs")]) == 2
     assert words in one_error_line(capsys.readouterr().err)
     assert not (tmp_path / "runs").exists()
+
+
+def test_the_env_refuses_a_prior_without_the_goal_action_or_that_is_no_function() -> None:
+    from envs.coverage.frontier import FrontierOptions
+
+    def flat(seen: np.ndarray, free: np.ndarray) -> np.ndarray:
+        return np.zeros(seen.shape)
+
+    with pytest.raises(ValueError, match="feeds the goal action"):
+        FrontierOptions(action="step", planner="pocket", prior=flat)
+    with pytest.raises(ValueError, match=r"env\.prior: RUN"):
+        FrontierOptions.parse({"action": {"goal": {"k": 4}}, "planner": "pocket", "prior": "x"})
+    options = FrontierOptions.parse(
+        {"action": {"goal": {"k": 4}}, "planner": "pocket", "prior": flat}
+    )
+    assert options.prior is flat and "prior" not in options.config()

@@ -39,7 +39,7 @@ from gymnasium import spaces
 from gymnasium.utils import seeding
 
 from envs.coverage import generators, maps
-from envs.coverage.frontier import Frontier, FrontierOptions, Goal
+from envs.coverage.frontier import Frontier, FrontierOptions
 from envs.coverage.observations import (
     ObservationBuilder,
     ObservationOptions,
@@ -47,7 +47,6 @@ from envs.coverage.observations import (
     agent_id_space,
     observation_options,
 )
-from envs.coverage.rollouts import MapPriorFn
 from envs.coverage.step import step_batch, thesis_observation, visit_cells
 from envs.coverage.types import CELL_UNVISITED, CELL_VISITED, CELL_WALL, GridState
 
@@ -83,9 +82,6 @@ class CoreSpec:
         agent_id: Whether each observation holds the agent's one-hot index.
         map_name: The map as the user named it (``"random"``, a shipped map, a file), or the
             source's name.
-        map_prior: A map prior (:data:`envs.coverage.rollouts.MapPriorFn`: the team's map to
-            each cell's wall probability) whose predictions the goal action's candidates carry
-            (:data:`envs.coverage.goals.PRIOR_FEATURES`), or ``None``.
     """
 
     source: generators.MapGenerator
@@ -98,7 +94,6 @@ class CoreSpec:
     frontier: FrontierOptions | None = None
     agent_id: bool = False
     map_name: str = ""
-    map_prior: MapPriorFn | None = None
 
     def __post_init__(self) -> None:
         if not self.map_name:
@@ -124,7 +119,6 @@ class CoreSpec:
         starts: Sequence[Sequence[int]] | None = None,
         frontier: FrontierOptions | Mapping[str, Any] | None = None,
         agent_id: bool = False,
-        map_prior: MapPriorFn | None = None,
     ) -> CoreSpec:
         """The objects from the env's keyword arguments (``envs/coverage_v0.py``).
 
@@ -137,14 +131,6 @@ class CoreSpec:
         observation = observation_options(observation)
         frontier = FrontierOptions.parse(frontier)
         FrontierOptions.check_fits(observation, frontier)
-        if map_prior is not None:
-            if not callable(map_prior):
-                raise ValueError(f"map_prior must be a function, got {type(map_prior).__name__}")
-            if frontier is None or not isinstance(frontier.action, Goal):
-                raise ValueError(
-                    "map_prior feeds the goal action's candidates: it needs "
-                    "frontier={'action': {'goal': {...}}, ...}"
-                )
         merged_rewards = _check_rewards(rewards)
         map_name = map.name if isinstance(map, generators.MapGenerator) else str(map)
         if not isinstance(map, generators.MapGenerator):
@@ -186,7 +172,6 @@ class CoreSpec:
             frontier=frontier,
             agent_id=bool(agent_id),
             map_name=map_name,
-            map_prior=map_prior,
         )
 
 
@@ -431,11 +416,7 @@ class CoverageCore:
         built = self._observers[copy]
         if key not in built:
             spec = self.spec
-            ext = (
-                Frontier(spec.frontier, height, width, spec.map_prior)
-                if spec.frontier is not None
-                else None
-            )
+            ext = Frontier(spec.frontier, height, width) if spec.frontier is not None else None
             observer = spec.observation.make(height, width, spec.coords, spec.max_steps, ext)
             built[key] = (observer, ext)
         return built[key]

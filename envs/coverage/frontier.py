@@ -185,14 +185,30 @@ class FrontierOptions:
         planner: A planner of :data:`PLANNERS` whose move the compass marks (targets claimed in
             agent index order), or ``None``: the compass marks every move that starts a
             shortest path to the nearest known unvisited cell (and the step draws among them).
+        prior: A map prior (:data:`envs.coverage.rollouts.MapPriorFn`: the team's map to each
+            cell's wall probability) whose prediction the goal action's candidates carry
+            (:data:`envs.coverage.goals.PRIOR_FEATURES`), or ``None``. An object, not a
+            setting: it is no part of :meth:`config` (the harness names it ``env.prior``).
     """
 
     action: ActionKind | None = None
     planner: str | None = None
+    prior: MapPriorFn | None = None
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "action", _action(self.action))
         _choice(self.planner, PLANNERS, "planner")
+        if self.prior is not None:
+            if not callable(self.prior):
+                raise ValueError(
+                    f"frontier.prior must be a map prior function, got "
+                    f"{type(self.prior).__name__} (in a harness config: env.prior: RUN)"
+                )
+            if not isinstance(self.action, Goal):
+                raise ValueError(
+                    "frontier.prior feeds the goal action's candidates: it needs "
+                    "action {'goal': {...}}"
+                )
         if self.action is not None and self.action.needs_planner and self.planner is None:
             raise ValueError(
                 f"frontier.action: {self.action.name!r} needs frontier.planner (the planner's "
@@ -278,19 +294,13 @@ class Frontier:
         options: What is on.
         height: Rows of the map.
         width: Columns of the map.
-        prior: A map prior (the env's ``map_prior``): the goal action's candidates then carry
-            the :data:`~envs.coverage.goals.PRIOR_FEATURES` too.
     """
 
-    def __init__(
-        self,
-        options: FrontierOptions,
-        height: int,
-        width: int,
-        prior: MapPriorFn | None = None,
-    ) -> None:
+    def __init__(self, options: FrontierOptions, height: int, width: int) -> None:
         self.options = options
-        self.prior = prior
+        #: The options' map prior (the goal action's candidates then carry the
+        #: :data:`~envs.coverage.goals.PRIOR_FEATURES` too).
+        self.prior = options.prior
         #: The prior's last wall probabilities and the step it gave them (asked every
         #: :data:`~envs.coverage.goals.PRIOR_EVERY` steps).
         self._p_wall = np.zeros((height, width))

@@ -52,7 +52,7 @@ in the order of :data:`GOAL_FEATURES`:
 ``row``, ``col``  its offset from the agent over ``H`` and ``W``
 ==============  ==========================================================================
 
-**With a map prior** (the env's ``map_prior``, a function from the team's map to each cell's
+**With a map prior** (``frontier={..., "prior": f}``, a function from the team's map to each cell's
 probability of being a wall, e.g. a prior run of the harness: ``env.prior``), two more columns
 follow, in the order of :data:`PRIOR_FEATURES`: the free cells the prior expects among the unseen
 ones in the 7x7 (``predicted_near``) and 15x15 (``predicted_far``) windows around the candidate,

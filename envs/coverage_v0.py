@@ -116,7 +116,10 @@ not yet visited (drawn from the episode's generator when several moves tie; stay
 cell is reachable). It never hits a wall. ``planner`` (an entry of the registry ``PLANNERS``
 that the env can follow: ``"order"`` or ``"pocket"``) makes the compass, so the step, that
 planner's move for the agent: a team that always steps is the planner (``"pocket"``: the
-``frontier_pocket`` baseline), and a learned policy chooses when to leave it.
+``frontier_pocket`` baseline), and a learned policy chooses when to leave it. With the goal
+action, ``"prior": f`` (a map prior: ``f(seen, free)`` of the team's ``(H, W)`` map gives each
+cell's wall probability) adds two features to every candidate, the free cells ``f`` expects
+behind it (``envs/coverage/goals.py``).
 
 ``reset(seed=None, options=None)``: ``options={"grid": bool_array, "starts": [(r, c), ...]}`` fixes
 that episode's map and/or start cells. Bad input raises ``ValueError`` naming the problem.

@@ -175,8 +175,8 @@ def option_names(module: str, cls: str, fallback: set[str]) -> set[str]:
         options = getattr(importlib.import_module(module), cls)
     except (ImportError, AttributeError):
         return fallback
-    if dataclasses.is_dataclass(options):
-        return {f.name for f in dataclasses.fields(options)}
+    if dataclasses.is_dataclass(options):  # (a field marked config: False is an object)
+        return {f.name for f in dataclasses.fields(options) if f.metadata.get("config", True)}
     if _is_model(options):
         return set(options.model_fields)
     return fallback

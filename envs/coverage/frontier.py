@@ -14,7 +14,7 @@ The planners themselves are in :mod:`envs.coverage.planners`.
 from __future__ import annotations
 
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from typing import Any, ClassVar
 
 import numpy as np
@@ -193,7 +193,8 @@ class FrontierOptions:
 
     action: ActionKind | None = None
     planner: str | None = None
-    prior: MapPriorFn | None = None
+    # An object the env is handed, no config option (``metadata``: the docs' key list skips it).
+    prior: MapPriorFn | None = field(default=None, metadata={"config": False})
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "action", _action(self.action))

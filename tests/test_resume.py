@@ -214,7 +214,7 @@ def test_every_shipped_model_is_in_todays_format():
     folders = (ROOT / "runs" / "reference").iterdir()
     models = [RunDir(p).model for p in folders if not is_prior_run(p)]
     models = [m for m in models if m.is_file()] + sorted((ROOT / "docs").rglob("*.zip"))
-    assert len(models) == 21
+    assert len(models) == 22
     assert {saved_model_format(m) for m in models} == {MODEL_FORMAT}
 
 

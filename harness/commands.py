@@ -438,7 +438,6 @@ def tune_temperature(
 
 def format_tune(result: dict[str, Any]) -> str:
     """A readable table of :func:`tune_temperature`'s rows, the chosen one marked."""
-    pct = "{:>9.1%}".format
     lines = [
         f"policy    {result['policy']}",
         f"episodes  {result['episodes']} per temperature (seed {result['seed']})",
@@ -446,17 +445,6 @@ def format_tune(result: dict[str, Any]) -> str:
     ]
     if result["rows"]:
         lines += task_of_summary(result["rows"][0]).format_tune(result)
-    return "\n".join(lines)
-    lines += [
-        f"{'T':>6}{'median':>9}{'q1':>9}{'q3':>9}{'mean':>9}{'wall hits':>11}{'episodes':>10}",
-    ]
-    for r in result["rows"]:
-        mark = "  <- chosen" if r["temperature"] == result["chosen"] else ""
-        lines.append(
-            f"{r['temperature']:>6g}{pct(r['coverage_median'])}{pct(r['coverage_q1'])}"
-            f"{pct(r['coverage_q3'])}{pct(r['coverage_mean'])}{r['wall_hits_mean']:>11.2f}"
-            f"{r['wall_hits_episodes']:>10}{mark}"
-        )
     return "\n".join(lines)
 
 

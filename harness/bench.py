@@ -30,6 +30,7 @@ import sys
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -55,6 +56,9 @@ GOALS_ENV = TEAMMAP_ENV.model_copy(
 #: The rollout chooser's setting (``--policy rollout``, docs/planners.md): the goal action with
 #: 4 agents on 50x50 random maps, where it beats every written planner.
 ROLLOUT_ENV = GOALS_ENV.model_copy(update={"n_agents": 4})
+#: The map prior of ``bench env``'s goal-action row with ``env.prior`` (relative to the current
+#: directory, as ``env.prior`` is; the row is left out where it is missing).
+PRIOR_REFERENCE = "runs/reference/prior_rooms"
 #: Env copies of the VecEnv figures (the batched core pays off with many).
 VEC_COPIES = (1, 4, 16, 64)
 
@@ -101,11 +105,11 @@ def bench_env(episodes: int = 3) -> dict[str, Any]:
     moves = rng.integers(0, 5, (steps, n)).tolist()
 
     def bare_rate(
-        observation: str | dict[str, Any], frontier: dict[str, Any] | None = None
+        observation: str | dict[str, Any],
+        frontier: dict[str, Any] | None = None,
+        base: EnvConfig = THESIS_ENV,
     ) -> float:
-        env = make_env(
-            THESIS_ENV.model_copy(update={"observation": observation, "frontier": frontier})
-        )
+        env = make_env(base.model_copy(update={"observation": observation, "frontier": frontier}))
         env.reset(seed=0)
         actions = [dict(zip(env.possible_agents, a)) for a in moves]
         for a in actions[:10]:  # compiling (or loading from numba's cache) is not the step's speed
@@ -138,6 +142,17 @@ def bench_env(episodes: int = 3) -> dict[str, Any]:
     # The same with the pocket tie-break (planner: pocket): a search finishes the nearest
     # distance layer to see every tied cell instead of stopping at the first.
     out["env_bare_teammap_pocket_agent_steps_per_s"] = bare_rate("teammap", {"planner": "pocket"})
+
+    # The goal action (k = 8), and with a map prior on its candidates (env.prior: the floor
+    # plans' reference prior, asked every PRIOR_EVERY steps), where the repository has it.
+    goal = {"action": {"goal": {"k": 8}}, "planner": "pocket"}
+    out["env_bare_goals_agent_steps_per_s"] = bare_rate("teammap", goal)
+    if Path(PRIOR_REFERENCE).is_dir():
+        prior_env = THESIS_ENV.model_copy(update={"prior": PRIOR_REFERENCE})
+        out["env_bare_goals_prior_agent_steps_per_s"] = bare_rate("teammap", goal, prior_env)
+        out["env_goals_prior_over_goals"] = (
+            out["env_bare_goals_prior_agent_steps_per_s"] / out["env_bare_goals_agent_steps_per_s"]
+        )
 
     def vec_rate(copies: int, num_cpus: int = 0, backend: str = "core") -> float:
         venv = make_vec_env(THESIS_ENV, copies, num_cpus, seed=0, backend=backend)
@@ -692,6 +707,12 @@ def format_bench(r: dict[str, Any]) -> str:
         if "env_bare_teammap_pocket_agent_steps_per_s" in r:
             po = r["env_bare_teammap_pocket_agent_steps_per_s"]
             lines.append(f"  ... + pocket tie-break     {n(po)}   {po / bare:5.2f} x thesis")
+        if "env_bare_goals_agent_steps_per_s" in r:
+            go = r["env_bare_goals_agent_steps_per_s"]
+            lines.append(f"  goal action (k = 8)        {n(go)}   {go / bare:5.2f} x thesis")
+        if "env_bare_goals_prior_agent_steps_per_s" in r:
+            gp = r["env_bare_goals_prior_agent_steps_per_s"]
+            lines.append(f"  ... + map prior (env.prior) {n(gp)}  {gp / go:5.2f} x goal action")
         ss = r.get("env_vec_supersuit_by_copies", {})
         for c, v in r["env_vec_by_copies"].items():
             tail = ""

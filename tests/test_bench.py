@@ -34,6 +34,9 @@ def test_bench_env_json_has_the_documented_keys(capsys):
         "env_bare_teammap_frontier_agent_steps_per_s",
         "env_bare_teammap_claims_agent_steps_per_s",
         "env_bare_teammap_pocket_agent_steps_per_s",
+        "env_bare_goals_agent_steps_per_s",
+        "env_bare_goals_prior_agent_steps_per_s",
+        "env_goals_prior_over_goals",
         "env_vec_agent_steps_per_s",
         "env_vec_over_bare",
     ):

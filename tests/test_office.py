@@ -4,6 +4,7 @@ open-plan areas with pillars, a look unlike the ``rooms`` plans, and the config 
 
 from __future__ import annotations
 
+import inspect
 import time
 
 import numpy as np
@@ -15,21 +16,14 @@ from envs.coverage import office
 from envs.coverage.generators import GENERATORS, OfficeMaps
 from envs.coverage.office import HALL, OPEN, ROOM, Area, OfficePlan, generate_office, office_plan
 from envs.coverage.rooms import floor_plan
+from harness.cli import main
 from harness.config.loading import config_from_dict
 from harness.config.schema import ConfigError
 from harness.factory import env_kwargs
 
-#: Settings that stress each step: the defaults, the narrowest rooms and rows (the most rooms and
-#: hallways), all open plan, every door wide and every inner door, rooms as long as the floor.
-SETTINGS = [
-    {},
-    {"room_width": (3, 3), "max_depth": 6},
-    {"open_share": 1.0},
-    {"open_share": 0.0, "wide_door_share": 1.0, "inner_door_share": 1.0},
-    {"room_width": (3, 40), "max_depth": 1_000},
-]
-#: Wide, tall (built on its side), the smallest, square, odd.
-SHAPES = [(50, 100), (100, 50), (12, 12), (61, 61), (31, 47)]
+#: Wide, tall (built on its side), the smallest, square, odd, a thin strip, a deep floor (many
+#: hallways and rows back to back).
+SHAPES = [(50, 100), (100, 50), (12, 12), (61, 61), (31, 47), (12, 200), (160, 90)]
 
 
 def components(walls: np.ndarray) -> int:
@@ -57,17 +51,26 @@ def test_the_same_seed_gives_the_same_floor_and_another_seed_another():
     )
 
 
-@pytest.mark.parametrize("settings", SETTINGS, ids=lambda s: ",".join(s) or "defaults")
+def test_the_layouts_constants_are_in_the_ranges_the_steps_need():
+    # A room 3 cells wide still takes a door off its wall's ends; rows at most twice MIN_DEPTH
+    # deep let some count of hallways fit every floor (the next tests check the floors).
+    low, high = office.ROOM_WIDTH
+    assert 3 <= low <= high
+    assert office.MAX_DEPTH >= 2 * office.MIN_DEPTH
+    for share in (office.WIDE_DOOR_SHARE, office.INNER_DOOR_SHARE, office.OPEN_SHARE):
+        assert 0 < share < 1
+
+
 @pytest.mark.parametrize("shape", SHAPES, ids=lambda s: f"{s[0]}x{s[1]}")
-def test_floors_are_walled_in_connected_and_made_of_their_areas_doors_and_pillars(shape, settings):
-    for seed in range(6):
-        plan = office_plan(seed, *shape, **settings)
+def test_floors_are_walled_in_connected_and_made_of_their_areas_doors_and_pillars(shape):
+    for seed in range(10):
+        plan = office_plan(seed, *shape)
         walls = plan.walls
         assert walls.shape == shape and walls.dtype == bool
         assert walls[[0, -1], :].all() and walls[:, [0, -1]].all()  # the border
         assert components(walls) == 1
         # The guard that fills unreachable cells finds none: the construction connects.
-        np.testing.assert_array_equal(generate_office(seed, *shape, **settings), walls)
+        np.testing.assert_array_equal(generate_office(seed, *shape), walls)
         # Areas never overlap; free ground is exactly the areas less the pillars, plus the doors.
         inside = labels(plan) > 0
         assert inside.sum() == sum(a.area for a in plan.areas)
@@ -81,11 +84,10 @@ def test_floors_are_walled_in_connected_and_made_of_their_areas_doors_and_pillar
         assert not (doors & inside).any()
 
 
-@pytest.mark.parametrize("settings", SETTINGS, ids=lambda s: ",".join(s) or "defaults")
-@pytest.mark.parametrize("shape", [(50, 100), (100, 50)], ids=["wide", "tall"])
-def test_every_room_has_exactly_one_door_onto_a_hallway_through_a_one_cell_wall(shape, settings):
-    for seed in range(6):
-        plan = office_plan(seed, *shape, **settings)
+@pytest.mark.parametrize("shape", [(50, 100), (100, 50), (160, 90)], ids=["wide", "tall", "deep"])
+def test_every_room_has_exactly_one_door_onto_a_hallway_through_a_one_cell_wall(shape):
+    for seed in range(20):
+        plan = office_plan(seed, *shape)
         lab = labels(plan)
         onto_hall: dict[int, int] = {}
         for a, b, cells in plan.doors:
@@ -129,39 +131,59 @@ def test_hallways_run_the_floors_length_and_are_two_or_three_cells_wide(shape):
         assert components(~floor) == 1
 
 
-def test_a_floor_gets_the_fewest_full_length_hallways_that_keep_rows_shallow():
-    def full_length(plan: OfficePlan) -> int:
-        return sum(h.right - h.left == 98 for h in kinds(plan, HALL))
+@pytest.mark.parametrize(
+    ("shape", "expected"), [((30, 100), 1), ((50, 100), 2), ((100, 50), 2), ((90, 160), 3)]
+)
+def test_a_floor_gets_the_fewest_full_length_hallways_that_keep_rows_shallow(shape, expected):
+    length, across = max(shape), min(shape)
+
+    def full_length(plan: OfficePlan) -> list[Area]:
+        return [
+            h for h in kinds(plan, HALL) if max(h.bottom - h.top, h.right - h.left) == length - 2
+        ]
 
     for seed in range(10):
-        assert full_length(office_plan(seed, 30, 100)) == 1  # rows of up to 11 or 12
-        assert full_length(office_plan(seed, 50, 100)) == 2  # one hallway would leave rows of 21
-        assert full_length(office_plan(seed, 50, 100, max_depth=25)) == 1
-        for area in office_plan(seed, 50, 100, max_depth=8).areas:
+        plan = office_plan(seed, *shape)
+        halls = full_length(plan)
+        assert len(halls) == expected, seed
+        # Every row of rooms is MIN_DEPTH to MAX_DEPTH deep across the hallways (an open area
+        # takes the whole depth between two hallways, back-to-back rows and their wall).
+        for area in plan.areas:
             if area.kind == ROOM:
-                assert office.MIN_DEPTH <= area.bottom - area.top <= 8
+                depth = area.bottom - area.top if shape[0] < shape[1] else area.right - area.left
+                assert office.MIN_DEPTH <= depth <= office.MAX_DEPTH, (seed, area)
+        # One hallway fewer (2 cells wide, a wall each side) would leave rows too deep, even
+        # split back to back as far as the hallways allow.
+        fewer = expected - 1
+        if fewer:
+            for back_to_back in range(fewer):
+                depth = across - 2 - 4 * fewer - back_to_back
+                assert depth > (fewer + 1 + back_to_back) * office.MAX_DEPTH
 
 
-def test_some_count_of_hallways_fits_every_floor_at_the_tightest_depths():
-    # max_depth's least, 6, is twice MIN_DEPTH: the rows that k and k + 1 hallways fit overlap.
-    for max_depth in (6, 7):
-        for rows in range(office.MIN_SIDE, 400):
-            halls, bands = office._hallways(np.random.default_rng(rows), rows, max_depth)
-            for band in bands:
-                for top, bottom in (
-                    [(band.top, band.bottom)]
-                    if band.split is None
-                    else [(band.top, band.split), (band.split + 1, band.bottom)]
-                ):
-                    assert office.MIN_DEPTH <= bottom - top <= max_depth, (rows, band)
+def test_some_count_of_hallways_fits_every_floor_up_to_1000_cells_across():
+    # MAX_DEPTH is at least twice MIN_DEPTH: the rows that k and k + 1 hallways fit overlap.
+    for rows in range(office.MIN_SIDE, 1_001):
+        halls, bands = office._hallways(np.random.default_rng(rows), rows)
+        assert halls and len(bands) == len(halls) + 1
+        for band in bands:
+            for top, bottom in (
+                [(band.top, band.bottom)]
+                if band.split is None
+                else [(band.top, band.split), (band.split + 1, band.bottom)]
+            ):
+                assert office.MIN_DEPTH <= bottom - top <= office.MAX_DEPTH, (rows, band)
 
 
 def test_rooms_in_a_row_are_alike_in_width_and_drawn_from_the_range():
+    low, high = office.ROOM_WIDTH
+    seen: set[int] = set()
     for seed in range(20):
         plan = office_plan(seed, 50, 100)
         rooms = sorted(kinds(plan, ROOM), key=lambda a: (a.top, a.bottom, a.left))
         widths = [a.right - a.left for a in rooms]
-        assert min(widths) >= 5 and max(widths) <= 9
+        assert min(widths) >= low and max(widths) <= high
+        seen.update(widths)
         # A run of rooms one wall apart in the same row: widths differ by a cell at most.
         run = [rooms[0]]
         for room in [*rooms[1:], None]:
@@ -176,9 +198,8 @@ def test_rooms_in_a_row_are_alike_in_width_and_drawn_from_the_range():
             run_widths = [a.right - a.left for a in run]
             assert max(run_widths) - min(run_widths) <= 1, (seed, run)
             run = [room]
-    narrow = [a.right - a.left for a in kinds(office_plan(0, 50, 100, room_width=(3, 3)), ROOM)]
-    # Never narrower than the range; wider only where no count of rooms fits a segment.
-    assert min(narrow) == 3 and narrow.count(3) > 0.8 * len(narrow)
+    # A width is drawn per row: the rows' rooms take every width of the range.
+    assert seen == set(range(low, high + 1))
 
 
 def test_open_plan_areas_take_about_their_share_and_hold_a_lattice_of_pillars():
@@ -210,19 +231,23 @@ def test_open_plan_areas_take_about_their_share_and_hold_a_lattice_of_pillars():
                 starts = sorted({p[axis] for p in inside})
                 gaps = set(np.diff(starts) - side)
                 assert len(gaps) <= 1 and gaps <= {3, 4}
-    assert 0.15 <= np.mean(shares) <= 0.3
-    assert not kinds(office_plan(0, 50, 100, open_share=0.0), OPEN)
-    assert not kinds(office_plan(0, 50, 100, open_share=1.0), ROOM)
+    assert 0.15 <= np.mean(shares) <= 0.3  # OPEN_SHARE, 0.2: about 0.22 on average
+    assert all(0 < share < 0.5 for share in shares)  # every floor has some, and rooms first
 
 
-def test_inner_doors_join_some_neighbours_and_none_when_the_share_is_zero():
-    def inner(plan: OfficePlan) -> int:
-        return sum(plan.areas[b].kind == ROOM for _, b, _ in plan.doors)
-
-    counts = [inner(office_plan(seed, 50, 100)) for seed in range(10)]
-    rooms = [len(kinds(office_plan(seed, 50, 100), ROOM)) for seed in range(10)]
-    assert 0.05 < sum(counts) / sum(rooms) < 0.3  # about 0.15 of the neighbours
-    assert inner(office_plan(0, 50, 100, inner_door_share=0.0)) == 0
+def test_inner_doors_join_some_neighbours_and_some_room_doors_are_wide():
+    plans = [office_plan(seed, 50, 100) for seed in range(20)]
+    inner = sum(p.areas[b].kind == ROOM for p in plans for _, b, _ in p.doors)
+    rooms = sum(len(kinds(p, ROOM)) for p in plans)
+    assert 0.05 < inner / rooms < 0.3  # INNER_DOOR_SHARE, 0.15, of the neighbours
+    sizes = [
+        len(cells)
+        for p in plans
+        for a, b, cells in p.doors
+        if p.areas[a].kind == ROOM and p.areas[b].kind == HALL
+    ]
+    assert set(sizes) == {1, 2}
+    assert 0.1 < sizes.count(2) / len(sizes) < 0.3  # WIDE_DOOR_SHARE, 0.2 (0.18 measured)
 
 
 def test_office_floors_look_unlike_rooms_plans():
@@ -282,16 +307,6 @@ def test_the_source_skips_no_seed_and_draws_the_generators_floor():
         ({"height": 2}, r"an office floor needs at least 12x12 cells .*, got 2x100"),
         ({"width": 11}, r"an office floor needs at least 12x12 cells .*, got 50x11"),
         ({"height": 0}, "height must be an integer >= 1, got 0"),
-        ({"room_width": (2, 9)}, r"room_width must be two integers low <= high in \[3, 1,000\]"),
-        ({"room_width": (9, 5)}, r"room_width must be two integers .*, got \(9, 5\)"),
-        ({"room_width": (5, 1_001)}, r"room_width must be two integers low <= high in \[3, 1,000"),
-        ({"room_width": 5}, r"room_width must be two integers low <= high in \[3, 1,000\], got 5"),
-        ({"room_width": (5.5, 9)}, r"room_width must be two integers"),
-        ({"max_depth": 5}, r"max_depth must be an integer in \[6, 1,000\], got 5"),
-        ({"max_depth": 7.5}, r"max_depth must be an integer in \[6, 1,000\], got 7.5"),
-        ({"wide_door_share": -0.1}, r"wide_door_share must be in \[0.0, 1.0\]"),
-        ({"inner_door_share": 1.5}, r"inner_door_share must be in \[0.0, 1.0\]"),
-        ({"open_share": 2}, r"open_share must be in \[0.0, 1.0\]"),
     ],
 )
 def test_bad_parameters_are_refused_one_line_each(settings, message):
@@ -304,35 +319,30 @@ def test_bad_parameters_are_refused_one_line_each(settings, message):
 def test_the_generator_function_refuses_what_would_break_the_layout():
     with pytest.raises(ValueError, match="at least 12x12"):
         generate_office(0, 11, 40)
-    with pytest.raises(ValueError, match="room_width must be"):
-        generate_office(0, 50, 100, room_width=(1, 4))
-    with pytest.raises(ValueError, match="max_depth must be"):
-        generate_office(0, 50, 100, max_depth=3)
+
+
+#: The layout's numbers that were parameters of the kind until 2026-11-29 (research/README.md).
+REMOVED = ["room_width", "max_depth", "wide_door_share", "inner_door_share", "open_share"]
+
+
+def test_the_kind_and_the_generator_take_only_a_size():
+    # The registry's config model is made from the constructor's signature.
+    assert list(inspect.signature(OfficeMaps.__init__).parameters) == ["self", "height", "width"]
+    for function in (generate_office, office_plan):
+        assert list(inspect.signature(function).parameters) == ["seed", "height", "width"]
 
 
 def test_a_config_names_the_kind_with_its_parameters():
     config = config_from_dict(
         {"env": {"n_agents": 4, "map": {"office": {"height": 50, "width": 100}}}}
     )
-    assert config.env.map == {
-        "office": {
-            "height": 50,
-            "width": 100,
-            "room_width": [5, 9],
-            "max_depth": 14,
-            "wide_door_share": 0.2,
-            "inner_door_share": 0.15,
-            "open_share": 0.2,
-        }
-    }
+    assert config.env.map == {"office": {"height": 50, "width": 100}}
     assert GENERATORS["office"] is OfficeMaps
     source = env_kwargs(config.env)["map"]
-    assert isinstance(source, OfficeMaps) and source.shape["room_width"] == (5, 9)
+    assert isinstance(source, OfficeMaps) and (source.height, source.width) == (50, 100)
     env = coverage_v0.parallel_env(**env_kwargs(config.env))
     env.reset(seed=0)
     assert env.walls.shape == (50, 100) and components(env.walls) == 1
-    with pytest.raises(ConfigError, match=r"env\.map: office: room_width must be two integers"):
-        config_from_dict({"env": {"map": {"office": {"room_width": [9, 4]}}}})
     with pytest.raises(
         ConfigError, match=r"env: map: office: an office floor needs at least 12x12 .*got 10x50"
     ):
@@ -341,3 +351,28 @@ def test_a_config_names_the_kind_with_its_parameters():
         ConfigError, match=r"env\.map: office\.rooms: Extra inputs are not permitted"
     ):
         config_from_dict({"env": {"map": {"office": {"rooms": 2}}}})
+
+
+@pytest.mark.parametrize(
+    ("name", "value"), list(zip(REMOVED, ["[4, 6]", "8", "0.5", "0", "0.4"], strict=True))
+)
+def test_a_config_that_sets_a_removed_parameter_is_refused_like_any_unknown_key(
+    name, value, tmp_path, capsys
+):
+    with pytest.raises(
+        ConfigError, match=rf"env\.map: office\.{name}: Extra inputs are not permitted"
+    ):
+        config_from_dict({"env": {"map": {"office": {"height": 50, name: value}}}})
+    # The command line: one line, exit code 2, nothing written.
+    config = tmp_path / "tiny.yaml"
+    config.write_text(
+        "name: tiny\nenv: {height: 12, width: 12, n_agents: 2, max_steps: 20}\n"
+        "phases: [{name: only, timesteps: 100}]\n"
+    )
+    capsys.readouterr()
+    argv = ["run", str(config), "--set", f"env.map={{office: {{{name}: {value}}}}}"]
+    assert main([*argv, "--runs-dir", str(tmp_path / "runs")]) == 2
+    lines = capsys.readouterr().err.strip().splitlines()
+    assert len(lines) == 1, lines
+    assert f"env.map: office.{name}: Extra inputs are not permitted" in lines[0]
+    assert not (tmp_path / "runs").exists()

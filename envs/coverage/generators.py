@@ -332,51 +332,28 @@ class OfficeMaps(_SeededMaps):
     style of floor plan than ``rooms``, to test what was learned on those.
 
     There is no shipped office map: :attr:`shipped_seed` is -1, a seed the source never draws
-    (it draws from 0 up), so no seed is skipped.
+    (it draws from 0 up), so no seed is skipped. The layout's numbers (room widths, rows' depth,
+    door and open-plan shares) are constants of :mod:`envs.coverage.office`, not parameters.
 
     Args:
         height: Rows (at least 12: a hallway with a row of rooms each side, inside a wall border).
         width: Columns (at least 12).
-        room_width: ``(low, high)``, the range a row's room width is drawn from, in [3, 1,000].
-        max_depth: Most cells of a row of rooms across, in [6, 1,000] (the floor gets the fewest
-            hallways that keep every row at most this deep).
-        wide_door_share: Chance in [0, 1] that a room's door is 2 cells wide rather than 1.
-        inner_door_share: Chance in [0, 1] of a door between neighbouring rooms in a row.
-        open_share: Share in [0, 1] of the rooms' floor given to open-plan areas (about).
     """
 
     name = "office"
     noun = "office floor"
     shipped_seed = -1
     #: None: the harness's map limit (2000x2000) bounds it. A 2000x2000 floor draws in 0.3 to
-    #: 0.6 s with the defaults and up to 1.3 s with the most rooms (``room_width: [3, 3],
-    #: max_depth: 6``), a 500x500 one in 0.02 s and 0.09 s. docs/environment.md has the
-    #: measurements.
+    #: 0.6 s, a 500x500 one in 0.02 s. docs/environment.md has the measurements.
     max_cells: ClassVar[int | None] = None
 
-    def __init__(
-        self,
-        height: int,
-        width: int,
-        room_width: tuple[int, int] = (5, 9),
-        max_depth: int = 14,
-        wide_door_share: float = 0.2,
-        inner_door_share: float = 0.15,
-        open_share: float = 0.2,
-    ) -> None:
+    def __init__(self, height: int, width: int) -> None:
         # Its own least size first: at least 12x12, and "an office floor" in the message.
         office.check_size(*_check_size(height, width))
         self._set_size(height, width)
-        self.shape = {
-            "room_width": office.check_room_width(room_width),
-            "max_depth": office.check_max_depth(max_depth),
-            "wide_door_share": _check_share("wide_door_share", wide_door_share),
-            "inner_door_share": _check_share("inner_door_share", inner_door_share),
-            "open_share": _check_share("open_share", open_share),
-        }
 
     def _generate(self, seed: int) -> np.ndarray:
-        return office.generate_office(seed, self.height, self.width, **self.shape)
+        return office.generate_office(seed, self.height, self.width)
 
 
 class FixedMap(MapGenerator):

@@ -9,7 +9,7 @@ along the floor's longer side (a floor taller than it is wide is built on its si
 a square one either way):
 
 1. hallways: the fewest full-length hallways, 2 or 3 cells wide, that keep every row of rooms
-   at most ``max_depth`` deep (two on a 50x100 floor, one on a 30x100 floor). Rooms lie between
+   at most :data:`MAX_DEPTH` deep (two on a 50x100 floor, one on a 30x100 floor). Rooms lie between
    the outer wall and a hallway, or between two hallways: there as one row of rooms through from
    hallway to hallway or as two rows back to back behind a wall, whichever the depths allow
    (drawn at random when both do). The rows share the depth evenly, give or take a cell or two;
@@ -19,37 +19,48 @@ a square one either way):
    :data:`SIDE_HALL_CHANCE`, a side hallway through its rooms to the outer wall (a T, or a
    cross). The hallways are one connected piece;
 3. open plan: stretches at one end of a row's segment (between cross hallways), about
-   ``open_share`` of the floor the rooms would take, become open-plan areas: one big room the
+   :data:`OPEN_SHARE` of the floor the rooms would take, become open-plan areas: one big room the
    whole depth between a hallway and the outer wall or the next hallway, with 1x1 or 2x2 pillars
    on a regular lattice (3 or 4 free cells apart and 2 or more from its walls, so none closes off
    floor) and 2-cell doors onto every hallway it lines, one per :data:`OPEN_DOOR_EVERY` cells;
-4. rooms: the rest of each segment is split into rooms of one width drawn from ``room_width``
+4. rooms: the rest of each segment is split into rooms of one width drawn from :data:`ROOM_WIDTH`
    (the rooms of a segment differ by a cell at most; a little wider where no count of rooms
    fits the range in the segment's length) behind one-cell walls reaching to the outer
    wall or the next hallway. Each room gets exactly one door onto a hallway (1 cell, 2 with
-   chance ``wide_door_share``, off the wall's ends), and neighbours in a row an inner door with
-   chance ``inner_door_share``. No furniture;
+   chance :data:`WIDE_DOOR_SHARE`, off the wall's ends), and neighbours in a row an inner door
+   with chance :data:`INNER_DOOR_SHARE`. No furniture;
 5. fill everything not connected to the largest free area (there is none by construction: every
    room and open area has a door onto the connected hallways; the step guards the promise that
    all free cells are connected).
+
+The layout's numbers are the module's constants below, not parameters: the ``office`` kind
+takes only a size (research/README.md, "The office generator's parameters", records the five
+that were parameters until 2026-11-29).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
 
 import numpy as np
 
 from envs.coverage.maps import fill_unreachable
 
-#: Range of ``room_width``'s ends: a room 3 cells wide still takes a door off its wall's ends;
-#: the cap is a typo guard.
-ROOM_WIDTH_RANGE = (3, 1_000)
-#: Range of ``max_depth``: twice :data:`MIN_DEPTH`, so some count of hallways always fits the
-#: rows between :data:`MIN_DEPTH` and ``max_depth`` (checked for every floor up to 1,000 cells
-#: across by the tests); the cap is a typo guard.
-MAX_DEPTH_RANGE = (6, 1_000)
+#: ``(low, high)``: the range a row's room width is drawn from (a segment of a row shorter than
+#: ``low`` is one narrower room; where no count of rooms fits the range in a segment, they are a
+#: little wider than ``high``).
+ROOM_WIDTH = (5, 9)
+#: Most cells of a row of rooms across: the floor gets the fewest hallways that keep every row at
+#: most this deep. At least twice :data:`MIN_DEPTH`, so some count of hallways always fits the
+#: rows (checked for every floor up to 1,000 cells across by the tests).
+MAX_DEPTH = 14
+#: Chance that a room's door is 2 cells wide rather than 1.
+WIDE_DOOR_SHARE = 0.2
+#: Chance, per pair of neighbouring rooms in a row, of a 1-cell door between them.
+INNER_DOOR_SHARE = 0.15
+#: Share of the rooms' floor given to open-plan areas (about: an area is a stretch of a row's
+#: segment, whole or at least :data:`_MIN_OPEN` long).
+OPEN_SHARE = 0.2
 #: Fewest cells of a row of rooms across (from its hallway's wall to the wall behind it).
 MIN_DEPTH = 3
 #: Fewest cells across the floor's shorter side: a 2-cell hallway between two rows of
@@ -140,112 +151,33 @@ def check_size(height: int, width: int) -> tuple[int, int]:
     return int(height), int(width)
 
 
-def check_room_width(room_width: Any) -> tuple[int, int]:
-    """Two integers ``low <= high`` in :data:`ROOM_WIDTH_RANGE`.
-
-    Raises:
-        ValueError: Naming the parameter and its range.
-    """
-    low, high = ROOM_WIDTH_RANGE
-    message = (
-        f"room_width must be two integers low <= high in [{low}, {high:,}], got {room_width!r}"
-    )
-    try:
-        first, last = room_width
-    except (TypeError, ValueError):
-        raise ValueError(message) from None
-    for value in (first, last):
-        if isinstance(value, bool) or not isinstance(value, int | np.integer):
-            raise ValueError(message)
-    if not low <= first <= last <= high:
-        raise ValueError(message)
-    return int(first), int(last)
-
-
-def check_max_depth(max_depth: Any) -> int:
-    """An integer in :data:`MAX_DEPTH_RANGE`.
-
-    Raises:
-        ValueError: Naming the parameter and its range.
-    """
-    low, high = MAX_DEPTH_RANGE
-    if (
-        isinstance(max_depth, bool)
-        or not isinstance(max_depth, int | np.integer)
-        or not low <= max_depth <= high
-    ):
-        raise ValueError(f"max_depth must be an integer in [{low}, {high:,}], got {max_depth!r}")
-    return int(max_depth)
-
-
-def generate_office(
-    seed: int,
-    height: int,
-    width: int,
-    room_width: tuple[int, int] = (5, 9),
-    max_depth: int = 14,
-    wide_door_share: float = 0.2,
-    inner_door_share: float = 0.15,
-    open_share: float = 0.2,
-) -> np.ndarray:
+def generate_office(seed: int, height: int, width: int) -> np.ndarray:
     """Draw an office floor; returns a bool ``(height, width)`` grid, True = wall.
 
     Args:
         seed: Seed of the generator; the same seed gives the same floor.
         height: Rows (at least :data:`MIN_SIDE`: a hallway with a row of rooms each side).
         width: Columns (at least :data:`MIN_SIDE`).
-        room_width: ``(low, high)``, the range a row's room width is drawn from, in [3, 1,000]
-            (a segment of a row shorter than ``low`` is one narrower room, and where no count of
-            rooms fits the range in a segment, they are wider than ``high``).
-        max_depth: Most cells of a row of rooms across, in [6, 1,000]: the floor gets the fewest
-            hallways that keep every row at most this deep.
-        wide_door_share: Chance in [0, 1] that a room's door is 2 cells wide rather than 1.
-        inner_door_share: Chance in [0, 1] per pair of neighbouring rooms in a row of a door
-            between them.
-        open_share: Share in [0, 1] of the rooms' floor given to open-plan areas (about: an area
-            is a stretch of a row's segment, whole or at least :data:`_MIN_OPEN` long).
     """
-    return fill_unreachable(
-        office_plan(
-            seed,
-            height,
-            width,
-            room_width,
-            max_depth,
-            wide_door_share,
-            inner_door_share,
-            open_share,
-        ).walls
-    )
+    return fill_unreachable(office_plan(seed, height, width).walls)
 
 
-def office_plan(
-    seed: int,
-    height: int,
-    width: int,
-    room_width: tuple[int, int] = (5, 9),
-    max_depth: int = 14,
-    wide_door_share: float = 0.2,
-    inner_door_share: float = 0.15,
-    open_share: float = 0.2,
-) -> OfficePlan:
+def office_plan(seed: int, height: int, width: int) -> OfficePlan:
     """The plan :func:`generate_office` draws (before its guard fills unreachable cells, of
     which there are none); same arguments."""
     height, width = check_size(height, width)
-    room_width = check_room_width(room_width)
-    max_depth = check_max_depth(max_depth)
     rng = np.random.default_rng(seed)
     # Built with the hallways along the rows; a taller floor is built on its side.
     turned = height > width or (height == width and rng.random() < 0.5)
     rows, cols = (width, height) if turned else (height, width)
-    halls, bands = _hallways(rng, rows, max_depth)
+    halls, bands = _hallways(rng, rows)
     areas: list[Area] = [Area(top, 1, bottom, cols - 1, HALL) for top, bottom in halls]
     segments = _cross_hallways(rng, rows, cols, areas, bands)
     walls = np.ones((rows, cols), dtype=bool)
     doors: list[tuple[int, int, tuple[tuple[int, int], ...]]] = []
     pillars: list[tuple[int, int, int, int]] = []
-    segments = _open_plan(rng, areas, bands, segments, open_share, room_width[0], doors, pillars)
-    _rooms(rng, areas, bands, segments, room_width, wide_door_share, inner_door_share, doors)
+    segments = _open_plan(rng, areas, bands, segments, doors, pillars)
+    _rooms(rng, areas, bands, segments, doors)
     for area in areas:
         walls[area.cells] = False
     for _, _, cells in doors:
@@ -262,9 +194,7 @@ def office_plan(
     return OfficePlan(walls, tuple(areas), tuple(doors), tuple(pillars))
 
 
-def _hallways(
-    rng: np.random.Generator, rows: int, max_depth: int
-) -> tuple[list[tuple[int, int]], list[_Band]]:
+def _hallways(rng: np.random.Generator, rows: int) -> tuple[list[tuple[int, int]], list[_Band]]:
     """Step 1: the full-length hallways' rows ``(top, bottom)`` and the bands of rooms."""
     inside = rows - 2
     drawn = rng.integers(2, 4, size=inside)  # the hallways' widths, if that many fit
@@ -277,21 +207,21 @@ def _hallways(
             for back_to_back in range(count):
                 depth = inside - int(widths.sum()) - 2 * count - back_to_back
                 n_rows = count + 1 + back_to_back
-                if n_rows * MIN_DEPTH <= depth <= n_rows * max_depth:
+                if n_rows * MIN_DEPTH <= depth <= n_rows * MAX_DEPTH:
                     fits.append(back_to_back)
             if fits:
                 chosen = count, widths, fits
                 break
         if chosen is not None:
             break
-    if chosen is None:  # MAX_DEPTH_RANGE and MIN_SIDE rule this out (the tests check it)
-        raise AssertionError(f"no hallways fit {rows} rows with max_depth {max_depth}")
+    if chosen is None:  # MAX_DEPTH >= 2 * MIN_DEPTH and MIN_SIDE rule this out (tests check it)
+        raise AssertionError(f"no hallways fit {rows} rows with rows at most {MAX_DEPTH} deep")
     count, widths, fits = chosen
     back_to_back = int(rng.choice(fits))
     split = np.zeros(count - 1, dtype=bool)
     split[rng.permutation(count - 1)[:back_to_back]] = True
     n_rows = count + 1 + back_to_back
-    depths = _share(rng, inside - int(widths.sum()) - 2 * count - back_to_back, n_rows, max_depth)
+    depths = _share(rng, inside - int(widths.sum()) - 2 * count - back_to_back, n_rows, MAX_DEPTH)
     halls: list[tuple[int, int]] = []
     bands: list[_Band] = []
     row, d = 1, iter(depths)
@@ -369,15 +299,14 @@ def _open_plan(
     areas: list[Area],
     bands: list[_Band],
     segments: list[tuple[int, int, int]],
-    open_share: float,
-    least_room: int,
     doors: list[tuple[int, int, tuple[tuple[int, int], ...]]],
     pillars: list[tuple[int, int, int, int]],
 ) -> list[tuple[int, int, int]]:
     """Step 3: open-plan areas at the ends of segments (appended to ``areas``, with their doors
     and pillars); returns the segments left for rooms."""
     depth = [band.bottom - band.top for band in bands]
-    left_over = open_share * sum(depth[b] * (right - left) for b, left, right in segments)
+    least_room = ROOM_WIDTH[0]
+    left_over = OPEN_SHARE * sum(depth[b] * (right - left) for b, left, right in segments)
     kept = list(segments)
     for k in rng.permutation(len(segments)):
         if left_over <= 0:
@@ -436,14 +365,11 @@ def _rooms(
     areas: list[Area],
     bands: list[_Band],
     segments: list[tuple[int, int, int]],
-    room_width: tuple[int, int],
-    wide_door_share: float,
-    inner_door_share: float,
     doors: list[tuple[int, int, tuple[tuple[int, int], ...]]],
 ) -> None:
     """Step 4: rows of rooms on the segments (appended to ``areas``), each room with one door onto
     a hallway, neighbours with inner doors at random."""
-    low, high = room_width
+    low, high = ROOM_WIDTH
 
     def door(cells: list[tuple[int, int]], size: int) -> tuple[tuple[int, int], ...]:
         n = len(cells)
@@ -482,10 +408,10 @@ def _rooms(
                 areas.append(room)
                 hall = facing[int(rng.integers(len(facing)))]
                 row = top - 1 if hall == band.above else bottom
-                size = 2 if rng.random() < wide_door_share else 1
+                size = 2 if rng.random() < WIDE_DOOR_SHARE else 1
                 side = [(row, c) for c in range(start, room.right)]
                 doors.append((index, hall, door(side, size)))
-                if previous is not None and rng.random() < inner_door_share:
+                if previous is not None and rng.random() < INNER_DOOR_SHARE:
                     wall = [(r, start - 1) for r in range(top, bottom)]
                     doors.append((index, previous, door(wall, 1)))
                 previous = index

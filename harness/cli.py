@@ -737,7 +737,8 @@ def _printable(comparison: dict[str, Any]) -> dict[str, Any]:
 
 
 def _eval_group(args: argparse.Namespace) -> int:
-    """``harness eval GROUP``: each run as ``harness eval RUN``, then the group's numbers. With
+    """``harness eval GROUP``: each run as ``harness eval RUN``, then the group's numbers (of
+    that evaluation: ``group-eval.json``, ``group-eval-30ep.json`` for ``--episodes 30``). With
     ``--json``, stdout is one JSON object: the group's numbers (when it has them) and each run's
     evaluation under ``"evaluations"``. ``--plot X.png`` draws one picture per seed,
     ``X-seed<k>.png``."""
@@ -762,16 +763,17 @@ def _eval_group(args: argparse.Namespace) -> int:
             cmd_eval(one)
         evaluations[run.name] = json.loads(text.getvalue())
 
-    standard = not args.overrides and args.episodes == DEFAULT_EPISODES and args.seed is None
-    result, saved, missing = evaluate_group(Path(args.target), evaluate_run, standard, args.against)
+    result, saved, missing = evaluate_group(
+        Path(args.target), evaluate_run, args.against, args.episodes, args.overrides, args.seed
+    )
     if args.json:
         out = {"group": str(args.target), **(result or {}), "evaluations": evaluations}
         if "against" in out:
             out["against"] = [_printable(c) for c in out["against"]]
     if missing:
         print(
-            f"harness: no group-eval.json: the group lacks {', '.join(missing)} (finish the "
-            "missing seeds, then evaluate the group again)",
+            "harness: no numbers over seeds (group-eval*.json): the group lacks "
+            f"{', '.join(missing)} (finish the missing seeds, then evaluate the group again)",
             file=sys.stderr,
         )
     if saved is not None and args.json:

@@ -805,26 +805,40 @@ def format_over_seeds(result: dict[str, Any]) -> str:
 
 
 def evaluate_group(
-    group: Path, evaluate_run: Any, standard: bool, against: Sequence[str] = ()
+    group: Path,
+    evaluate_run: Callable[[Path], object],
+    against: Sequence[str] = (),
+    episodes: int = STANDARD_EPISODES,
+    overrides: Sequence[str] = (),
+    seed: int | None = None,
 ) -> tuple[dict[str, Any] | None, Path | None, list[str]]:
-    """``harness eval GROUP``: ``evaluate_run(run)`` for every run, then, for the standard
-    evaluation (no ``--set``, 100 episodes), the numbers over seeds in ``GROUP/group-eval.json``;
-    not when a seed's run is missing (their names are returned: numbers over the others would
-    read as the group's). With ``against`` (baselines ``evaluate_run`` also compared each run
-    with: :func:`evaluate_against`), each baseline's paired differences over seeds too, in
-    ``GROUP/group-against-BASELINE.json`` (:func:`group_against`), listed under the result's
-    ``"against"``.
+    """``harness eval GROUP``: ``evaluate_run(run)`` for every run (``harness eval RUN`` with
+    ``episodes``, ``overrides`` and ``seed``), then the numbers over seeds of the evaluation
+    each run saved, in the group's file named after it
+    (:func:`~harness.results.groups.group_result_file`): ``GROUP/group-eval.json`` for the
+    standard evaluation (each run's ``eval.json``), ``GROUP/group-eval-30ep.json`` for
+    ``--episodes 30`` (each run's ``eval-30ep.json``), so that no evaluation of the group
+    replaces another's numbers. None when a seed's run is missing (their names are returned:
+    numbers over the others would read as the group's). With ``against`` (baselines
+    ``evaluate_run`` also compared each run with: :func:`evaluate_against`), each baseline's
+    paired differences over seeds too (:func:`group_against`: ``GROUP/group-against-BASELINE.json``,
+    ``GROUP/group-against-BASELINE-30ep.json``), listed under the result's ``"against"``.
+
+    Raises:
+        GroupError: when the runs would save the evaluation under different names (``seed``
+            against configs with different ``eval.seed``s: no one file holds them).
     """
-    from harness.results.groups import GROUP_EVAL_FILE, group_file, group_members, group_runs
+    from harness.results.groups import group_file, group_members, group_result_file, group_runs
     from harness.results.stats import describe, seed_statistics
 
     runs = group_runs(group)
     missing = [run.name for run in group_members(group) if run not in runs]
-    out = group_file(group, GROUP_EVAL_FILE)  # asked before the runs are evaluated
+    eval_name, against_names = _group_run_files(group, runs, against, episodes, overrides, seed)
+    out = group_file(group, group_result_file(eval_name))  # asked before the runs are evaluated
     summaries = {}
     for run in runs:
         evaluate_run(run)
-        data = read_eval_json(run) if standard else None
+        data = read_eval_json(run, eval_name.removesuffix(".json"))
         if data is not None:
             summaries[run.name] = data
     if missing or len(summaries) != len(runs):
@@ -839,24 +853,72 @@ def evaluate_group(
     }
     saved = write_json(out, result)
     if against:
-        result["against"] = [group_against(group, runs, policy) for policy in against]
+        result["against"] = [
+            group_against(group, runs, policy, against_names[policy]) for policy in against
+        ]
     return result, saved, []
 
 
-def group_against(group: Path, runs: Sequence[Path], policy: str) -> dict[str, Any]:
-    """The runs' paired differences from the baseline ``policy`` on their standard test
-    episodes (each run's ``against-POLICY.json``, :func:`evaluate_against`) over seeds: mean
-    and IQM with rliable's 95 % intervals over the seeds' differences (one run: no interval),
-    saved as ``GROUP/group-against-POLICY.json``. The question it answers is the training's:
-    does a seed of this training beat the baseline on the same episodes, and by how much?"""
-    from harness.results.groups import group_against_file, group_file
+def _group_run_files(
+    group: Path,
+    runs: Sequence[Path],
+    against: Sequence[str],
+    episodes: int,
+    overrides: Sequence[str],
+    seed: int | None,
+) -> tuple[str, dict[str, str]]:
+    """The file each of ``runs`` saves ``harness eval RUN`` with ``episodes``, ``overrides`` and
+    ``seed`` as (:func:`evaluate`: its ``model.zip``, :func:`result_filename`), and each
+    baseline's comparison (:func:`evaluate_against`: :func:`against_filename`), the same for
+    every run. A seed names the files only where it is not the run's ``eval.seed`` (as
+    :attr:`Target.seed_changed`), so its config is read only for one.
+
+    Raises:
+        GroupError: when two runs name them differently (configs with different ``eval.seed``).
+    """
+    from harness.results.groups import GroupError
+
+    names: dict[tuple[str, tuple[str, ...]], list[str]] = {}
+    for run in runs:
+        changed = None
+        if seed is not None and seed != load_config(RunDir(run).config, overrides).eval.seed:
+            changed = str(seed)
+        files = (
+            result_filename("eval", overrides, "model", episodes, changed),
+            tuple(against_filename(p, overrides, "model", episodes, changed) for p in against),
+        )
+        names.setdefault(files, []).append(run.name)
+    if len(names) > 1:
+        (first, *_), (second, *_) = list(names.values())[:2]
+        raise GroupError(
+            f"{group}: --seed {seed} is the eval.seed of some runs' configs but not of others "
+            f"({first}, {second}): their evaluations are saved under different names; evaluate "
+            "the runs one by one"
+        )
+    (eval_name, against_names), *_ = names
+    return eval_name, dict(zip(against, against_names, strict=True))
+
+
+def group_against(
+    group: Path, runs: Sequence[Path], policy: str, run_file: str | None = None
+) -> dict[str, Any]:
+    """The runs' paired differences from the baseline ``policy`` on their test episodes (each
+    run's comparison ``run_file``, by default the standard evaluation's ``against-POLICY.json``:
+    :func:`evaluate_against`) over seeds: mean and IQM with rliable's 95 % intervals over the
+    seeds' differences (one run: no interval), saved in the group's file named after
+    ``run_file`` (:func:`~harness.results.groups.group_result_file`:
+    ``GROUP/group-against-POLICY.json``, ``GROUP/group-against-POLICY-30ep.json``). The question
+    it answers is the training's: does a seed of this training beat the baseline on the same
+    episodes, and by how much?"""
+    from harness.results.groups import group_file, group_result_file
     from harness.results.stats import describe, seed_statistics
 
+    run_file = against_filename(policy, []) if run_file is None else run_file
     differences: dict[str, float] = {}
     steps: dict[str, float] = {}  # the steps to 99 %, of the runs that have a comparison of them
     metric = "coverage"
     for run in runs:
-        path = RunDir(results_folder(run)).result(against_filename(policy, []))
+        path = RunDir(results_folder(run)).result(run_file)
         data = json.loads(path.read_text(encoding="utf-8"))  # written by this command
         differences[run.name], metric = float(data["difference"]), data["metric"]
         if data.get("steps_to_99") is not None:
@@ -873,7 +935,7 @@ def group_against(group: Path, runs: Sequence[Path], policy: str) -> dict[str, A
         result["steps_to_99_differences"] = steps
         over = seed_statistics({policy: list(steps.values())})[policy]
         result["steps_to_99_difference_over_seeds"] = describe(over)
-    saved = write_json(group_file(group, group_against_file(policy)), result)
+    saved = write_json(group_file(group, group_result_file(run_file)), result)
     return {**result, "saved": saved}
 
 

@@ -89,3 +89,72 @@ def test_a_group_file_whose_seeds_disagree_with_its_runs_is_refused(group, capsy
     line = _refused_eval(group, capsys)
     assert "as seed 5, but its config.yaml trains seed 3" in line
     assert not (group / "group-eval.json").exists()
+
+
+def _members(group: Path) -> list[Path]:
+    """The run folders ``group.json`` names, in seed order."""
+    return [
+        group / entry["run"] for entry in json.loads((group / "group.json").read_text())["runs"]
+    ]
+
+
+def test_a_group_evaluated_on_fewer_episodes_gets_its_own_numbers_over_seeds(group, capsys):
+    # --episodes 3 --against frontier: each run's eval-3ep.json and against-frontier-3ep.json,
+    # their numbers over seeds in group-eval-3ep.json and group-against-frontier-3ep.json, and
+    # the standard group-eval.json and group-against-frontier.json left alone (not written).
+    assert main(["eval", str(group), "--episodes", "3", "--against", "frontier"]) == 0
+    captured = capsys.readouterr()
+    printed = captured.out.strip().splitlines()
+    runs = _members(group)
+    evals = [json.loads((run / "eval-3ep.json").read_text()) for run in runs]
+    assert [ev["episodes"] for ev in evals] == [3, 3]
+    over = json.loads((group / "group-eval-3ep.json").read_text())
+    keys = ("seed", "coverage_mean", "coverage_median", "wall_hits_mean")
+    assert over["runs"] == {
+        r.name: {k: ev[k] for k in keys} for r, ev in zip(runs, evals, strict=True)
+    }
+    # By hand: the runs' mean coverage, each the mean of its 3 episodes, averaged over 2 seeds.
+    means = [sum(ev["coverage"]) / 3 for ev in evals]
+    assert [ev["coverage_mean"] for ev in evals] == pytest.approx(means)
+    mean = over["coverage_mean_over_seeds"]["mean"]
+    assert over["coverage_mean_over_seeds"]["seeds"] == 2
+    assert mean == pytest.approx(sum(means) / 2)
+    assert printed[-2].startswith(f"== over 2 seeds: mean coverage {100 * mean:.1f} % [")
+    comparisons = [json.loads((run / "against-frontier-3ep.json").read_text()) for run in runs]
+    for ev, comparison in zip(evals, comparisons, strict=True):  # paired on the run's episodes
+        assert comparison["coverage"] == ev["coverage"] and comparison["episodes"] == 3
+        theirs = comparison["against_coverage"]
+        by_hand = sum(a - b for a, b in zip(ev["coverage"], theirs, strict=True)) / 3
+        assert comparison["difference"] == pytest.approx(by_hand)
+    against = json.loads((group / "group-against-frontier-3ep.json").read_text())
+    diffs = [c["difference"] for c in comparisons]
+    assert against["differences"] == {r.name: d for r, d in zip(runs, diffs, strict=True)}
+    difference = against["difference_over_seeds"]["mean"]
+    assert difference == pytest.approx(sum(diffs) / 2)
+    assert printed[-1].startswith(
+        "== over 2 seeds against frontier (paired on each run's episodes), mean difference "
+        f"(points of coverage) {100 * difference:+.2f} ["
+    )
+    assert f"saved {group / 'group-eval-3ep.json'}" in captured.err
+    assert f"saved {group / 'group-against-frontier-3ep.json'}" in captured.err
+    written = sorted(p.name for p in group.glob("group-*.json"))
+    assert written == ["group-against-frontier-3ep.json", "group-eval-3ep.json"]
+    assert not (group / "group-eval.json").exists()
+
+
+def test_a_group_evaluated_with_a_seed_and_overrides_names_its_files_after_them(group, capsys):
+    # Each run's file says the episodes, the seed and the --set; the group's file is named after
+    # it, and --json gives its numbers over seeds.
+    args = ["eval", str(group), "--episodes", "2", "--seed", "7", "--set", "env.max_steps=10"]
+    assert main([*args, "--json"]) == 0
+    result = json.loads(capsys.readouterr().out)
+    runs = _members(group)
+    evals = [json.loads((run / "eval-2ep_seed7_env.max_steps-10.json").read_text()) for run in runs]
+    assert [(ev["seed"], ev["episodes"]) for ev in evals] == [(7, 2), (7, 2)]
+    over = json.loads((group / "group-eval-2ep_seed7_env.max_steps-10.json").read_text())
+    means = [ev["coverage_mean"] for ev in evals]
+    assert over["coverage_mean_over_seeds"]["mean"] == pytest.approx(sum(means) / 2)
+    assert result["coverage_mean_over_seeds"] == over["coverage_mean_over_seeds"]
+    assert sorted(p.name for p in group.glob("group-*.json")) == [
+        "group-eval-2ep_seed7_env.max_steps-10.json"
+    ]

@@ -1012,14 +1012,55 @@ def test_a_group_missing_a_seed_gets_no_group_eval(tmp_path):
         path = group / f"run-seed{k}" / "eval.json"
         path.write_text(json.dumps({**json.loads(path.read_text()), "seed": 1_000_003}))
     evaluated = []
-    result, saved, missing = evaluate_group(group, evaluated.append, standard=True)
+    result, saved, missing = evaluate_group(group, evaluated.append)
     assert missing == [] and saved == group / "group-eval.json" and len(evaluated) == 3
     assert result["coverage_mean_over_seeds"]["seeds"] == 3
     saved.unlink()
     shutil.rmtree(group / "run-seed1")
-    result, saved, missing = evaluate_group(group, evaluated.append, standard=True)
+    result, saved, missing = evaluate_group(group, evaluated.append)
     assert (result, saved, missing) == (None, None, ["run-seed1"])
     assert not (group / "group-eval.json").exists()
+
+
+def test_group_files_are_named_after_each_runs_evaluation():
+    from harness.results.groups import GROUP_EVAL_FILE, group_against_file, group_result_file
+    from harness.results.rundir import against_filename, result_filename
+
+    # The standard names, as they were.
+    assert GROUP_EVAL_FILE == "group-eval.json"
+    assert group_against_file("frontier_pocket") == "group-against-frontier_pocket.json"
+    # Any other evaluation: the run's own file name after "group-".
+    assert group_result_file(result_filename("eval", [], episodes=30)) == "group-eval-30ep.json"
+    against = against_filename("frontier_pocket", [], episodes=30)
+    assert group_result_file(against) == "group-against-frontier_pocket-30ep.json"
+    overrides = ["env.max_steps=10"]
+    name = result_filename("eval", overrides, "model", 2, "7")
+    assert group_result_file(name) == "group-eval-2ep_seed7_env.max_steps-10.json"
+
+
+def test_a_non_standard_group_evaluation_reads_and_writes_its_own_files(tmp_path):
+    from harness.commands import evaluate_group
+
+    group = _fake_group(tmp_path / "g", [0.1, 0.2, 0.3], [{100: 0.1}] * 3)
+    scores = [0.25, 0.5, 0.6]  # each run's 30-episode evaluation, beside its eval.json
+    for k, score in enumerate(scores):
+        ev = {"seed": 1_000_003, "coverage_median": score, "coverage_iqr": 0.0,
+              "coverage_mean": score, "wall_hits_mean": 2.0, "episodes": 30}  # fmt: skip
+        (group / f"run-seed{k}" / "eval-30ep.json").write_text(json.dumps(ev))
+    evaluated = []
+    result, saved, missing = evaluate_group(group, evaluated.append, episodes=30)
+    assert missing == [] and saved == group / "group-eval-30ep.json" and len(evaluated) == 3
+    written = json.loads(saved.read_text())
+    assert written["coverage_mean_over_seeds"]["seeds"] == 3
+    # The 30-episode numbers, not eval.json's 0.1, 0.2, 0.3: (0.25 + 0.5 + 0.6) / 3.
+    assert written["coverage_mean_over_seeds"]["mean"] == pytest.approx(1.35 / 3)
+    assert [r["coverage_mean"] for r in written["runs"].values()] == scores
+    assert not (group / "group-eval.json").exists()
+    saved.unlink()
+    shutil.rmtree(group / "run-seed2")  # a missing seed: no group file, as for the standard one
+    result, saved, missing = evaluate_group(group, evaluated.append, episodes=30)
+    assert (result, saved, missing) == (None, None, ["run-seed2"])
+    assert sorted(p.name for p in group.glob("group-*")) == []
 
 
 def test_a_trial_skipped_because_the_study_is_full_says_nothing():

@@ -38,8 +38,10 @@ from harness.processes import available_cores, harness_command
 from harness.results.rundir import (
     RunDir,
     RunDirError,
+    against_filename,
     atomic_write_text,
     inside,
+    result_filename,
     unique_folder,
 )
 
@@ -49,14 +51,27 @@ GROUP_FILE = "group.json"
 #: overrides): a seed that ``--resume GROUP`` starts is started from this copy inside the group,
 #: never from the file ``group.json`` names (a downloaded group.json could name any file).
 GROUP_CONFIG = "group-config.yaml"
+
+
+def group_result_file(run_file: str) -> str:
+    """The group's file of the numbers over seeds of the results each of its runs saved as
+    ``run_file`` (a name of :func:`~harness.results.rundir.result_filename` or
+    :func:`~harness.results.rundir.against_filename`): ``group-`` and that name, so that each
+    evaluation of a group has a file of its own, as each run's has: ``eval.json`` gives
+    ``group-eval.json``, ``eval-30ep.json`` (``--episodes 30``) ``group-eval-30ep.json``,
+    ``against-frontier_pocket-30ep.json`` ``group-against-frontier_pocket-30ep.json``."""
+    return f"group-{run_file}"
+
+
 #: The numbers over seeds of ``harness eval GROUP`` (the standard evaluation of every run).
-GROUP_EVAL_FILE = "group-eval.json"
+GROUP_EVAL_FILE = group_result_file(result_filename("eval", []))
 
 
 def group_against_file(policy: str) -> str:
-    """The file of ``harness eval GROUP --against POLICY``: the runs' episode-by-episode
-    differences from the baseline ``policy`` (their ``against-POLICY.json``), over seeds."""
-    return f"group-against-{policy}.json"
+    """The file of ``harness eval GROUP --against POLICY`` (the standard evaluation): the runs'
+    episode-by-episode differences from the baseline ``policy`` (their
+    ``against-POLICY.json``), over seeds."""
+    return group_result_file(against_filename(policy, []))
 
 
 class GroupError(ValueError):

@@ -39,7 +39,8 @@ teacher was checked against, tests/test_teacher.py): the same choices, 3 to 12 t
     python research/experiments/goal_oracle.py [--config configs/goals_2agents.yaml] [--episodes 10]
         [--seed 2000003] [--set KEY=VALUE ...] [--horizon H] [--belief true|sampled]
         [--samples M] [--sigmas Z] [--margin CELLS] [--model RUN/model.zip] [--save DECISIONS.npz]
-        [--reach Q] [--after C] [--rollouts compiled|python]
+        [--reach Q] [--after C] [--rollouts compiled|python] [--known D]
+        [--prior RUN] [--likely-band D]
 """
 
 from __future__ import annotations
@@ -47,14 +48,19 @@ from __future__ import annotations
 import argparse
 import time
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from envs.coverage.env import CoverageEnv
 from envs.coverage.goals import Candidates
 from envs.coverage.planners import FrontierPlanner
-from envs.coverage.rollouts import clear_of_noise, sampled_free, shortest_walk
+from envs.coverage.rollouts import (
+    clear_of_noise,
+    prior_wall_probability,
+    sampled_free,
+    shortest_walk,
+)
 from envs.coverage.teacher import RolloutTeacher
 from harness import DoubleDQN
 from harness.config.loading import load_config
@@ -180,6 +186,32 @@ def python_scores(
     return scores
 
 
+def with_known_band(planner: FrontierPlanner, free: np.ndarray, known: int) -> np.ndarray:
+    """``free`` (a sampled map, padded and flat) with the true cells up to ``known`` cells
+    (chessboard distance) from the cells the team has seen."""
+    from scipy.ndimage import distance_transform_cdt
+
+    seen = planner.seen.reshape(-1, planner.stride)
+    near = distance_transform_cdt(~seen, metric="chessboard") <= known
+    out = np.asarray(free, dtype=bool).reshape(-1, planner.stride).copy()
+    truth = np.asarray(planner.free, dtype=bool).reshape(-1, planner.stride)
+    out[near] = truth[near]
+    return out.ravel()
+
+
+def with_likely_band(planner: FrontierPlanner, p_wall: np.ndarray, band: int) -> np.ndarray:
+    """The prior's wall probabilities ``p_wall`` ``(H, W)`` rounded to 0 or 1 up to ``band``
+    cells (chessboard distance) from the seen cells: the maps drawn from it hold the prior's
+    most likely cells there."""
+    if band <= 0:
+        return p_wall
+    from scipy.ndimage import distance_transform_cdt
+
+    seen = planner.seen.reshape(-1, planner.stride)[1:-1, 1:-1]
+    near = distance_transform_cdt(~seen, metric="chessboard") <= band
+    return np.where(near, (p_wall > 0.5).astype(float), p_wall)
+
+
 def play(
     env: CoverageEnv,
     seed: int,
@@ -195,6 +227,9 @@ def play(
     sigmas: float = 0.0,
     after: float = 0.0,
     coverages: list | None = None,
+    known: int = 0,
+    prior: Any = None,
+    likely_band: int = 0,
 ) -> tuple[float, int, int | None]:
     """One episode; with ``oracle`` the rollout oracle chooses, with ``model`` a trained goal policy
     (greedy, committed like the oracle), otherwise slot 0 throughout. ``belief``: the rollouts'
@@ -207,7 +242,12 @@ def play(
     not asked). ``horizon``: rollouts end after so many steps (``None``: at the episode's end).
     ``sigmas``: with several sampled maps, a slot replaces slot 0 only where its mean paired
     gain exceeds so many standard errors over the maps. ``after``: the oracle decides only from
-    this coverage on (slot 0 before it); ``coverages`` collects the coverage at each deviation."""
+    this coverage on (slot 0 before it); ``coverages`` collects the coverage at each deviation.
+    ``known``: with sampled maps, the cells up to so many cells (chessboard) from the seen ones
+    are the true ones (a partly clairvoyant oracle: how far ahead a map must be right).
+    ``prior``: a map prior (``harness.prior.model.MapPrior``) the sampled maps are drawn from,
+    cell by cell, its most likely cell (a wall where p > 0.5) up to ``likely_band`` cells from
+    the seen ones."""
     obs, _ = env.reset(seed=seed)
     rng = np.random.default_rng(seed)
     teacher = RolloutTeacher(horizon, margin, reach)
@@ -239,7 +279,15 @@ def play(
                 per_map = np.zeros((n_maps, len(slots)))
                 for m in range(n_maps):
                     # One map for every option of a sample: their differences are paired.
-                    free = sampled_free(planner, rng) if belief == "sampled" else None
+                    p_wall = None
+                    if belief == "sampled" and prior is not None:
+                        if m == 0:  # one prediction a decision
+                            p_wall = prior_wall_probability(planner, prior)
+                            likely = with_likely_band(planner, p_wall, likely_band)
+                        p_wall = likely
+                    free = sampled_free(planner, rng, p_wall) if belief == "sampled" else None
+                    if free is not None and known:
+                        free = with_known_band(planner, free, known)
                     if python:
                         per_map[m] = python_scores(
                             planner, cand, i, cells, rests, steps_left, teacher, free
@@ -359,7 +407,27 @@ def main() -> None:
         default="compiled",
         help="the rollouts' code: the teacher's compiled one or the Python reference",
     )
+    parser.add_argument(
+        "--known",
+        type=int,
+        default=0,
+        help="with --belief sampled: the cells up to this many cells from the seen ones are true",
+    )
+    parser.add_argument(
+        "--prior", help="with --belief sampled: a map prior run the maps are drawn from"
+    )
+    parser.add_argument(
+        "--likely-band",
+        type=int,
+        default=0,
+        help="with --prior: the prior's most likely cells up to this many cells from the seen ones",
+    )
     args = parser.parse_args()
+    prior = None
+    if args.prior:
+        from harness.prior.model import load_prior
+
+        prior = load_prior(args.prior)
     if not any(o.startswith("env.map=") for o in args.overrides):
         args.overrides.insert(0, "env.map=random")
     env = make_env(load_config(args.config, args.overrides).env)
@@ -386,6 +454,9 @@ def main() -> None:
             sigmas=args.sigmas,
             after=args.after,
             coverages=coverages,
+            known=args.known,
+            prior=prior,
+            likely_band=args.likely_band,
         )
         rows.append((planner, oracle))
         if records is not None:

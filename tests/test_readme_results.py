@@ -488,3 +488,37 @@ def test_prior_chooser_row_quotes_its_stored_comparison(row) -> None:
         f"[{signed(lo, 2)}, {signed(hi, 2)}]"
     )
     assert quoted in row["paired with"], quoted
+
+
+PRIOR_POLICY_ROWS = table_rows(
+    "| policy | maps, agents | seeds | coverage | vs `frontier_pocket` |"
+)
+
+
+@pytest.mark.parametrize("row", PRIOR_POLICY_ROWS, ids=lambda r: r["policy"])
+def test_prior_policy_row_quotes_its_reference_comparisons(row) -> None:
+    # Seed 0's 30-episode comparisons, kept with its reference (the three seeds gave the same).
+    ref = ROOT / "runs" / "reference" / row["policy"].strip("`")
+    evaluation = json.loads((ref / "eval-30ep.json").read_text())
+    assert row["coverage"] == percent(evaluation["coverage_mean"])
+    for policy in ("frontier_pocket", "frontier_minpos"):
+        d = json.loads((ref / f"against-{policy}-30ep.json").read_text())
+        assert d["episodes"] == 30 and d["coverage"] == evaluation["coverage"]
+        figures = (100 * x for x in (d["difference"], *d["difference_ci95"]))
+        # This table writes no difference as +0.00.
+        diff, lo, hi = (signed(x, 2) if round(x, 2) else "+0.00" for x in figures)
+        quoted = f"{diff} [{lo}, {hi}]"
+        assert row[f"vs `{policy}`"].startswith(quoted), quoted
+
+
+def test_maze_prior_policy_group_is_stored_with_its_numbers_over_seeds() -> None:
+    group = ROOT / "docs" / "seeds" / "goals_prior_maze_2agents"
+    over = json.loads((group / "group-against-frontier_pocket-30ep.json").read_text())
+    assert len(over["differences"]) == 3 and set(over["differences"].values()) == {0.0}
+    per_seed = [
+        json.loads((group / f"goals_prior_maze_2agents-seed{k}" / "eval-30ep.json").read_text())
+        for k in range(3)
+    ]
+    means = [e["coverage_mean"] for e in per_seed]
+    over_eval = json.loads((group / "group-eval-30ep.json").read_text())
+    assert over_eval["coverage_mean_over_seeds"]["mean"] == pytest.approx(sum(means) / 3)

@@ -299,9 +299,6 @@ class Frontier:
 
     def __init__(self, options: FrontierOptions, height: int, width: int) -> None:
         self.options = options
-        #: The options' map prior (the goal action's candidates then carry the
-        #: :data:`~envs.coverage.goals.PRIOR_FEATURES` too).
-        self.prior = options.prior
         #: The prior's last wall probabilities and the step it gave them (asked every
         #: :data:`~envs.coverage.goals.PRIOR_EVERY` steps).
         self._p_wall = np.zeros((height, width))
@@ -327,7 +324,7 @@ class Frontier:
     @property
     def n_goal_features(self) -> int:
         """Columns of the goal action's candidate features (with a prior, its columns too)."""
-        return len(GOAL_FEATURES) + (len(PRIOR_FEATURES) if self.prior is not None else 0)
+        return len(GOAL_FEATURES) + (len(PRIOR_FEATURES) if self.options.prior is not None else 0)
 
     def planned_moves(self, state: GridState) -> list[int]:
         """Each agent's move by the planner on the team's map of ``state`` (needs a planner)."""
@@ -347,9 +344,10 @@ class Frontier:
             candidates = gather_candidates(
                 self.planner, moves, goal.k, self.height, self.width, held
             )
-            if self.prior is not None:
+            prior = self.options.prior  # the goal action's candidates then carry its features
+            if prior is not None:
                 if state.steps == 0 or state.steps - self._prior_step >= PRIOR_EVERY:
-                    self._p_wall = prior_wall_probability(self.planner, self.prior)
+                    self._p_wall = prior_wall_probability(self.planner, prior)
                     self._prior_step = state.steps
                 extra = predicted_features(self._p_wall, self.planner.seen, candidates.cells)
                 candidates.features = np.concatenate([candidates.features, extra], axis=2)

@@ -49,6 +49,46 @@ def _check_exponent(name: str, value: float) -> float:
     return value
 
 
+class _PrioritySettings:
+    """A prioritized sampler's ``eps`` and exponents ``alpha`` and ``beta``, checked when set;
+    the sampler applies a new exponent in :meth:`_apply_alpha` (:meth:`_apply_beta`)."""
+
+    eps: float
+    _alpha: float
+    _beta: float
+
+    def _set_settings(self, alpha: float, beta: float, eps: float) -> None:
+        if eps <= 0:
+            raise ValueError(f"eps must be > 0, got {eps}")
+        self.eps = float(eps)
+        self._alpha = _check_exponent("alpha", alpha)
+        self._beta = _check_exponent("beta", beta)
+
+    @property
+    def alpha(self) -> float:
+        return self._alpha
+
+    @alpha.setter
+    def alpha(self, value: float) -> None:
+        self._alpha = _check_exponent("alpha", value)
+        self._apply_alpha()
+
+    @property
+    def beta(self) -> float:
+        return self._beta
+
+    @beta.setter
+    def beta(self, value: float) -> None:
+        self._beta = _check_exponent("beta", value)
+        self._apply_beta()
+
+    def _apply_alpha(self) -> None:
+        raise NotImplementedError
+
+    def _apply_beta(self) -> None:
+        """Nothing to apply: a draw reads ``beta`` where it is."""
+
+
 class UniformSampler:
     """SB3's uniform draws on the host: a row among the stored ones, then a column."""
 
@@ -74,7 +114,7 @@ class UniformSampler:
         """Nothing to forget."""
 
 
-class PrioritizedSampler:
+class PrioritizedSampler(_PrioritySettings):
     """Proportional prioritized sampling on the host, on a float64 :class:`SumTree`: stratified
     (``[0, total)`` split into ``batch_size`` equal segments, one uniform draw in each); raw
     priorities ``|delta| + eps`` are kept, so ``alpha`` can change (the tree is rebuilt).
@@ -92,36 +132,18 @@ class PrioritizedSampler:
     FIELDS += ("max_priority",)
 
     def __init__(self, capacity: int, alpha: float, beta: float, eps: float) -> None:
-        if eps <= 0:
-            raise ValueError(f"eps must be > 0, got {eps}")
-        self.eps = float(eps)
-        self._alpha = _check_exponent("alpha", alpha)
-        self._beta = _check_exponent("beta", beta)
+        self._set_settings(alpha, beta, eps)
         self._tree = SumTree(capacity)
         # Raw priorities |delta| + eps (0 = empty slot), kept so that alpha can change later.
         self._raw_priorities = np.zeros(capacity, dtype=np.float64)
         self.max_priority = 1.0
 
-    @property
-    def alpha(self) -> float:
-        return self._alpha
-
-    @alpha.setter
-    def alpha(self, value: float) -> None:
-        self._alpha = _check_exponent("alpha", value)
+    def _apply_alpha(self) -> None:
         stored = self._raw_priorities > 0.0
         # Mask empty slots explicitly: 0 ** 0 == 1 would make them sampleable when alpha == 0.
         leaves = np.zeros_like(self._raw_priorities)
         leaves[stored] = self._raw_priorities[stored] ** self._alpha
         self._tree.rebuild(leaves)
-
-    @property
-    def beta(self) -> float:
-        return self._beta
-
-    @beta.setter
-    def beta(self, value: float) -> None:
-        self._beta = _check_exponent("beta", value)
 
     @property
     def priorities(self) -> np.ndarray:
@@ -270,7 +292,7 @@ class DeviceUniformSampler:
         """Nothing to forget."""
 
 
-class DevicePrioritizedSampler(DeviceUniformSampler):
+class DevicePrioritizedSampler(DeviceUniformSampler, _PrioritySettings):
     """:class:`PrioritizedSampler` on the device (the same distribution, IS weights and
     updates; see the module docstring): ``update`` takes the flat indices and TD errors where
     they are and reads nothing back, so a non-finite TD error is written as it is (its loss is
@@ -283,11 +305,7 @@ class DevicePrioritizedSampler(DeviceUniformSampler):
     def __init__(
         self, capacity: int, device: th.device, alpha: float, beta: float, eps: float
     ) -> None:
-        if eps <= 0:
-            raise ValueError(f"eps must be > 0, got {eps}")
-        self.eps = float(eps)
-        self._alpha = _check_exponent("alpha", alpha)
-        self._beta = _check_exponent("beta", beta)
+        self._set_settings(alpha, beta, eps)
         self._raw_priorities = th.zeros(capacity, dtype=th.float64, device=device)
         self._leaves = th.zeros(capacity, dtype=th.float64, device=device)
         self._max_priority = th.ones((), dtype=th.float64, device=device)
@@ -302,25 +320,13 @@ class DevicePrioritizedSampler(DeviceUniformSampler):
     def tensors(self) -> list[th.Tensor]:
         return [*super().tensors(), self._beta_tensor]
 
-    @property
-    def alpha(self) -> float:
-        return self._alpha
-
-    @alpha.setter
-    def alpha(self, value: float) -> None:
-        self._alpha = _check_exponent("alpha", value)
+    def _apply_alpha(self) -> None:
         raw = self._raw_priorities
         # Empty slots stay zero: 0 ** 0 == 1 would make them sampleable when alpha == 0.
         # In place: a captured graph reads the leaves where they are.
         self._leaves.copy_(th.where(raw > 0, raw**self._alpha, th.zeros_like(raw)))
 
-    @property
-    def beta(self) -> float:
-        return self._beta
-
-    @beta.setter
-    def beta(self, value: float) -> None:
-        self._beta = _check_exponent("beta", value)
+    def _apply_beta(self) -> None:
         self._beta_tensor.fill_(self._beta)  # the copy a sample reads
 
     @property

@@ -6,9 +6,6 @@ or an evaluation that plays one fails."""
 
 from __future__ import annotations
 
-import os
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch as th
@@ -19,9 +16,8 @@ from pettingzoo.test import parallel_api_test
 from harness.cli import main
 from harness.config.loading import config_from_dict
 from harness.evaluation.episodes import model_policy, run_episodes
-from tests.conftest import one_error_line
+from tests.conftest import one_error_line, root_first_env
 
-ROOT = Path(__file__).resolve().parents[1]
 MAKE = "tests.test_action_masks_pettingzoo:parallel_env"
 
 #: Actions 2 and 3 are never allowed.
@@ -122,8 +118,7 @@ def config(**algo) -> dict:
 @pytest.fixture(autouse=True)
 def _importable(monkeypatch):
     # SuperSuit's copies may run in processes that import this module.
-    path = os.environ.get("PYTHONPATH", "")
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(p for p in (str(ROOT), path) if p))
+    monkeypatch.setenv("PYTHONPATH", root_first_env()["PYTHONPATH"])
 
 
 def test_the_env_passes_pettingzoos_api_test():
@@ -174,15 +169,9 @@ def trained(tmp_path_factory):
     root = tmp_path_factory.mktemp("masked")
     path = root / "masked.yaml"
     path.write_text(yaml.safe_dump(config()))
-    old = os.environ.get("PYTHONPATH")
-    os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), old) if p)
-    try:
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("PYTHONPATH", root_first_env()["PYTHONPATH"])
         assert main(["run", str(path), "--no-progress", "--into", str(root / "run")]) == 0
-    finally:
-        if old is None:
-            os.environ.pop("PYTHONPATH")
-        else:
-            os.environ["PYTHONPATH"] = old
     return root / "run"
 
 

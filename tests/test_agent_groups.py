@@ -6,8 +6,6 @@ routes each agent to its group's network), on an in-file env with two sides."""
 from __future__ import annotations
 
 import json
-import os
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,9 +20,7 @@ from harness.config.schema import ConfigError
 from harness.evaluation.baselines import make_baseline
 from harness.evaluation.episodes import run_episodes, summarize
 from harness.tasks import task_of
-from tests.conftest import one_error_line
-
-ROOT = Path(__file__).resolve().parents[1]
+from tests.conftest import one_error_line, root_first_env
 
 
 class Chase(ParallelEnv):
@@ -98,8 +94,7 @@ def config(**pettingzoo) -> dict:
 
 @pytest.fixture(autouse=True)
 def _importable(monkeypatch):
-    path = os.environ.get("PYTHONPATH", "")
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(p for p in (str(ROOT), path) if p))
+    monkeypatch.setenv("PYTHONPATH", root_first_env()["PYTHONPATH"])
 
 
 def test_groups_by_name_prefix_or_named():

@@ -18,6 +18,8 @@ from typing import Any, ClassVar
 
 import numpy as np
 
+from harness.factory import make_env
+
 #: ``record(key, value)``: where a task's numbers go in TensorBoard (SB3's logger's
 #: ``record_mean`` for training episodes, ``record`` for an evaluation).
 Record = Callable[[str, float], None]
@@ -166,9 +168,9 @@ class Task(ABC):
         """The agents' names, in the order of the policy's batch."""
         return tuple(f"agent_{k}" for k in range(self.n_agents))
 
-    @abstractmethod
     def make_env(self, render_mode: str | None = None) -> Any:
-        """One PettingZoo ``ParallelEnv`` of the task."""
+        """One PettingZoo ``ParallelEnv`` of the task (:func:`harness.factory.make_env`)."""
+        return make_env(self.env, render_mode)
 
     @abstractmethod
     def start(self, config: Any) -> tuple[Any, Any]:

@@ -16,7 +16,7 @@ from envs.coverage import CoverageEnv
 from envs.coverage.core import CoverageCore
 from harness.config.maps import describe_map
 from harness.config.schema import EnvConfig
-from harness.factory import check_env, make_core_spec, make_env
+from harness.factory import check_env, make_core_spec
 from harness.tasks.base import EpisodePlayer, Record, Task, mean_interval, sampling_note
 
 #: Fractions of the episode at which coverage is recorded (Table 4.2).
@@ -148,7 +148,7 @@ class CoveragePlayer(EpisodePlayer):
         self.paths = [[e.positions] for e in self.batch] if self.record_paths else None
         self.at: list[list[float]] = [[] for _ in self.batch]
         self.reached: list[dict[str, int | None]] = [
-            {_target_key(f): None for f in COVERAGE_TARGETS} for _ in self.batch
+            {key: None for _, key in self.targets} for _ in self.batch
         ]
         return CoverageCore.flat(self.core.observe())
 
@@ -254,9 +254,6 @@ class CoverageTask(Task):
     @classmethod
     def owns_summary(cls, summary: dict[str, Any]) -> bool:
         return "source" not in summary  # (its summaries, older than the tasks, name none)
-
-    def make_env(self, render_mode: str | None = None) -> Any:
-        return make_env(self.env, render_mode)
 
     def start(self, config: Any) -> tuple[Any, Any]:
         env = check_env(self.env)

@@ -340,9 +340,6 @@ class PettingZooTask(Task):
         (:func:`harness.config.pettingzoo.agent_groups`)."""
         return self.env.groups
 
-    def make_env(self, render_mode: str | None = None) -> Any:
-        return make_env(self.env, render_mode)
-
     def start(self, config: Any) -> tuple[Any, Any]:
         try:
             self.env.pettingzoo.probe()  # the constructor: once, here
@@ -366,7 +363,7 @@ class PettingZooTask(Task):
             )
 
     def check_renders(self) -> None:
-        probe = make_env(self.env)
+        probe = self.make_env()
         modes = (getattr(probe, "metadata", None) or {}).get("render_modes", [])
         declared = getattr(probe.unwrapped, "own_metadata", True)
         probe.close()

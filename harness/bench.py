@@ -695,22 +695,18 @@ def format_bench(r: dict[str, Any]) -> str:
                 f"  bare loop, teammap obs.    {n(tm)}   {tm / bare:5.2f} x thesis; "
                 "target >= 30,000"
             )
-        if "env_bare_teammap_ego_agent_steps_per_s" in r:
-            ego = r["env_bare_teammap_ego_agent_steps_per_s"]
-            lines.append(f"  teammap + ego view 21x21   {n(ego)}   {ego / bare:5.2f} x thesis")
-        if "env_bare_teammap_frontier_agent_steps_per_s" in r:
-            fr = r["env_bare_teammap_frontier_agent_steps_per_s"]
-            lines.append(f"  teammap + frontier field   {n(fr)}   {fr / bare:5.2f} x thesis")
-        if "env_bare_teammap_claims_agent_steps_per_s" in r:
-            cl = r["env_bare_teammap_claims_agent_steps_per_s"]
-            lines.append(f"  ... + frontier claims      {n(cl)}   {cl / bare:5.2f} x thesis")
-        if "env_bare_teammap_pocket_agent_steps_per_s" in r:
-            po = r["env_bare_teammap_pocket_agent_steps_per_s"]
-            lines.append(f"  ... + pocket tie-break     {n(po)}   {po / bare:5.2f} x thesis")
-        if "env_bare_goals_agent_steps_per_s" in r:
-            go = r["env_bare_goals_agent_steps_per_s"]
-            lines.append(f"  goal action (k = 8)        {n(go)}   {go / bare:5.2f} x thesis")
+        for label, key in (
+            ("teammap + ego view 21x21", "teammap_ego"),
+            ("teammap + frontier field", "teammap_frontier"),
+            ("... + frontier claims", "teammap_claims"),
+            ("... + pocket tie-break", "teammap_pocket"),
+            ("goal action (k = 8)", "goals"),
+        ):
+            if f"env_bare_{key}_agent_steps_per_s" in r:
+                v = r[f"env_bare_{key}_agent_steps_per_s"]
+                lines.append(f"  {label:<27}{n(v)}   {v / bare:5.2f} x thesis")
         if "env_bare_goals_prior_agent_steps_per_s" in r:
+            go = r["env_bare_goals_agent_steps_per_s"]
             gp = r["env_bare_goals_prior_agent_steps_per_s"]
             lines.append(f"  ... + map prior (env.prior) {n(gp)}  {gp / go:5.2f} x goal action")
         ss = r.get("env_vec_supersuit_by_copies", {})

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 from pathlib import Path
 from typing import Any
 
@@ -19,6 +18,7 @@ from pettingzoo import ParallelEnv
 from pettingzoo.test import parallel_api_test
 
 from harness.cli import main
+from tests.conftest import root_first_env
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -128,8 +128,7 @@ def config(tmp_path: Path, make: str) -> Path:
 
 @pytest.fixture(autouse=True)
 def _importable(monkeypatch):
-    path = os.environ.get("PYTHONPATH", "")
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(p for p in (str(ROOT), path) if p))
+    monkeypatch.setenv("PYTHONPATH", root_first_env()["PYTHONPATH"])
 
 
 @pytest.mark.parametrize("make", [bare, leaving])

@@ -4,7 +4,6 @@ starts, once, never while a config is validated."""
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import pytest
@@ -26,7 +25,7 @@ from harness.tasks import (
 from harness.tasks.coverage import CoverageTask, EpisodeResult
 from harness.tasks.pettingzoo import PettingZooTask, TeamEpisodeResult
 from harness.training.checks import checked_config
-from tests.conftest import one_error_line
+from tests.conftest import one_error_line, root_first_env
 from tests.envs.meet import MeetEnv
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -50,8 +49,7 @@ def meet(make: str) -> dict:
 
 @pytest.fixture(autouse=True)
 def _importable(monkeypatch):
-    path = os.environ.get("PYTHONPATH", "")
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(p for p in (str(ROOT), path) if p))
+    monkeypatch.setenv("PYTHONPATH", root_first_env()["PYTHONPATH"])
     CALLS.clear()
 
 

@@ -22,7 +22,7 @@ from harness.factory import make_env
 from harness.results.rundir import RunDir, rewind_logs
 from harness.tasks.pettingzoo import PettingZooTask
 from harness.training.checkpoints import read_state
-from tests.conftest import one_error_line
+from tests.conftest import one_error_line, root_first_env
 
 ROOT = Path(__file__).resolve().parents[1]
 MEET = ROOT / "tests" / "data" / "meet.yaml"
@@ -41,8 +41,7 @@ def meet(make: str = "tests.envs.meet:parallel_env", **extra) -> dict:
 @pytest.fixture(autouse=True)
 def _importable(monkeypatch):
     # The seed groups' and sweeps' processes import tests.envs.meet too.
-    path = os.environ.get("PYTHONPATH", "")
-    monkeypatch.setenv("PYTHONPATH", os.pathsep.join(p for p in (str(ROOT), path) if p))
+    monkeypatch.setenv("PYTHONPATH", root_first_env()["PYTHONPATH"])
 
 
 # ---------------------------------------------------------------------- the config
@@ -159,15 +158,9 @@ def _stay(obs, envs):
 def trained(tmp_path_factory):
     """A meet run, trained once for the module's commands."""
     root = tmp_path_factory.mktemp("meet")
-    old = os.environ.get("PYTHONPATH")
-    os.environ["PYTHONPATH"] = os.pathsep.join(p for p in (str(ROOT), old) if p)
-    try:
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("PYTHONPATH", root_first_env()["PYTHONPATH"])
         assert main(["run", str(MEET), "--no-progress", "--into", str(root / "run")]) == 0
-    finally:
-        if old is None:
-            os.environ.pop("PYTHONPATH")
-        else:
-            os.environ["PYTHONPATH"] = old
     return root / "run"
 
 

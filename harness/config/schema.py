@@ -21,6 +21,7 @@ Step counts (``timesteps``, schedule ``steps``, ``eval.every``, ``checkpoint.eve
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import re
 from collections.abc import Mapping
@@ -45,7 +46,7 @@ from pydantic import (
 
 from envs.coverage import generators, maps
 from envs.coverage.env import DEFAULT_REWARDS
-from envs.coverage.frontier import PLANNERS, FrontierOptions, Goal
+from envs.coverage.frontier import PLANNERS, FrontierOptions
 from envs.coverage.maps import check_wall_fraction, shipped_maps
 from envs.coverage.observations import observation_options
 from envs.coverage.rollouts import SampledChooser
@@ -134,6 +135,12 @@ def _check_map_file_size(path: Path) -> None:
                     )
     except OSError as exc:
         raise ValueError(f"cannot read map file {str(path)!r} ({exc.strerror})") from None
+
+
+def _no_prior(seen: Any, free: Any) -> Any:
+    """A stand-in map prior: what the config checks of ``env.prior`` before the factory loads
+    the real one (:meth:`EnvConfig._prior_needs_goals`)."""
+    raise NotImplementedError
 
 
 class EnvConfig(_Section):
@@ -225,12 +232,12 @@ class EnvConfig(_Section):
     def _prior_needs_goals(self) -> EnvConfig:
         if self.prior is None:
             return self
-        options = self.frontier_options
-        if options is None or not isinstance(options.action, Goal):
-            raise ValueError(
-                "prior: a map prior feeds the goal action's candidates; set "
-                "frontier: {action: {goal: {k: 8}}, planner: ...} or drop env.prior"
-            )
+        # The env owns the rule (a prior needs the goal action): ask its options with a
+        # stand-in for the prior the factory will load.
+        try:
+            dataclasses.replace(self.frontier_options or FrontierOptions(), prior=_no_prior)
+        except ValueError as exc:
+            raise ValueError(f"prior: {exc} (or drop env.prior)") from None
         if not Path(self.prior).exists():
             raise ValueError(f"prior: {self.prior!r} is no prior run folder or prior file")
         return self

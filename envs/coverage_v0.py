@@ -71,6 +71,11 @@ included); outside the grid is known wall. Binary channels are 0 or 255.
   the agent's cell); channels the share of the block visited, known free not visited, unknown and
   known wall (outside the grid counts as wall), and teammates present (255). The same pattern
   means the same thing wherever the agent stands, unlike the absolute ``"global"`` view.
+* ``"predicted_local"``, ``"predicted_global"``, ``"predicted_ego"`` ``Box(0, 255, (1, side,
+  side), uint8)``, only with ``predicted: True`` and a map prior (``frontier={..., "prior": f}``):
+  the prior's expected free floor on the cells nobody has seen, beside the view of the same side
+  (each unseen cell ``round(255 * (1 - p_wall))``, other cells 0; a block, the share of its
+  cells so expected), MapExRL's recipe (``envs/coverage/observations.py``).
 * ``"vector"`` ``Box(0, 1, (3,), float32)``: own row/(H-1), own col/(W-1), steps/max_steps.
 * ``"frontier"`` ``Box(0, 1, (5,), float32)``, only with ``frontier``: the frontier
   compass, 1 for each move (up, down, left, right) that takes the agent one step nearer the
@@ -84,8 +89,8 @@ The team map's options are passed as ``observation={"teammap": {"crop": 15, ...}
 ``observation=TeamMap(crop=15, ...)`` (``envs.coverage.observations.TeamMap``, which checks them):
 ``crop`` odd and >= 5 (>= 7 with the frontier field; default 15), ``global_size`` >= 6 (default
 13), ``ego_size`` 0 (no ego view, the default) or odd and >= 5, ``ego_block`` odd (default 5),
-each at most 2,000: Stable-Baselines3 reads a uint8 image as channel-first only when no side is
-smaller than its channel count. The local and
+``predicted`` (default false), each side at most 2,000: Stable-Baselines3 reads a uint8 image
+as channel-first only when no side is smaller than its channel count. The local and
 global images are updated incrementally (only the agents' new 3x3 windows), so they cost
 O(agents * crop^2 + G^2) a step whatever the map's size; the ego view is pooled from one
 summed-area table of the map per step.

@@ -11,11 +11,18 @@ from pettingzoo.test import api_test, parallel_api_test, parallel_seed_test
 
 from envs import coverage_v0
 
+
+def _half(seen: np.ndarray, free: np.ndarray) -> np.ndarray:
+    """A map prior: every unseen cell a wall with probability 1/2."""
+    return np.where(seen, ~free, 0.5).astype(float)
+
+
 #: The team map as the goal configs have it (small crop: the tests' maps are small).
 TEAMMAP = {"teammap": {"crop": 7, "global_size": 6, "ego_size": 5, "ego_block": 3}}
 #: Every observation and action kind: the thesis vector (normalised and raw coordinates, agent
 #: indication), the team map with options, its frontier field and compass, a planner's claims,
-#: the frontier step and the goal action (whose observation holds an ``action_mask``).
+#: the frontier step and the goal action (whose observation holds an ``action_mask``), with a map
+#: prior's predicted views.
 KINDS = {
     "thesis": {"height": 12, "width": 15, "n_agents": 3, "max_steps": 60},
     "thesis-raw": {"height": 8, "width": 8, "n_agents": 1, "max_steps": 30, "coords": "raw"},
@@ -37,6 +44,11 @@ KINDS = {
     "goal-action": {
         "height": 12, "width": 14, "n_agents": 2, "max_steps": 60, "observation": TEAMMAP,
         "frontier": {"action": {"goal": {"k": 8}}, "planner": "pocket"},
+    },
+    "goal-action-predicted": {
+        "height": 12, "width": 14, "n_agents": 2, "max_steps": 60,
+        "observation": {"teammap": {**TEAMMAP["teammap"], "predicted": True}},
+        "frontier": {"action": {"goal": {"k": 8}}, "planner": "pocket", "prior": _half},
     },
 }  # fmt: skip
 

@@ -503,17 +503,23 @@ def test_the_env_asks_its_prior_every_few_steps_and_at_each_episodes_start() -> 
     assert len(steps) == len(range(0, 12, PRIOR_EVERY)) + 1
 
 
-def test_env_prior_trains_a_goal_policy_that_reads_it(tmp_path: Path, capsys) -> None:
+@pytest.mark.parametrize("predicted", [False, True])
+def test_env_prior_trains_a_goal_policy_that_reads_it(
+    predicted: bool, tmp_path: Path, capsys
+) -> None:
     # The whole path: env.prior loaded by the factory (once per process), the policy trained on
-    # the wider candidate block and evaluated from its run folder.
+    # the wider candidate block (and the predicted views) and evaluated from its run folder.
     from tests.conftest import tiny_goal_run
 
     runs = tmp_path / "runs"
     args = tiny_goal_run(Path("configs/goals_2agents.yaml"), runs)
     args += ["--set", f"env.prior={REFERENCE / 'prior_random'}"]
+    args += ["--set", f"env.observation.teammap.predicted={str(predicted).lower()}"]
     assert main(args) == 0
     (run,) = runs.iterdir()
-    assert load_config(RunDir(run).config).env.prior == str(REFERENCE / "prior_random")
+    config = load_config(RunDir(run).config)
+    assert config.env.prior == str(REFERENCE / "prior_random")
+    assert config.env.observation["teammap"]["predicted"] is predicted
     capsys.readouterr()
     assert main(["eval", str(run), "--episodes", "2", "--json"]) == 0
     assert json.loads(capsys.readouterr().out)["wall_hits_mean"] == 0
@@ -557,3 +563,113 @@ def test_the_env_refuses_a_prior_without_the_goal_action_or_that_is_no_function(
         {"action": {"goal": {"k": 4}}, "planner": "pocket", "prior": flat}
     )
     assert options.prior is flat and "prior" not in options.config()
+
+
+# ------------------------------------------------ the team map's predicted views read a prior
+def _predicted_env(prior, ego: int = 5, **kwargs):
+    from envs import coverage_v0
+
+    return coverage_v0.parallel_env(
+        height=14, width=16, n_agents=2, max_steps=30,
+        observation={
+            "teammap": {"crop": 7, "global_size": 6, "ego_size": ego, "ego_block": 3,
+                        "predicted": True}
+        },
+        frontier={"action": {"goal": {"k": 4}}, "planner": "pocket", "prior": prior},
+        **kwargs,
+    )  # fmt: skip
+
+
+def test_the_predicted_views_show_the_expected_free_floor_of_the_unseen_cells() -> None:
+    # A prior that calls every unseen cell a wall with probability 1/4: each unseen cell shows
+    # round(255 x 0.75) = 191 and every other cell 0, at every step (the cells seen since the
+    # prior's last call count as seen), and each coarse block 0.75 x its unknown share (the
+    # team map's own unknown channel: global channel 2, ego channel 2), to the rounding of the
+    # two (one unit).
+    def quarter(seen: np.ndarray, free: np.ndarray) -> np.ndarray:
+        return np.where(seen, ~free, 0.25).astype(float)
+
+    env = _predicted_env(quarter)
+    space = env.observation_space("agent_0")
+    assert space["predicted_local"].shape == (1, 7, 7)
+    assert space["predicted_global"].shape == (1, 6, 6)
+    assert space["predicted_ego"].shape == (1, 5, 5)
+    obs = env.reset(seed=4)[0]
+    for step in range(12):
+        for o in obs.values():
+            unknown = o["local"][3] == 255
+            np.testing.assert_array_equal(o["predicted_local"][0], np.where(unknown, 191, 0))
+            for view in ("global", "ego"):
+                expected = 0.75 * o[view][2].astype(float)
+                assert np.abs(o[f"predicted_{view}"][0] - expected).max() <= 1.0, (step, view)
+        actions = {a: int(o["action_mask"].nonzero()[0][-1]) for a, o in obs.items()}
+        obs = env.step(actions)[0]
+
+
+def test_the_predicted_crop_lines_up_with_the_cells_of_the_map() -> None:
+    # A prior whose wall probability grows with the column (col / 15 on a 16-column map): an
+    # unseen cell of the crop at offset (dy, dx) from the agent at (r, c) shows
+    # round(255 x (1 - (c + dx) / 15)), whatever its row; seen cells and outside the map 0.
+    w = 16
+
+    def ramp(seen: np.ndarray, free: np.ndarray) -> np.ndarray:
+        cols = np.broadcast_to(np.arange(w) / (w - 1), seen.shape)
+        return np.where(seen, ~free, cols).astype(float)
+
+    env = _predicted_env(ramp, starts=[(6, 4), (6, 11)])
+    obs = env.reset(seed=0)[0]
+    obs = env.step({a: 0 for a in env.agents})[0]
+    for agent, (_, c) in zip(env.agents, env.unwrapped.positions, strict=True):
+        o = obs[agent]
+        unknown = o["local"][3] == 255
+        cols = c + np.arange(-3, 4)
+        inside = (cols >= 0) & (cols < w)
+        expected = np.rint(255 * (1 - np.clip(cols, 0, w - 1) / (w - 1))) * inside
+        np.testing.assert_array_equal(
+            o["predicted_local"][0], np.where(unknown, expected[None, :], 0)
+        )
+        assert unknown.any()
+
+
+def test_predicted_views_without_a_prior_are_refused() -> None:
+    from envs import coverage_v0
+
+    with pytest.raises(ValueError, match="needs one"):
+        coverage_v0.parallel_env(
+            height=14, width=16, n_agents=2,
+            observation={"teammap": {"crop": 7, "global_size": 6, "predicted": True}},
+            frontier={"action": {"goal": {"k": 4}}, "planner": "pocket"},
+        )  # fmt: skip
+    with pytest.raises(ValueError, match="true or false"):
+        coverage_v0.parallel_env(observation={"teammap": {"predicted": 1}})
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        (["predicted=true", "--set", "env.prior=null"], "needs one"),
+        (["predicted=3"], "true or false"),
+    ],
+)
+def test_a_predicted_config_that_cannot_work_is_one_line(
+    change: list[str], words: str, tmp_path: Path, capsys
+) -> None:
+    args = ["run", "configs/goals_prior_rooms_4agents.yaml"]
+    args += ["--set", f"env.observation.teammap.{change[0]}", *change[1:]]
+    assert main([*args, "--runs-dir", str(tmp_path / "runs")]) == 2
+    assert words in one_error_line(capsys.readouterr().err)
+    assert not (tmp_path / "runs").exists()
+
+
+def test_the_planners_play_a_config_with_predicted_views(capsys) -> None:
+    # A baseline that walks the moves drops the goal action, the prior and its views together.
+    args = [
+        "eval",
+        "--policy",
+        "frontier_pocket",
+        "--config",
+        "configs/goals_prior_rooms_4agents.yaml",
+    ]
+    args += ["--set", "env.observation.teammap.predicted=true", "--episodes", "1", "--json"]
+    assert main(args) == 0
+    assert json.loads(capsys.readouterr().out)["wall_hits_mean"] == 0

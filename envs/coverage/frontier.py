@@ -247,7 +247,9 @@ class FrontierOptions:
     def check_fits(observation: Any, options: FrontierOptions | None) -> None:
         """The rule between the observation and the extension: its field and compass live in
         an observation that takes them (the team map), whose options must hold the field
-        (``observation.check(frontier=True)``: the crop's channels).
+        (``observation.check(frontier=True)``: the crop's channels). An observation that shows
+        a map prior's prediction (the team map's ``predicted``) needs the prior, which the goal
+        action's candidates ask (:attr:`prior`).
 
         Args:
             observation: An observation's options (``envs.coverage.observations.TeamMap``,
@@ -257,6 +259,11 @@ class FrontierOptions:
         Raises:
             ValueError: when they do not fit.
         """
+        if getattr(observation, "predicted", False) and (options is None or options.prior is None):
+            raise ValueError(
+                "observation predicted: true shows a map prior's prediction: it needs one "
+                "(frontier.prior; in a harness config env.prior: RUN)"
+            )
         if options is None:
             return
         if not observation.takes_frontier:
@@ -320,6 +327,13 @@ class Frontier:
         """The goal action's options, when that is the action kind."""
         action = self.options.action
         return action if isinstance(action, Goal) else None
+
+    @property
+    def p_wall(self) -> np.ndarray:
+        """``(H, W)``: the prior's wall probabilities of the team's map as it last asked
+        (:meth:`planned_moves`, every :data:`~envs.coverage.goals.PRIOR_EVERY` steps); zeros
+        before that or without a prior."""
+        return self._p_wall
 
     @property
     def n_goal_features(self) -> int:

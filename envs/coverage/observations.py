@@ -20,7 +20,7 @@ from typing import Any, ClassVar
 import numpy as np
 from gymnasium import spaces
 
-from envs.coverage.frontier import Frontier
+from envs.coverage.frontier import Frontier, FrontierOptions
 from envs.coverage.goals import ACTION_MASK_KEY, GOALS_KEY
 from envs.coverage.step import thesis_observation
 from envs.coverage.teammap_kernels import ego_counts, teammap_views
@@ -154,6 +154,14 @@ class TeamMapObservation(ObservationBuilder):
       as wall), and teammates present (255). Where the absolute ``"global"`` view tells where
       the agent is on the map, this one makes "which way is unexplored ground, which way are my
       teammates" the same pattern wherever the agent stands (translation-equivariant).
+    * ``"predicted_local"`` ``(1, crop, crop)``, ``"predicted_global"`` ``(1, G, G)`` and, with
+      the ego view, ``"predicted_ego"`` ``(1, E, E)``, only with ``predicted=True``: a map
+      prior's prediction beside the views of the same name (MapExRL's recipe, Ho et al. 2025),
+      the free floor it expects where the team has not looked: each unseen cell
+      ``round(255 * (1 - p_wall))``, seen cells and outside the grid 0, and the blocks of the
+      coarse views the share of their cells so expected free (like the share channels). The
+      prior is the goal action's (:attr:`envs.coverage.frontier.Frontier.p_wall`, asked every
+      :data:`~envs.coverage.goals.PRIOR_EVERY` steps); cells seen since count as seen.
     * ``"vector"`` ``(3,)`` float32: own row / (H-1), own col / (W-1), steps / max_steps.
     * ``"frontier"`` ``(5,)`` float32, only with ``frontier``: the frontier compass. For
       each move (up, down, left, right) 1 if it takes the agent one step nearer the nearest
@@ -191,9 +199,11 @@ class TeamMapObservation(ObservationBuilder):
         ego_block: Cells per side of an ego block (odd, >= 1).
         frontier: The planner extension's state (:class:`envs.coverage.frontier.Frontier`):
             adds the frontier field (a crop channel) and the frontier compass; ``None``: off.
+        predicted: Add the prior's views (``"predicted_*"``); needs ``frontier`` with a map
+            prior (:meth:`envs.coverage.frontier.FrontierOptions.check_fits`).
 
     Raises:
-        ValueError: For a crop or global size out of range.
+        ValueError: For a crop or global size out of range, or views the options cannot fill.
     """
 
     name = "teammap"
@@ -224,9 +234,12 @@ class TeamMapObservation(ObservationBuilder):
         ego_size: int = 0,
         ego_block: int = 5,
         frontier: Frontier | None = None,
+        predicted: bool = False,
     ) -> None:
         super().__init__(height, width, coords, max_steps)
-        TeamMap(crop, global_size, ego_size, ego_block).check(frontier is not None)
+        options = TeamMap(crop, global_size, ego_size, ego_block, predicted)
+        FrontierOptions.check_fits(options, None if frontier is None else frontier.options)
+        self.predicted = bool(predicted)
         crop, global_size = int(crop), int(global_size)
         self.crop, self.global_size = crop, global_size
         self.ego_size, self.ego_block = int(ego_size), int(ego_block)
@@ -275,6 +288,11 @@ class TeamMapObservation(ObservationBuilder):
         }
         if e:
             views["ego"] = spaces.Box(0, 255, (self.EGO_CHANNELS, e, e), np.uint8)
+        if self.predicted:
+            views["predicted_local"] = spaces.Box(0, 255, (1, c, c), np.uint8)
+            views["predicted_global"] = spaces.Box(0, 255, (1, g, g), np.uint8)
+            if e:
+                views["predicted_ego"] = spaces.Box(0, 255, (1, e, e), np.uint8)
         views["vector"] = spaces.Box(0.0, 1.0, (3,), np.float32)
         if self.frontier:
             views["frontier"] = spaces.Box(0.0, 1.0, (5,), np.float32)
@@ -367,6 +385,38 @@ class TeamMapObservation(ObservationBuilder):
         if ext.candidates is not None:  # the goal action's (made by planned_moves above)
             out[GOALS_KEY][:] = ext.candidates.features
             out[ACTION_MASK_KEY][:] = ext.candidates.mask
+        if self.predicted:  # after planned_moves, which asks the prior when it is time
+            self._predicted_views(state, ext.p_wall, out)
+
+    def _predicted_views(
+        self, state: GridState, p_wall: np.ndarray, out: dict[str, np.ndarray]
+    ) -> None:
+        """The ``"predicted_*"`` views of the wall probabilities ``p_wall`` ``(H, W)``."""
+        p, (hp, wp) = self.padding, state.cells.shape
+        # Expected free floor on the team's unknown cells, padded like the grid (padding: 0).
+        free = np.zeros((hp, wp))
+        free[p : hp - p, p : wp - p] = 1.0 - np.clip(p_wall, 0.0, 1.0)
+        free *= self._cat.reshape(hp, wp) == UNKNOWN
+        rows, cols = state.positions[:, 0], state.positions[:, 1]
+        c = self.crop  # the crop centred on (row + p, col + p) starts at (row, col)
+        windows = np.lib.stride_tricks.sliding_window_view(free, (c, c))
+        out["predicted_local"][:, 0] = np.rint(255.0 * windows[rows, cols])
+        g = self.global_size
+        inside = self._block_of >= 0
+        sums = np.bincount(self._block_of[inside], weights=free.ravel()[inside], minlength=g * g)
+        share = np.where(self._block_cells > 0, sums / np.maximum(self._block_cells, 1), 0.0)
+        out["predicted_global"][:, 0] = np.rint(255.0 * share).reshape(g, g)
+        if self.ego_size:
+            # Block sums from an integral image of the map (rows and columns clipped to it).
+            h, w = self.height, self.width
+            ii = np.zeros((h + 1, w + 1))
+            ii[1:, 1:] = free[p : hp - p, p : wp - p].cumsum(0).cumsum(1)
+            r = np.clip(rows[:, None] + self._ego_edges[None, :], 0, h)
+            k = np.clip(cols[:, None] + self._ego_edges[None, :], 0, w)
+            r0, r1 = r[:, :-1, None], r[:, 1:, None]
+            k0, k1 = k[:, None, :-1], k[:, None, 1:]
+            sums = ii[r1, k1] - ii[r0, k1] - ii[r1, k0] + ii[r0, k0]
+            out["predicted_ego"][:, 0] = np.rint(255.0 * sums / self.ego_block**2)
 
 
 # Empty arrays for the views that are off (the compiled call takes every array).
@@ -474,12 +524,15 @@ class TeamMap:
         global_size: G, blocks per side of the global view (>= 6).
         ego_size: E, blocks per side of the ego view (0: none; else odd and >= 5).
         ego_block: Cells per side of an ego block (odd).
+        predicted: Add a map prior's views (``"predicted_*"``, :class:`TeamMapObservation`);
+            needs the goal action with a prior (``frontier.prior``; the harness's ``env.prior``).
     """
 
     crop: int = 15
     global_size: int = 13
     ego_size: int = 0
     ego_block: int = 5
+    predicted: bool = False
     name: ClassVar[str] = TeamMapObservation.name
     takes_frontier: ClassVar[bool] = True
     #: Largest side of an image (the cell count of the largest map the harness takes): larger
@@ -513,6 +566,8 @@ class TeamMap:
         b = self.ego_block
         if not (_is_int(b) and 1 <= b <= top and b % 2 == 1):
             raise ValueError(f"ego_block must be an odd integer in 1..{top}, got {b!r}")
+        if not isinstance(self.predicted, bool):
+            raise ValueError(f"predicted must be true or false, got {self.predicted!r}")
 
     def make(
         self, height: int, width: int, coords: str, max_steps: int, frontier: Frontier | None
@@ -528,6 +583,7 @@ class TeamMap:
             self.ego_size,
             self.ego_block,
             frontier,
+            self.predicted,
         )
 
 

@@ -139,7 +139,7 @@ def _check_map_file_size(path: Path) -> None:
 
 def _no_prior(seen: Any, free: Any) -> Any:
     """A stand-in map prior: what the config checks of ``env.prior`` before the factory loads
-    the real one (:meth:`EnvConfig._prior_needs_goals`)."""
+    the real one (:meth:`EnvConfig._frontier_fits_observation`)."""
     raise NotImplementedError
 
 
@@ -162,8 +162,8 @@ class EnvConfig(_Section):
     observation: str | dict[str, dict[str, Any] | None] = "thesis"
     """An observation kind of the env's registry (``envs.coverage.observations.OBSERVATIONS``):
     ``thesis`` (13 numbers) or ``teammap`` (images of the team's knowledge), or ``{teammap:
-    {crop: 15, global_size: 13, ego_size: 0, ego_block: 5}}`` with its options (checked by the
-    env's ``TeamMap``)."""
+    {crop: 15, global_size: 13, ego_size: 0, ego_block: 5, predicted: false}}`` with its options
+    (checked by the env's ``TeamMap``; ``predicted`` shows ``prior``'s prediction as images)."""
     frontier: dict[str, Any] | None = None
     """The planner extension (``envs.coverage.frontier``, which checks it): ``null`` (off), or
     ``{action: step | {goal: {k: 8}} | null, planner: <a planner of the registry> | null}``: the
@@ -172,8 +172,9 @@ class EnvConfig(_Section):
     prior: str | None = None
     """A map prior (docs/prior.md): a prior run's folder or its ``model.zip``, relative to the
     current directory like ``runs/``, whose prediction the goal action's candidates carry as
-    two more features (``envs.coverage.goals.PRIOR_FEATURES``); ``null``: none. Needs the goal
-    action (``frontier: {action: {goal: ...}}``)."""
+    two more features (``envs.coverage.goals.PRIOR_FEATURES``) and, with the team map's
+    ``predicted: true``, images; ``null``: none. Needs the goal action (``frontier: {action:
+    {goal: ...}}``)."""
     coords: Literal["normalized", "raw"] = "normalized"
     rewards: RewardsConfig = RewardsConfig()
     starts: list[tuple[int, int]] | None = None
@@ -225,21 +226,18 @@ class EnvConfig(_Section):
 
     @model_validator(mode="after")
     def _frontier_fits_observation(self) -> EnvConfig:
-        FrontierOptions.check_fits(observation_options(self.observation), self.frontier_options)
-        return self
-
-    @model_validator(mode="after")
-    def _prior_needs_goals(self) -> EnvConfig:
-        if self.prior is None:
-            return self
-        # The env owns the rule (a prior needs the goal action): ask its options with a
-        # stand-in for the prior the factory will load.
-        try:
-            dataclasses.replace(self.frontier_options or FrontierOptions(), prior=_no_prior)
-        except ValueError as exc:
-            raise ValueError(f"prior: {exc} (or drop env.prior)") from None
-        if not Path(self.prior).exists():
-            raise ValueError(f"prior: {self.prior!r} is no prior run folder or prior file")
+        options = self.frontier_options
+        if self.prior is not None:
+            # The env owns the rules (a prior needs the goal action; the team map's predicted
+            # views need a prior): ask its options with a stand-in for the prior the factory
+            # will load.
+            try:
+                options = dataclasses.replace(options or FrontierOptions(), prior=_no_prior)
+            except ValueError as exc:
+                raise ValueError(f"prior: {exc} (or drop env.prior)") from None
+            if not Path(self.prior).exists():
+                raise ValueError(f"prior: {self.prior!r} is no prior run folder or prior file")
+        FrontierOptions.check_fits(observation_options(self.observation), options)
         return self
 
     @property

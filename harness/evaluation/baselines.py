@@ -52,6 +52,7 @@ import numpy as np
 
 from envs.coverage import CoverageEnv
 from envs.coverage.frontier import PLANNERS, FrontierOptions
+from envs.coverage.observations import observation_options
 from envs.coverage.planners import FrontierPlanner
 from envs.coverage.rollouts import MapPriorFn, SampledChooser, in_threads
 from envs.coverage.types import CELL_UNVISITED, CELL_WALL
@@ -113,8 +114,14 @@ class BaselineEntry:
             and options.action is not None
             and options.action.replaces_moves
         ):
-            # env.prior feeds the goal action's candidates alone: it goes with them
-            return env.model_copy(update={"frontier": None, "prior": None})
+            # env.prior feeds the goal action's candidates (and the team map's predicted
+            # views) alone: it goes with them
+            update: dict[str, Any] = {"frontier": None, "prior": None}
+            observation = observation_options(env.observation)
+            if getattr(observation, "predicted", False):
+                plain = dataclasses.replace(observation, predicted=False)
+                update["observation"] = {plain.name: dataclasses.asdict(plain)}
+            return env.model_copy(update=update)
         return env
 
     def check(self, options: FrontierOptions | None) -> None:

@@ -42,6 +42,8 @@ from harness.commands import (
     PER_EPISODE_KEYS,
     Target,
     TargetError,
+    against_config,
+    check_against_set,
     check_baseline,
     compare,
     evaluate,
@@ -239,6 +241,16 @@ def _add_eval_parser(sub: Any) -> None:
         metavar="BASELINE",
         help="also play these baselines on the same episodes and compare episode by episode "
         "(mean difference, 95 %% bootstrap interval); saved as against-BASELINE.json",
+    )
+    ev.add_argument(
+        "--against-set",
+        dest="against_set",
+        action="append",
+        default=[],
+        metavar="KEY.PATH=VALUE",
+        help="an override for the --against baselines alone, on top of the target's config, "
+        "e.g. --against-set eval.rollout.prior=null (repeatable; not the episodes' keys: "
+        "env.map, env.n_agents, ..., seed); saved as against-BASELINE+KEY.PATH-VALUE.json",
     )
 
 
@@ -660,6 +672,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from harness.results.groups import is_group
 
     args.against = list(dict.fromkeys(args.against))  # each baseline once, in the order named
+    if args.against_set and not args.against:
+        raise HarnessError(
+            "--against-set sets the config of the --against baselines: give --against BASELINE"
+        )
+    check_against_set(args.against_set)  # before anything is played, a group's runs too
 
     if args.target is not None and is_group(args.target):
         return _eval_group(args)
@@ -670,14 +687,22 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if args.plot is not None:
         check_image_output(args.plot, "--plot")
     target = _target(args)
+    theirs = against_config(target.config, args.against_set)
     for policy in args.against:  # before any episode is played
-        check_baseline(policy, target.config, "--against")
+        check_baseline(policy, theirs, "--against")
     progress = EpisodeProgress(target.label, args.episodes)
     summary, results = evaluate(target, args.episodes, args.overrides, progress)
     if summary["saved"] is not None:
         print(f"saved {summary['saved']}", file=sys.stderr)
     against = [
-        evaluate_against(target, summary, p, args.overrides, EpisodeProgress(p, args.episodes))
+        evaluate_against(
+            target,
+            summary,
+            p,
+            args.overrides,
+            EpisodeProgress(p, args.episodes),
+            args.against_set,
+        )
         for p in args.against
     ]
     for comparison in against:
@@ -764,7 +789,13 @@ def _eval_group(args: argparse.Namespace) -> int:
         evaluations[run.name] = json.loads(text.getvalue())
 
     result, saved, missing = evaluate_group(
-        Path(args.target), evaluate_run, args.against, args.episodes, args.overrides, args.seed
+        Path(args.target),
+        evaluate_run,
+        args.against,
+        args.episodes,
+        args.overrides,
+        args.seed,
+        args.against_set,
     )
     if args.json:
         out = {"group": str(args.target), **(result or {}), "evaluations": evaluations}

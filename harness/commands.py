@@ -27,7 +27,7 @@ from typing import Any
 
 import numpy as np
 
-from harness.config.loading import load_config
+from harness.config.loading import config_from_dict, load_config, parse_override
 from harness.config.schema import ConfigError, ExperimentConfig
 from harness.evaluation.baselines import BASELINES, make_baseline
 from harness.evaluation.episodes import (
@@ -634,12 +634,88 @@ def evaluate(
     return {**summary, "saved": saved}, results
 
 
+#: The config keys that make an episode what it is (its map, size, team, starts and length, and
+#: the seed): ``--against-set`` may not change them, since a paired comparison is only one on the
+#: same episodes (:func:`check_against_set`). Each is refused with everything below it
+#: (``env.map.cave.height``) and as a key of a mapping set above it (``env={n_agents: 3}``).
+#: ``env.pettingzoo`` is which PettingZoo env (one's own) is played at all.
+EPISODE_KEYS = (
+    "env.map",
+    "env.test_maps",
+    "env.map_sha256",
+    "env.height",
+    "env.width",
+    "env.wall_fraction",
+    "env.n_agents",
+    "env.starts",
+    "env.max_steps",
+    "env.pettingzoo",
+    "seed",
+)
+
+
+def check_against_set(against_set: Sequence[str]) -> None:
+    """Refuse, in one line, an ``--against-set`` override that changes what an episode is (a
+    key of :data:`EPISODE_KEYS`, below one, or a mapping above one that names it or replaces
+    the section whole).
+
+    Raises:
+        ConfigError: naming the override (also for one that is no ``key.path=value``).
+    """
+    for text in against_set:
+        try:
+            keys, value = parse_override(text)
+        except ConfigError as exc:
+            raise ConfigError(f"--against-set: {exc}") from None
+        for episode_key in (k.split(".") for k in EPISODE_KEYS):
+            if _touches(keys, value, episode_key):
+                raise ConfigError(
+                    f"--against-set {text[:60]}: {'.'.join(episode_key)} makes the episodes, "
+                    "and a comparison is only paired on the same episodes (give it to --set, "
+                    "for both)"
+                )
+
+
+def _touches(keys: Sequence[str], value: Any, episode_key: Sequence[str]) -> bool:
+    """Whether setting ``keys`` to ``value`` may change the config key ``episode_key``."""
+    shared = min(len(keys), len(episode_key))
+    if list(keys[:shared]) != list(episode_key[:shared]):
+        return False
+    node = value
+    for key in episode_key[len(keys) :]:  # nothing when keys is the key or below it
+        if not isinstance(node, dict):
+            return True  # the section above it replaced whole
+        if key not in node:
+            return False
+        node = node[key]
+    return True
+
+
+def against_config(config: ExperimentConfig, against_set: Sequence[str]) -> ExperimentConfig:
+    """The config the ``--against`` baselines play: ``config`` (the target's, with its
+    ``--set``s) with the ``--against-set`` overrides applied, validated as ``--set`` is;
+    ``config`` itself without them.
+
+    Raises:
+        ConfigError: for an override :func:`check_against_set` refuses, or a bad key or value
+            (``--set``'s own error, after ``--against-set:``).
+    """
+    if not against_set:
+        return config
+    check_against_set(against_set)
+    try:
+        return config_from_dict(config.model_dump(mode="json"), "the target's config", against_set)
+    except ConfigError as exc:
+        raise ConfigError(f"--against-set: {exc}") from None
+
+
 def evaluate_against(
     target: Target,
     summary: dict[str, Any],
     policy: str,
     overrides: Sequence[str],
     progress: Callable[[int], None] | None = None,
+    against_set: Sequence[str] = (),
 ) -> dict[str, Any]:
     """``harness eval --against POLICY``: the baseline ``policy`` on the episodes of ``target``'s
     evaluation ``summary`` (:func:`evaluate`: the same maps and starts, from the same seed), and
@@ -649,7 +725,9 @@ def evaluate_against(
     beside the evaluation (:func:`~harness.results.rundir.against_filename`; nothing for a
     baseline target), with both per-episode lists.
 
-    ``progress``: as :func:`evaluate`'s, for the baseline's episodes.
+    ``progress``: as :func:`evaluate`'s, for the baseline's episodes. ``against_set``: the
+    ``--against-set`` overrides the baseline alone plays under (:func:`against_config`, on the
+    same episodes); named in the comparison (``"against_set"``) and its file's name.
 
     Returns:
         The comparison, with the saved file (or ``None``) as its ``"saved"`` entry.
@@ -659,9 +737,11 @@ def evaluate_against(
     episodes = summary["episodes"]
     out = None
     if target.results_dir is not None:  # asked before the episodes: a link out stops it now
-        name = against_filename(policy, overrides, target.model_name, episodes, target.seed_changed)
+        name = against_filename(
+            policy, overrides, target.model_name, episodes, target.seed_changed, against_set
+        )
         out = RunDir(target.results_dir).result(name)
-    baseline = baseline_target(policy, target.config, target.seed)
+    baseline = baseline_target(policy, against_config(target.config, against_set), target.seed)
     results = run_episodes(
         baseline.policy, baseline.config.env, episodes, target.seed, progress=progress
     )
@@ -676,6 +756,8 @@ def evaluate_against(
         "seed": target.seed,
         "episodes": episodes,
         "overrides": list(overrides),
+        # Only where given: a plain comparison's file stays as it was.
+        **({"against_set": list(against_set)} if against_set else {}),
         "metric": metric,
         "mean": float(a.mean()),
         "against_mean": float(b.mean()),
@@ -719,6 +801,13 @@ def paired_steps_to_99(
     }
 
 
+def _against_name(comparison: dict[str, Any]) -> str:
+    """The baseline of a comparison as its lines name it, with the ``--against-set`` overrides
+    it played under."""
+    sets = comparison.get("against_set") or []
+    return comparison["against"] + "".join(f" --against-set {text}" for text in sets)
+
+
 def format_against(comparison: dict[str, Any]) -> str:
     """One line of :func:`evaluate_against`'s comparison."""
     from harness.results.stats import plain
@@ -733,7 +822,7 @@ def format_against(comparison: dict[str, Any]) -> str:
     unit = " points" if coverage else ""
     what = "coverage" if coverage else "team return"
     line = (
-        f"against   {comparison['against']} on the same {comparison['episodes']} episodes: "
+        f"against   {_against_name(comparison)} on the same {comparison['episodes']} episodes: "
         f"mean {what} {value(comparison['against_mean'])} (this policy "
         f"{value(comparison['mean'])}), difference {diff(comparison['difference'])}{unit} "
         f"[{diff(low)}, {diff(high)}] (95 % bootstrap over the episodes); this policy ahead in "
@@ -762,7 +851,7 @@ def format_group_against(comparison: dict[str, Any]) -> str:
 
     what = "points of coverage" if coverage else "team return"
     line = (
-        f"== over {over['seeds']} seeds against {comparison['against']} (paired on each run's "
+        f"== over {over['seeds']} seeds against {_against_name(comparison)} (paired on each run's "
         f"episodes), mean difference ({what}) {with_ci(over['mean'], over['mean_ci95'], diff)}, "
         f"IQM {with_ci(over['iqm'], over['iqm_ci95'], diff)}"
     )
@@ -811,6 +900,7 @@ def evaluate_group(
     episodes: int = STANDARD_EPISODES,
     overrides: Sequence[str] = (),
     seed: int | None = None,
+    against_set: Sequence[str] = (),
 ) -> tuple[dict[str, Any] | None, Path | None, list[str]]:
     """``harness eval GROUP``: ``evaluate_run(run)`` for every run (``harness eval RUN`` with
     ``episodes``, ``overrides`` and ``seed``), then the numbers over seeds of the evaluation
@@ -822,7 +912,8 @@ def evaluate_group(
     numbers over the others would read as the group's). With ``against`` (baselines
     ``evaluate_run`` also compared each run with: :func:`evaluate_against`), each baseline's
     paired differences over seeds too (:func:`group_against`: ``GROUP/group-against-BASELINE.json``,
-    ``GROUP/group-against-BASELINE-30ep.json``), listed under the result's ``"against"``.
+    ``GROUP/group-against-BASELINE-30ep.json``), listed under the result's ``"against"``; the
+    baselines played under ``against_set`` (``--against-set``) where given.
 
     Raises:
         GroupError: when the runs would save the evaluation under different names (``seed``
@@ -833,7 +924,9 @@ def evaluate_group(
 
     runs = group_runs(group)
     missing = [run.name for run in group_members(group) if run not in runs]
-    eval_name, against_names = _group_run_files(group, runs, against, episodes, overrides, seed)
+    eval_name, against_names = _group_run_files(
+        group, runs, against, episodes, overrides, seed, against_set
+    )
     out = group_file(group, group_result_file(eval_name))  # asked before the runs are evaluated
     summaries = {}
     for run in runs:
@@ -854,7 +947,8 @@ def evaluate_group(
     saved = write_json(out, result)
     if against:
         result["against"] = [
-            group_against(group, runs, policy, against_names[policy]) for policy in against
+            group_against(group, runs, policy, against_names[policy], against_set)
+            for policy in against
         ]
     return result, saved, []
 
@@ -866,6 +960,7 @@ def _group_run_files(
     episodes: int,
     overrides: Sequence[str],
     seed: int | None,
+    against_set: Sequence[str] = (),
 ) -> tuple[str, dict[str, str]]:
     """The file each of ``runs`` saves ``harness eval RUN`` with ``episodes``, ``overrides`` and
     ``seed`` as (:func:`evaluate`: its ``model.zip``, :func:`result_filename`), and each
@@ -885,7 +980,10 @@ def _group_run_files(
             changed = str(seed)
         files = (
             result_filename("eval", overrides, "model", episodes, changed),
-            tuple(against_filename(p, overrides, "model", episodes, changed) for p in against),
+            tuple(
+                against_filename(p, overrides, "model", episodes, changed, against_set)
+                for p in against
+            ),
         )
         names.setdefault(files, []).append(run.name)
     if len(names) > 1:
@@ -900,7 +998,11 @@ def _group_run_files(
 
 
 def group_against(
-    group: Path, runs: Sequence[Path], policy: str, run_file: str | None = None
+    group: Path,
+    runs: Sequence[Path],
+    policy: str,
+    run_file: str | None = None,
+    against_set: Sequence[str] = (),
 ) -> dict[str, Any]:
     """The runs' paired differences from the baseline ``policy`` on their test episodes (each
     run's comparison ``run_file``, by default the standard evaluation's ``against-POLICY.json``:
@@ -909,11 +1011,13 @@ def group_against(
     ``run_file`` (:func:`~harness.results.groups.group_result_file`:
     ``GROUP/group-against-POLICY.json``, ``GROUP/group-against-POLICY-30ep.json``). The question
     it answers is the training's: does a seed of this training beat the baseline on the same
-    episodes, and by how much?"""
+    episodes, and by how much? ``against_set``: the ``--against-set`` overrides the baseline
+    played under (their ``run_file`` names them), said in the result."""
     from harness.results.groups import group_file, group_result_file
     from harness.results.stats import describe, seed_statistics
 
-    run_file = against_filename(policy, []) if run_file is None else run_file
+    if run_file is None:
+        run_file = against_filename(policy, [], against_set=against_set)
     differences: dict[str, float] = {}
     steps: dict[str, float] = {}  # the steps to 99 %, of the runs that have a comparison of them
     metric = "coverage"
@@ -927,6 +1031,7 @@ def group_against(
     result: dict[str, Any] = {
         "group": str(group),
         "against": policy,
+        **({"against_set": list(against_set)} if against_set else {}),
         "metric": metric,
         "differences": differences,
         "difference_over_seeds": describe(stats),

@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 import subprocess
 import sys
@@ -21,7 +22,7 @@ from harness.commands import (
     paired_steps_to_99,
 )
 from harness.config.loading import load_config
-from harness.results.rundir import result_filename
+from harness.results.rundir import against_filename, result_filename
 from tests.conftest import one_error_line, root_first_env
 from tests.test_seeds_and_sweeps import TINY
 
@@ -273,6 +274,80 @@ def test_a_baseline_against_itself_is_equal_in_every_episode(capsys):
         "difference +0.00 points [+0.00, +0.00] (95 % bootstrap over the episodes); this policy "
         "ahead in 0, behind in 0, equal in 3"
     )
+
+
+def test_against_set_to_the_targets_own_value_changes_nothing_but_the_file_name(smoke_run, capsys):
+    # eval.rollout.after=0.8 is the default (and frontier_pocket reads no eval.rollout): the
+    # baseline plays as plain --against does, in a file of its own beside the plain one.
+    alike = ["--against", "frontier_pocket", "--against-set", "eval.rollout.after=0.8"]
+    args = ["--policy", "frontier_pocket", "--config", str(SMOKE), "--episodes", "2"]
+    (itself,) = eval_json(capsys, *args, *alike)["against"]
+    assert itself["difference"] == 0.0 and itself["difference_ci95"] == [0.0, 0.0]
+    assert itself["against_set"] == ["eval.rollout.after=0.8"]
+    (plain,) = eval_json(capsys, str(smoke_run), "--episodes", "2", *alike[:2])["against"]
+    (with_set,) = eval_json(capsys, str(smoke_run), "--episodes", "2", *alike)["against"]
+    assert "against_set" not in plain
+    assert {**plain, "against_set": ["eval.rollout.after=0.8"]} == with_set
+    saved = json.loads((smoke_run / "against-frontier_pocket-2ep.json").read_text())
+    named = smoke_run / "against-frontier_pocket-2ep+eval.rollout.after-0.8.json"
+    assert {**saved, "against_set": ["eval.rollout.after=0.8"]} == json.loads(named.read_text())
+
+
+def test_against_set_plays_the_baseline_under_its_settings_on_the_same_episodes(capsys):
+    # frontier_step follows env.frontier.planner: under hungarian it walks otherwise than under
+    # the config's pocket, as `--policy frontier_step --set env.frontier.planner=hungarian` does.
+    args = ["--config", str(ROOT / "configs" / "goals_2agents.yaml"), "--episodes", "2"]
+    args += ["--set", "env.map=random", "--set", "env.height=12", "--set", "env.width=12"]
+    args += ["--set", "env.max_steps=60", "--policy", "frontier_step"]
+    other = "env.frontier.planner=hungarian"
+    out = eval_json(capsys, *args, "--against", "frontier_step", "--against-set", other)
+    (comparison,) = out["against"]
+    alone = eval_json(capsys, *args, "--set", other)
+    assert comparison["against_mean"] == alone["coverage_mean"] != out["coverage_mean"]
+    assert comparison["difference"] != 0.0 and comparison["against_set"] == [other]
+    capsys.readouterr()
+    assert main(["eval", *args, "--against", "frontier_step", "--against-set", other]) == 0
+    assert f"against   frontier_step --against-set {other} on the same 2 episodes" in (
+        capsys.readouterr().out
+    )
+
+
+@pytest.mark.parametrize(
+    ("extra", "message"),
+    [
+        (["--against-set", "eval.rollout.after=0.5"], "--against-set sets the config of the"),
+        (["--against-set", "env.max_steps=20"], "env.max_steps makes the episodes"),
+        (["--against-set", "seed=3"], "seed makes the episodes"),
+        (["--against-set", "env={n_agents: 3}"], "env.n_agents makes the episodes"),
+        (["--against-set", "env.map.cave.height=20"], "env.map makes the episodes"),
+        (["--against-set", "env.starts=[[1, 1]]"], "env.starts makes the episodes"),
+        (["--against-set", "eval.rollout.nope=1"], "eval.rollout.nope: Extra inputs"),
+        (["--against-set", "eval.rollout.after=7"], "less than or equal to 1"),
+        (["--against-set", "nothing"], "--against-set: --set 'nothing': expected key.path=value"),
+    ],
+)
+def test_against_set_is_refused_in_one_line_writing_nothing(smoke_run, extra, message, capsys):
+    against = [] if "sets the config" in message else ["--against", "frontier"]
+    before = sorted(p.name for p in smoke_run.iterdir())
+    capsys.readouterr()
+    assert main(["eval", str(smoke_run), "--episodes", "2", *against, *extra]) == 2
+    captured = capsys.readouterr()
+    assert message in one_error_line(captured.err) and captured.out == ""
+    assert sorted(p.name for p in smoke_run.iterdir()) == before
+
+
+def test_against_set_files_are_named_apart_from_the_evaluations_own_sets():
+    # --set X --against P is the evaluation's setting (both play it); --against-set X is the
+    # baseline's alone: two files. A value that reads back ambiguously gets its hash.
+    assert against_filename("rollout", ["eval.rollout.after=0.6"]) == (
+        "against-rollout-eval.rollout.after-0.6.json"
+    )
+    assert against_filename("rollout", [], against_set=["eval.rollout.after=0.6"]) == (
+        "against-rollout+eval.rollout.after-0.6.json"
+    )
+    hashed = against_filename("rollout", [], episodes=10, against_set=["eval.x=1", "c=x-y"])
+    assert re.fullmatch(r"against-rollout-10ep\+eval\.x-1_c-x-y~[0-9a-f]{8}\.json", hashed)
+    assert hashed != against_filename("rollout", [], episodes=10, against_set=["eval.x=1", "c=x/y"])
 
 
 def test_steps_to_99_are_paired_on_the_episodes_both_reach_it_in():

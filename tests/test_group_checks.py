@@ -158,3 +158,22 @@ def test_a_group_evaluated_with_a_seed_and_overrides_names_its_files_after_them(
     assert sorted(p.name for p in group.glob("group-*.json")) == [
         "group-eval-2ep_seed7_env.max_steps-10.json"
     ]
+
+
+def test_a_group_against_set_is_over_seeds_in_files_of_its_own(group, capsys):
+    # frontier reads no eval.rollout: the same differences as plain --against, in each run's
+    # against-frontier-2ep+eval.rollout.after-0.5.json and the group's file named after it.
+    plain = ["eval", str(group), "--episodes", "2", "--against", "frontier"]
+    sets = ["--against-set", "eval.rollout.after=0.5"]
+    assert main([*plain, *sets, "--against-set", "env.n_agents=3"]) == 2  # refused up front
+    assert "env.n_agents makes the episodes" in one_error_line(capsys.readouterr().err)
+    assert not list(group.glob("group-*.json"))
+    assert main(plain) == 0 and main([*plain, *sets]) == 0
+    printed = capsys.readouterr().out
+    assert "== over 2 seeds against frontier --against-set eval.rollout.after=0.5 (" in printed
+    name = "against-frontier-2ep+eval.rollout.after-0.5.json"
+    ours = json.loads((group / f"group-{name}").read_text())
+    theirs = json.loads((group / "group-against-frontier-2ep.json").read_text())
+    assert ours["against_set"] == ["eval.rollout.after=0.5"]
+    assert ours["differences"] == theirs["differences"]
+    assert all((run / name).is_file() for run in _members(group))

@@ -214,12 +214,31 @@ def result_filename(
     parts += list(overrides)
     if not parts:
         return f"{kind}.json"
+    return f"{kind}-{_slug(parts, (model, episodes, seed_changed, list(overrides)))}.json"
+
+
+def _slug(
+    parts: Sequence[str],
+    exact: tuple[str, int, str | None, list[str]],
+    limit: int = READABLE_LIMIT,
+) -> str:
+    """The readable name of ``parts`` (see :func:`result_filename`), with ``~`` and a short hash
+    of ``exact`` (what was evaluated) after it unless it reads back as exactly that within
+    ``limit`` characters."""
     slug = re.sub(r"[^A-Za-z0-9_.-]+", "-", "_".join(parts)).strip("-")
-    exact = (model, episodes, seed_changed, list(overrides))
-    if len(slug) <= READABLE_LIMIT and _read_back(slug) == exact:
-        return f"{kind}-{slug}.json"
+    if len(slug) <= limit and _read_back(slug) == exact:
+        return slug
     digest = hashlib.sha256(json.dumps(exact).encode("utf-8")).hexdigest()[:8]
-    return f"{kind}-{slug[:READABLE_LIMIT]}~{digest}.json"
+    return f"{slug[:limit]}~{digest}"
+
+
+#: The ``+`` before an ``--against-set`` part of a comparison's file name: no slug, no policy
+#: name, no ``kind`` holds one, so the part after it is the baseline's settings and nothing else.
+AGAINST_SET_MARK = "+"
+#: Longest readable part of the ``--against-set`` part: with the evaluation's own (at most
+#: :data:`READABLE_LIMIT` and a hash) and a seed group's ``group-`` before the name, a file name
+#: stays well under the 255 bytes a file system takes.
+AGAINST_SET_LIMIT = READABLE_LIMIT // 2
 
 
 def against_filename(
@@ -228,12 +247,25 @@ def against_filename(
     model: str = "model",
     episodes: int = STANDARD_EPISODES,
     seed_changed: str | None = None,
+    against_set: Sequence[str] = (),
 ) -> str:
     """The file of ``harness eval --against POLICY``: the episode-by-episode comparison of a
     model with a written planner on the evaluation's episodes, named as that evaluation is
     (:func:`result_filename`) with ``against-POLICY`` for ``eval``: ``against-frontier_pocket.json``
-    beside ``eval.json``, ``against-frontier_pocket-10ep.json`` beside ``eval-10ep.json``."""
-    return result_filename(f"against-{policy}", overrides, model, episodes, seed_changed)
+    beside ``eval.json``, ``against-frontier_pocket-10ep.json`` beside ``eval-10ep.json``.
+
+    ``against_set`` (``--against-set``: the overrides the baseline alone played under) follows
+    after a ``+``, as a slug of its own (read back, or hashed, as the evaluation's ``--set``s
+    are): ``against-rollout+eval.rollout.after-0.6.json``,
+    ``against-rollout-10ep+eval.rollout.after-0.6.json``. The ``+`` keeps it apart from the
+    evaluation's own ``--set``s (``--set X --against P`` is not ``--against P --against-set X``),
+    and never replaces the plain ``against-POLICY*.json``."""
+    name = result_filename(f"against-{policy}", overrides, model, episodes, seed_changed)
+    if not against_set:
+        return name
+    exact = ("model", STANDARD_EPISODES, None, list(against_set))
+    slug = _slug(against_set, exact, AGAINST_SET_LIMIT)
+    return f"{name.removesuffix('.json')}{AGAINST_SET_MARK}{slug}.json"
 
 
 def _read_back(slug: str) -> tuple[str, int, str | None, list[str]] | None:

@@ -454,12 +454,15 @@ def test_rollout_row_quotes_its_stored_evaluation_on_the_planners_episodes(row) 
 
 
 #: The rows of docs/results.md's table of the rollout chooser with a prior: the stored file each
-#: quotes (docs/baselines/rollout_prior/), and whether it is a comparison of two choosers
-#: (scripts/paired_policies.py) rather than an evaluation with ``--against``.
+#: quotes (docs/baselines/rollout_prior/, ``harness eval --json``), and the baseline it is paired
+#: with there (``rollout``: the same chooser without the prior, ``--against-set``).
 PRIOR_CHOOSER = {
-    "floor plans 50x100, 4": ("test30_rooms_prior_after075.json", False),
-    "office floors 50x100, 4 (another generator)": ("test30_office_prior_after075.json", False),
-    "random 50x50, 2": ("random_2agents_prior_vs_uniform.json", True),
+    "floor plans 50x100, 4": ("test30_rooms_prior_after075.json", "frontier_pocket"),
+    "office floors 50x100, 4 (another generator)": (
+        "test30_office_prior_after075.json",
+        "frontier_pocket",
+    ),
+    "random 50x50, 2": ("random_2agents_prior_vs_uniform.json", "rollout"),
 }
 PRIOR_CHOOSER_ROWS = table_rows("| setting | chooser | coverage | paired with |")
 
@@ -470,17 +473,14 @@ def test_prior_chooser_table_has_its_settings() -> None:
 
 @pytest.mark.parametrize("row", PRIOR_CHOOSER_ROWS, ids=lambda r: r["setting"])
 def test_prior_chooser_row_quotes_its_stored_comparison(row) -> None:
-    name, two_choosers = PRIOR_CHOOSER[row["setting"]]
+    name, paired = PRIOR_CHOOSER[row["setting"]]
     d = json.loads((ROOT / "docs" / "baselines" / "rollout_prior" / name).read_text())
-    if two_choosers:
-        # The chooser with the prior (a) against the same chooser without (b), on 30 episodes.
-        assert d["episodes"] == 30 and d["a_overrides"][-1].startswith("eval.rollout.prior=")
-        assert not any(o.startswith("eval.rollout.prior=") for o in d["b_overrides"])
-        mean, theirs, comparison = d["a_mean"], d["b_mean"], d
-    else:
-        assert d["policy"] == "rollout" and d["episodes"] == 30 and d["wall_hits_mean"] == 0
-        comparison = next(a for a in d["against"] if a["against"] == "frontier_pocket")
-        mean, theirs = d["coverage_mean"], comparison["against_mean"]
+    assert d["policy"] == "rollout" and d["episodes"] == 30 and d["wall_hits_mean"] == 0
+    comparison = next(a for a in d["against"] if a["against"] == paired)
+    if paired == "rollout":  # the chooser with the prior against itself without one
+        assert "eval.rollout.prior=runs/reference/prior_random" in d["overrides"]
+        assert comparison["against_set"] == ["eval.rollout.prior=null"]
+    mean, theirs = d["coverage_mean"], comparison["against_mean"]
     assert row["coverage"] == f"{100 * mean:.2f} %"
     lo, hi = (100 * x for x in comparison["difference_ci95"])
     quoted = (

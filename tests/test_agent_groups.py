@@ -1,11 +1,13 @@
 """Agent groups of a PettingZoo env (issue 72): by name prefix or named in the config
 (``env.pettingzoo.groups``), each group's return apart in an evaluation's summary (a competitive
 env's sides), and a network per group (``algo.sharing: per_group``: the group's one-hot index
-routes each agent to its group's network), on an in-file env with two sides."""
+routes each agent to its group's network) through every command that takes its run or config, on
+an in-file env with two sides."""
 
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -284,3 +286,136 @@ def continuous(**kwargs):
     env = Chase(**kwargs)
     env._action = spaces.Box(-1.0, 1.0, shape=(1,), dtype=np.float32)
     return env
+
+
+# ------------------------------------------------- per_group with the other commands (issue 72)
+class Drawn(Chase):
+    """The chase env drawing ``rgb_array`` frames (``harness render`` plays only an env that
+    draws): row 0 the runner's cell, row 1 the chasers'."""
+
+    metadata = {"name": "chase_v0", "render_modes": ["rgb_array"]}  # noqa: RUF012
+
+    def render(self):
+        frame = np.zeros((2, 5, 3), np.uint8)
+        for a, cell in self.cells.items():
+            frame[int(a != "runner_0"), cell] = 255
+        return frame
+
+
+def drawn(**kwargs):
+    return Drawn(**kwargs)
+
+
+def per_group_file(folder, **pettingzoo) -> str:
+    """A per_group config file in ``folder`` (evaluations and checkpoints every 60 steps)."""
+    raw = per_group(**pettingzoo)
+    raw["eval"]["every"] = raw["checkpoint"]["every"] = 60
+    path = folder / "chase.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def per_group_run(tmp_path_factory):
+    """A per_group run of the drawing chase env, trained once for the module's commands."""
+    root = tmp_path_factory.mktemp("per_group")
+    config = per_group_file(root, make="tests.test_agent_groups:drawn")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("PYTHONPATH", root_first_env()["PYTHONPATH"])
+        assert main(["run", config, "--no-progress", "--into", str(root / "run")]) == 0
+    return root / "run"
+
+
+def groups_of(model_zip) -> int:
+    """The parameter sets of a saved model's Q-network (a per_group model's: its groups)."""
+    from harness.sb3.dqn import DoubleDQN
+
+    return DoubleDQN.load(model_zip, device="cpu").q_net.n_agents
+
+
+def test_a_stopped_per_group_run_resumes_to_the_end(tmp_path, capsys):
+    import csv
+    import os
+    import signal
+
+    from harness.sb3.dqn import DoubleDQN
+
+    original, fired = DoubleDQN.train, []
+
+    def train_then_interrupt(model, gradient_steps, batch_size=100):
+        original(model, gradient_steps, batch_size)
+        if model.num_timesteps >= 70 and not fired:
+            fired.append(model.num_timesteps)
+            os.kill(os.getpid(), signal.SIGINT)
+
+    run = tmp_path / "run"
+    args = ["run", per_group_file(tmp_path), "--no-progress", "--into", str(run)]
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(DoubleDQN, "train", train_then_interrupt)
+        assert main(args) == 128 + signal.SIGINT
+    assert not (run / "model.zip").exists()
+    assert main(["run", "--resume", str(run), "--no-progress"]) == 0
+    assert "resuming at step" in capsys.readouterr().err
+    with (run / "episodes.csv").open() as f:
+        numbers = [int(row["episode"]) for row in csv.DictReader(f)]
+    # 120 transitions are 6 episodes of 6 steps of 3 agents (2 copies); those the stop cut are
+    # not resumed
+    assert numbers == list(range(len(numbers))) and 4 <= len(numbers) <= 6
+    with (run / "evaluations.csv").open() as f:
+        assert [row["timesteps"] for row in csv.DictReader(f)] == ["60", "120"]
+    model = DoubleDQN.load(run / "model.zip", device="cpu")
+    assert model.num_timesteps >= 120 and model.q_net.n_agents == 2  # still a network per group
+    assert groups_of(run / "best_model.zip") == 2
+    assert main(["eval", str(run), "--episodes", "2"]) == 0
+    assert "group runner (1 agents)" in capsys.readouterr().out
+
+
+def test_tune_render_compare_and_export_of_a_per_group_run(per_group_run, tmp_path, capsys):
+    run = per_group_run
+    assert main(["tune", str(run), "--episodes", "2", "--temperatures", "0.5", "1"]) == 0
+    assert "(team return)" in capsys.readouterr().out
+    assert len(json.loads((run / "tune.json").read_text())["rows"]) == 2
+    png, gif = tmp_path / "r.png", tmp_path / "r.gif"
+    assert main(["render", str(run), "--gif", str(gif), "--out", str(png)]) == 0
+    assert png.stat().st_size > 0 and gif.stat().st_size > 0
+    capsys.readouterr()
+    # A model of two groups plays two: render refuses three as eval does.
+    three = "env.pettingzoo.groups={a: [chaser_0], b: [chaser_1], c: [runner_0]}"
+    assert main(["render", str(run), "--out", str(png), "--set", three]) == 2
+    assert "cannot play the env's 3 groups" in one_error_line(capsys.readouterr().err)
+    # An env that does not draw is refused by design (one line, exit 2), per_group or not.
+    plain = "env.pettingzoo.make=tests.test_agent_groups:chase"
+    assert main(["render", str(run), "--out", str(tmp_path / "n.png"), "--set", plain]) == 2
+    assert "does not render rgb_array frames" in one_error_line(capsys.readouterr().err)
+    assert main(["eval", str(run), "--episodes", "2"]) == 0
+    cmp = tmp_path / "cmp.png"
+    assert main(["compare", str(run), "--out", str(cmp), "--reps", "100"]) == 0
+    assert "mean test team return" in capsys.readouterr().out and cmp.is_file()
+    ref = tmp_path / "reference" / "chase"
+    assert main(["export", str(run), "--out", str(ref)]) == 0
+    assert groups_of(ref / "model.zip") == 2
+    capsys.readouterr()
+    assert main(["eval", str(ref), "--episodes", "2"]) == 0
+    assert "group chaser (2 agents): return median" in capsys.readouterr().out
+
+
+def test_seeds_and_a_sweep_of_per_group(tmp_path, capsys):
+    config = per_group_file(tmp_path)
+    runs = tmp_path / "runs"
+    assert main(["run", config, "--seeds", "2", "--no-progress", "--runs-dir", str(runs)]) == 0
+    (group,) = runs.iterdir()
+    assert "median team return" in capsys.readouterr().err
+    assert [groups_of(m) for m in sorted(group.glob("*/model.zip"))] == [2, 2]
+    assert main(["eval", str(group), "--episodes", "2"]) == 0
+    out = capsys.readouterr().out
+    assert out.count("group chaser (2 agents): return median") == 2  # each seed's groups
+    over = json.loads((group / "group-eval-2ep.json").read_text())["return_mean_over_seeds"]
+    assert over["seeds"] == 2
+    space = tmp_path / "space.yaml"
+    space.write_text("algo.gamma: {float: [0.8, 0.99]}\n")
+    sweeps = tmp_path / "sweeps"
+    args = ["sweep", config, "--space", str(space), "--trials", "1", "--sweeps-dir", str(sweeps)]
+    assert main(args) == 0
+    best = json.loads((sweeps / "chase" / "best.json").read_text())
+    assert best["objective"].startswith("median team return")
+    assert groups_of(Path(best["run"]) / "model.zip") == 2  # the trial's model

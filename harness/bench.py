@@ -153,6 +153,10 @@ def bench_env(episodes: int = 3) -> dict[str, Any]:
         out["env_goals_prior_over_goals"] = (
             out["env_bare_goals_prior_agent_steps_per_s"] / out["env_bare_goals_agent_steps_per_s"]
         )
+        # And its prediction as images too (the team map's predicted views), on the same calls.
+        out["env_bare_goals_predicted_agent_steps_per_s"] = bare_rate(
+            {"teammap": {"predicted": True}}, goal, prior_env
+        )
 
     def vec_rate(copies: int, num_cpus: int = 0, backend: str = "core") -> float:
         venv = make_vec_env(THESIS_ENV, copies, num_cpus, seed=0, backend=backend)
@@ -709,6 +713,9 @@ def format_bench(r: dict[str, Any]) -> str:
             go = r["env_bare_goals_agent_steps_per_s"]
             gp = r["env_bare_goals_prior_agent_steps_per_s"]
             lines.append(f"  ... + map prior (env.prior) {n(gp)}  {gp / go:5.2f} x goal action")
+            if "env_bare_goals_predicted_agent_steps_per_s" in r:
+                pv = r["env_bare_goals_predicted_agent_steps_per_s"]
+                lines.append(f"  {'... + predicted views':<28}{n(pv)}  {pv / gp:5.2f} x map prior")
         ss = r.get("env_vec_supersuit_by_copies", {})
         for c, v in r["env_vec_by_copies"].items():
             tail = ""

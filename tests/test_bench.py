@@ -37,6 +37,7 @@ def test_bench_env_json_has_the_documented_keys(capsys):
         "env_bare_goals_agent_steps_per_s",
         "env_bare_goals_prior_agent_steps_per_s",
         "env_goals_prior_over_goals",
+        "env_bare_goals_predicted_agent_steps_per_s",
         "env_vec_agent_steps_per_s",
         "env_vec_over_bare",
     ):
@@ -56,6 +57,9 @@ def test_bench_report_shows_every_section_with_targets():
         "env_bare_teammap_frontier_agent_steps_per_s": 6_000.0,
         "env_bare_teammap_claims_agent_steps_per_s": 4_800.0,
         "env_bare_teammap_pocket_agent_steps_per_s": 3_600.0,
+        "env_bare_goals_agent_steps_per_s": 3_000.0,
+        "env_bare_goals_prior_agent_steps_per_s": 150.0,
+        "env_bare_goals_predicted_agent_steps_per_s": 120.0,
         "env_vec_by_copies": {1: 40_000.0, 4: 50_000.0, 16: 520_000.0},
         "env_vec_supersuit_by_copies": {1: 40_000.0, 4: 50_000.0, 16: 52_000.0},
         "env_vec_agent_steps_per_s": 50_000.0,
@@ -125,6 +129,11 @@ def test_bench_report_shows_every_section_with_targets():
     assert "4,800" in line and "0.04 x thesis" in line
     (line,) = [line for line in text.splitlines() if "pocket tie-break" in line]
     assert "3,600" in line and "0.03 x thesis" in line
+    # The map prior's row over the goal action's, the predicted views' over the prior's.
+    (line,) = [line for line in text.splitlines() if "map prior (env.prior)" in line]
+    assert "150" in line and "0.05 x goal action" in line
+    (line,) = [line for line in text.splitlines() if "predicted views" in line]
+    assert "120" in line and "0.80 x map prior" in line
     (line,) = [line for line in text.splitlines() if "frontier_pocket episodes/s" in line]
     assert "7.50" in line and "0.68 x frontier" in line
     (line,) = [line for line in text.splitlines() if "frontier_hungarian episodes/s" in line]

@@ -188,7 +188,7 @@ def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) ->
         raise TargetError(
             f"{model_path}: cannot load model ({type(exc).__name__}: {exc})"
         ) from None
-    check_model_fits(model, model_path, config)
+    check_model_fits(model, model_path, config, _trained_sharing(config_path, config, overrides))
     run_dir = config_path.parent
     seed = config.eval.seed if seed is None else seed
     # The model's place in its run folder names the eval file ("best_model", ...): taken from the
@@ -199,12 +199,30 @@ def load_model_target(path: Path, overrides: Sequence[str], seed: int | None) ->
     return Target(policy, config, str(model_path), run_dir, seed, name.as_posix(), model)
 
 
-def check_model_fits(model: Any, model_path: Path, config: ExperimentConfig) -> None:
+def _trained_sharing(
+    config_path: Path, config: ExperimentConfig, overrides: Sequence[str]
+) -> str | None:
+    """The ``algo.sharing`` a run's model was trained with: its own config's, read again
+    without the ``--set`` overrides where there are some (``None`` where it no longer loads
+    without them: the model's own record is checked then)."""
+    if not overrides:
+        return config.algo.sharing
+    try:
+        return load_config(config_path).algo.sharing
+    except ConfigError:
+        return None
+
+
+def check_model_fits(
+    model: Any, model_path: Path, config: ExperimentConfig, trained_sharing: str | None = None
+) -> None:
     """Refuse a model whose observation or action space is not its config's env's (a zip of
-    another experiment, or made for another observation kind or team size)."""
+    another experiment, or made for another observation kind or team size), or whose networks
+    are not the env's agents' (:func:`check_team_size`; ``trained_sharing``: the
+    ``algo.sharing`` of the run's own config, before ``--set``)."""
     env = make_env(config.env)
     agent = env.possible_agents[0]
-    check_team_size(model, model_path, config, env.observation_space(agent))
+    check_team_size(model, model_path, config, env.observation_space(agent), trained_sharing)
     for what, expected, got in (
         ("observation", env.observation_space(agent), model.observation_space),
         ("action", env.action_space(agent), model.action_space),
@@ -238,11 +256,28 @@ def trained_team_size(model: Any, env_space: Any, n_agents: int) -> int | None:
     return trained if trained >= 1 else None
 
 
-def check_team_size(model: Any, model_path: Path, config: ExperimentConfig, env_space: Any) -> None:
-    """Refuse to play a team of another size than the one a ``shared_id`` or ``per_agent``
-    model was trained with: it has one parameter set, or one agent-id input, per trained agent
-    (a ``shared`` model plays any team size)."""
+def check_team_size(
+    model: Any,
+    model_path: Path,
+    config: ExperimentConfig,
+    env_space: Any,
+    trained_sharing: str | None = None,
+) -> None:
+    """Refuse to play a model with networks for other agents than the env's: under another
+    ``algo.sharing`` than it was trained with (``--set``; ``trained_sharing``: the run's own, a
+    ``per_group`` model records its groups), a ``shared_id`` or ``per_agent`` model for another
+    team size (one parameter set, or one agent-id input, per trained agent; a ``shared`` model
+    plays any team size), a ``per_group`` model for other groups: their number, and where the
+    model records them (models saved since it does), their names, order and agents."""
     sharing = config.algo.sharing
+    groups = getattr(model.policy, "groups", None)  # a per_group model's, in index order
+    trained_as = "per_group" if groups else (trained_sharing or sharing)
+    if trained_as != sharing:
+        raise TargetError(
+            f"{model_path}: the model was trained with algo.sharing: {trained_as} "
+            f"({_networks(trained_as, model, groups)}); --set algo.sharing={sharing} asks for "
+            f"{_networks(sharing)} (a model plays with the sharing it was trained with)"
+        )
     if sharing == "shared":
         return
     width = config.env.id_width  # (the team size; the groups for per_group)
@@ -259,6 +294,35 @@ def check_team_size(model: Any, model_path: Path, config: ExperimentConfig, env_
             f"it cannot play env.n_agents={config.env.n_agents} (only algo.sharing=shared models "
             "play any team size)"
         )
+    env_groups = config.env.groups if groups else None
+    if env_groups is not None and list(env_groups.items()) != list(groups.items()):
+        raise TargetError(
+            f"{model_path}: this algo.sharing=per_group model has one network per group for the "
+            f"groups {_groups_text(groups)}; the env's groups are {_groups_text(env_groups)} "
+            "(it plays the groups it was trained for only)"
+        )
+
+
+def _networks(sharing: str, model: Any = None, groups: dict[str, Any] | None = None) -> str:
+    """What a kind of sharing gives each agent, in a few words; with ``model`` (trained so),
+    for how many agents or which groups."""
+    if sharing == "per_group" and groups:
+        return f"{len(groups)} groups: {_groups_text(groups)}"
+    n = getattr(model.q_net, "n_agents", None) if model is not None else None
+    each = "per" if n is None else f"for each of {n}"
+    return {
+        "shared": "one network for every agent",
+        "shared_id": "one network that reads each agent's id",
+        "per_agent": f"one network {each} agent{'s' if n else ''}",
+        "per_group": f"one network {each} group{'s' if n else ''}",
+    }.get(sharing, sharing)
+
+
+def _groups_text(groups: dict[str, Any]) -> str:
+    """Groups as ``env.pettingzoo.groups`` is written: ``{a: [a_0, a_1], b: [b_0]}``."""
+    return (
+        "{" + ", ".join(f"{name}: [{', '.join(agents)}]" for name, agents in groups.items()) + "}"
+    )
 
 
 def _space_layout(space: Any) -> Any:

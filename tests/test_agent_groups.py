@@ -419,3 +419,78 @@ def test_seeds_and_a_sweep_of_per_group(tmp_path, capsys):
     best = json.loads((sweeps / "chase" / "best.json").read_text())
     assert best["objective"].startswith("median team return")
     assert groups_of(Path(best["run"]) / "model.zip") == 2  # the trial's model
+
+
+# ------------------------------------------- a per_group model plays the groups it was trained for
+def files_of(folder: Path) -> set[Path]:
+    return {p for p in folder.rglob("*") if p.is_file()}
+
+
+TRAINED = "{chaser: [chaser_0, chaser_1], runner: [runner_0]}"
+
+
+@pytest.mark.parametrize(
+    "groups",
+    [
+        "{chaser: [chaser_0, runner_0], runner: [chaser_1]}",  # agents swapped between groups
+        "{runner: [runner_0], chaser: [chaser_0, chaser_1]}",  # the groups' order (their index)
+        "{hunters: [chaser_0, chaser_1], prey: [runner_0]}",  # renamed
+    ],
+    ids=["swapped", "reordered", "renamed"],
+)
+def test_other_groups_of_as_many_are_refused_in_one_line(per_group_run, capsys, groups):
+    from harness.sb3.dqn import DoubleDQN
+
+    run = per_group_run
+    policy = DoubleDQN.load(run / "model.zip", device="cpu").policy
+    assert policy.groups == {"chaser": ("chaser_0", "chaser_1"), "runner": ("runner_0",)}
+    before = files_of(run)
+    other = f"env.pettingzoo.groups={groups}"
+    for command in (["eval", str(run), "--episodes", "1"], ["tune", str(run), "--episodes", "1"]):
+        assert main([*command, "--set", other]) == 2
+        line = one_error_line(capsys.readouterr().err)
+        assert f"per group for the groups {TRAINED}; the env's groups are {groups}" in line, line
+    assert files_of(run) == before
+
+
+def test_the_same_groups_written_otherwise_still_play(per_group_run, capsys):
+    same = "env.pettingzoo.groups={chaser: [chaser_1, chaser_0], runner: [runner_0]}"
+    assert main(["eval", str(per_group_run), "--episodes", "1", "--set", same]) == 0
+    assert "group chaser (2 agents): return median" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize("sharing", ["per_agent", "shared_id", "shared"])
+def test_another_sharing_is_refused_naming_the_models(per_group_run, capsys, sharing):
+    args = ["eval", str(per_group_run), "--episodes", "1", "--set", f"algo.sharing={sharing}"]
+    assert main(args) == 2
+    line = one_error_line(capsys.readouterr().err)
+    expected = (
+        f"the model was trained with algo.sharing: per_group (2 groups: {TRAINED}); "
+        f"--set algo.sharing={sharing} asks for "
+    )
+    assert expected in line, line
+
+
+def test_a_per_group_model_saved_before_it_recorded_its_groups(per_group_run, tmp_path, capsys):
+    import shutil
+
+    from harness.sb3.dqn import DoubleDQN
+
+    run = tmp_path / "old"
+    shutil.copytree(per_group_run, run)
+    model = DoubleDQN.load(run / "model.zip", device="cpu")
+    del model.policy_kwargs["groups"]  # (as such a model was saved)
+    model.policy.groups = None
+    model.save(run / "model.zip")
+    assert DoubleDQN.load(run / "model.zip", device="cpu").policy.groups is None
+    # It plays as before: the number of groups is all it carries.
+    swapped = "env.pettingzoo.groups={chaser: [chaser_0, runner_0], runner: [chaser_1]}"
+    assert main(["eval", str(run), "--episodes", "1", "--set", swapped]) == 0
+    capsys.readouterr()
+    three = "env.pettingzoo.groups={a: [chaser_0], b: [chaser_1], c: [runner_0]}"
+    assert main(["eval", str(run), "--episodes", "1", "--set", three]) == 2
+    assert "cannot play the env's 3 groups" in one_error_line(capsys.readouterr().err)
+    # Its sharing is its run's config's.
+    assert main(["eval", str(run), "--episodes", "1", "--set", "algo.sharing=per_agent"]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert "trained with algo.sharing: per_group (one network for each of 2 groups); " in line

@@ -11,6 +11,7 @@ Every policy here builds its features extractor on the observation space less th
 from __future__ import annotations
 
 import copy
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -719,23 +720,38 @@ class _PerAgent(_IgnoresActionMask):
     the base policy's kind (MLP, dueling, team map), each built on the observation space less
     the agent's one-hot index. ``n_agents`` and ``agent_key`` (the key of the one-hot index in a
     ``Dict`` observation; default :data:`AGENT_KEY`, the coverage env's) are constructor
-    parameters, saved with the model. Everything else
-    (optimizer, target updates, double-Q, PER) is the base policy's.
+    parameters, saved with the model, and so is ``groups``: where a set plays for a group of
+    agents, each set's group name and agent names, in set order (``None``: not recorded, as in
+    a model saved before it was; a loader compares it with the env it is to play). Everything
+    else (optimizer, target updates, double-Q, PER) is the base policy's.
     """
 
     n_agents: int
     agent_key: str
+    groups: dict[str, tuple[str, ...]] | None
     net_args: dict[str, Any]
 
     def __init__(
-        self, *args: Any, n_agents: int = 1, agent_key: str = AGENT_KEY, **kwargs: Any
+        self,
+        *args: Any,
+        n_agents: int = 1,
+        agent_key: str = AGENT_KEY,
+        groups: Mapping[str, Sequence[str]] | None = None,
+        **kwargs: Any,
     ) -> None:
         if isinstance(n_agents, bool) or not isinstance(n_agents, int) or n_agents < 1:
             raise ValueError(f"n_agents must be an integer >= 1, got {n_agents!r}")
+        if groups is not None and len(groups) != n_agents:
+            raise ValueError(f"groups: {len(groups)} groups for n_agents={n_agents} parameter sets")
         # make_q_net runs inside the base __init__ and needs them; plain values are safe to set
         # before nn.Module.__init__.
         self.n_agents = n_agents
         self.agent_key = str(agent_key)
+        self.groups = (
+            None
+            if groups is None
+            else {str(name): tuple(map(str, members)) for name, members in groups.items()}
+        )
         super().__init__(*args, **kwargs)
 
     def make_q_net(self) -> PerAgentQNetwork:
@@ -757,6 +773,8 @@ class _PerAgent(_IgnoresActionMask):
     def _get_constructor_parameters(self) -> dict[str, Any]:
         data = super()._get_constructor_parameters()  # type: ignore[misc]
         data.update(n_agents=self.n_agents, agent_key=self.agent_key)
+        if self.groups is not None:
+            data["groups"] = {name: list(members) for name, members in self.groups.items()}
         return data
 
 

@@ -44,15 +44,27 @@ def per_network(algo: Any) -> bool:
     return algo.sharing in ("per_agent", "per_group")
 
 
-def network_kwargs(algo: Any, n_agents: int) -> dict[str, Any]:
+def network_groups(config: Any) -> dict[str, tuple[str, ...]] | None:
+    """The groups a ``per_group`` model's parameter sets play for (``env.groups``, in index
+    order); ``None`` for the other kinds of sharing."""
+    return config.env.groups if config.algo.sharing == "per_group" else None
+
+
+def network_kwargs(
+    algo: Any, n_agents: int, groups: dict[str, tuple[str, ...]] | None = None
+) -> dict[str, Any]:
     """The policy's network settings from ``config.algo`` (the one place they are read):
     hidden layers, the dueling aggregator, the team-map extractor's sizes, and the number of
     parameter sets for ``algo.sharing: per_agent`` and ``per_group`` (``n_agents``: the one-hot
-    index's width, ``env.id_width``: the team size, or the groups)."""
+    index's width, ``env.id_width``: the team size, or the groups), with ``per_group`` the
+    ``groups`` (``env.groups``) they play for, saved with the model to be checked where it
+    plays."""
     entry = POLICIES[algo.policy]
     kwargs: dict[str, Any] = {"net_arch": list(algo.net_arch)}
     if per_network(algo):
         kwargs["n_agents"] = n_agents
+    if algo.sharing == "per_group" and groups is not None:
+        kwargs["groups"] = {name: list(members) for name, members in groups.items()}
     if entry.dueling:
         kwargs["aggregator"] = algo.dueling_aggregator
     if entry.team_map:
@@ -65,13 +77,15 @@ def network_kwargs(algo: Any, n_agents: int) -> dict[str, Any]:
     return kwargs
 
 
-def policy_kwargs(algo: Any, n_agents: int, device: str) -> dict[str, Any]:
+def policy_kwargs(
+    algo: Any, n_agents: int, device: str, groups: dict[str, tuple[str, ...]] | None = None
+) -> dict[str, Any]:
     """The policy's keyword arguments as ``harness run`` builds them from ``config.algo``: the
     network (:func:`network_kwargs`), the optimizer class and its fastest step on ``device``
     (:func:`fast_optimizer_kwargs`)."""
     optimizer_class = resolve_optimizer_class(algo.optimizer)
     return {
-        **network_kwargs(algo, n_agents),
+        **network_kwargs(algo, n_agents, groups),
         "optimizer_class": optimizer_class,
         "optimizer_kwargs": fast_optimizer_kwargs(optimizer_class, algo.optimizer_kwargs, device),
     }
@@ -287,7 +301,7 @@ def network_parameters(config: ExperimentConfig) -> int:
     ``meta`` device: the policy is built as ``DoubleDQN`` builds it, without allocating memory."""
     algo = config.algo
     entry = POLICIES[algo.policy]
-    kwargs = network_kwargs(algo, config.env.id_width)
+    kwargs = network_kwargs(algo, config.env.id_width, network_groups(config))
     policy_class = entry.load(per_agent=per_network(algo))
     # SB3 moves each new Q-network to ``policy.device`` (the CPU until it has weights); pointing
     # that hook at ``meta`` keeps every tensor on the meta device.

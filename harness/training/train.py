@@ -88,6 +88,7 @@ from harness.training.checks import (
     check_device,
     check_replay_memory,
     format_bytes,
+    network_groups,
     policy_class_name,
     policy_kwargs,
 )
@@ -98,7 +99,7 @@ from harness.training.threads import configure_torch
 def build_model(config: ExperimentConfig, venv: VecEnv) -> DoubleDQN:
     """Make the ``DoubleDQN`` of ``config.algo`` with the first phase's settings."""
     algo, first = config.algo, config.phases[0]
-    kwargs = policy_kwargs(algo, config.env.id_width, algo.device)
+    kwargs = policy_kwargs(algo, config.env.id_width, algo.device, network_groups(config))
     # On CUDA the buffer lives there (no host round trip per gradient step; its sample joins
     # the recorded step), per-decision replay on the host; uniform replay on the host is SB3's
     # own buffer (n-step returns: its NStepReplayBuffer).

@@ -128,14 +128,14 @@ def reps_arg(text: str) -> int:
 
 
 def temperature_arg(text: str) -> float:
-    """A finite temperature > 0."""
+    """A finite temperature >= 0 (0: the greedy policy)."""
     try:
         value = float(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value) or value <= 0:
+    if not math.isfinite(value) or value < 0:
         raise argparse.ArgumentTypeError(
-            f"temperatures must be finite and > 0, got {text} (T = 0: harness eval's greedy policy)"
+            f"temperatures must be finite and >= 0 (0: the greedy policy), got {text}"
         )
     return value
 

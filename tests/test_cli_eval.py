@@ -734,14 +734,15 @@ def test_tune_sweeps_temperatures_on_validation_episodes(smoke_run, tmp_path, ca
         (run / f).write_bytes((smoke_run / f).read_bytes())
     cfg = load_config(run / "config.yaml")
     capsys.readouterr()
-    args = ["tune", str(run), "--temperatures", "0.5", "3", "--episodes", "3", "--json"]
+    args = ["tune", str(run), "--temperatures", "0", "0.5", "3", "--episodes", "3", "--json"]
     assert main(args) == 0
     result = json.loads(capsys.readouterr().out)
     assert result["seed"] == cfg.eval.validation_seed != cfg.eval.seed
-    assert [r["temperature"] for r in result["rows"]] == [0.5, 3.0]
+    assert [r["temperature"] for r in result["rows"]] == [0.0, 0.5, 3.0]
     assert result["chosen"] == choose_temperature(result["rows"])["temperature"]
     assert json.loads((run / "tune.json").read_text())["rows"] == result["rows"]
-    # Each row is harness eval at that temperature on the same validation episodes.
+    # Each row is harness eval at that temperature on the same validation episodes (T = 0: the
+    # greedy policy, eval's default).
     for row in result["rows"]:
         ev = eval_json(
             capsys, str(run), "--episodes", "3", "--seed", str(cfg.eval.validation_seed),
@@ -759,9 +760,9 @@ def test_tune_sweeps_temperatures_on_validation_episodes(smoke_run, tmp_path, ca
 @pytest.mark.parametrize(
     ("extra", "message"),
     [
-        (["--temperatures", "0"], "--temperatures: temperatures must be finite and > 0"),
-        (["--temperatures", "nan"], "--temperatures: temperatures must be finite and > 0"),
-        (["--temperatures", "inf"], "--temperatures: temperatures must be finite and > 0"),
+        (["--temperatures", "-0.5"], "--temperatures: temperatures must be finite and >= 0"),
+        (["--temperatures", "nan"], "--temperatures: temperatures must be finite and >= 0"),
+        (["--temperatures", "inf"], "--temperatures: temperatures must be finite and >= 0"),
         (["--episodes", "0"], "--episodes: the value must be >= 1"),
         (["--seed", "-1"], "--seed: seed must be in [0, 2147483647]"),
         (["--write", "--set", "env.max_steps=20"], "--write stores a choice"),

@@ -187,3 +187,23 @@ def run_copy(stopped_in_evaluation: tuple[Path, str], tmp_path: Path) -> Path:
     copy = tmp_path / run.name
     shutil.copytree(run, copy)
     return copy
+
+
+# ------------------------------------------------------------------ a Ctrl-C from inside training
+@contextlib.contextmanager
+def interrupted_past(steps: int) -> Iterator[list[int]]:
+    """Training under it gets one SIGINT (Ctrl-C) to this process, sent at the end of its first
+    gradient update past ``steps`` transitions; yields the list that then holds that step."""
+    from harness.sb3.dqn import DoubleDQN
+
+    original, fired = DoubleDQN.train, []
+
+    def train_then_interrupt(model: Any, gradient_steps: int, batch_size: int = 100) -> None:
+        original(model, gradient_steps, batch_size)
+        if model.num_timesteps >= steps and not fired:
+            fired.append(model.num_timesteps)
+            os.kill(os.getpid(), signal.SIGINT)
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(DoubleDQN, "train", train_then_interrupt)
+        yield fired

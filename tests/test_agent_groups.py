@@ -335,23 +335,14 @@ def groups_of(model_zip) -> int:
 
 def test_a_stopped_per_group_run_resumes_to_the_end(tmp_path, capsys):
     import csv
-    import os
     import signal
 
     from harness.sb3.dqn import DoubleDQN
-
-    original, fired = DoubleDQN.train, []
-
-    def train_then_interrupt(model, gradient_steps, batch_size=100):
-        original(model, gradient_steps, batch_size)
-        if model.num_timesteps >= 70 and not fired:
-            fired.append(model.num_timesteps)
-            os.kill(os.getpid(), signal.SIGINT)
+    from tests.conftest import interrupted_past
 
     run = tmp_path / "run"
     args = ["run", per_group_file(tmp_path), "--no-progress", "--into", str(run)]
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(DoubleDQN, "train", train_then_interrupt)
+    with interrupted_past(70):
         assert main(args) == 128 + signal.SIGINT
     assert not (run / "model.zip").exists()
     assert main(["run", "--resume", str(run), "--no-progress"]) == 0

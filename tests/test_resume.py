@@ -22,10 +22,10 @@ import yaml
 from harness.cli import main
 from harness.config.loading import load_config
 from harness.results.rundir import RunDir, RunDirError
-from harness.sb3.dqn import DoubleDQN
 from harness.training.checkpoints import TrainingState, complete_checkpoints, save_checkpoint
 from harness.training.start import StartMode, check_resumable, resume_start, train_run
 from harness.training.train import StopOnSignal, stop_on_signals
+from tests.conftest import interrupted_past
 
 ROOT = Path(__file__).resolve().parents[1]
 SMOKE = ROOT / "configs" / "smoke.yaml"
@@ -42,19 +42,9 @@ TINY = [
 def stopped_run(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A tiny run stopped by Ctrl-C at about step 1000 (checkpoints kept: 800 and ~1000)."""
     runs = tmp_path_factory.mktemp("runs")
-    original = DoubleDQN.train
-    fired = []
-
-    def train_then_interrupt(model, gradient_steps, batch_size=100):
-        original(model, gradient_steps, batch_size)
-        if model.num_timesteps >= 1000 and not fired:
-            fired.append(model.num_timesteps)
-            os.kill(os.getpid(), signal.SIGINT)
-
     args = ["run", str(SMOKE), "--runs-dir", str(runs), "--no-progress"]
     args += [a for o in TINY for a in ("--set", o)]
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(DoubleDQN, "train", train_then_interrupt)
+    with interrupted_past(1000):
         assert main(args) == 128 + signal.SIGINT
     (run,) = runs.iterdir()
     assert len(complete_checkpoints(run / "checkpoints")) == 2

@@ -6,7 +6,6 @@ evaluate, render, compare), with the team-size rule."""
 from __future__ import annotations
 
 import json
-import os
 import signal
 from pathlib import Path
 from typing import Any
@@ -32,6 +31,7 @@ from harness.sb3.registry import POLICIES
 from harness.training.adapters import make_vec_env
 from harness.training.checkpoints import complete_checkpoints
 from harness.training.checks import network_parameters
+from tests.conftest import interrupted_past
 from tests.test_resume import TINY as RESUME_TINY
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -448,21 +448,11 @@ TINY = [*RESUME_TINY, "algo.threads=1"]
 def runs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
     """One tiny run per mode, stopped by Ctrl-C at about step 1000, then resumed to the end."""
     out = {}
-    original = DoubleDQN.train
     for mode in MODES:
         folder = tmp_path_factory.mktemp(mode)
-        fired: list[int] = []
-
-        def train_then_interrupt(model, gradient_steps, batch_size=100, fired=fired):
-            original(model, gradient_steps, batch_size)
-            if model.num_timesteps >= 1000 and not fired:
-                fired.append(model.num_timesteps)
-                os.kill(os.getpid(), signal.SIGINT)
-
         args = ["run", str(SMOKE), "--runs-dir", str(folder), "--no-progress"]
         args += [a for o in [*TINY, f"algo.sharing={mode}"] for a in ("--set", o)]
-        with pytest.MonkeyPatch.context() as mp:
-            mp.setattr(DoubleDQN, "train", train_then_interrupt)
+        with interrupted_past(1000):
             assert main(args) == 128 + signal.SIGINT
         (run,) = folder.iterdir()
         assert complete_checkpoints(run / "checkpoints")

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import csv
 import json
-import os
 from pathlib import Path
 
 import numpy as np
@@ -424,23 +423,14 @@ def test_a_run_repeats_from_its_seed(tmp_path):
     assert returns("a") == returns("b") and len(set(returns("a"))) > 1
 
 
-def test_a_stopped_run_resumes_with_consecutive_episodes(tmp_path, monkeypatch):
+def test_a_stopped_run_resumes_with_consecutive_episodes(tmp_path):
     import signal
 
-    from harness.sb3.dqn import DoubleDQN
-
-    original, fired = DoubleDQN.train, []
-
-    def train_then_interrupt(model, gradient_steps, batch_size=100):
-        original(model, gradient_steps, batch_size)
-        if model.num_timesteps >= 400 and not fired:
-            fired.append(model.num_timesteps)
-            os.kill(os.getpid(), signal.SIGINT)
+    from tests.conftest import interrupted_past
 
     run = tmp_path / "run"
     args = ["run", str(MEET), "--no-progress", "--into", str(run), "--set", "checkpoint.every=200"]
-    with monkeypatch.context() as mp:
-        mp.setattr(DoubleDQN, "train", train_then_interrupt)
+    with interrupted_past(400):
         assert main(args) == 128 + signal.SIGINT
     assert main(["run", "--resume", str(run), "--no-progress"]) == 0
     with (run / "episodes.csv").open() as f:

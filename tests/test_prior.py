@@ -631,6 +631,17 @@ def test_the_predicted_crop_lines_up_with_the_cells_of_the_map() -> None:
         assert unknown.any()
 
 
+def test_without_the_ego_view_there_is_no_predicted_ego() -> None:
+    def half(seen: np.ndarray, free: np.ndarray) -> np.ndarray:
+        return np.where(seen, ~free, 0.5).astype(float)
+
+    space = _predicted_env(half, ego=0).observation_space("agent_0")
+    assert {k for k in space.spaces if k.startswith("predicted_")} == {
+        "predicted_local",
+        "predicted_global",
+    }
+
+
 def test_predicted_views_without_a_prior_are_refused() -> None:
     from envs import coverage_v0
 

@@ -491,7 +491,8 @@ def tune_temperature(
         policy = model_policy(target.model, temperature, ev.shield)
         summary = summarize(run_episodes(policy, target.config.env, episodes, target.seed))
         keys = task_of(target.config.env).tune_keys
-        rows.append({"temperature": temperature, **{k: summary[k] for k in keys}})
+        # (a task's optional keys, a pettingzoo env's ``groups`` and ``select``, where it has them)
+        rows.append({"temperature": temperature, **{k: summary[k] for k in keys if k in summary}})
     return {
         "policy": target.label,
         "seed": target.seed,

@@ -485,3 +485,132 @@ def test_a_per_group_model_saved_before_it_recorded_its_groups(per_group_run, tm
     assert main(["eval", str(run), "--episodes", "1", "--set", "algo.sharing=per_agent"]) == 2
     line = one_error_line(capsys.readouterr().err)
     assert "trained with algo.sharing: per_group (one network for each of 2 groups); " in line
+
+
+# ------------------------------------------- env.pettingzoo.select: choices by one group's return
+def test_the_selection_rule_reads_the_summarys_group():
+    from harness.tasks import objective_value, selection_score
+
+    groups = {
+        "chaser": {"return_mean": 1.5, "return_median": 2.0},
+        "runner": {"return_mean": -1.5, "return_median": -2.0},
+    }
+    summary = {"source": "pettingzoo", "return_mean": 0.0, "return_median": 0.0, "groups": groups}
+    assert selection_score(summary) == objective_value(summary) == 0.0  # the team's
+    assert selection_score({**summary, "select": "runner"}) == -1.5
+    assert objective_value({**summary, "select": "runner"}) == -2.0
+    assert selection_score({**summary, "select": "chaser"}) == 1.5
+
+
+def selecting(select: str, **pettingzoo) -> dict:
+    raw = config(select=select, **pettingzoo)
+    # Six evaluations of a sampling policy (the greedy one of so short a run plays alike).
+    raw["eval"].update(every=20, temperature=1.0)
+    raw["algo"]["learning_starts"] = 10  # (Q-values that move between evaluations)
+    raw["phases"][0].update(learning_rate=0.05, train_freq=1)
+    return raw
+
+
+def test_the_summary_carries_the_selected_group():
+    env = config_from_dict(config(select="runner")).env
+    summary = summarize(run_episodes(make_baseline("random", 0), env, 2, 0))
+    assert summary["select"] == "runner"
+    assert "select" not in summarize(
+        run_episodes(make_baseline("random", 0), config_from_dict(config()).env, 2, 0)
+    )
+
+
+def test_best_model_follows_the_selected_group(tmp_path, monkeypatch):
+    import csv
+
+    from harness.tasks.pettingzoo import PettingZooTask
+    from harness.training import train as training
+
+    summaries, saved = [], []
+    record, save = PettingZooTask.record_evaluation, training.save_model
+    monkeypatch.setattr(
+        PettingZooTask,
+        "record_evaluation",
+        staticmethod(lambda summary, rec: (summaries.append(summary), record(summary, rec))),
+    )
+    monkeypatch.setattr(
+        training,
+        "save_model",
+        lambda model, path: (
+            saved.append((int(model.num_timesteps), path.name)),
+            save(model, path),
+        ),
+    )
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml.safe_dump(selecting("chaser")))
+    assert main(["run", str(path), "--no-progress", "--into", str(tmp_path / "run")]) == 0
+    assert {s["return_mean"] for s in summaries} == {0.0}  # the team's: every evaluation ties
+    best, expected = -np.inf, []
+    with (tmp_path / "run" / "evaluations.csv").open() as f:
+        steps = [int(row["timesteps"]) for row in csv.DictReader(f)]
+    for step, s in zip(steps, summaries, strict=True):
+        if s["groups"]["chaser"]["return_mean"] > best:
+            best, expected = s["groups"]["chaser"]["return_mean"], [*expected, step]
+    assert len(expected) > 1  # (the team's return would keep the first evaluation's model only)
+    assert [step for step, name in saved if name == "best_model.zip"] == expected
+
+
+def test_tune_chooses_by_the_selected_groups_return(per_group_run, capsys):
+    args = ["tune", str(per_group_run), "--episodes", "3", "--temperatures", "0", "0.5", "1", "2"]
+    assert main([*args, "--set", "env.pettingzoo.select=runner"]) == 0
+    out = capsys.readouterr().out
+    assert "(return of group runner)" in out and "(team return)" not in out
+    tune = json.loads((per_group_run / "tune-env.pettingzoo.select-runner.json").read_text())
+    rows = tune["rows"]
+    assert {r["return_mean"] for r in rows} == {0.0}  # the team's: T = 0 by the tie rule
+    runner = [r["groups"]["runner"]["return_mean"] for r in rows]
+    assert tune["chosen"] == rows[runner.index(max(runner))]["temperature"] != 0.0
+
+
+def test_a_sweeps_trial_value_is_the_selected_groups_return(tmp_path, capsys, monkeypatch):
+    from harness.tasks.pettingzoo import PettingZooTask
+
+    summaries = []
+    summarize_ = PettingZooTask.summarize
+    monkeypatch.setattr(
+        PettingZooTask,
+        "summarize",
+        classmethod(lambda cls, results: summaries.append(summarize_(results)) or summaries[-1]),
+    )
+    raw = config(select="chaser")
+    raw["eval"]["temperature"] = 1.0  # (the greedy chasers of so short a run catch nothing)
+    path = tmp_path / "chase.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    space = tmp_path / "space.yaml"
+    space.write_text("algo.gamma: {float: [0.8, 0.99]}\n")
+    sweeps = tmp_path / "sweeps"
+    args = ["sweep", str(path), "--space", str(space), "--trials", "2", "--sweeps-dir", str(sweeps)]
+    assert main(args) == 0
+    assert "validation return of group chaser" in capsys.readouterr().out
+    best = json.loads((sweeps / "chase" / "best.json").read_text())
+    assert best["objective"] == "median return of group chaser of the config's validation episodes"
+    assert best["select"] == "chaser"
+    chasers = [s["groups"]["chaser"]["return_median"] for s in summaries]
+    assert best["value"] == max(chasers) != 0.0 and len(chasers) == 2  # (the team's median: 0)
+
+
+@pytest.mark.parametrize(
+    ("raw", "expected"),
+    [
+        (config(select="hunter"), "env.pettingzoo.select: 'hunter' is no group of the env "
+         "(its groups: chaser, runner)"),
+        (config(select="runner", kwargs={"chasers": 0}), "env.pettingzoo.select: 'runner': the "
+         "agents form one group ('runner'), whose return is the team's: nothing to select"),
+        (config(select="c", groups={"a": ["chaser_0", "chaser_1"], "b": ["runner_0"]}),
+         "env.pettingzoo.select: 'c' is no group of the env (its groups: a, b)"),
+        (config(select=3), "env.pettingzoo.select: Input should be a valid string"),
+    ],
+    ids=["unknown", "one-group", "unknown-named", "not-a-name"],
+)  # fmt: skip
+def test_a_bad_select_is_refused_in_one_line(tmp_path, capsys, raw, expected):
+    path = tmp_path / "c.yaml"
+    path.write_text(yaml.safe_dump(raw))
+    assert main(["run", str(path), "--runs-dir", str(tmp_path / "runs")]) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert expected in line, line
+    assert not (tmp_path / "runs").exists()

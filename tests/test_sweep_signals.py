@@ -67,7 +67,7 @@ def test_a_sigterm_in_a_round_the_pruner_ends_stops_the_sweep(tiny, tmp_path, mo
     # Every trial is pruned at its first evaluation, and SIGTERM lands in that evaluation: the
     # pruner's exception leaves training before it reads its stop flag.
     monkeypatch.setattr(sweep, "make_pruner", lambda name: optuna.pruners.ThresholdPruner(1.01))
-    _signal_on_first_call(monkeypatch, episodes_module, "headline", signal.SIGTERM)
+    _signal_on_first_call(monkeypatch, episodes_module, "objective_value", signal.SIGTERM)
     args = [*sweep_args(tiny, tmp_path), "--trials", "3", "--quiet"]
     assert main(args) == 143
     assert trial_states(tmp_path / "sweeps" / "tiny") == ["PRUNED"]

@@ -525,6 +525,24 @@ def agent_groups(
     return {name: tuple(a for a in agents if seen[a] == name) for name in named}
 
 
+def check_select(select: str, groups: Mapping[str, Any]) -> None:
+    """Refuse an ``env.pettingzoo.select`` that names none of ``groups`` (the agents' groups), or
+    any where the agents form one group (its return is the team's: nothing to select).
+
+    Raises:
+        ValueError: one line (without the key: the caller's).
+    """
+    if len(groups) < 2:
+        (name,) = groups
+        raise ValueError(
+            f"{select!r}: the agents form one group ({name!r}), whose return is the team's: "
+            "nothing to select (leave it out, or name two groups or more in "
+            "env.pettingzoo.groups)"
+        )
+    if select not in groups:
+        raise ValueError(f"{select!r} is no group of the env (its groups: {', '.join(groups)})")
+
+
 def indicated_spaces(spaces: EnvSpaces, width: int | None = None) -> EnvSpaces:
     """``spaces`` with each observation followed by the agent's one-hot index (SuperSuit's agent
     indication, :class:`AgentIndicator`): a vector ``(d,)`` becomes ``(d + n,)``, an image

@@ -40,6 +40,7 @@ from pydantic import (
     PositiveInt,
     PrivateAttr,
     Tag,
+    ValidationInfo,
     field_validator,
     model_validator,
 )
@@ -55,6 +56,7 @@ from harness.config.pettingzoo import (
     DEFAULT_STEP_LIMIT,
     EnvSpaces,
     agent_groups,
+    check_select,
     indicated_spaces,
     masked,
     probe,
@@ -388,6 +390,11 @@ class PettingZooSource(_Section):
     every agent in one (:func:`harness.config.pettingzoo.agent_groups`); ``null``: by name
     prefix. An agent in two groups is refused with the config; one that is no agent of the env,
     or an agent in none, where the run starts (the env built)."""
+    select: str | None = None
+    """The group whose mean return the harness's choices on validation episodes maximise
+    (``best_model.zip``, ``harness tune``'s temperature, a sweep's trial value): one of
+    :attr:`groups` (or of the groups by name prefix), of two or more; ``null``: the team's return
+    (a competitive env's sides cancel in it)."""
     _spaces: EnvSpaces | None = PrivateAttr(default=None)
 
     @field_validator("groups")
@@ -405,6 +412,15 @@ class PettingZooSource(_Section):
                 if agent in seen:
                     raise ValueError(f"{agent!r} is in {seen[agent]!r} and {name!r}")
                 seen[agent] = name
+        return v
+
+    @field_validator("select")
+    @classmethod
+    def _select_named(cls, v: str | None, info: ValidationInfo) -> str | None:
+        # Named groups are known without the env: checked now (else where the run starts).
+        named = info.data.get("groups")
+        if v is not None and named is not None:
+            check_select(v, named)
         return v
 
     @field_validator("kwargs")
@@ -488,6 +504,21 @@ class PettingZooEnvConfig(_Section):
         return agent_groups(self.pettingzoo.spaces.agents, self.pettingzoo.groups)
 
     @property
+    def select(self) -> str | None:
+        """``env.pettingzoo.select`` checked against the env's :attr:`groups` (the env built).
+
+        Raises:
+            ValueError: one line naming ``env.pettingzoo.select``.
+        """
+        select = self.pettingzoo.select
+        if select is not None:
+            try:
+                check_select(select, self.groups)
+            except ValueError as exc:
+                raise ValueError(f"env.pettingzoo.select: {exc}") from None
+        return select
+
+    @property
     def id_width(self) -> int:
         """Entries of the one-hot index that agent indication appends: one per agent, or one per
         group (:attr:`by_group`)."""
@@ -556,6 +587,7 @@ class PettingZooEnvConfig(_Section):
         spaces = self.pettingzoo.spaces
         algo = config.algo
         groups = self.groups  # (the named groups against the env's agents: ValueError)
+        _ = self.select  # (the selected group against them: ValueError)
         if algo.sharing == "per_group" and len(groups) < 2:
             config.check_groups()
         if algo.sharing != "shared":

@@ -18,7 +18,7 @@ import numpy as np
 
 from envs.coverage import CoverageEnv
 from envs.coverage.observations import blocked_moves
-from harness.tasks import headline, selection_score, summarize, task_of
+from harness.tasks import headline, objective_value, selection_score, summarize, task_of
 from harness.tasks.base import EpisodesStopped, TooManyFrames, mean_interval
 from harness.tasks.coverage import (
     CHECKPOINT_FRACTIONS,
@@ -46,6 +46,7 @@ __all__ = [
     "mean_interval",
     "median_steps_to",
     "model_policy",
+    "objective_value",
     "physical_bound",
     "run_episodes",
     "sample_categorical",

@@ -20,6 +20,7 @@ __all__ = [
     "Task",
     "TooManyFrames",
     "headline",
+    "objective_value",
     "selection_score",
     "summarize",
     "task_of",
@@ -68,8 +69,14 @@ def headline(summary: dict[str, Any], stat: str = "median") -> float:
     return task_of_summary(summary).headline(summary, stat)
 
 
+def objective_value(summary: dict[str, Any]) -> float:
+    """A sweep's trial value: its task's :meth:`~harness.tasks.base.Task.objective_value` (the
+    headline's median; a pettingzoo env's ``env.pettingzoo.select`` group's, if it names one)."""
+    return task_of_summary(summary).objective_value(summary)
+
+
 def selection_score(summary: dict[str, Any]) -> float:
     """The one number a policy is chosen by (its task's rule): ``best_model.zip`` (the best
-    in-training evaluation) and ``harness tune`` (the test temperature) both choose by it.
-    Higher is better."""
+    in-training evaluation) and ``harness tune`` (the test temperature) both choose by it (a
+    pettingzoo env's: by the ``select`` group the summary names, if any). Higher is better."""
     return task_of_summary(summary).selection_score(summary)

@@ -219,9 +219,26 @@ class Task(ABC):
         """The per-episode numbers an evaluation file keeps."""
 
     @classmethod
-    def objective(cls) -> str:
-        """What a sweep's trial value is."""
-        return f"median {cls.metric} of the config's validation episodes"
+    def objective(cls, select: str | None = None) -> str:
+        """What a sweep's trial value is (``select``: the group it maximises, :attr:`select`)."""
+        return f"median {cls.selection_metric(select)} of the config's validation episodes"
+
+    @classmethod
+    def objective_value(cls, summary: dict[str, Any]) -> float:
+        """A sweep's trial value (:meth:`objective`): the headline's median."""
+        return cls.headline(summary)
+
+    @classmethod
+    def selection_metric(cls, select: str | None = None) -> str:
+        """What the choices on validation episodes maximise, in words (tune's table, a sweep's
+        objective): the headline's metric (``select``: a task's group, :attr:`select`)."""
+        return cls.metric
+
+    @property
+    def select(self) -> str | None:
+        """The group of agents whose return the choices on validation episodes maximise
+        (``None``: the task's own rule, :meth:`selection_score`)."""
+        return None
 
     @classmethod
     def format_value(cls, value: float) -> str:

@@ -63,6 +63,8 @@ class TeamEpisodeResult:
     """``rgb_array`` frames at step 0, every ``frames_every`` steps and the last step."""
     groups: dict[str, tuple[str, ...]] = field(default_factory=dict)
     """The agents' groups (:func:`harness.config.pettingzoo.agent_groups`; empty: one)."""
+    select: str | None = None
+    """The group whose return choices maximise (``env.pettingzoo.select``; ``None``: the team)."""
 
     @property
     def team_return(self) -> float:
@@ -103,7 +105,8 @@ def summarize(results: list[TeamEpisodeResult]) -> dict[str, Any]:
     interval, quartiles, range), the mean length, each agent's mean return and the means of its
     numeric infos, and each info key's mean over episodes of the team's mean. ``coverage_mean``
     and ``coverage_median`` (the team's mean ``coverage`` info) only where the env reports a
-    ``coverage`` info."""
+    ``coverage`` info; ``select``, the group the choices maximise
+    (:meth:`PettingZooTask.selection_score`), only where the config names one."""
     agents = results[0].agents
     team = np.array([r.team_return for r in results])
     q1, q3 = np.percentile(team, [25, 75])
@@ -156,6 +159,8 @@ def summarize(results: list[TeamEpisodeResult]) -> dict[str, Any]:
                 "return_q1": float(g1),
                 "return_q3": float(g3),
             }
+    if results[0].select is not None:  # (the summary carries the rule to every choice)
+        summary["select"] = results[0].select
     if "coverage" in keys:
         coverage = info_values("coverage")
         summary["coverage_mean"] = _nanmean(coverage)
@@ -195,6 +200,7 @@ class PettingZooPlayer(EpisodePlayer):
         self.zeros = blank_observation(spaces.observation_space)
         self.limit = env.pettingzoo.step_limit
         self.groups = env.groups
+        self.select = env.select
         self.envs = [make_env(env, render_mode) for _ in range(copies)]
 
     def reset(self, seeds: Sequence[int]) -> Any:
@@ -275,6 +281,7 @@ class PettingZooPlayer(EpisodePlayer):
                     infos={key: [info.get(key, np.nan) for info in per_agent] for key in keys},
                     frames=frames[i],
                     groups=self.groups,
+                    select=self.select,
                 )
             )
         return out
@@ -293,7 +300,16 @@ class PettingZooTask(Task):
     prefix = "return"
     percent = False
     compare_keys = ("return_median", "return_iqr", "return_mean")
-    tune_keys = ("source", "return_median", "return_q1", "return_q3", "return_mean")
+    #: (``groups`` and ``select`` where the summary has them: a selected group's rows.)
+    tune_keys = (
+        "source",
+        "return_median",
+        "return_q1",
+        "return_q3",
+        "return_mean",
+        "groups",
+        "select",
+    )
     group_keys = ("seed", "return_mean", "return_median")
     #: The team's return (the sum of its agents'), each agent's (``a;b;c``), the length, and
     #: the numeric per-agent infos of the episode's last step as JSON (``{"key": [a, b, c]}``).
@@ -340,6 +356,11 @@ class PettingZooTask(Task):
         (:func:`harness.config.pettingzoo.agent_groups`)."""
         return self.env.groups
 
+    @property
+    def select(self) -> str | None:
+        """``env.pettingzoo.select`` (checked against the groups where the run started)."""
+        return self.env.pettingzoo.select
+
     def start(self, config: Any) -> tuple[Any, Any]:
         try:
             self.env.pettingzoo.probe()  # the constructor: once, here
@@ -352,6 +373,7 @@ class PettingZooTask(Task):
     def player(self, copies: int, render_mode: str | None, record_paths: bool) -> EpisodePlayer:
         try:  # the constructor, where nothing built the env yet (an evaluation's start)
             self.env.pettingzoo.probe()
+            _ = self.env.select  # (a --set one against the env's groups)
         except ValueError as exc:
             raise ConfigError(str(exc)) from None
         return PettingZooPlayer(self.env, copies, render_mode, record_paths)
@@ -385,8 +407,25 @@ class PettingZooTask(Task):
 
     @classmethod
     def selection_score(cls, summary: dict[str, Any]) -> float:
-        """The mean team return."""
-        return float(summary["return_mean"])
+        """The mean return of the summary's ``select`` group, else the team's."""
+        return cls._selected(summary, "mean")
+
+    @classmethod
+    def objective_value(cls, summary: dict[str, Any]) -> float:
+        """The median return of the summary's ``select`` group, else the team's."""
+        return cls._selected(summary, "median")
+
+    @classmethod
+    def _selected(cls, summary: dict[str, Any], stat: str) -> float:
+        # The one rule of every choice on validation episodes: a competitive env's sides cancel
+        # in the team's return (a zero-sum env's is always 0), so a config may name a side.
+        select = summary.get("select")
+        numbers = summary if select is None else summary["groups"][select]
+        return float(numbers[f"return_{stat}"])
+
+    @classmethod
+    def selection_metric(cls, select: str | None = None) -> str:
+        return cls.metric if select is None else f"return of group {select}"
 
     @classmethod
     def per_episode(cls, results: list[Any]) -> dict[str, list[Any]]:
@@ -426,10 +465,13 @@ class PettingZooTask(Task):
 
     @classmethod
     def format_tune(cls, result: dict[str, Any]) -> list[str]:
-        lines = [f"{'T':>6}{'median':>10}{'q1':>10}{'q3':>10}{'mean':>10}   (team return)"]
+        select = result["rows"][0].get("select")
+        what = cls.selection_metric(select)
+        lines = [f"{'T':>6}{'median':>10}{'q1':>10}{'q3':>10}{'mean':>10}   ({what})"]
         for r in result["rows"]:
             mark = "  <- chosen" if r["temperature"] == result["chosen"] else ""
-            numbers = (r[f"return_{k}"] for k in ("median", "q1", "q3", "mean"))
+            row = r if select is None else r["groups"][select]  # (the numbers chosen by)
+            numbers = (row[f"return_{k}"] for k in ("median", "q1", "q3", "mean"))
             lines.append(f"{r['temperature']:>6g}" + "".join(f"{v:>10.4g}" for v in numbers) + mark)
         return lines
 

@@ -973,7 +973,8 @@ def _objective(
     on_signal: Callable[[int], None] | None = None,
 ) -> float:
     """Train one trial into its own run folder; its value is the median validation coverage
-    (a PettingZoo env of one's own: the median team return, :func:`headline`).
+    (a PettingZoo env of one's own: the median team return, or the ``env.pettingzoo.select``
+    group's, :func:`objective_value`).
     The folder's lock goes onto ``lock`` (the caller releases it once Optuna has recorded the
     trial's end); ``started`` receives the folder; ``on_signal`` hears of a signal that
     reaches the trial's training (``train``'s).
@@ -984,7 +985,7 @@ def _objective(
     """
     import optuna
 
-    from harness.evaluation.episodes import headline, model_policy, run_episodes, summarize
+    from harness.evaluation.episodes import model_policy, objective_value, run_episodes, summarize
     from harness.training.train import train
 
     _claim(trial, total)
@@ -997,7 +998,7 @@ def _objective(
     last: dict[str, Any] = {}
 
     def report(timesteps: int, summary: dict[str, Any]) -> None:
-        last.update(timesteps=timesteps, value=headline(summary))
+        last.update(timesteps=timesteps, value=objective_value(summary))
         trial.report(last["value"], timesteps)
         if trial.should_prune():
             raise optuna.TrialPruned(f"pruned at {timesteps} transitions")
@@ -1035,13 +1036,14 @@ def _objective(
         )
     except OSError as exc:  # a full disk: one line that names where, not Optuna's traceback
         raise _trial_file_error(exc, trial.number, run.path) from None
-    return headline(summarize(results))
+    return objective_value(summarize(results))
 
 
-#: What a trial's value is (``best.json``'s ``objective``): :func:`headline` of the validation
-#: episodes of the trained model (its task's objective, :meth:`harness.tasks.base.Task.objective`,
-#: "median coverage of the config's validation episodes" for the coverage env); for a map
-#: prior (``prior:``): higher is better, as for the others.
+#: What a trial's value is (``best.json``'s ``objective``): :func:`objective_value` of the
+#: validation episodes of the trained model (its task's objective,
+#: :meth:`harness.tasks.base.Task.objective`, "median coverage of the config's validation
+#: episodes" for the coverage env); for a map prior (``prior:``): higher is better, as for the
+#: others.
 PRIOR_OBJECTIVE = "minus the mean log-loss per unseen cell of the validation episodes' maps"
 
 
@@ -1091,13 +1093,12 @@ def write_best(
         config_path, [*overrides, *(override(k, v) for k, v in best.params.items())]
     )
     atomic_write_text(sweep_file(folder, BEST_CONFIG), config.to_yaml())
+    task = task_of(config.env)
     result = {
         "study": study.study_name,
         "trial": best.number,
         "value": best.value,
-        "objective": (
-            PRIOR_OBJECTIVE if config.prior is not None else task_of(config.env).objective()
-        ),
+        "objective": PRIOR_OBJECTIVE if config.prior is not None else task.objective(task.select),
         "params": best.params,
         "run": best.user_attrs.get("run"),
         "trials": {
@@ -1105,6 +1106,8 @@ def write_best(
             for state in optuna.trial.TrialState
         },
     }
+    if task.select is not None:  # (format_best's words: the group's return, not the team's)
+        result["select"] = task.select
     atomic_write_text(sweep_file(folder, BEST_RESULT), json.dumps(result, indent=2) + "\n")
     return result
 
@@ -1113,11 +1116,12 @@ def format_best(result: dict[str, Any] | None) -> str:
     if result is None:
         return "no trial has completed yet"
     params = ", ".join(f"{k}={v!r}" for k, v in result["params"].items())
-    task = next((t for t in TASKS if t.objective() == result.get("objective")), TASKS[0])
+    select = result.get("select")
+    task = next((t for t in TASKS if t.objective(select) == result.get("objective")), TASKS[0])
     if result.get("objective") == PRIOR_OBJECTIVE:
         value = f"validation unseen_logloss {-result['value']:.4f}"
     else:
-        value = f"validation {task.metric} {task.format_value(result['value'])}"
+        value = f"validation {task.selection_metric(select)} {task.format_value(result['value'])}"
     return (
         f"best trial {result['trial']}: {value} ({params}); "
         f"trials {yaml.safe_dump(result['trials'], default_flow_style=True).strip()}"

@@ -178,9 +178,28 @@ def test_an_agent_in_two_groups_is_refused_with_the_config():
             per_group(kwargs={"chasers": 0}),
             "algo.sharing: per_group: the agents form one group ('runner': runner_0)",
         ),
+        # env.pettingzoo.select names a group of two or more (checked at load where the groups
+        # are named, else where the run starts)
+        (
+            config(select="hunter"),
+            "env.pettingzoo.select: 'hunter' is no group of the env (its groups: chaser, runner)",
+        ),
+        (
+            config(select="runner", kwargs={"chasers": 0}),
+            "env.pettingzoo.select: 'runner': the agents form one group ('runner'), whose "
+            "return is the team's: nothing to select",
+        ),
+        (
+            config(select="c", groups={"a": ["chaser_0", "chaser_1"], "b": ["runner_0"]}),
+            "env.pettingzoo.select: 'c' is no group of the env (its groups: a, b)",
+        ),
+        (config(select=3), "env.pettingzoo.select: Input should be a valid string"),
     ],
-    ids=["unknown-agent", "agent-in-no-group", "one-group"],
-)
+    ids=[
+        "unknown-agent", "agent-in-no-group", "one-group", "select-unknown", "select-one-group",
+        "select-unknown-named", "select-not-a-name",
+    ],
+)  # fmt: skip
 def test_groups_that_do_not_fit_the_env_are_refused_at_the_start(tmp_path, capsys, raw, expected):
     path = tmp_path / "c.yaml"
     path.write_text(yaml.safe_dump(raw))
@@ -592,25 +611,3 @@ def test_a_sweeps_trial_value_is_the_selected_groups_return(tmp_path, capsys, mo
     assert best["select"] == "chaser"
     chasers = [s["groups"]["chaser"]["return_median"] for s in summaries]
     assert best["value"] == max(chasers) != 0.0 and len(chasers) == 2  # (the team's median: 0)
-
-
-@pytest.mark.parametrize(
-    ("raw", "expected"),
-    [
-        (config(select="hunter"), "env.pettingzoo.select: 'hunter' is no group of the env "
-         "(its groups: chaser, runner)"),
-        (config(select="runner", kwargs={"chasers": 0}), "env.pettingzoo.select: 'runner': the "
-         "agents form one group ('runner'), whose return is the team's: nothing to select"),
-        (config(select="c", groups={"a": ["chaser_0", "chaser_1"], "b": ["runner_0"]}),
-         "env.pettingzoo.select: 'c' is no group of the env (its groups: a, b)"),
-        (config(select=3), "env.pettingzoo.select: Input should be a valid string"),
-    ],
-    ids=["unknown", "one-group", "unknown-named", "not-a-name"],
-)  # fmt: skip
-def test_a_bad_select_is_refused_in_one_line(tmp_path, capsys, raw, expected):
-    path = tmp_path / "c.yaml"
-    path.write_text(yaml.safe_dump(raw))
-    assert main(["run", str(path), "--runs-dir", str(tmp_path / "runs")]) == 2
-    line = one_error_line(capsys.readouterr().err)
-    assert expected in line, line
-    assert not (tmp_path / "runs").exists()

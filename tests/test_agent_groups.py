@@ -611,3 +611,13 @@ def test_a_sweeps_trial_value_is_the_selected_groups_return(tmp_path, capsys, mo
     assert best["select"] == "chaser"
     chasers = [s["groups"]["chaser"]["return_median"] for s in summaries]
     assert best["value"] == max(chasers) != 0.0 and len(chasers) == 2  # (the team's median: 0)
+
+
+@pytest.mark.parametrize("command", ["tune", "eval"])
+def test_a_bad_select_through_set_is_one_line(per_group_run, command, capsys):
+    args = [command, str(per_group_run), "--episodes", "1", "--set", "env.pettingzoo.select=hunter"]
+    before = sorted(p.name for p in per_group_run.iterdir())
+    assert main(args) == 2
+    line = one_error_line(capsys.readouterr().err)
+    assert "env.pettingzoo.select: 'hunter' is no group of the env" in line, line
+    assert sorted(p.name for p in per_group_run.iterdir()) == before

@@ -270,6 +270,7 @@ class TeamMapObservation(ObservationBuilder):
         self._block_of = np.full((height + 2 * p, width + 2 * p), -1, dtype=np.int64)
         self._block_of[p : p + height, p : p + width] = flat.reshape(height, width)
         self._block_of = self._block_of.ravel()
+        self._in_map = self._block_of >= 0  # the padded cells inside the map (the prior's views)
         self._scale3 = np.array(
             [1.0 / max(height - 1, 1), 1.0 / max(width - 1, 1)], dtype=np.float32
         )
@@ -402,7 +403,7 @@ class TeamMapObservation(ObservationBuilder):
         windows = np.lib.stride_tricks.sliding_window_view(free, (c, c))
         out["predicted_local"][:, 0] = np.rint(255.0 * windows[rows, cols])
         g = self.global_size
-        inside = self._block_of >= 0
+        inside = self._in_map
         sums = np.bincount(self._block_of[inside], weights=free.ravel()[inside], minlength=g * g)
         share = np.where(self._block_cells > 0, sums / np.maximum(self._block_cells, 1), 0.0)
         out["predicted_global"][:, 0] = np.rint(255.0 * share).reshape(g, g)

@@ -63,7 +63,7 @@ def network_kwargs(
     kwargs: dict[str, Any] = {"net_arch": list(algo.net_arch)}
     if per_network(algo):
         kwargs["n_agents"] = n_agents
-    if algo.sharing == "per_group" and groups is not None:
+    if groups is not None:  # (per_group's: network_groups)
         kwargs["groups"] = {name: list(members) for name, members in groups.items()}
     if entry.dueling:
         kwargs["aggregator"] = algo.dueling_aggregator
